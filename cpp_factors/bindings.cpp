@@ -1,0 +1,226 @@
+// Python bindings (nanobind) of the vehicle-model kernel in kernel.hpp: module aqfg._kernel.
+// Signatures follow what aqfg/model.py calls; shapes are checked here and a bad one raises
+// ValueError naming the argument.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+
+#include <chrono>
+#include <cstdint>
+#include <initializer_list>
+#include <string>
+#include <tuple>
+
+#include "kernel.hpp"
+
+namespace nb = nanobind;
+namespace kn = aqfg::kernel;
+
+namespace {
+
+using InF64 = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
+using InU8 = nb::ndarray<const std::uint8_t, nb::c_contig, nb::device::cpu>;
+using InI64 = nb::ndarray<const std::int64_t, nb::c_contig, nb::device::cpu>;
+using OutF64 = nb::ndarray<nb::numpy, double>;
+
+constexpr std::int64_t ANY = -1;
+
+template <class Arr>
+std::string shape_str(const Arr& a) {
+  std::string s = "(";
+  for (std::size_t i = 0; i < a.ndim(); ++i) {
+    if (i) s += ", ";
+    s += std::to_string(a.shape(i));
+  }
+  return s + (a.ndim() == 1 ? ",)" : ")");
+}
+
+// Raise ValueError unless `a` has the shape `want` (ANY = any length on that axis).
+template <class Arr>
+void check_shape(const char* fn, const char* name, const Arr& a,
+                 std::initializer_list<std::int64_t> want, const char* meaning) {
+  bool ok = a.ndim() == want.size();
+  std::size_t i = 0;
+  for (auto w : want) {
+    if (!ok) break;
+    ok = (w == ANY) || (static_cast<std::int64_t>(a.shape(i)) == w);
+    ++i;
+  }
+  if (!ok)
+    throw nb::value_error((std::string(fn) + ": argument '" + name + "' must have shape " +
+                           meaning + ", got " + shape_str(a))
+                              .c_str());
+}
+
+OutF64 new_array(std::initializer_list<std::size_t> shape, double*& data) {
+  std::size_t n = 1;
+  for (auto s : shape) n *= s;
+  data = new double[n > 0 ? n : 1];
+  nb::capsule owner(data, [](void* p) noexcept { delete[] static_cast<double*>(p); });
+  return OutF64(data, shape.size(), shape.begin(), owner);
+}
+
+// The geometry and step arguments shared by propagate / propagate_many / rollout.
+struct Inputs {
+  kn::Steps steps;
+  kn::Geometry geom;
+};
+
+Inputs check_inputs(const char* fn, const InF64& p, const InF64& h, const InU8& warm,
+                    const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
+                    const InF64& side, bool planar) {
+  check_shape(fn, "p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
+  check_shape(fn, "h", h, {ANY}, "(n,)");
+  const std::int64_t n = static_cast<std::int64_t>(h.shape(0));
+  check_shape(fn, "dem", dem, {n, ANY}, "(n, N_thrusters) with n = len(h)");
+  const std::int64_t nt = static_cast<std::int64_t>(dem.shape(1));
+  check_shape(fn, "warm", warm, {n}, "(n,) with n = len(h)");
+  check_shape(fn, "R", R, {n, 9}, "(n, 9) with n = len(h)");
+  check_shape(fn, "tm", tm, {n}, "(n,) with n = len(h)");
+  check_shape(fn, "dirs", dirs, {nt, 3}, "(N_thrusters, 3) with N_thrusters = dem.shape[1]");
+  check_shape(fn, "side", side, {nt}, "(N_thrusters,) with N_thrusters = dem.shape[1]");
+  return Inputs{kn::Steps{h.data(), warm.data(), R.data(), dem.data(), tm.data(), n},
+                kn::Geometry{dirs.data(), side.data(), nt, planar}};
+}
+
+std::tuple<OutF64, OutF64, OutF64> py_propagate(const InF64& x0, const InF64& p, const InF64& h,
+                                                const InU8& warm, const InF64& R,
+                                                const InF64& dem, const InF64& tm,
+                                                const InF64& dirs, const InF64& side,
+                                                bool planar) {
+  const char* fn = "propagate";
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  double *x1, *Jx, *Jp;
+  OutF64 ax1 = new_array({6}, x1), aJx = new_array({6, 6}, Jx),
+         aJp = new_array({6, kn::N_DYN}, Jp);
+  kn::propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
+  return {ax1, aJx, aJp};
+}
+
+std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF64& p,
+                                                     const InF64& h, const InU8& warm,
+                                                     const InF64& R, const InF64& dem,
+                                                     const InF64& tm, const InI64& offsets,
+                                                     const InF64& dirs, const InF64& side,
+                                                     bool planar) {
+  const char* fn = "propagate_many";
+  check_shape(fn, "X0", X0, {ANY, 6}, "(K, 6)");
+  const std::int64_t K = static_cast<std::int64_t>(X0.shape(0));
+  check_shape(fn, "offsets", offsets, {K + 1}, "(K + 1,) with K = X0.shape[0]");
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  const std::int64_t* off = offsets.data();
+  for (std::int64_t k = 0; k <= K; ++k) {
+    if (off[k] < 0 || off[k] > in.steps.n || (k > 0 && off[k] < off[k - 1]))
+      throw nb::value_error(("propagate_many: argument 'offsets' must be non-decreasing "
+                             "within [0, len(h)] = [0, " +
+                             std::to_string(in.steps.n) + "]; offsets[" + std::to_string(k) +
+                             "] = " + std::to_string(off[k]))
+                                .c_str());
+  }
+  double *X1, *JX, *JP;
+  const std::size_t Ks = static_cast<std::size_t>(K);
+  OutF64 a1 = new_array({Ks, 6}, X1), a2 = new_array({Ks, 6, 6}, JX),
+         a3 = new_array({Ks, 6, kn::N_DYN}, JP);
+  {
+    nb::gil_scoped_release release;
+    kn::propagate_many(X0.data(), p.data(), in.steps, off, K, in.geom, X1, JX, JP);
+  }
+  return {a1, a2, a3};
+}
+
+OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
+                  const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
+                  const InF64& side, bool planar) {
+  const char* fn = "rollout";
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  double* X;
+  OutF64 out = new_array({static_cast<std::size_t>(in.steps.n), 6}, X);
+  {
+    nb::gil_scoped_release release;
+    kn::rollout(x0.data(), p.data(), in.steps, in.geom, X);
+  }
+  return out;
+}
+
+std::tuple<OutF64, OutF64, OutF64> py_accel(const InF64& v, const InF64& R_raw, const InF64& d,
+                                            const InF64& dd_tau, double tm, const InF64& p,
+                                            const InF64& dirs, const InF64& side,
+                                            bool planar) {
+  const char* fn = "accel";
+  check_shape(fn, "v", v, {3}, "(3,)");
+  if (R_raw.ndim() == 2)
+    check_shape(fn, "R_raw", R_raw, {3, 3}, "(9,) or (3, 3)");
+  else
+    check_shape(fn, "R_raw", R_raw, {9}, "(9,) or (3, 3)");
+  check_shape(fn, "p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
+  check_shape(fn, "d", d, {ANY}, "(N_thrusters,)");
+  const std::int64_t nt = static_cast<std::int64_t>(d.shape(0));
+  check_shape(fn, "dd_tau", dd_tau, {nt}, "(N_thrusters,) with N_thrusters = len(d)");
+  check_shape(fn, "dirs", dirs, {nt, 3}, "(N_thrusters, 3) with N_thrusters = len(d)");
+  check_shape(fn, "side", side, {nt}, "(N_thrusters,) with N_thrusters = len(d)");
+  kn::Geometry g{dirs.data(), side.data(), nt, planar};
+  double *a, *A, *Jp;
+  OutF64 aa = new_array({3}, a), aA = new_array({3, 3}, A), aJ = new_array({3, kn::N_DYN}, Jp);
+  kn::accel(v.data(), R_raw.data(), d.data(), dd_tau.data(), tm, p.data(), g, a, A, Jp);
+  return {aa, aA, aJ};
+}
+
+// Seconds per propagate call, timed in C++ over `repeats` calls (no Python overhead).
+double py_bench_propagate(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
+                          const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
+                          const InF64& side, bool planar, int repeats) {
+  const char* fn = "bench_propagate";
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  if (repeats < 1) throw nb::value_error("bench_propagate: argument 'repeats' must be >= 1");
+  double x1[6], Jx[36], Jp[6 * kn::N_DYN];
+  volatile double sink = 0.0;
+  nb::gil_scoped_release release;
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int r = 0; r < repeats; ++r) {
+    kn::propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
+    sink = sink + x1[0] + Jp[0];
+  }
+  const auto t1 = std::chrono::steady_clock::now();
+  (void)sink;
+  return std::chrono::duration<double>(t1 - t0).count() / repeats;
+}
+
+}  // namespace
+
+NB_MODULE(_kernel, m) {
+  m.doc() =
+      "C++ vehicle-model kernel (mirror of aqfg.kernel_ref): integration of the inputs over a "
+      "segment with analytic Jacobians w.r.t. the start state and the N_DYN dynamics "
+      "parameters.";
+  m.attr("N_DYN") = static_cast<int>(kn::N_DYN);
+  nb::dict idx;
+  for (int i = 0; i < kn::N_DYN; ++i) idx[kn::PARAM_NAMES[i]] = i;
+  m.attr("PARAM_INDEX") = idx;
+
+  m.def("propagate", &py_propagate, nb::arg("x0"), nb::arg("p"), nb::arg("h"), nb::arg("warm"),
+        nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"),
+        nb::arg("planar"),
+        "State [pos, vel] (NED, m, m/s) after the steps; returns (x1 (6,), Jx (6, 6) = dx1/dx0, "
+        "Jp (6, N_DYN) = dx1/dp). As kernel_ref.propagate without user effects.");
+  m.def("propagate_many", &py_propagate_many, nb::arg("X0"), nb::arg("p"), nb::arg("h"),
+        nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("offsets"),
+        nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
+        "propagate for K segments (segment k: steps offsets[k]:offsets[k+1]); returns "
+        "(X1 (K, 6), JX (K, 6, 6), JP (K, 6, N_DYN)).");
+  m.def("rollout", &py_rollout, nb::arg("x0"), nb::arg("p"), nb::arg("h"), nb::arg("warm"),
+        nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"),
+        nb::arg("planar"),
+        "State after every step (n, 6), no Jacobians; warm-up steps repeat the state.");
+  m.def("accel", &py_accel, nb::arg("v"), nb::arg("R_raw"), nb::arg("d"), nb::arg("dd_tau"),
+        nb::arg("tm"), nb::arg("p"), nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
+        "Ground acceleration (3,) and its Jacobians w.r.t. v (3, 3) and p (3, N_DYN); as "
+        "kernel_ref.accel.");
+  m.def("bench_propagate", &py_bench_propagate, nb::arg("x0"), nb::arg("p"), nb::arg("h"),
+        nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"),
+        nb::arg("side"), nb::arg("planar"), nb::arg("repeats"),
+        "Seconds per propagate call, timed in C++ over `repeats` calls.");
+}

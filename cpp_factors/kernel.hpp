@@ -1,0 +1,391 @@
+// Vehicle-model kernel: C++ mirror of aqfg/kernel_ref.py (the numpy reference).
+//
+// Header-only so that a C++ estimator (e.g. an EKF loop) can #include it directly; the
+// Python bindings live in bindings.cpp. Every formula here has its twin in kernel_ref.py
+// and tests/test_kernel.py holds the two equal (values and Jacobians).
+//
+// Model (paper §II-D/E), per input step of length h, attitude R_raw and commands held:
+//   R   = Rz(theta_e + heading_drift.rate * tm) R_raw                          (Eq. 6)
+//   s   = [s_x + ds_x tm, s_y + ds_y tm, 0],  v_r = R^T (v - s)                 (Eq. 3)
+//   a_b = sum_i g_i d_i dir_i - kq .* sign(v_r) .* v_r^2 - kl .* v_r          (Eqs. 1, 2)
+//   a   = R a_b + [a_n, a_e, 0]  (vertical zeroed for planar vehicles)     (Eqs. 9, 10)
+//   x  += h v + h^2/2 a,  v += h a   (constant acceleration over the step)     (Eq. 8)
+// with d_i the step mean of the first-order thrust-lag filter output (exact mean).
+//
+// Units: SI throughout (m, s, rad); positions/velocities NED ground frame; R body->ground,
+// row-major 3x3 flattened to 9.
+#pragma once
+
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+namespace aqfg {
+namespace kernel {
+
+// Parameter order of the dynamics kernel. MUST follow aqfg/params.py (PARAMS, the first
+// N_DYN entries); tests/test_kernel.py checks PARAM_NAMES and N_DYN against it.
+enum ParamIndex : int {
+  P_TH = 0,   // theta_e
+  P_SX,       // s_x
+  P_SY,       // s_y
+  P_K,        // k
+  P_KX,       // k_x
+  P_KYZ,      // k_yz
+  P_ASYM,     // thrust_asymmetry.ratio
+  P_REV,      // reverse_thrust.ratio
+  P_TAU,      // thrust_lag.tau
+  P_CX,       // linear_drag.c_x
+  P_CYZ,      // linear_drag.c_yz
+  P_HDR,      // heading_drift.rate
+  P_DSX,      // current_drift.ds_x
+  P_DSY,      // current_drift.ds_y
+  P_WN,       // wind_drag.a_n
+  P_WE,       // wind_drag.a_e
+  N_DYN
+};
+
+inline constexpr const char* PARAM_NAMES[N_DYN] = {
+    "theta_e",          "s_x",
+    "s_y",              "k",
+    "k_x",              "k_yz",
+    "thrust_asymmetry.ratio", "reverse_thrust.ratio",
+    "thrust_lag.tau",   "linear_drag.c_x",
+    "linear_drag.c_yz", "heading_drift.rate",
+    "current_drift.ds_x", "current_drift.ds_y",
+    "wind_drag.a_n",    "wind_drag.a_e",
+};
+
+// Below this time constant the lag filter is taken in its tau -> 0 limit (as filter_step).
+inline constexpr double TAU_MIN = 1e-9;
+
+// Thruster layout: unit axes (n_thr x 3, row-major, body) and side (> 0: starboard).
+struct Geometry {
+  const double* dirs;
+  const double* side;
+  std::ptrdiff_t n_thr;
+  bool planar;
+};
+
+// Input steps (views, no ownership), as kernel_ref.Steps. dem is n x n_thr row-major.
+struct Steps {
+  const double* h;
+  const std::uint8_t* warm;
+  const double* R;
+  const double* dem;
+  const double* tm;
+  std::ptrdiff_t n;
+
+  Steps slice(std::ptrdiff_t a, std::ptrdiff_t b, std::ptrdiff_t n_thr) const {
+    return Steps{h + a, warm + a, R + 9 * a, dem + n_thr * a, tm + a, b - a};
+  }
+};
+
+// ------------------------------------------------------------------ thrust-lag filter
+// Coefficients of one filter step; they depend on (h, tau) only, so a run of equal step
+// lengths computes the exponential once.
+struct LagCoeffs {
+  double h = std::numeric_limits<double>::quiet_NaN();
+  double e = 0.0, phi = 1.0, dphi = 0.0, de = 0.0;
+
+  void update(double h_new, double tau) {
+    if (h_new == h) return;
+    h = h_new;
+    e = std::exp(-h / tau);
+    phi = h > 0 ? tau / h * (1.0 - e) : 1.0;
+    dphi = h > 0 ? ((1.0 - e) / h - e / tau) : 0.0;
+    de = e * h / (tau * tau);
+  }
+};
+
+// One filter step for every thruster, as kernel_ref.filter_step: from state f (and its
+// d/dtau df) under constant input c over h, the step mean d and its d/dtau dd; f and df
+// are advanced in place.
+inline void filter_step(double* f, double* df, const double* c, double h, double tau,
+                        LagCoeffs& k, double* d, double* dd, std::ptrdiff_t n) {
+  if (tau < TAU_MIN) {
+    for (std::ptrdiff_t i = 0; i < n; ++i) {
+      d[i] = c[i];
+      dd[i] = h > 0 ? (f[i] - c[i]) / h : 0.0;
+      f[i] = c[i];
+      df[i] = 0.0;
+    }
+    return;
+  }
+  k.update(h, tau);
+  for (std::ptrdiff_t i = 0; i < n; ++i) {
+    const double fc = f[i] - c[i];
+    d[i] = c[i] + fc * k.phi;
+    dd[i] = df[i] * k.phi + fc * k.dphi;
+    f[i] = c[i] + fc * k.e;
+    df[i] = df[i] * k.e + fc * k.de;
+  }
+}
+
+// ------------------------------------------------------------------ acceleration
+// Ground acceleration a (3) for velocity v, raw attitude Rraw, mean demands d (n_thr) and
+// their d/dtau dd, time since mission start tm, params p (N_DYN), with cos/sin of the
+// corrected heading theta = p[P_TH] + p[P_HDR] * tm given (cth, sth).
+// With Jac: also A = da/dv (3x3 row-major) and Jp = da/dp, written as Jp[r * ldj + col].
+template <bool Jac>
+inline void accel_core(const double* v, const double* Rraw, const double* d, const double* dd,
+                       double tm, const double* p, const Geometry& g, double cth, double sth,
+                       double* a, double* A, double* Jp, std::ptrdiff_t ldj) {
+  double R[9];
+  for (int c = 0; c < 3; ++c) {
+    R[c] = cth * Rraw[c] - sth * Rraw[3 + c];
+    R[3 + c] = sth * Rraw[c] + cth * Rraw[3 + c];
+    R[6 + c] = Rraw[6 + c];
+  }
+  const double w[3] = {v[0] - (p[P_SX] + p[P_DSX] * tm), v[1] - (p[P_SY] + p[P_DSY] * tm), v[2]};
+  double vr[3];
+  for (int m = 0; m < 3; ++m) vr[m] = R[m] * w[0] + R[3 + m] * w[1] + R[6 + m] * w[2];
+
+  // thrust (Eq. 1) with asymmetry and reverse-thrust ratios
+  const double k = p[P_K], r_asym = p[P_ASYM], r_rev = p[P_REV];
+  double at[3] = {0, 0, 0}, bk[3] = {0, 0, 0}, ba[3] = {0, 0, 0}, br[3] = {0, 0, 0},
+         bt[3] = {0, 0, 0};
+  for (std::ptrdiff_t i = 0; i < g.n_thr; ++i) {
+    const double* u = g.dirs + 3 * i;
+    const bool stb = g.side[i] > 0, neg = d[i] < 0;
+    const double ga = stb ? r_asym : 1.0, gr = neg ? r_rev : 1.0;
+    const double gi = k * ga * gr;
+    const double t = gi * d[i];
+    for (int m = 0; m < 3; ++m) at[m] += t * u[m];
+    if constexpr (Jac) {
+      const double tk = ga * gr * d[i], tt = gi * dd[i];
+      for (int m = 0; m < 3; ++m) {
+        bk[m] += tk * u[m];
+        bt[m] += tt * u[m];
+      }
+      if (stb) {
+        const double ta = k * gr * d[i];
+        for (int m = 0; m < 3; ++m) ba[m] += ta * u[m];
+      }
+      if (neg) {
+        const double tr = k * ga * d[i];
+        for (int m = 0; m < 3; ++m) br[m] += tr * u[m];
+      }
+    }
+  }
+
+  // drag (Eq. 2): quadratic + linear
+  const double kq[3] = {p[P_KX], p[P_KYZ], p[P_KYZ]};
+  const double kl[3] = {p[P_CX], p[P_CYZ], p[P_CYZ]};
+  double q2[3], ab[3];
+  for (int m = 0; m < 3; ++m) {
+    q2[m] = std::fabs(vr[m]) * vr[m];  // sign(v_r) v_r^2
+    ab[m] = at[m] - kq[m] * q2[m] - kl[m] * vr[m];
+  }
+  double Rab[3];
+  for (int r = 0; r < 3; ++r) Rab[r] = R[3 * r] * ab[0] + R[3 * r + 1] * ab[1] + R[3 * r + 2] * ab[2];
+  a[0] = Rab[0] + p[P_WN];
+  a[1] = Rab[1] + p[P_WE];
+  a[2] = g.planar ? 0.0 : Rab[2];
+  if constexpr (!Jac) return;
+
+  // d a / d v = R D R^T, D = d a_drag / d v_r (diagonal)
+  double D[3];
+  for (int m = 0; m < 3; ++m) D[m] = -2.0 * kq[m] * std::fabs(vr[m]) - kl[m];
+  double RD[9];
+  for (int r = 0; r < 3; ++r)
+    for (int m = 0; m < 3; ++m) RD[3 * r + m] = R[3 * r + m] * D[m];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      A[3 * r + c] = RD[3 * r] * R[3 * c] + RD[3 * r + 1] * R[3 * c + 1] + RD[3 * r + 2] * R[3 * c + 2];
+
+  // heading: dR/dth = E_Z R, E_Z x = (-x1, x0, 0); d v_r/dth = R^T E_Z^T w
+  double qth[3];
+  for (int m = 0; m < 3; ++m) qth[m] = R[m] * w[1] - R[3 + m] * w[0];
+  const double ez[3] = {-Rab[1], Rab[0], 0.0};
+
+  const int nrow = g.planar ? 2 : 3;
+  for (int r = 0; r < nrow; ++r) {
+    const double* Rr = R + 3 * r;
+    double* J = Jp + r * ldj;
+    const double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2];
+    J[P_TH] = dth;
+    J[P_HDR] = dth * tm;
+    J[P_SX] = -A[3 * r];
+    J[P_SY] = -A[3 * r + 1];
+    J[P_DSX] = -A[3 * r] * tm;
+    J[P_DSY] = -A[3 * r + 1] * tm;
+    J[P_K] = Rr[0] * bk[0] + Rr[1] * bk[1] + Rr[2] * bk[2];
+    J[P_KX] = -Rr[0] * q2[0];
+    J[P_KYZ] = -Rr[1] * q2[1] - Rr[2] * q2[2];
+    J[P_CX] = -Rr[0] * vr[0];
+    J[P_CYZ] = -Rr[1] * vr[1] - Rr[2] * vr[2];
+    J[P_ASYM] = Rr[0] * ba[0] + Rr[1] * ba[1] + Rr[2] * ba[2];
+    J[P_REV] = Rr[0] * br[0] + Rr[1] * br[1] + Rr[2] * br[2];
+    J[P_TAU] = Rr[0] * bt[0] + Rr[1] * bt[1] + Rr[2] * bt[2];
+    J[P_WN] = r == 0 ? 1.0 : 0.0;
+    J[P_WE] = r == 1 ? 1.0 : 0.0;
+  }
+  if (g.planar) {
+    for (int c = 0; c < 3; ++c) A[6 + c] = 0.0;
+    for (int c = 0; c < N_DYN; ++c) Jp[2 * ldj + c] = 0.0;
+  }
+}
+
+// kernel_ref.accel: a (3), A = da/dv (3x3 row-major), Jp = da/dp (3 x N_DYN row-major).
+inline void accel(const double* v, const double* Rraw, const double* d, const double* dd,
+                  double tm, const double* p, const Geometry& g, double* a, double* A,
+                  double* Jp) {
+  const double th = p[P_TH] + p[P_HDR] * tm;
+  accel_core<true>(v, Rraw, d, dd, tm, p, g, std::cos(th), std::sin(th), a, A, Jp, N_DYN);
+}
+
+// ------------------------------------------------------------------ integration
+namespace detail {
+// Per-thruster scratch (f, df, d, dd): on the stack for usual vehicles, heap beyond.
+class ThrusterScratch {
+ public:
+  explicit ThrusterScratch(std::ptrdiff_t n) {
+    double* base = local_;
+    if (n > kLocal) {
+      heap_.resize(4 * static_cast<std::size_t>(n));
+      base = heap_.data();
+    }
+    f = base;
+    df = base + n;
+    d = base + 2 * n;
+    dd = base + 3 * n;
+  }
+  double *f, *df, *d, *dd;
+
+ private:
+  static constexpr std::ptrdiff_t kLocal = 16;
+  double local_[4 * kLocal];
+  std::vector<double> heap_;
+};
+
+// Cached cos/sin of the corrected heading (constant unless heading_drift.rate != 0).
+struct Heading {
+  double th = std::numeric_limits<double>::quiet_NaN(), c = 1.0, s = 0.0;
+  void update(double th_new) {
+    if (th_new == th) return;
+    th = th_new;
+    c = std::cos(th);
+    s = std::sin(th);
+  }
+};
+}  // namespace detail
+
+// Sensitivity columns carried through the steps: d v0 (3) then the N_DYN params, padded
+// to a multiple of 4 doubles so the column loops vectorise.
+inline constexpr int N_SENS = ((3 + N_DYN + 3) / 4) * 4;
+
+// kernel_ref.propagate (no user effects): state x = [pos, vel] (NED) after the steps,
+// Jx = dx1/dx0 (6x6 row-major), Jp = dx1/dp (6 x N_DYN row-major).
+// Position does not feed back into the dynamics, so only the sensitivities w.r.t. v0 and
+// p are integrated (d x1 / d pos0 = identity).
+inline void propagate(const double* x0, const double* p, const Steps& s, const Geometry& g,
+                      double* x1, double* Jx, double* Jp) {
+  double pos[3] = {x0[0], x0[1], x0[2]}, vel[3] = {x0[3], x0[4], x0[5]};
+  alignas(32) double Sx[3][N_SENS] = {};
+  alignas(32) double Sv[3][N_SENS] = {};
+  alignas(32) double J[3][N_SENS] = {};  // da/d(v0, p): only the p columns are ever set
+  alignas(32) double dA[3][N_SENS];
+  for (int i = 0; i < 3; ++i) Sv[i][i] = 1.0;
+
+  const std::ptrdiff_t nt = g.n_thr;
+  const double tau = p[P_TAU];
+  detail::ThrusterScratch th(nt);
+  if (s.n > 0)
+    for (std::ptrdiff_t i = 0; i < nt; ++i) th.f[i] = s.dem[i], th.df[i] = 0.0;
+  LagCoeffs lag;
+  detail::Heading hd;
+  double a[3], A[9];
+
+  for (std::ptrdiff_t j = 0; j < s.n; ++j) {
+    const double h = s.h[j];
+    filter_step(th.f, th.df, s.dem + nt * j, h, tau, lag, th.d, th.dd, nt);
+    if (s.warm[j] || !(h > 0.0)) continue;
+    const double tm = s.tm[j];
+    hd.update(p[P_TH] + p[P_HDR] * tm);
+    accel_core<true>(vel, s.R + 9 * j, th.d, th.dd, tm, p, g, hd.c, hd.s, a, A, &J[0][3],
+                     N_SENS);
+    const double hh = 0.5 * h * h;
+    for (int i = 0; i < 3; ++i) {
+      pos[i] += h * vel[i] + hh * a[i];
+      vel[i] += h * a[i];
+    }
+    for (int i = 0; i < 3; ++i) {
+      const double a0 = A[3 * i], a1 = A[3 * i + 1], a2 = A[3 * i + 2];
+      for (int c = 0; c < N_SENS; ++c) dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + a2 * Sv[2][c] + J[i][c];
+    }
+    for (int i = 0; i < 3; ++i)
+      for (int c = 0; c < N_SENS; ++c) {
+        Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
+        Sv[i][c] += h * dA[i][c];
+      }
+  }
+
+  for (int i = 0; i < 3; ++i) {
+    x1[i] = pos[i];
+    x1[3 + i] = vel[i];
+  }
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < 6; ++c) Jx[6 * r + c] = (r == c) ? 1.0 : 0.0;
+  for (int i = 0; i < 3; ++i)
+    for (int c = 0; c < 3; ++c) {
+      Jx[6 * i + 3 + c] = Sx[i][c];
+      Jx[6 * (3 + i) + 3 + c] = Sv[i][c];
+    }
+  for (int i = 0; i < 3; ++i)
+    for (int c = 0; c < N_DYN; ++c) {
+      Jp[N_DYN * i + c] = Sx[i][3 + c];
+      Jp[N_DYN * (3 + i) + c] = Sv[i][3 + c];
+    }
+}
+
+// The state after every step (X: n x 6 row-major), no Jacobians. Warm-up steps (and steps
+// of non-positive length) only advance the thrust-lag filter and repeat the state.
+inline void rollout(const double* x0, const double* p, const Steps& s, const Geometry& g,
+                    double* X) {
+  double pos[3] = {x0[0], x0[1], x0[2]}, vel[3] = {x0[3], x0[4], x0[5]};
+  const std::ptrdiff_t nt = g.n_thr;
+  const double tau = p[P_TAU];
+  detail::ThrusterScratch th(nt);
+  if (s.n > 0)
+    for (std::ptrdiff_t i = 0; i < nt; ++i) th.f[i] = s.dem[i], th.df[i] = 0.0;
+  LagCoeffs lag;
+  detail::Heading hd;
+  double a[3];
+  for (std::ptrdiff_t j = 0; j < s.n; ++j) {
+    const double h = s.h[j];
+    filter_step(th.f, th.df, s.dem + nt * j, h, tau, lag, th.d, th.dd, nt);
+    if (!s.warm[j] && h > 0.0) {
+      const double tm = s.tm[j];
+      hd.update(p[P_TH] + p[P_HDR] * tm);
+      accel_core<false>(vel, s.R + 9 * j, th.d, th.dd, tm, p, g, hd.c, hd.s, a, nullptr,
+                        nullptr, 0);
+      const double hh = 0.5 * h * h;
+      for (int i = 0; i < 3; ++i) {
+        pos[i] += h * vel[i] + hh * a[i];
+        vel[i] += h * a[i];
+      }
+    }
+    double* x = X + 6 * j;
+    for (int i = 0; i < 3; ++i) {
+      x[i] = pos[i];
+      x[3 + i] = vel[i];
+    }
+  }
+}
+
+// kernel_ref.propagate_many: K segments; segment k uses steps offsets[k]:offsets[k+1]
+// (offsets must be non-decreasing within [0, s.n]). Outputs X1 (K x 6), JX (K x 36),
+// JP (K x 6 N_DYN), row-major.
+inline void propagate_many(const double* X0, const double* p, const Steps& s,
+                           const std::int64_t* offsets, std::ptrdiff_t K, const Geometry& g,
+                           double* X1, double* JX, double* JP) {
+  for (std::ptrdiff_t k = 0; k < K; ++k)
+    propagate(X0 + 6 * k, p, s.slice(offsets[k], offsets[k + 1], g.n_thr), g, X1 + 6 * k,
+              JX + 36 * k, JP + 6 * N_DYN * k);
+}
+
+}  // namespace kernel
+}  // namespace aqfg
