@@ -38,6 +38,7 @@ class Gnss:
     t: np.ndarray                      # (n,) s
     ne: np.ndarray                     # (n, 2) north, east, m
     sigma: np.ndarray | None = None    # (n,) 1-sigma horizontal, m
+    latlon: np.ndarray | None = None   # (n, 2) lat, lon deg as read (geodetic gnss.csv only)
 
 
 @dataclass
