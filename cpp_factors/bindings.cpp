@@ -26,6 +26,33 @@ using OutF64 = nb::ndarray<nb::numpy, double>;
 
 constexpr std::int64_t ANY = -1;
 
+// The integration loops compiled twice on x86-64 Linux: for AVX2+FMA (x86-64-v3) and for
+// the baseline; the loader picks the one the CPU supports (GNU ifunc). The kernel's hot
+// functions are always_inline, so each clone holds its own vectorised copy.
+#if defined(__x86_64__) && defined(__linux__) && (defined(__GNUC__) || defined(__clang__))
+#define AQFG_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define AQFG_CLONES
+#endif
+
+AQFG_CLONES void run_propagate(const double* x0, const double* p, const kn::Steps& s,
+                               const kn::Geometry& g, double* x1, double* Jx, double* Jp) {
+  kn::propagate(x0, p, s, g, x1, Jx, Jp);
+}
+
+AQFG_CLONES void run_propagate_many(const double* X0, const double* p, const kn::Steps& s,
+                                    const std::int64_t* off, std::ptrdiff_t K,
+                                    const kn::Geometry& g, double* X1, double* JX, double* JP) {
+  for (std::ptrdiff_t k = 0; k < K; ++k)
+    kn::propagate(X0 + 6 * k, p, s.slice(off[k], off[k + 1], g.n_thr), g, X1 + 6 * k,
+                  JX + 36 * k, JP + 6 * kn::N_DYN * k);
+}
+
+AQFG_CLONES void run_rollout(const double* x0, const double* p, const kn::Steps& s,
+                             const kn::Geometry& g, double* X) {
+  kn::rollout(x0, p, s, g, X);
+}
+
 template <class Arr>
 std::string shape_str(const Arr& a) {
   std::string s = "(";
@@ -95,7 +122,7 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate(const InF64& x0, const InF64& p,
   double *x1, *Jx, *Jp;
   OutF64 ax1 = new_array({6}, x1), aJx = new_array({6, 6}, Jx),
          aJp = new_array({6, kn::N_DYN}, Jp);
-  kn::propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
+  run_propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
   return {ax1, aJx, aJp};
 }
 
@@ -125,7 +152,7 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
          a3 = new_array({Ks, 6, kn::N_DYN}, JP);
   {
     nb::gil_scoped_release release;
-    kn::propagate_many(X0.data(), p.data(), in.steps, off, K, in.geom, X1, JX, JP);
+    run_propagate_many(X0.data(), p.data(), in.steps, off, K, in.geom, X1, JX, JP);
   }
   return {a1, a2, a3};
 }
@@ -140,7 +167,7 @@ OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& w
   OutF64 out = new_array({static_cast<std::size_t>(in.steps.n), 6}, X);
   {
     nb::gil_scoped_release release;
-    kn::rollout(x0.data(), p.data(), in.steps, in.geom, X);
+    run_rollout(x0.data(), p.data(), in.steps, in.geom, X);
   }
   return out;
 }
@@ -181,7 +208,7 @@ double py_bench_propagate(const InF64& x0, const InF64& p, const InF64& h, const
   nb::gil_scoped_release release;
   const auto t0 = std::chrono::steady_clock::now();
   for (int r = 0; r < repeats; ++r) {
-    kn::propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
+    run_propagate(x0.data(), p.data(), in.steps, in.geom, x1, Jx, Jp);
     sink = sink + x1[0] + Jp[0];
   }
   const auto t1 = std::chrono::steady_clock::now();

@@ -22,6 +22,14 @@
 #include <limits>
 #include <vector>
 
+// Hot functions are forced inline so that a caller compiled for a wider instruction set
+// (e.g. a target_clones wrapper, see bindings.cpp) gets them vectorised for that set.
+#if defined(__GNUC__) || defined(__clang__)
+#define AQFG_HOT_INLINE __attribute__((always_inline)) inline
+#else
+#define AQFG_HOT_INLINE inline
+#endif
+
 namespace aqfg {
 namespace kernel {
 
@@ -90,7 +98,7 @@ struct LagCoeffs {
   double h = std::numeric_limits<double>::quiet_NaN();
   double e = 0.0, phi = 1.0, dphi = 0.0, de = 0.0;
 
-  void update(double h_new, double tau) {
+  AQFG_HOT_INLINE void update(double h_new, double tau) {
     if (h_new == h) return;
     h = h_new;
     e = std::exp(-h / tau);
@@ -103,7 +111,7 @@ struct LagCoeffs {
 // One filter step for every thruster, as kernel_ref.filter_step: from state f (and its
 // d/dtau df) under constant input c over h, the step mean d and its d/dtau dd; f and df
 // are advanced in place.
-inline void filter_step(double* f, double* df, const double* c, double h, double tau,
+AQFG_HOT_INLINE void filter_step(double* f, double* df, const double* c, double h, double tau,
                         LagCoeffs& k, double* d, double* dd, std::ptrdiff_t n) {
   if (tau < TAU_MIN) {
     for (std::ptrdiff_t i = 0; i < n; ++i) {
@@ -130,7 +138,7 @@ inline void filter_step(double* f, double* df, const double* c, double h, double
 // corrected heading theta = p[P_TH] + p[P_HDR] * tm given (cth, sth).
 // With Jac: also A = da/dv (3x3 row-major) and Jp = da/dp, written as Jp[r * ldj + col].
 template <bool Jac>
-inline void accel_core(const double* v, const double* Rraw, const double* d, const double* dd,
+AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const double* d, const double* dd,
                        double tm, const double* p, const Geometry& g, double cth, double sth,
                        double* a, double* A, double* Jp, std::ptrdiff_t ldj) {
   double R[9];
@@ -264,7 +272,7 @@ class ThrusterScratch {
 // Cached cos/sin of the corrected heading (constant unless heading_drift.rate != 0).
 struct Heading {
   double th = std::numeric_limits<double>::quiet_NaN(), c = 1.0, s = 0.0;
-  void update(double th_new) {
+  AQFG_HOT_INLINE void update(double th_new) {
     if (th_new == th) return;
     th = th_new;
     c = std::cos(th);
@@ -281,7 +289,7 @@ inline constexpr int N_SENS = ((3 + N_DYN + 3) / 4) * 4;
 // Jx = dx1/dx0 (6x6 row-major), Jp = dx1/dp (6 x N_DYN row-major).
 // Position does not feed back into the dynamics, so only the sensitivities w.r.t. v0 and
 // p are integrated (d x1 / d pos0 = identity).
-inline void propagate(const double* x0, const double* p, const Steps& s, const Geometry& g,
+AQFG_HOT_INLINE void propagate(const double* x0, const double* p, const Steps& s, const Geometry& g,
                       double* x1, double* Jx, double* Jp) {
   double pos[3] = {x0[0], x0[1], x0[2]}, vel[3] = {x0[3], x0[4], x0[5]};
   alignas(32) double Sx[3][N_SENS] = {};
@@ -312,15 +320,32 @@ inline void propagate(const double* x0, const double* p, const Steps& s, const G
       pos[i] += h * vel[i] + hh * a[i];
       vel[i] += h * a[i];
     }
-    for (int i = 0; i < 3; ++i) {
-      const double a0 = A[3 * i], a1 = A[3 * i + 1], a2 = A[3 * i + 2];
-      for (int c = 0; c < N_SENS; ++c) dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + a2 * Sv[2][c] + J[i][c];
-    }
-    for (int i = 0; i < 3; ++i)
-      for (int c = 0; c < N_SENS; ++c) {
-        Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
-        Sv[i][c] += h * dA[i][c];
+    if (g.planar) {
+      // rows 2 of A and J vanish, so Sv's row 2 stays e_z: only rows 0, 1 evolve and
+      // A's column 2 acts on the v0_z column alone.
+      for (int i = 0; i < 2; ++i) {
+        const double a0 = A[3 * i], a1 = A[3 * i + 1];
+        for (int c = 0; c < N_SENS; ++c) dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + J[i][c];
+        dA[i][2] += A[3 * i + 2];
       }
+      for (int i = 0; i < 2; ++i)
+        for (int c = 0; c < N_SENS; ++c) {
+          Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
+          Sv[i][c] += h * dA[i][c];
+        }
+      Sx[2][2] += h;
+    } else {
+      for (int i = 0; i < 3; ++i) {
+        const double a0 = A[3 * i], a1 = A[3 * i + 1], a2 = A[3 * i + 2];
+        for (int c = 0; c < N_SENS; ++c)
+          dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + a2 * Sv[2][c] + J[i][c];
+      }
+      for (int i = 0; i < 3; ++i)
+        for (int c = 0; c < N_SENS; ++c) {
+          Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
+          Sv[i][c] += h * dA[i][c];
+        }
+    }
   }
 
   for (int i = 0; i < 3; ++i) {
@@ -343,7 +368,7 @@ inline void propagate(const double* x0, const double* p, const Steps& s, const G
 
 // The state after every step (X: n x 6 row-major), no Jacobians. Warm-up steps (and steps
 // of non-positive length) only advance the thrust-lag filter and repeat the state.
-inline void rollout(const double* x0, const double* p, const Steps& s, const Geometry& g,
+AQFG_HOT_INLINE void rollout(const double* x0, const double* p, const Steps& s, const Geometry& g,
                     double* X) {
   double pos[3] = {x0[0], x0[1], x0[2]}, vel[3] = {x0[3], x0[4], x0[5]};
   const std::ptrdiff_t nt = g.n_thr;
