@@ -18,7 +18,6 @@ save-then-load gives bit-identical arrays.
 """
 from __future__ import annotations
 
-import copy
 import math
 import os
 import tempfile
@@ -397,30 +396,36 @@ def has_truth(path: str | os.PathLike) -> bool:
 # ------------------------------------------------------------------------------ validation
 
 def _check_rows(f, arr: np.ndarray | None, cols: tuple[str, ...], required: bool = True,
-                lo: float | None = None, hi: float | None = None, what: str = "") -> None:
+                lo: float | None = None, hi: float | None = None, what: str = "",
+                lo_open: bool = False) -> None:
     """Value checks on one column group; errors name the file row (index + 2) and column.
 
     Required columns must be finite; optional ones may hold NaN (unknown) but not +-inf.
-    ``lo``/``hi`` bound the finite values (inclusive).
+    ``lo``/``hi`` bound the finite values (inclusive; ``lo`` exclusive if ``lo_open``).
     """
     if arr is None:
         return
-    a = np.asarray(arr, dtype=float).reshape(len(arr), -1)
+    a = np.asarray(arr, dtype=float)
+    if not a.size:
+        return
+    a = a.reshape(len(a), -1)
     bad = ~np.isfinite(a) if required else np.isinf(a)
     if bad.any():
         i, j = np.argwhere(bad)[0]
         kind = "required column" if required else "column (NaN allowed: unknown)"
-        raise MissionFormatError(f, f"value {a[i, j]!r} in a {kind}; expected a finite number",
-                                 row=int(i) + 2, column=cols[j])
-    for bound, cmp, word in ((lo, np.less, "below"), (hi, np.greater, "above")):
+        raise MissionFormatError(f, f"value {float(a[i, j])!r} in a {kind}; expected a finite "
+                                    "number", row=int(i) + 2, column=cols[j])
+    low = np.less_equal if lo_open else np.less
+    for bound, cmp, word in ((lo, low, "below"), (hi, np.greater, "above")):
         if bound is None:
             continue
         with np.errstate(invalid="ignore"):
             out = cmp(a, bound)
         if out.any():
             i, j = np.argwhere(out)[0]
-            raise MissionFormatError(f, f"value {a[i, j]!r} is {word} {bound!r}; expected "
-                                        f"{what}", row=int(i) + 2, column=cols[j])
+            word = "not above" if cmp is np.less_equal else word
+            raise MissionFormatError(f, f"value {float(a[i, j])!r} is {word} {float(bound)!r}; "
+                                        f"expected {what}", row=int(i) + 2, column=cols[j])
 
 
 def _check_time(f, t: np.ndarray, n_min: int = 0) -> None:
@@ -434,8 +439,8 @@ def _check_time(f, t: np.ndarray, n_min: int = 0) -> None:
     dec = np.flatnonzero(np.diff(t) < 0)
     if len(dec):
         i = int(dec[0]) + 1
-        raise MissionFormatError(f, f"t decreases ({t[i - 1]!r} -> {t[i]!r}); expected rows in "
-                                    "non-decreasing time", row=i + 2, column="t")
+        raise MissionFormatError(f, f"t decreases ({float(t[i - 1])!r} -> {float(t[i])!r}); "
+                                    "expected rows in non-decreasing time", row=i + 2, column="t")
 
 
 def _check_shape(f, arr, n: int, width: int | None, col: str) -> None:
@@ -521,7 +526,7 @@ def check_mission(mission: Mission, where: str | os.PathLike | None = None) -> N
         _check_shape(f, g.ne, len(g.t), 2, cols[0])
         _check_shape(f, g.sigma, len(g.t), None, "sigma")
         _check_rows(f, g.ne, cols)
-        _check_rows(f, g.sigma, ("sigma",), required=False, lo=np.nextafter(0.0, 1.0),
+        _check_rows(f, g.sigma, ("sigma",), required=False, lo=0.0, lo_open=True,
                     what="a positive 1-sigma error in metres")
         if getattr(g, "latlon", None) is not None:
             _check_shape(f, g.latlon, len(g.t), 2, "lat")
@@ -639,7 +644,8 @@ def _csv_text(cols: list[tuple[str, np.ndarray]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _split(name: str, arr: np.ndarray | None, cols: tuple[str, ...]) -> list[tuple[str, np.ndarray]]:
+def _split(arr: np.ndarray | None, cols: tuple[str, ...]) -> list[tuple[str, np.ndarray]]:
+    """Columns of an (n,) or (n, k) array, named; nothing for an absent optional array."""
     if arr is None:
         return []
     a = np.asarray(arr, dtype=float)
@@ -651,11 +657,11 @@ def _split(name: str, arr: np.ndarray | None, cols: tuple[str, ...]) -> list[tup
 def _stream_texts(m: Mission, truth: Truth | None) -> dict[str, str]:
     out: dict[str, str] = {}
     i = m.imu
-    out["imu"] = _csv_text([("t", i.t), *_split("q", i.q, ("qw", "qx", "qy", "qz")),
-                            *_split("acc", i.acc, ("ax", "ay", "az")),
-                            *_split("gyro", i.gyro, ("wx", "wy", "wz"))])
+    out["imu"] = _csv_text([("t", i.t), *_split(i.q, ("qw", "qx", "qy", "qz")),
+                            *_split(i.acc, ("ax", "ay", "az")),
+                            *_split(i.gyro, ("wx", "wy", "wz"))])
     out["motors"] = _csv_text([("t", m.motors.t),
-                               *_split("u", m.motors.u,
+                               *_split(m.motors.u,
                                        tuple(f"u{k + 1}" for k in range(m.n_thrusters)))])
     if m.gnss is not None:
         g = m.gnss
@@ -664,21 +670,21 @@ def _stream_texts(m: Mission, truth: Truth | None) -> dict[str, str]:
             if ll is None or np.shape(ll) != np.shape(g.ne) or not np.array_equal(
                     latlon_to_ne(ll[:, 0], ll[:, 1], m.origin), g.ne):
                 ll = ne_to_latlon(g.ne, m.origin)     # ne changed since read: convert it
-            pos = _split("ll", ll, ("lat", "lon"))
+            pos = _split(ll, ("lat", "lon"))
         else:
-            pos = _split("ne", g.ne, ("north", "east"))
-        out["gnss"] = _csv_text([("t", g.t), *pos, *_split("s", g.sigma, ("sigma",))])
+            pos = _split(g.ne, ("north", "east"))
+        out["gnss"] = _csv_text([("t", g.t), *pos, *_split(g.sigma, ("sigma",))])
     if m.usbl is not None:
         u = m.usbl
         out["usbl"] = _csv_text([("t", u.t), ("range", u.range), ("bearing", u.bearing),
-                                 *_split("e", u.elevation, ("elevation",))])
+                                 *_split(u.elevation, ("elevation",))])
     if m.depth is not None:
         out["depth"] = _csv_text([("t", m.depth.t), ("depth", m.depth.depth)])
     if truth is not None and len(truth.t):
         out["truth"] = _csv_text([("t", truth.t),
-                                  *_split("p", truth.pos, ("north", "east", "down")),
-                                  *_split("v", truth.vel, ("vn", "ve", "vd")),
-                                  *_split("y", truth.yaw, ("yaw",))])
+                                  *_split(truth.pos, ("north", "east", "down")),
+                                  *_split(truth.vel, ("vn", "ve", "vd")),
+                                  *_split(truth.yaw, ("yaw",))])
     return out
 
 
