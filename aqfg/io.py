@@ -6,7 +6,7 @@ Public API:
 - :func:`load_truth` (dir -> :class:`~aqfg.mission.Truth` or None; evaluation only)
 - :func:`save_mission` (Mission [+ Truth] -> dir; refuses to overwrite unless asked)
 - :func:`check_mission` (the same value checks for a Mission built in memory)
-- :func:`has_truth` (whether a directory holds truth, without reading it)
+- :func:`has_truth`, :func:`truth_sources` (whether a directory holds truth, unread)
 - :class:`MissionFormatError` (``ValueError`` naming file, row and column)
 
 A reader never guesses and never drops data: every bad input is a
@@ -385,12 +385,18 @@ def load_truth(path: str | os.PathLike) -> Truth | None:
     return tr
 
 
-def has_truth(path: str | os.PathLike) -> bool:
-    """Whether the mission directory holds truth (truth.csv or a [truth] table); reads no values."""
+def truth_sources(path: str | os.PathLike) -> list[str]:
+    """Which truth a mission directory holds ("truth.csv", "[truth] table"); reads no values."""
     root = Path(path)
-    if (root / STREAM_FILES["truth"]).is_file():
-        return True
-    return "truth" in _read_toml(root / MISSION_TOML)
+    parts = [STREAM_FILES["truth"]] if (root / STREAM_FILES["truth"]).is_file() else []
+    if "truth" in _read_toml(root / MISSION_TOML):
+        parts.append("[truth] table")
+    return parts
+
+
+def has_truth(path: str | os.PathLike) -> bool:
+    """Whether the mission directory holds truth (truth.csv or a [truth] table)."""
+    return bool(truth_sources(path))
 
 
 # ------------------------------------------------------------------------------ validation
