@@ -321,7 +321,10 @@ def load_mission(path: str | os.PathLike) -> Mission:
                                          "[origin]; expected [origin] lat, lon (degrees) to "
                                          "convert them to NED", row=1, column="lat")
             ll = _cols(c, "lat", "lon")
-            _check_rows(files["gnss"], ll, ("lat", "lon"))      # before conversion
+            _check_rows(files["gnss"], ll[:, :1], ("lat",), lo=-90.0, hi=90.0,
+                        what="latitude in degrees")                  # before conversion
+            _check_rows(files["gnss"], ll[:, 1:], ("lon",), lo=-180.0, hi=360.0,
+                        what="longitude in degrees")
             gnss = Gnss(c["t"], latlon_to_ne(ll[:, 0], ll[:, 1], fields["origin"]),
                         c.get("sigma"), latlon=ll)
         else:

@@ -200,6 +200,13 @@ def test_latlon_gnss_converted_and_written_back_as_read(tmp_path):
     np.testing.assert_allclose(load_mission(tmp_path / "c").gnss.ne, m.gnss.ne, atol=1e-8)
 
 
+def test_latlon_out_of_range(tmp_path):
+    toml = TOML + "\n[origin]\nlat = 46.5191\nlon = 6.5668\n"
+    e = err(write_small(tmp_path / "m", toml, gnss_csv="t,lat,lon\n0,46.5,6.5\n1,6.5,465\n"))
+    assert (Path(e.file).name, e.row, e.column) == ("gnss.csv", 3, "lon")
+    assert "expected longitude in degrees" in str(e)
+
+
 def test_geodesy_round_trip_and_radii_of_curvature():
     origin = (46.5191, 6.5668)
     rng = np.random.default_rng(0)
