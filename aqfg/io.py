@@ -627,7 +627,11 @@ def _toml_inline(v: Any) -> str:
         return "[" + ", ".join(_toml_inline(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_inline(x)}" for k, x in v.items()) + " }"
-    return tomli_w.dumps({"x": v})[4:].rstrip("\n")
+    try:
+        return tomli_w.dumps({"x": v})[4:].rstrip("\n")
+    except TypeError:
+        raise ValueError(f"mission.toml: cannot write {v!r} ({type(v).__name__}); TOML holds "
+                         "strings, numbers, booleans, dates, arrays and tables") from None
 
 
 def _toml_dumps(d: dict[str, Any], prefix: str = "") -> str:
