@@ -114,6 +114,13 @@ struct LagCoeffs {
 AQFG_HOT_INLINE void filter_step(double* f, double* df, const double* c, double h, double tau,
                         LagCoeffs& k, double* d, double* dd, std::ptrdiff_t n) {
   if (tau < TAU_MIN) {
+    if (h <= 0) {  // a zero-length step leaves the state and its d/dtau as they are
+      for (std::ptrdiff_t i = 0; i < n; ++i) {
+        d[i] = c[i];
+        dd[i] = df[i];
+      }
+      return;
+    }
     for (std::ptrdiff_t i = 0; i < n; ++i) {
       d[i] = c[i];
       dd[i] = h > 0 ? (f[i] - c[i]) / h : 0.0;
