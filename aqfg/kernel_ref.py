@@ -82,6 +82,8 @@ def filter_step(f, df, c, h, tau):
     """
     if tau < 1e-9:
         # limits tau -> 0: mean = c, d mean/dtau = (f - c)/h, state -> c, dstate/dtau = 0
+        if h <= 0:  # ... except that a zero-length step leaves the state (and d/dtau) as is
+            return c.copy(), df.copy(), f.copy(), df.copy()
         mean = c.copy()
         dmean = (f - c) / h if h > 0 else np.zeros_like(c)
         return mean, dmean, c.copy(), np.zeros_like(c)
