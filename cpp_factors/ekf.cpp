@@ -1,0 +1,456 @@
+// EKF window evaluation (see ekf.hpp) and its Python binding ekf_window.
+#include "ekf.hpp"
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/tuple.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <initializer_list>
+#include <limits>
+#include <string>
+#include <tuple>
+#include <vector>
+
+namespace aqfg {
+namespace ekf {
+
+namespace kn = aqfg::kernel;
+
+namespace {
+
+constexpr double NaN = std::numeric_limits<double>::quiet_NaN();
+
+// Corrected attitude R = Rz(th) Rraw (Eq. 6), as kernel::accel_core forms it.
+inline void corrected(const double* Rraw, double c, double s, double* R) {
+  for (int j = 0; j < 3; ++j) {
+    R[j] = c * Rraw[j] - s * Rraw[3 + j];
+    R[3 + j] = s * Rraw[j] + c * Rraw[3 + j];
+    R[6 + j] = Rraw[6 + j];
+  }
+}
+
+// P (9x9) <- M (Phi P6 Phi^T + Q) M^T + diag(0, 0, sigma_ab^2): ekf_window.predict_covariance.
+void predict_cov(double* P, const double Sx[9], const double Sv[9], double T, const double Jab[9],
+                 const Config& cfg, bool planar) {
+  double Phi[36] = {};
+  for (int i = 0; i < 6; ++i) Phi[7 * i] = 1.0;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      Phi[6 * r + 3 + c] = Sx[3 * r + c];
+      Phi[6 * (3 + r) + 3 + c] = Sv[3 * r + c];
+    }
+  double T1[36] = {}, P6[36] = {};
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < 6; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 6; ++k) acc += Phi[6 * r + k] * P[9 * k + c];
+      T1[6 * r + c] = acc;
+    }
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < 6; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 6; ++k) acc += T1[6 * r + k] * Phi[6 * c + k];
+      P6[6 * r + c] = acc;
+    }
+  const double q[3] = {cfg.q_h, cfg.q_h, planar ? 0.0 : cfg.q_v};
+  for (int i = 0; i < 3; ++i) {
+    P6[6 * i + i] += q[i] * T * T * T / 3.0;
+    P6[6 * i + 3 + i] += q[i] * T * T / 2.0;
+    P6[6 * (3 + i) + i] += q[i] * T * T / 2.0;
+    P6[6 * (3 + i) + 3 + i] += q[i] * T;
+  }
+  // M = [I6; 0 Jab]
+  double Bv[18];  // Jab * P6[3:6, :] (3 x 6)
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 6; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 3; ++k) acc += Jab[3 * r + k] * P6[6 * (3 + k) + c];
+      Bv[6 * r + c] = acc;
+    }
+  for (int r = 0; r < 6; ++r)
+    for (int c = 0; c < 6; ++c) P[9 * r + c] = P6[6 * r + c];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 6; ++c) {
+      P[9 * (6 + r) + c] = Bv[6 * r + c];
+      P[9 * c + 6 + r] = Bv[6 * r + c];
+    }
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 3; ++k) acc += Bv[6 * r + 3 + k] * Jab[3 * c + k];
+      P[9 * (6 + r) + 6 + c] = acc + (r == c ? cfg.sigma_ab * cfg.sigma_ab : 0.0);
+    }
+}
+
+// Kalman update of the directly measured components idx (d <= 3): ekf_window._update.
+// Returns true if accepted; fills e (9), nu, nu_w, s (d each).
+bool update(double* x, double* P, const int* idx, int d, const double* z, const double* hx,
+            const double* Rm, double gate, double* e, double* nu, double* nu_w, double* s) {
+  double S[9], L[9] = {};
+  for (int i = 0; i < d; ++i)
+    for (int j = 0; j < d; ++j) S[d * i + j] = P[9 * idx[i] + idx[j]] + Rm[d * i + j];
+  for (int i = 0; i < d; ++i) nu[i] = z[i] - hx[i];
+  // Cholesky S = L L^T
+  for (int i = 0; i < d; ++i)
+    for (int j = 0; j <= i; ++j) {
+      double acc = S[d * i + j];
+      for (int k = 0; k < j; ++k) acc -= L[d * i + k] * L[d * j + k];
+      L[d * i + j] = (i == j) ? std::sqrt(acc) : acc / L[d * j + j];
+    }
+  double m2 = 0.0;
+  for (int i = 0; i < d; ++i) {
+    double acc = nu[i];
+    for (int k = 0; k < i; ++k) acc -= L[d * i + k] * nu_w[k];
+    nu_w[i] = acc / L[d * i + i];
+    m2 += nu_w[i] * nu_w[i];
+    s[i] = std::sqrt(S[d * i + i]);
+  }
+  for (int i = 0; i < 9; ++i) e[i] = 0.0;
+  if (std::isfinite(gate) && m2 > gate) return false;
+  // K = P[:, idx] S^-1 (9 x d): solve S k_r = P[idx, r] for each row r of K
+  double K[27];
+  for (int r = 0; r < 9; ++r) {
+    double y[3];
+    for (int i = 0; i < d; ++i) {
+      double acc = P[9 * idx[i] + r];
+      for (int k = 0; k < i; ++k) acc -= L[d * i + k] * y[k];
+      y[i] = acc / L[d * i + i];
+    }
+    for (int i = d - 1; i >= 0; --i) {
+      double acc = y[i];
+      for (int k = i + 1; k < d; ++k) acc -= L[d * k + i] * K[3 * r + k];
+      K[3 * r + i] = acc / L[d * i + i];
+    }
+  }
+  for (int r = 0; r < 9; ++r) {
+    double acc = 0.0;
+    for (int i = 0; i < d; ++i) acc += K[3 * r + i] * nu[i];
+    e[r] = acc;
+    x[r] += acc;
+  }
+  // Joseph form: P = (I - K H) P (I - K H)^T + K Rm K^T
+  double A[81];
+  for (int r = 0; r < 9; ++r)
+    for (int c = 0; c < 9; ++c) A[9 * r + c] = (r == c) ? 1.0 : 0.0;
+  for (int r = 0; r < 9; ++r)
+    for (int i = 0; i < d; ++i) A[9 * r + idx[i]] -= K[3 * r + i];
+  double AP[81];
+  for (int r = 0; r < 9; ++r)
+    for (int c = 0; c < 9; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 9; ++k) acc += A[9 * r + k] * P[9 * k + c];
+      AP[9 * r + c] = acc;
+    }
+  double KR[27];
+  for (int r = 0; r < 9; ++r)
+    for (int j = 0; j < d; ++j) {
+      double acc = 0.0;
+      for (int i = 0; i < d; ++i) acc += K[3 * r + i] * Rm[d * i + j];
+      KR[3 * r + j] = acc;
+    }
+  for (int r = 0; r < 9; ++r)
+    for (int c = 0; c < 9; ++c) {
+      double acc = 0.0;
+      for (int k = 0; k < 9; ++k) acc += AP[9 * r + k] * A[9 * c + k];
+      double kk = 0.0;
+      for (int j = 0; j < d; ++j) kk += KR[3 * r + j] * K[3 * c + j];
+      P[9 * r + c] = acc + kk;
+    }
+  return true;
+}
+
+// Antenna / transponder position: pos + Rz(th) Rraw l (kernel_ref.sensor_position).
+void sensor_position(const double* pos, const double* Rraw, double tm, const double* p,
+                     const double* pm, double* out) {
+  const double th = p[kn::P_TH] + p[kn::P_HDR] * tm;
+  double R[9];
+  corrected(Rraw, std::cos(th), std::sin(th), R);
+  for (int r = 0; r < 3; ++r)
+    out[r] = pos[r] + R[3 * r] * pm[M_LX] + R[3 * r + 1] * pm[M_LY] + R[3 * r + 2] * pm[M_LZ];
+}
+
+// USBL (range, bearing, down) -> horizontal position and covariance (usbl_to_position).
+void usbl_to_position(const double* z, const double* st, const double* pm, double sr0, double sb,
+                      double* pos, double* Rm) {
+  const double r = z[0] / pm[M_SCALE];
+  const double b = z[1] - pm[M_BIAS];
+  const double dz = z[2] - st[2];
+  const double rh = std::sqrt(std::max(r * r - dz * dz, 0.0));
+  const double c = std::cos(b), s = std::sin(b);
+  pos[0] = st[0] + rh * c;
+  pos[1] = st[1] + rh * s;
+  const double sr = sr0 * std::min(r / std::max(rh, 1e-6), 10.0);
+  const double stg = std::max(rh, 1e-3) * sb;
+  const double vr = sr * sr, vt = stg * stg;
+  // Rot diag(vr, vt) Rot^T, Rot = [[c, -s], [s, c]]
+  Rm[0] = c * c * vr + s * s * vt;
+  Rm[1] = c * s * vr - s * c * vt;
+  Rm[2] = Rm[1];
+  Rm[3] = s * s * vr + c * c * vt;
+}
+
+}  // namespace
+
+void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
+            const double* p, const double* pm, const Config& cfg, const Timeline& tl,
+            const kn::Geometry& g, std::int64_t w0, std::int64_t lo, std::int64_t hi,
+            const Output& out) {
+  const kn::Steps& st = tl.steps;
+  const std::ptrdiff_t nt = g.n_thr;
+  const double tau = p[kn::P_TAU];
+  std::vector<double> scratch(4 * static_cast<std::size_t>(std::max<std::ptrdiff_t>(nt, 1)));
+  double *f = scratch.data(), *df = f + nt, *d = f + 2 * nt, *dd = f + 3 * nt;
+  kn::LagCoeffs lag;
+  const std::int64_t s0 = tl.offsets[k0];
+  if (st.n > 0) {
+    const std::int64_t j0 = std::min<std::int64_t>(w0, st.n - 1);
+    for (std::ptrdiff_t i = 0; i < nt; ++i) f[i] = st.dem[nt * j0 + i], df[i] = 0.0;
+  }
+  for (std::int64_t j = w0; j < s0; ++j)
+    kn::filter_step(f, df, st.dem + nt * j, st.h[j], tau, lag, d, dd, nt);
+
+  double x[9], P[81];
+  std::memcpy(x, x0, sizeof x);
+  std::memcpy(P, P0, sizeof P);
+  double Sx[9] = {}, Sv[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, T = 0.0, Jab[9] = {};
+  double a[3], A[9], Jp[3 * kn::N_DYN], Rc[9];
+  kn::detail::Heading hd;
+  const std::int64_t n = hi - lo;
+  for (std::int64_t r = 0; r < n; ++r) {
+    for (int c = 0; c < 9; ++c) out.e[9 * r + c] = 0.0;
+    for (int c = 0; c < 3; ++c) out.nu[3 * r + c] = out.nu_w[3 * r + c] = out.s[3 * r + c] = NaN;
+    out.status[r] = NOOP;
+  }
+  if (out.X) std::memcpy(out.X, x, sizeof x);
+  std::int64_t m = lo;
+  int rejects = 0;
+  for (std::int64_t k = k0; k < k1; ++k) {
+    double* pos = x;
+    double* vel = x + 3;
+    for (std::int64_t j = tl.offsets[k]; j < tl.offsets[k + 1]; ++j) {
+      const double h = st.h[j];
+      kn::filter_step(f, df, st.dem + nt * j, h, tau, lag, d, dd, nt);
+      if (!(h > 0.0)) continue;
+      const double tm = st.tm[j];
+      const double* Rraw = st.R + 9 * j;
+      hd.update(p[kn::P_TH] + p[kn::P_HDR] * tm);
+      kn::accel_core<true>(vel, Rraw, d, dd, tm, p, g, hd.c, hd.s, a, A, Jp, kn::N_DYN);
+      corrected(Rraw, hd.c, hd.s, Rc);
+      for (int r = 0; r < 3; ++r) {  // a_b = Rc^T a, Jab = Rc^T A (Eq. 10)
+        x[6 + r] = Rc[r] * a[0] + Rc[3 + r] * a[1] + Rc[6 + r] * a[2];
+        for (int c = 0; c < 3; ++c)
+          Jab[3 * r + c] = Rc[r] * A[c] + Rc[3 + r] * A[3 + c] + Rc[6 + r] * A[6 + c];
+      }
+      double ASv[9];
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+          ASv[3 * r + c] = A[3 * r] * Sv[c] + A[3 * r + 1] * Sv[3 + c] + A[3 * r + 2] * Sv[6 + c];
+      const double hh = 0.5 * h * h;
+      for (int i = 0; i < 9; ++i) {
+        Sx[i] = Sx[i] + h * Sv[i] + hh * ASv[i];
+        Sv[i] = Sv[i] + h * ASv[i];
+      }
+      for (int i = 0; i < 3; ++i) {
+        pos[i] = pos[i] + h * vel[i] + hh * a[i];
+        vel[i] = vel[i] + h * a[i];
+      }
+    }
+    T += tl.knots[k + 1] - tl.knots[k];
+    std::int64_t b = m;
+    bool any = false;
+    while (b < hi && tl.node_knot[b] == k + 1) {
+      any = any || tl.node_kind[b] != MOTOR;
+      ++b;
+    }
+    if (any) {
+      predict_cov(P, Sx, Sv, T, Jab, cfg, g.planar);
+      for (int i = 0; i < 9; ++i) Sx[i] = 0.0, Sv[i] = (i % 4 == 0) ? 1.0 : 0.0;
+      T = 0.0;
+    }
+    for (std::int64_t i = m; i < b; ++i) {
+      const std::int64_t r = i - lo;
+      const double* z = tl.node_z + 4 * i;
+      const std::int32_t kind = tl.node_kind[i];
+      double* e = out.e + 9 * r;
+      double* nu = out.nu + 3 * r;
+      double* nuw = out.nu_w + 3 * r;
+      double* sd = out.s + 3 * r;
+      int ok = -1;
+      if (kind == GNSS || kind == USBL) {
+        const int idx[2] = {0, 1};
+        double zp[3], zz[2], Rm[4];
+        sensor_position(x, tl.node_R + 9 * i, tl.node_tm[i], p, pm, zp);
+        double gate = cfg.gate_gnss;
+        if (kind == GNSS) {
+          zz[0] = z[0];
+          zz[1] = z[1];
+          Rm[0] = Rm[3] = z[2] * z[2];
+          Rm[1] = Rm[2] = 0.0;
+        } else {
+          usbl_to_position(z, tl.station, pm, cfg.sigma_range, cfg.sigma_bearing, zz, Rm);
+          gate = rejects < cfg.max_rejects ? cfg.gate_usbl : std::numeric_limits<double>::infinity();
+        }
+        ok = update(x, P, idx, 2, zz, zp, Rm, gate, e, nu, nuw, sd);
+        if (kind == USBL) rejects = ok ? 0 : rejects + 1;
+      } else if (kind == DEPTH) {
+        const int idx[1] = {2};
+        const double Rm[1] = {z[1] * z[1]};
+        const double hx[1] = {x[2]};
+        ok = update(x, P, idx, 1, z, hx, Rm, std::numeric_limits<double>::infinity(), e, nu,
+                    nuw, sd);
+      } else if (kind == IMU_ACC) {
+        const int idx[3] = {6, 7, 8};
+        const double v = z[3] * z[3];
+        const double Rm[9] = {v, 0, 0, 0, v, 0, 0, 0, v};
+        const double hx[3] = {x[6], x[7], x[8]};
+        ok = update(x, P, idx, 3, z, hx, Rm, std::numeric_limits<double>::infinity(), e, nu,
+                    nuw, sd);
+      }
+      if (ok >= 0) out.status[r] = ok ? ACCEPTED : REJECTED;
+      if (out.Pn) std::memcpy(out.Pn + 81 * r, P, sizeof P);
+    }
+    m = b;
+    if (out.X) std::memcpy(out.X + 9 * (k + 1 - k0), x, sizeof x);
+  }
+  if (T > 0) predict_cov(P, Sx, Sv, T, Jab, cfg, g.planar);
+  std::memcpy(out.x, x, sizeof x);
+  std::memcpy(out.P, P, sizeof P);
+}
+
+// ------------------------------------------------------------------ Python binding
+namespace nb = nanobind;
+
+namespace {
+
+using InF64 = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
+using InI64 = nb::ndarray<const std::int64_t, nb::c_contig, nb::device::cpu>;
+using InI32 = nb::ndarray<const std::int32_t, nb::c_contig, nb::device::cpu>;
+using OutF64 = nb::ndarray<nb::numpy, double>;
+using OutI8 = nb::ndarray<nb::numpy, std::int8_t>;
+
+constexpr std::int64_t ANY = -1;
+
+template <class Arr>
+void need(const char* name, const Arr& a, std::initializer_list<std::int64_t> want,
+          const char* meaning) {
+  bool ok = a.ndim() == want.size();
+  std::size_t i = 0;
+  for (auto w : want) {
+    if (!ok) break;
+    ok = (w == ANY) || static_cast<std::int64_t>(a.shape(i)) == w;
+    ++i;
+  }
+  if (!ok) {
+    std::string got = "(";
+    for (std::size_t j = 0; j < a.ndim(); ++j) got += (j ? ", " : "") + std::to_string(a.shape(j));
+    throw nb::value_error((std::string("ekf_window: argument '") + name + "' must have shape " +
+                           meaning + ", got " + got + ")")
+                              .c_str());
+  }
+}
+
+template <class T>
+nb::ndarray<nb::numpy, T> new_out(std::initializer_list<std::size_t> shape, T*& data) {
+  std::size_t n = 1;
+  for (auto s : shape) n *= s;
+  data = new T[n > 0 ? n : 1];
+  nb::capsule owner(data, [](void* q) noexcept { delete[] static_cast<T*>(q); });
+  return nb::ndarray<nb::numpy, T>(data, shape.size(), shape.begin(), owner);
+}
+
+using WindowResult =
+    std::tuple<OutF64, OutF64, OutF64, OutF64, OutI8, OutF64, OutF64, OutF64, OutF64>;
+
+WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, std::int64_t k1,
+                           const InF64& p, const InF64& pm, const InF64& cfg, const InF64& h,
+                           const InF64& R, const InF64& dem, const InF64& tm,
+                           const InI64& offsets, const InF64& knots, std::int64_t w0,
+                           const InI64& node_knot, const InI32& node_kind, const InF64& node_z,
+                           const InF64& node_R, const InF64& node_tm, const InF64& station,
+                           const InF64& dirs, const InF64& side, bool planar, std::int64_t lo,
+                           std::int64_t hi, bool record) {
+  need("x0", x0, {9}, "(9,)");
+  need("P0", P0, {9, 9}, "(9, 9)");
+  need("p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
+  need("pm", pm, {N_MEAS}, "(5,): range scale, bearing bias, lever arm x, y, z");
+  need("cfg", cfg, {9}, "(9,) = EkfConfig.vector()");
+  need("h", h, {ANY}, "(n,)");
+  const std::int64_t ns = static_cast<std::int64_t>(h.shape(0));
+  need("dem", dem, {ns, ANY}, "(n, N_thrusters) with n = len(h)");
+  const std::int64_t nt = static_cast<std::int64_t>(dem.shape(1));
+  need("R", R, {ns, 9}, "(n, 9)");
+  need("tm", tm, {ns}, "(n,)");
+  need("knots", knots, {ANY}, "(K,)");
+  const std::int64_t K = static_cast<std::int64_t>(knots.shape(0));
+  need("offsets", offsets, {K}, "(K,) with K = len(knots)");
+  need("node_knot", node_knot, {ANY}, "(M,)");
+  const std::int64_t M = static_cast<std::int64_t>(node_knot.shape(0));
+  need("node_kind", node_kind, {M}, "(M,)");
+  need("node_z", node_z, {M, 4}, "(M, 4)");
+  need("node_R", node_R, {M, 9}, "(M, 9)");
+  need("node_tm", node_tm, {M}, "(M,)");
+  need("station", station, {3}, "(3,)");
+  need("dirs", dirs, {nt, 3}, "(N_thrusters, 3)");
+  need("side", side, {nt}, "(N_thrusters,)");
+  if (!(0 <= k0 && k0 <= k1 && k1 < K))
+    throw nb::value_error(("ekf_window: need 0 <= k0 <= k1 < K, got k0=" + std::to_string(k0) +
+                           ", k1=" + std::to_string(k1) + ", K=" + std::to_string(K))
+                              .c_str());
+  if (!(0 <= lo && lo <= hi && hi <= M))
+    throw nb::value_error("ekf_window: need 0 <= lo <= hi <= M (node range)");
+  if (!(0 <= w0 && w0 <= offsets.data()[k0]))
+    throw nb::value_error("ekf_window: need 0 <= w0 <= offsets[k0] (warm-up start)");
+  if (offsets.data()[K - 1] > ns)
+    throw nb::value_error("ekf_window: offsets exceed the number of steps");
+
+  const std::size_t n = static_cast<std::size_t>(hi - lo);
+  const std::size_t nk = record ? static_cast<std::size_t>(k1 - k0 + 1) : 0;
+  const std::size_t nP = record ? n : 0;
+  Output o{};
+  OutF64 ae = new_out<double>({n, 9}, o.e), anu = new_out<double>({n, 3}, o.nu),
+         anw = new_out<double>({n, 3}, o.nu_w), as = new_out<double>({n, 3}, o.s);
+  OutI8 ast = new_out<std::int8_t>({n}, o.status);
+  OutF64 ax = new_out<double>({9}, o.x), aP = new_out<double>({9, 9}, o.P);
+  double *X, *Pn;
+  OutF64 aX = new_out<double>({nk, 9}, X), aPn = new_out<double>({nP, 9, 9}, Pn);
+  o.X = record ? X : nullptr;
+  o.Pn = record ? Pn : nullptr;
+  std::vector<std::uint8_t> warm(1, 0);
+  Timeline tl{kn::Steps{h.data(), warm.data(), R.data(), dem.data(), tm.data(), ns},
+              offsets.data(),
+              K,
+              knots.data(),
+              node_knot.data(),
+              node_kind.data(),
+              node_z.data(),
+              node_R.data(),
+              node_tm.data(),
+              station.data()};
+  kn::Geometry g{dirs.data(), side.data(), nt, planar};
+  const Config c = Config::from(cfg.data());
+  {
+    nb::gil_scoped_release release;
+    window(x0.data(), P0.data(), k0, k1, p.data(), pm.data(), c, tl, g, w0, lo, hi, o);
+  }
+  return {ae, anu, anw, as, ast, ax, aP, aX, aPn};
+}
+
+}  // namespace
+
+void register_ekf(nb::module_& m) {
+  m.def("ekf_window", &py_ekf_window, nb::arg("x0"), nb::arg("P0"), nb::arg("k0"), nb::arg("k1"),
+        nb::arg("p"), nb::arg("pm"), nb::arg("cfg"), nb::arg("h"), nb::arg("R"), nb::arg("dem"),
+        nb::arg("tm"), nb::arg("offsets"), nb::arg("knots"), nb::arg("w0"),
+        nb::arg("node_knot"), nb::arg("node_kind"), nb::arg("node_z"), nb::arg("node_R"),
+        nb::arg("node_tm"), nb::arg("station"), nb::arg("dirs"), nb::arg("side"),
+        nb::arg("planar"), nb::arg("lo"), nb::arg("hi"), nb::arg("record"),
+        "One EKF pass of the update-error method from knot k0 to k1 (see aqfg.ekf_window). "
+        "Returns (e (n, 9), nu (n, 3), nu_w (n, 3), s (n, 3), status (n,) int8, x (9,), "
+        "P (9, 9), X (k1-k0+1 or 0, 9), Pn (n or 0, 9, 9)).");
+}
+
+}  // namespace ekf
+}  // namespace aqfg
