@@ -12,6 +12,7 @@
 #include <string>
 #include <tuple>
 
+#include "ekf.hpp"
 #include "kernel.hpp"
 
 namespace nb = nanobind;
@@ -250,4 +251,5 @@ NB_MODULE(_kernel, m) {
         nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"),
         nb::arg("side"), nb::arg("planar"), nb::arg("repeats"),
         "Seconds per propagate call, timed in C++ over `repeats` calls.");
+  aqfg::ekf::register_ekf(m);  // update-error EKF window (ekf.cpp)
 }
