@@ -41,6 +41,8 @@ def random_geometry(rng: np.random.Generator, n_thr: int, planar: bool) -> ref.G
     dirs = rng.normal(size=(n_thr, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     side = np.where(np.arange(n_thr) % 2 == 0, -1.0, 1.0)  # port and starboard both present
+    if n_thr > 2:
+        side[-1] = 0.0                                      # and one on the centre line
     return ref.Geometry(dirs=dirs, side=side, planar=planar)
 
 
