@@ -52,9 +52,9 @@ def _number(text: str, where: str) -> float:
 class _Progress:
     """Percentage on stderr: in place on a terminal, every 10 % otherwise."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream=None):
+        self.stream = sys.stderr if stream is None else stream
+        self.tty = self.stream.isatty()
         self.last = -1
 
     def __call__(self, frac: float) -> None:
