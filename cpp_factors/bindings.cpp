@@ -81,6 +81,19 @@ void check_shape(const char* fn, const char* name, const Arr& a,
                               .c_str());
 }
 
+// `planar`: a Python bool or a numpy bool (e.g. from an array comparison).
+bool as_bool(const char* fn, const char* name, nb::handle h) {
+  if (h.is(nb::handle(Py_True))) return true;
+  if (h.is(nb::handle(Py_False))) return false;
+  nb::handle tp = h.type();
+  if (nb::hasattr(tp, "__module__") && nb::cast<std::string>(tp.attr("__module__")) == "numpy" &&
+      nb::cast<std::string>(tp.attr("__name__")).rfind("bool", 0) == 0)
+    return PyObject_IsTrue(h.ptr()) == 1;
+  throw nb::type_error((std::string(fn) + ": argument '" + name + "' must be a bool, got " +
+                        nb::cast<std::string>(nb::str(tp.attr("__name__"))))
+                           .c_str());
+}
+
 OutF64 new_array(std::initializer_list<std::size_t> shape, double*& data) {
   std::size_t n = 1;
   for (auto s : shape) n *= s;
@@ -116,8 +129,9 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate(const InF64& x0, const InF64& p,
                                                 const InU8& warm, const InF64& R,
                                                 const InF64& dem, const InF64& tm,
                                                 const InF64& dirs, const InF64& side,
-                                                bool planar) {
+                                                nb::handle planar_obj) {
   const char* fn = "propagate";
+  const bool planar = as_bool(fn, "planar", planar_obj);
   check_shape(fn, "x0", x0, {6}, "(6,)");
   Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
   double *x1, *Jx, *Jp;
@@ -132,8 +146,9 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
                                                      const InF64& R, const InF64& dem,
                                                      const InF64& tm, const InI64& offsets,
                                                      const InF64& dirs, const InF64& side,
-                                                     bool planar) {
+                                                     nb::handle planar_obj) {
   const char* fn = "propagate_many";
+  const bool planar = as_bool(fn, "planar", planar_obj);
   check_shape(fn, "X0", X0, {ANY, 6}, "(K, 6)");
   const std::int64_t K = static_cast<std::int64_t>(X0.shape(0));
   check_shape(fn, "offsets", offsets, {K + 1}, "(K + 1,) with K = X0.shape[0]");
@@ -160,8 +175,9 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
 
 OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
                   const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
-                  const InF64& side, bool planar) {
+                  const InF64& side, nb::handle planar_obj) {
   const char* fn = "rollout";
+  const bool planar = as_bool(fn, "planar", planar_obj);
   check_shape(fn, "x0", x0, {6}, "(6,)");
   Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
   double* X;
@@ -176,8 +192,9 @@ OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& w
 std::tuple<OutF64, OutF64, OutF64> py_accel(const InF64& v, const InF64& R_raw, const InF64& d,
                                             const InF64& dd_tau, double tm, const InF64& p,
                                             const InF64& dirs, const InF64& side,
-                                            bool planar) {
+                                            nb::handle planar_obj) {
   const char* fn = "accel";
+  const bool planar = as_bool(fn, "planar", planar_obj);
   check_shape(fn, "v", v, {3}, "(3,)");
   if (R_raw.ndim() == 2)
     check_shape(fn, "R_raw", R_raw, {3, 3}, "(9,) or (3, 3)");
@@ -199,8 +216,9 @@ std::tuple<OutF64, OutF64, OutF64> py_accel(const InF64& v, const InF64& R_raw, 
 // Seconds per propagate call, timed in C++ over `repeats` calls (no Python overhead).
 double py_bench_propagate(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
                           const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
-                          const InF64& side, bool planar, int repeats) {
+                          const InF64& side, nb::handle planar_obj, int repeats) {
   const char* fn = "bench_propagate";
+  const bool planar = as_bool(fn, "planar", planar_obj);
   check_shape(fn, "x0", x0, {6}, "(6,)");
   Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
   if (repeats < 1) throw nb::value_error("bench_propagate: argument 'repeats' must be >= 1");

@@ -284,3 +284,21 @@ def test_accel_bad_shapes():
                      ("p", p[:-1])):
         with pytest.raises(ValueError, match=f"'{arg}'"):
             K.accel(**{**good, arg: bad})
+
+
+def test_planar_accepts_numpy_bool_and_rejects_other_types():
+    a = _good_args()
+    x1 = K.propagate(**{**a, "planar": True})[0]
+    np.testing.assert_array_equal(K.propagate(**{**a, "planar": np.bool_(True)})[0], x1)
+    assert not np.array_equal(K.propagate(**a)[0], x1)
+    with pytest.raises(TypeError, match="'planar'"):
+        K.propagate(**{**a, "planar": "yes"})
+
+
+def test_inputs_of_other_dtype_or_layout_are_converted():
+    a = _good_args()
+    x1, Jx, Jp = K.propagate(**a)
+    b = {**a, "warm": a["warm"].astype(bool), "dem": np.asfortranarray(a["dem"]),
+         "R": np.hstack([a["R"], np.zeros((len(a["h"]), 1))])[:, :9], "side": a["side"].astype(int)}
+    for u, v in zip(K.propagate(**b), (x1, Jx, Jp)):
+        np.testing.assert_array_equal(u, v)
