@@ -90,7 +90,7 @@ def effect_values(effects) -> dict[str, float]:
         if key in BUILTIN:
             eff = BUILTIN[key]
             short = [n.split(".", 1)[1] for n in eff.params]
-            if val is None or val == "":
+            if val is None or (isinstance(val, str) and val.strip() == ""):
                 pass
             elif isinstance(val, dict):
                 for sk, sv in val.items():
@@ -166,7 +166,10 @@ def simulate(vehicle: str = "asv", *, seed: int = 0, duration: float = 600.0,
     ``waypoints`` (n >= 2, 2) north/east m: the vehicle starts at rest on row 0, visits
     rows 1.. and cycles back to row 1; default a seeded lawn-mower/star pattern beside the
     station scaled to the duration. ``progress(fraction)`` is called during the run.
-    The AUV also logs depth (1 Hz) and follows a seeded depth profile (1-4 m).
+    The AUV also logs depth (1 Hz) and follows a seeded depth profile (1-4 m); its GNSS
+    fixes are recorded whatever its depth (a generic absolute-position sensor, as for the
+    paper's surface runs): for a realistic submerged mission pass ``gnss_period=None,
+    usbl=True``.
     """
     spec = _spec(vehicle)
     duration = _num(duration, "duration")
@@ -303,22 +306,19 @@ def _closed_loop(spec, p, wps, leg_speed, yaw0, wobble, profile, duration, progr
         U[k] = u
         c = demand(u)
         f_start = f
-        # rotational dynamics, 100 Hz (semi-implicit Euler)
-        if tau > 0:
+        if tau > 0:                       # lagged thrust: the kernel's filter, per step
+            means = np.empty((SUBSTEPS, N))
             for j in range(SUBSTEPS):
-                mean, _, f, _ = ref.filter_step(f, zeros, c, H_FINE, tau)
-                m = float(arm @ (thrust_gains(p, side, mean) * mean))
-                i = i0 + j
-                ri = r[i]
-                r[i + 1] = ri + H_FINE * (m / gyr2 - c1 * ri - c2 * ri * abs(ri))
-                yaw[i + 1] = yaw[i] + H_FINE * r[i + 1]
+                means[j], _, f, _ = ref.filter_step(f, zeros, c, H_FINE, tau)
+            moments = ((thrust_gains(p, side, means) * means) @ arm / gyr2).tolist()
         else:
             f = c
-            m = float(arm @ (thrust_gains(p, side, c) * c)) / gyr2
-            for i in range(i0, i0 + SUBSTEPS):
-                ri = r[i]
-                r[i + 1] = ri + H_FINE * (m - c1 * ri - c2 * ri * abs(ri))
-                yaw[i + 1] = yaw[i] + H_FINE * r[i + 1]
+            moments = [float(arm @ (thrust_gains(p, side, c) * c)) / gyr2] * SUBSTEPS
+        for j, m in enumerate(moments):   # rotational dynamics, semi-implicit Euler
+            i = i0 + j
+            ri = r[i]
+            r[i + 1] = ri + H_FINE * (m - c1 * ri - c2 * ri * abs(ri))
+            yaw[i + 1] = yaw[i] + H_FINE * r[i + 1]
         # translation: the shared kernel over the tick
         sl = slice(i0, i0 + SUBSTEPS)
         yaw_mid = 0.5 * (yaw[sl] + yaw[i0 + 1:i0 + SUBSTEPS + 1])
