@@ -28,9 +28,11 @@ using OutF64 = nb::ndarray<nb::numpy, double>;
 constexpr std::int64_t ANY = -1;
 
 // The integration loops compiled twice on x86-64 Linux: for AVX2+FMA (x86-64-v3) and for
-// the baseline; the loader picks the one the CPU supports (GNU ifunc). The kernel's hot
-// functions are always_inline, so each clone holds its own vectorised copy.
-#if defined(__x86_64__) && defined(__linux__) && (defined(__GNUC__) || defined(__clang__))
+// the baseline; the loader picks the one the CPU supports (GNU ifunc, so glibc and GCC >= 11
+// only; elsewhere the baseline alone). The kernel's hot functions are always_inline, so each
+// clone holds its own vectorised copy.
+#if defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__) && !defined(__clang__) && \
+    defined(__GNUC__) && __GNUC__ >= 11
 #define AQFG_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define AQFG_CLONES
