@@ -158,6 +158,8 @@ def simulate(vehicle: str = "asv", *, seed: int = 0, duration: float = 600.0,
              progress: Callable[[float], None] | None = None) -> tuple[Mission, Truth]:
     """Simulate one mission; returns the mission (what the vehicle logged) and its truth.
 
+    ``duration`` s (rounded to the 0.1 s controller tick); the vehicle starts at rest.
+
     ``params``: true parameters by name (base or effect parameters) overriding the
     defaults; ``effects``: hidden effects (see :func:`effect_values`). ``gnss_period`` s
     between GNSS fixes (None or 0: no GNSS), ``gnss_sigma`` m per axis. USBL: range
