@@ -98,6 +98,13 @@ def filter_step(f, df, c, h, tau):
     return mean, dmean, fn, dfn
 
 
+def thrust_gains(p: np.ndarray, side: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Thrust per unit demand of each propeller (Eq. 1 gain, m/s^2): ``k`` times the
+    asymmetry ratio (starboard thrusters) times the reverse ratio (negative demand)."""
+    g = np.where(np.asarray(side) > 0, p[I_K] * p[I_ASYM], p[I_K])
+    return np.where(np.asarray(d) < 0, g * p[I_REV], g)
+
+
 def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, tm: float,
           p: np.ndarray, geom: Geometry):
     """Ground-frame acceleration (m/s^2) and its Jacobians w.r.t. ``v`` (3x3) and ``p`` (3xN_DYN).
@@ -115,7 +122,7 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
     neg = d < 0
     g_asym = np.where(stb, p[I_ASYM], 1.0)
     g_rev = np.where(neg, p[I_REV], 1.0)
-    g = p[I_K] * g_asym * g_rev
+    g = thrust_gains(p, geom.side, d)
     a_thr = geom.dirs.T @ (g * d)
 
     # drag (Eq. 2) quadratic + linear

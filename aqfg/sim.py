@@ -36,7 +36,8 @@ from .params import BASE_NAMES, INDEX, NAMES, SPEC, as_dict, vector
 from .sim_plan import depth_profile, depth_reference, waypoint_pattern
 from .sim_sensors import (Run, depth_stream, gnss_stream, imu_stream, truth_track,
                           usbl_stream)
-from .sim_vehicle import VEHICLES, Controller, Wobble, thrust_gains
+from .kernel_ref import thrust_gains
+from .sim_vehicle import VEHICLES, Controller, Wobble
 
 H_FINE = 0.01            # s, truth integration step (100 Hz)
 SUBSTEPS = 10            # integration steps per controller tick (10 Hz)

@@ -86,15 +86,6 @@ AUV = VehicleSpec(
 VEHICLES = {"asv": ASV, "auv": AUV}
 
 
-def thrust_gains(p: np.ndarray, side: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Thrust per unit demand of each propeller (m/s^2), as the kernel's Eq. 1 uses it:
-    ``k`` times the asymmetry ratio (starboard) times the reverse ratio (negative demand).
-    The rotational model needs the same per-propeller thrust as the translational kernel."""
-    g = np.full(np.shape(d), p[INDEX["k"]])
-    g = np.where(side > 0, g * p[INDEX["thrust_asymmetry.ratio"]], g)
-    return np.where(d < 0, g * p[INDEX["reverse_thrust.ratio"]], g)
-
-
 # ---------------------------------------------------------------- roll/pitch wobble
 @dataclass(frozen=True)
 class Wobble:
