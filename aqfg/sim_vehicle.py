@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .params import INDEX
 
 
 @dataclass(frozen=True)
