@@ -66,29 +66,27 @@ class ProcessNoise:
     axis gives ``Q(dt) = sigma_a^2 [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) I3``, the exact
     covariance of the model error accumulated over the interval, so the result does not
     depend on the knot spacing. A model-error floor adds ``dt * pos_rate^2`` (m^2) to the
-    positions and ``dt * vel_rate^2`` ((m/s)^2) to the velocities. For planar vehicles (ASV)
-    the kernel pins the vertical acceleration to zero; the vertical axis gets
-    ``sigma_a * vertical_factor`` so that down and vd stay at their first-knot prior.
+    positions and ``dt * vel_rate^2`` ((m/s)^2) to the velocities. The same model holds on
+    the vertical axis; planar vehicles (ASV) are kept on the surface by
+    :func:`surface_factor` instead (a tiny vertical noise made ISAM2's Cholesky fail:
+    "indeterminate system" after ~260 knots).
     """
     sigma_a: float = 0.02
     pos_rate: float = 0.01
     vel_rate: float = 0.005
-    vertical_factor: float = 1e-3
 
-    def cov(self, dt: float, planar: bool) -> np.ndarray:
+    def cov(self, dt: float, planar: bool = False) -> np.ndarray:
         """6x6 covariance of ``x1 - f(x0, p)`` (NED position then velocity)."""
         dt = float(dt)
-        s2 = np.full(3, self.sigma_a ** 2)
-        if planar:
-            s2[2] *= self.vertical_factor ** 2
+        s2 = self.sigma_a ** 2
         Q = np.zeros((6, 6))
-        f = np.array([1.0, 1.0, self.vertical_factor ** 2 if planar else 1.0])
-        Q[:3, :3] = np.diag(s2 * dt ** 3 / 3 + f * dt * self.pos_rate ** 2)
-        Q[:3, 3:] = Q[3:, :3] = np.diag(s2 * dt ** 2 / 2)
-        Q[3:, 3:] = np.diag(s2 * dt + f * dt * self.vel_rate ** 2)
+        I3 = np.eye(3)
+        Q[:3, :3] = (s2 * dt ** 3 / 3 + dt * self.pos_rate ** 2) * I3
+        Q[:3, 3:] = Q[3:, :3] = s2 * dt ** 2 / 2 * I3
+        Q[3:, 3:] = (s2 * dt + dt * self.vel_rate ** 2) * I3
         return Q
 
-    def noise_model(self, dt: float, planar: bool) -> gtsam.noiseModel.Base:
+    def noise_model(self, dt: float, planar: bool = False) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Gaussian.Covariance(self.cov(dt, planar))
 
 
@@ -362,11 +360,30 @@ def depth_factor(kx: int, z: float, dt: float, noise) -> gtsam.CustomFactor:
     return _meas_factor(lambda x, nd: depth_residual(x, z, dt), kx, (), noise)
 
 
+_SURFACE_A = np.zeros((2, 6))
+_SURFACE_A[0, 2] = _SURFACE_A[1, 5] = 1.0
+
+
+def surface_factor(kx: int, sigma_down: float = 0.01, sigma_vd: float = 0.01):
+    """A surface vehicle stays on the surface: ``down = 0``, ``vd = 0`` (m, m/s).
+
+    Linear, so it is a native ``LinearContainerFactor`` (no Python callback)."""
+    jf = gtsam.JacobianFactor(kx, _SURFACE_A, np.zeros(2),
+                              gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_down, sigma_vd])))
+    lp = gtsam.Values()
+    lp.insert(kx, np.zeros(6))
+    return gtsam.LinearContainerFactor(jf, lp)
+
+
 # ---------------------------------------------------------------- parameter priors and bounds
 def param_prior(layout: ParamLayout, group: str, key: int, scale: float,
-                mean: np.ndarray | None = None) -> gtsam.PriorFactorVector:
-    """Weak prior on a node: mean = initial values, sigma = ``scale`` x ParamSpec.scale."""
-    sig = np.array([scale * layout.model.spec(n).scale for n in layout.names[group]])
+                mean: np.ndarray | None = None, sigma: Mapping[str, float] | None = None
+                ) -> gtsam.PriorFactorVector:
+    """Weak prior on a node: mean = initial values, sigma = ``sigma[name]`` if given, else
+    ``scale`` x ParamSpec.scale."""
+    sigma = sigma or {}
+    sig = np.array([sigma.get(n, scale * layout.model.spec(n).scale)
+                    for n in layout.names[group]])
     m = layout.initial(group) if mean is None else mean
     return gtsam.PriorFactorVector(key, m, gtsam.noiseModel.Diagonal.Sigmas(sig))
 

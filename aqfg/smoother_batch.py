@@ -29,7 +29,7 @@ from .model import Model
 from .params import N_DYN
 from .result import MissionResult, ParamHistory, Result, Track
 from .smoother_common import (FGSettings, Measurements, check_missions, default_estimate,
-                              first_knot_prior, initial_states, knot_times, measurement_factors,
+                              first_knot_prior, initial_guess, knot_times, measurement_factors,
                               mission_model, piecewise_inertial, progress_fn, residuals)
 
 MEASURED = """(filled in from experiments/bench_fg.py)"""
@@ -80,6 +80,7 @@ class BatchSmoother:
         nf = 0
         dyn_rows = []          # (part, interval) per cache row, to allocate the cache
         walk = s.walk_sigma and "variable" in layout.names
+        guesses = []
         for mi, (m, model) in enumerate(zip(missions, models)):
             knots = knot_times(m, s.knot_spacing)
             steps, off = model.steps(m, knots)
@@ -99,29 +100,47 @@ class BatchSmoother:
                 a, b = int(ii[0]), int(ii[-1]) + 1
                 slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
             keys = [fc.state_key(mi, i) for i in range(len(knots))]
-            X0 = initial_states(m, knots)
+            guess = initial_guess(model, m, knots, layout.base)
+            X0 = guess.X
+            guesses.append(guess)
             for k, x in zip(keys, X0):
                 values.insert(k, x)
             graph.add(first_knot_prior(m, keys[0], X0[0], s))
+            if m.planar:
+                for k in keys:
+                    graph.add(fc.surface_factor(k, *s.surface_sigma))
             parts.append(_Part(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
             nf += K
         cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
                                  np.zeros((nf, 6, len(models[0].dyn_columns()))))
-        # parameter nodes, priors, random walk
+        # parameter nodes (started from the data-driven guess where the user gave no
+        # initial value), priors (around the user's / nominal values), random walk
         node_list = []
         if "fixed" in layout.names:
             k = fc.node_key("fixed")
-            values.insert(k, layout.initial("fixed"))
-            graph.add(fc.param_prior(layout, "fixed", k, s.prior_scale))
+            f0 = layout.initial("fixed")
+            names = layout.names["fixed"]
+            rho2 = float(np.median([g.speed_scale for g in guesses])) ** 2
+            if "k" in names and "k" not in self.init and "k_x" not in self.init:
+                f0[names.index("k")] *= rho2     # steady speed ~ sqrt(k / k_x)
+            values.insert(k, layout.project("fixed", f0))
+            graph.add(fc.param_prior(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
             node_list.append(("fixed", k, None))
         for part in parts:
             if "variable" in layout.names:
+                v0 = layout.initial("variable")
+                g0 = guesses[part.index]
+                for n, val in (("theta_e", g0.theta_e), ("s_x", g0.current[0]),
+                               ("s_y", g0.current[1])):
+                    if n in layout.names["variable"] and n not in self.init:
+                        v0[layout.names["variable"].index(n)] = val
+                v0 = layout.project("variable", v0)
                 for j in range(len(part.seg_starts)):
                     k = fc.node_key("variable", part.index, j)
-                    values.insert(k, layout.initial("variable"))
+                    values.insert(k, v0)
                     node_list.append(("variable", k, part.index))
                     if j == 0:
-                        graph.add(fc.param_prior(layout, "variable", k, s.prior_scale))
+                        graph.add(fc.param_prior(layout, "variable", k, s.prior_scale, sigma=s.prior_sigma))
                     else:
                         sig = np.array([(s.walk_sigma or {}).get(n, 0.0)
                                         for n in layout.names["variable"]])
@@ -130,7 +149,7 @@ class BatchSmoother:
             if "sensor" in layout.names:
                 k = fc.node_key("sensor", part.index)
                 values.insert(k, layout.initial("sensor"))
-                graph.add(fc.param_prior(layout, "sensor", k, s.prior_scale))
+                graph.add(fc.param_prior(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
                 node_list.append(("sensor", k, part.index))
         # dynamics and measurement factors
         dyn_groups = layout.dyn_groups()
