@@ -252,14 +252,14 @@ class BatchSmoother:
             if not accepted:
                 self._fill(layout, parts, cache, values)
                 break
-            rel = (err - err_c) / max(err, 1e-300)
+            gain = err - err_c
             values, err = cand, err_c
             lam = max(lam / 10.0, 1e-9)
             gfg = graph.linearize(values)       # cache holds the dynamics at `values`
             it_times.append(time.perf_counter() - t_it)
             self.progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
                           f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
-            if rel < s.rel_tol:
+            if gain < max(s.rel_tol * err, s.abs_tol):
                 converged = True
                 break
         # marginal covariances of the parameter nodes from the undamped Bayes tree

@@ -33,7 +33,8 @@ class FGSettings:
     surface_sigma: (m, m/s) of the surface constraint down = 0, vd = 0 of planar vehicles.
     init_vel_sigma, init_pos_sigma: prior at the first knot (m/s, m) around the first fix
         and zero velocity (paper §II-E5).
-    max_iterations, rel_tol: batch Levenberg-Marquardt stopping rule.
+    max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
+        lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     relin_state, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
         thresholds and the number of ISAM2 iterations after each fix.
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
@@ -54,7 +55,8 @@ class FGSettings:
     init_vel_sigma: float = 1.0
     init_pos_sigma: float = 20.0
     max_iterations: int = 60
-    rel_tol: float = 1e-7
+    rel_tol: float = 1e-6
+    abs_tol: float = 1e-3
     relin_state: float = 0.01
     relin_param: float = 0.001
     iterations_per_update: int = 2
