@@ -1,0 +1,228 @@
+"""Compute-cost benchmarks, factor graph vs update-error, measured in the same run.
+
+Figures (each a median over repeated runs; the machine may be shared, so read medians):
+
+* ``kernel_us``: the C++ dynamics factor for 1 s of 50 Hz inputs (state and all Jacobians),
+  timed inside C++ (target <= 5 us);
+* online, on one simulated ASV mission (30 deg heading offset): the factor graph's time per
+  fixed-lag update and the update-error method's time per optimisation of the same window,
+  their ratio, the update-error time per error evaluation and evaluations per
+  optimisation. Scenario "gnss8": GNSS every 8 s, window 24 s = 3 fixes (target: fixed-lag
+  update <= 5 ms and >= 20x faster than the update-error optimisation); scenario "usbl":
+  range/bearing every 4.5 s, window 15 s = 3 fixes (the paper's §V-F setting: 10 ms per
+  15 s window evaluation, 30-50 evaluations per optimisation; here the window holds the
+  last 3 fixes, 13.5 s);
+* batch: the factor graph over a 15-minute mission with all six parameters (target <= 3 s),
+  and optionally the update-error offline optimisation of the same mission.
+
+The factor graph's per-update time includes the parameter marginal covariances; the
+update-error optimisation time excludes its Gauss-Newton sigma (computed after). Fixed-lag
+updates during the warm-up (window grown to everything since the start until the
+parameters have converged, :class:`aqfg.smoother_common.FGSettings`) are reported apart:
+the 24 s-window figure is the median after the warm-up.
+
+``run(repeat)`` returns the figures as a dict; ``report(figs)`` formats them as markdown.
+``aqfg bench`` runs the quick set; ``experiments/compute_cost.py`` the full one.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .mission import with_gnss_every, without_gnss
+from .model import Model
+from .params import N_DYN, OLD_PARAMS, vector
+
+TARGETS = {"kernel_us": 5.0, "fl_update_ms": 5.0, "ratio": 20.0, "batch_s": 3.0}
+VARIABLE = ("theta_e", "s_x", "s_y")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    source: str          # "gnss" or "usbl"
+    period: float        # s between fixes used
+    window_s: float      # fixed-lag window, s (3 fixes)
+    duration: float      # s
+
+
+SCENARIOS = {
+    "gnss8": Scenario("gnss8", "gnss", 8.0, 24.0, 300.0),
+    "usbl": Scenario("usbl", "usbl", 4.5, 15.0, 300.0),
+}
+
+
+def _med(x) -> float:
+    x = np.asarray(x, float)
+    return float(np.median(x)) if len(x) else float("nan")
+
+
+def _pct(x, q) -> float:
+    x = np.asarray(x, float)
+    return float(np.percentile(x, q)) if len(x) else float("nan")
+
+
+def kernel_time(repeat: int = 5, reps: int = 2000, seed: int = 0) -> list[float]:
+    """Seconds per C++ ``propagate`` over 1 s of a simulated ASV's 50 Hz inputs (all
+    Jacobians), one figure per run; empty when the extension is not built."""
+    try:
+        from . import _kernel as K
+    except ImportError:  # pragma: no cover
+        return []
+    from .sim import simulate
+    m, tr = simulate("asv", seed=seed, duration=30.0, gnss_period=1.0)
+    model = Model.for_mission(m)
+    steps, off = model.steps(m, np.array([20.0, 21.0]))
+    p = vector({n: v for n, v in tr.params.items() if isinstance(v, float)})[:N_DYN]
+    g = model.geometry
+    x0 = np.array([1.0, 2.0, 0.0, 1.0, 0.2, 0.0])
+    args = (x0, np.ascontiguousarray(p), steps.h, steps.warm.astype(np.uint8), steps.R,
+            steps.dem, steps.tm, g.dirs, g.side, g.planar)
+    K.bench_propagate(*args, reps)
+    return [float(K.bench_propagate(*args, reps)) for _ in range(repeat)]
+
+
+def online_mission(sc: Scenario, seed: int = 0):
+    """The scenario's mission (what the estimators see), its truth, and the fixed
+    parameters (held at truth)."""
+    from .sim import simulate
+    full, truth = simulate("asv", seed=seed, duration=sc.duration,
+                           params={"theta_e": float(np.radians(30.0))}, gnss_period=1.0,
+                           usbl=sc.source == "usbl")
+    m = with_gnss_every(full, sc.period) if sc.source == "gnss" else without_gnss(full)
+    init = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
+    return m, truth, init
+
+
+def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
+    """Per-update (fg) and per-optimisation / per-evaluation (update-error) times on the
+    scenario's mission, both methods run alternately in this process ``repeat`` times."""
+    from .ekf import UpdateErrorEstimator
+    from .smoother import FixedLagSmoother
+    m, _, init = online_mission(sc, seed)
+    fl_all, fl_after, opt, evals, n_eval = [], [], [], [], []
+    for _ in range(repeat):
+        r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)
+        ups = np.asarray(r.timings["update"])
+        t_up = np.asarray(r.history.t)
+        we = r.info.get("warmup_end", float("nan"))
+        fl_all += list(ups[1:])                    # the first is the start (prior only)
+        after = t_up > we if np.isfinite(we) else np.zeros(len(ups), bool)
+        fl_after += list(ups[after])
+        u = UpdateErrorEstimator(None, m, init=init).run_online(
+            estimate=VARIABLE, window_fixes=3, sigma=False)
+        opt += list(u.timings["optimisation"])
+        evals += list(u.timings["evaluation"])
+        n_eval += list(u.info["evaluations_per_optimisation"])
+    return {"fl_update_all": fl_all, "fl_update": fl_after, "ue_opt": opt, "ue_eval": evals,
+            "ue_nevals": n_eval, "window_s": sc.window_s, "period": sc.period,
+            "warmup_updates": len(fl_all) // max(repeat, 1) - len(fl_after) // max(repeat, 1)}
+
+
+def batch_times(repeat: int = 3, duration: float = 900.0, seed: int = 0,
+                update_error: bool = False) -> dict:
+    """Factor-graph batch over a ``duration`` s ASV mission (GNSS 1 Hz) estimating all six
+    base parameters from the paper's old ones; optionally the update-error offline
+    optimisation of the same mission (once: it takes much longer)."""
+    from .sim import simulate
+    from .smoother import fit_fg
+    m, truth = simulate("asv", seed=seed, duration=duration, gnss_period=1.0)
+    six = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
+    fg = []
+    iters = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        r = fit_fg([m], mode="batch", estimate=six, init=dict(OLD_PARAMS))
+        fg.append(time.perf_counter() - t0)
+        iters.append(r.info.get("iterations", np.nan))
+    out = {"fg_batch": fg, "fg_iterations": iters, "duration": duration}
+    if update_error:
+        from .ekf import fit_update_error
+        t0 = time.perf_counter()
+        u = fit_update_error([m], mode="batch", estimate=six, init=dict(OLD_PARAMS), sigma=False)
+        out["ue_batch"] = [time.perf_counter() - t0]
+        out["ue_batch_opt"] = list(u.timings["optimisation"])
+        out["ue_batch_evals"] = [u.info.get("evaluations", np.nan)]
+        out["ue_batch_eval"] = list(u.timings["evaluation"])
+    return out
+
+
+def run(repeat: int = 5, batch_update_error: bool = False, progress=None) -> dict:
+    """The benchmark set: kernel, both online scenarios, batch."""
+    say = progress or (lambda msg: None)
+    figs: dict = {"repeat": repeat}
+    say("kernel")
+    figs["kernel"] = kernel_time(repeat)
+    for name, sc in SCENARIOS.items():
+        say(f"online {name}")
+        figs[name] = online_times(sc, repeat=max(1, (repeat + 1) // 2))
+    say("batch")
+    figs["batch"] = batch_times(max(1, (repeat + 1) // 2), update_error=batch_update_error)
+    return figs
+
+
+def headline(figs: dict) -> dict[str, float]:
+    """The target figures: kernel us, fixed-lag update ms (24 s window, after warm-up),
+    update-error optimisation ms of the same window, ratio, batch s."""
+    g = figs["gnss8"]
+    fl, ue = _med(g["fl_update"]), _med(g["ue_opt"])
+    return {"kernel_us": 1e6 * _med(figs["kernel"]), "fl_update_ms": 1e3 * fl,
+            "ue_opt_ms": 1e3 * ue, "ratio": ue / fl if fl > 0 else float("nan"),
+            "batch_s": _med(figs["batch"]["fg_batch"]),
+            "eval15_ms": 1e3 * _med(figs["usbl"]["ue_eval"]),
+            "nevals15": _med(figs["usbl"]["ue_nevals"])}
+
+
+def report(figs: dict) -> str:
+    """Markdown tables of the figures, with the targets."""
+    h = headline(figs)
+
+    def ok(v, key, above=False):
+        t = TARGETS[key]
+        good = v >= t if above else v <= t
+        return f"{'met' if good else 'NOT met'} ({'>=' if above else '<='} {t:g})"
+
+    rows = [
+        ("C++ dynamics factor, 1 s of 50 Hz inputs, all Jacobians", f"{h['kernel_us']:.2f} us",
+         ok(h["kernel_us"], "kernel_us")),
+        ("fixed-lag update, 24 s window (after warm-up)", f"{h['fl_update_ms']:.2f} ms",
+         ok(h["fl_update_ms"], "fl_update_ms")),
+        ("update-error optimisation of the same 24 s window", f"{h['ue_opt_ms']:.2f} ms", ""),
+        ("ratio update-error / fixed-lag (same run)", f"{h['ratio']:.1f}x",
+         ok(h["ratio"], "ratio", above=True)),
+        ("batch, 15-min mission, all six parameters", f"{h['batch_s']:.2f} s",
+         ok(h["batch_s"], "batch_s")),
+        ("update-error E(P) of a 3-fix USBL window, 13.5 s (paper: ~10 ms per 15 s window "
+         "on a Pi Zero)", f"{h['eval15_ms']:.3f} ms", ""),
+        ("update-error evaluations per optimisation, same window (paper: 30-50)",
+         f"{h['nevals15']:.0f}", ""),
+    ]
+    lines = ["| figure (median) | value | target |", "|---|---|---|"]
+    lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    lines += ["", "| online scenario | fixed-lag update, all [ms] | after warm-up [ms] "
+              "| update-error optimisation [ms] | evaluation [ms] | evaluations per "
+              "optimisation | ratio |", "|---|---|---|---|---|---|---|"]
+    for name in SCENARIOS:
+        g = figs[name]
+        fl = _med(g["fl_update"])
+        ue = _med(g["ue_opt"])
+        lines.append(
+            f"| {name}: fixes every {g['period']:g} s, window {g['window_s']:g} s "
+            f"| {1e3 * _med(g['fl_update_all']):.2f} (p90 {1e3 * _pct(g['fl_update_all'], 90):.2f}) "
+            f"| {1e3 * fl:.2f} (p90 {1e3 * _pct(g['fl_update'], 90):.2f}) "
+            f"| {1e3 * ue:.2f} (p90 {1e3 * _pct(g['ue_opt'], 90):.2f}) "
+            f"| {1e3 * _med(g['ue_eval']):.3f} | {_med(g['ue_nevals']):.0f} "
+            f"[{_pct(g['ue_nevals'], 10):.0f}, {_pct(g['ue_nevals'], 90):.0f}] "
+            f"| {ue / fl:.1f}x |")
+    b = figs["batch"]
+    lines += ["", f"Batch over a {b['duration']:.0f} s mission (GNSS 1 Hz, six parameters from "
+              f"the old values): factor graph {_med(b['fg_batch']):.2f} s median over "
+              f"{len(b['fg_batch'])} runs ({_med(b['fg_iterations']):.0f} LM iterations)."]
+    if "ue_batch" in b:
+        lines[-1] += (f" Update-error offline optimisation of the same mission: "
+                      f"{_med(b['ue_batch_opt']):.1f} s, {_med(b['ue_batch_evals']):.0f} "
+                      f"evaluations of {1e3 * _med(b['ue_batch_eval']):.1f} ms; ratio "
+                      f"{_med(b['ue_batch_opt']) / _med(b['fg_batch']):.1f}x.")
+    return "\n".join(lines)
