@@ -251,6 +251,14 @@ def write_md(out_dir: Path, name: str, title: str, body: str, args, started: flo
     return path
 
 
+def write_headline(out_dir: Path, name: str, md: str, args) -> Path:
+    """The script's headline table for experiments/README.md (``run_all.py`` stitches
+    them in); ``<name>_headline.md``, or ``_headline_quick.md`` with --quick."""
+    path = Path(out_dir) / f"{name}_headline{'_quick' if args.quick else ''}.md"
+    path.write_text(md.strip() + "\n")
+    return path
+
+
 def _git_rev() -> str:
     import subprocess
     try:

@@ -65,6 +65,7 @@ window holds everything since the start until the parameters' sigmas have conver
 Figure: `compute_cost.png` (distribution of per-update / per-optimisation times).
 """
     C.write_md(args.out, "compute_cost", "Section V-F analog: compute cost", body, args, started)
+    C.write_headline(args.out, "compute_cost", text.split("\n\n")[0], args)
 
     import matplotlib.pyplot as plt
     fig, axs = plt.subplots(1, 2, figsize=(8, 3))

@@ -128,6 +128,10 @@ lines), `gnss_interval_p95.png` (95th percentile vs interval, every seed).
 """
     C.write_md(out, "gnss_interval", "Fig. 10 analog: position error vs GNSS interval", body,
                args, started)
+    C.write_headline(out, "gnss_interval", C.md_table(
+        ["GNSS interval", "method", "95th pct without est. [m]", "95th pct with est. [m]",
+         f"95th pct with, after {SETTLE:.0f} s [m]"],
+        [[r[0], r[1], r[2], r[3], r[5]] for r in rows]), args)
 
     fig, axs = plt.subplots(len(INTERVALS), 1, figsize=(7.5, 6.5), sharex=True)
     for ax, iv in zip(axs, INTERVALS):

@@ -224,6 +224,7 @@ estimates of every seed vs truth), `online_heading_error.png` (seed 0 position e
 """
     C.write_md(out, "online_heading", "Figs. 7/8 analog: online heading/current estimation",
                body, args, started)
+    C.write_headline(out, "online_heading", t1 + "\n\n" + t3, args)
 
     r0 = next((r for r in res if r["tracks"]), None)
     if r0 is not None:

@@ -195,6 +195,22 @@ Figures: `table2_rmse.png` (test RMSE per seed), `table2_params.png` (estimate /
 """
     C.write_md(out, "table2", "Table II analog: offline fixed parameters, old vs estimated",
                body, args, started)
+    hrows = []
+    for name, _, _ in ROBOTS:
+        rr = by[name]
+        hrows.append([name, C.pm([r["rmse"]["old"] for r in rr])]
+                     + [C.pm([r["rmse"].get(m, np.nan) for r in rr]) for m in C.METHODS]
+                     + [C.pm([r["rmse"]["true"] for r in rr])])
+    cons = []
+    for m in C.METHODS:
+        c = ev.consistency(np.array([v for r in res for n in BASE_NAMES
+                                     for v in r["z"].get(m, {}).get(n, [])]))
+        cons.append(f"{C.LABEL[m]}: RMS {c['rms']:.2f}, {100 * c['within2']:.0f} % within 2 sigma")
+    head = C.md_table(["robot", "RMSE old param [m]"] + [f"RMSE {C.LABEL[m]} [m]"
+                                                         for m in C.METHODS]
+                      + ["RMSE true param [m]"], hrows)
+    C.write_headline(out, "table2", head + "\n\nParameter error / reported sigma, all six "
+                     "parameters pooled: " + "; ".join(cons) + ".", args)
 
     # ---- figures
     names = [n for n, _, _ in ROBOTS]
