@@ -1,0 +1,97 @@
+"""``aqfg fit``: the output files of the format doc, plots, methods, modes and bad input."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from aqfg.cli import main
+from aqfg.io import save_mission
+from aqfg.sim import simulate
+
+HEADER = "t,north,east,down,vn,ve,vd"
+
+
+@pytest.fixture(scope="module")
+def missions(tmp_path_factory):
+    root = tmp_path_factory.mktemp("missions")
+    out = []
+    for seed in (1, 2):
+        m, tr = simulate("asv", seed=seed, duration=150.0)
+        d = root / f"m{seed}"
+        save_mission(m, d, truth=tr)
+        out.append((d, tr))
+    return out
+
+
+def read_track(path):
+    lines = path.read_text().splitlines()
+    assert lines[0] == HEADER
+    return np.loadtxt(path, delimiter=",", skiprows=1)
+
+
+def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
+    (d, tr), _ = missions
+    out = tmp_path / "fit"
+    assert main(["fit", str(d), "--out", str(out), "--gnss-every", "8"]) == 0
+    params = json.loads((out / "parameters.json").read_text())
+    assert list(params) == ["k", "k_x", "k_yz", "theta_e", "s_x", "s_y"]
+    for n, e in params.items():
+        assert set(e) == {"value", "sigma"} and e["sigma"] > 0
+    assert abs(params["theta_e"]["value"] - tr.params["theta_e"]) < 3 * params["theta_e"]["sigma"]
+    traj, inert = read_track(out / "trajectory.csv"), read_track(out / "inertial.csv")
+    assert traj.shape[1] == inert.shape[1] == 7 and np.all(np.diff(traj[:, 0]) > 0)
+    assert inert[0, 0] == pytest.approx(0.0) and inert[-1, 0] == pytest.approx(150.0, abs=0.1)
+    assert (out / "map.png").stat().st_size > 10_000
+    printed = capsys.readouterr().out
+    assert "theta_e" in printed and "sigma" in printed and "map.png" in printed
+    # existing outputs are not replaced without --force
+    assert main(["fit", str(d), "--out", str(out)]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert main(["fit", str(d), "--out", str(out), "--force", "--no-plots",
+                 "--estimate", "theta_e,s_x,s_y", "--init", "k=9.26"]) == 0
+    params = json.loads((out / "parameters.json").read_text())
+    assert list(params) == ["theta_e", "s_x", "s_y"]
+
+
+def test_fit_online_and_two_missions(missions, tmp_path):
+    (d1, tr1), (d2, _) = missions
+    out = tmp_path / "online"
+    fixed = tmp_path / "fixed.json"
+    fixed.write_text(json.dumps({n: {"value": tr1.params[n], "sigma": 0.0}
+                                 for n in ("k", "k_x", "k_yz")}))
+    assert main(["fit", str(d1), "--out", str(out), "--mode", "online", "--window", "24",
+                 "--gnss-every", "8", "--params-from", str(fixed)]) == 0
+    assert set(json.loads((out / "parameters.json").read_text())) == {"theta_e", "s_x", "s_y"}
+    assert (out / "parameters.png").stat().st_size > 10_000
+    traj = read_track(out / "trajectory.csv")
+    assert traj[-1, 0] == pytest.approx(150.0, abs=0.1)
+    out2 = tmp_path / "two"
+    assert main(["fit", str(d1), str(d2), "--out", str(out2), "--gnss-every", "8",
+                 "--no-plots"]) == 0
+    subdirs = sorted(p.name for p in out2.iterdir() if p.is_dir())
+    assert len(subdirs) == 2
+    for s in subdirs:
+        assert (out2 / s / "trajectory.csv").exists() and (out2 / s / "inertial.csv").exists()
+
+
+def test_fit_update_error_method(missions, tmp_path):
+    (d, _), _ = missions
+    out = tmp_path / "ue"
+    assert main(["fit", str(d), "--out", str(out), "--method", "update-error",
+                 "--estimate", "theta_e,s_x,s_y", "--gnss-every", "8", "--no-plots"]) == 0
+    assert set(json.loads((out / "parameters.json").read_text())) == {"theta_e", "s_x", "s_y"}
+
+
+def test_fit_bad_input(missions, tmp_path, capsys):
+    (d, _), _ = missions
+    assert main(["fit", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--estimate", "k,bogus"]) == 2
+    assert "bogus" in capsys.readouterr().err
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--init", "k=abc"]) == 2
+    assert "'k' must be a number" in capsys.readouterr().err
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--effect", "warp_drive"]) == 2
+    assert "warp_drive" in capsys.readouterr().err
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--params-from",
+                 str(tmp_path / "missing.json")]) == 2
