@@ -35,8 +35,12 @@ class FGSettings:
         and zero velocity (paper §II-E5).
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
-    relin_state, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
-        thresholds and the number of ISAM2 iterations after each fix.
+    relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
+        thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
+        fix. Measured (ASV, 15 min, GNSS 8 s, 24 s window): thresholds 0.01 / 0.01 and two
+        iterations cost 2.0 ms per update, 1.0 / 0.05 and one iteration 0.5 ms, with the
+        final parameters within 0.2 batch-sigma of the batch answer either way (positions
+        enter the dynamics linearly, so their linearisation point matters little).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
@@ -57,9 +61,10 @@ class FGSettings:
     max_iterations: int = 60
     rel_tol: float = 1e-6
     abs_tol: float = 1e-3
-    relin_state: float = 0.01
+    relin_pos: float = 1.0
+    relin_vel: float = 0.05
     relin_param: float = 0.001
-    iterations_per_update: int = 2
+    iterations_per_update: int = 1
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 

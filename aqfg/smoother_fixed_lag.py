@@ -46,6 +46,28 @@ class UpdateInfo:
     n_new_knots: int
 
 
+def _window_steps(model: Model, mission: Mission, knots: np.ndarray):
+    """``model.steps(mission, knots)`` over a view of the mission cut to the knots' span
+    (plus the thrust-lag look-back): build_steps sorts every input time of the mission it is
+    given, which cost 0.3-0.7 ms per update on a 15-min mission, growing with its length."""
+    import copy
+    t_lo = knots[0] - model.lookback - 1.0
+    t_hi = knots[-1] + 1.0
+    imu, mot = mission.imu, mission.motors
+    a = max(int(np.searchsorted(imu.t, t_lo)) - 1, 0)
+    b = int(np.searchsorted(imu.t, t_hi, side="right")) + 1
+    c = max(int(np.searchsorted(mot.t, t_lo, side="right")) - 1, 0)
+    d = int(np.searchsorted(mot.t, t_hi, side="right")) + 1
+    view = copy.copy(mission)
+    view.imu = copy.copy(imu)
+    view.imu.t, view.imu.q = imu.t[a:b], imu.q[a:b]
+    view.motors = copy.copy(mot)
+    view.motors.t, view.motors.u = mot.t[c:d], mot.u[c:d]
+    steps, off = model.steps(view, knots)
+    steps.tm = steps.tm + (view.t0 - mission.t0)    # time since the MISSION start
+    return steps, off
+
+
 class FixedLagSmoother:
     """Fixed-lag smoother over one mission; see the module docstring.
 
@@ -67,10 +89,14 @@ class FixedLagSmoother:
         self.progress = progress_fn(progress)
 
     # ---------------------------------------------------------------- setup
-    def start(self, mission: Mission) -> UpdateInfo:
-        """Initialise at the mission's first fix (position from the fix, velocity zero)."""
+    def start(self, mission: Mission, plan: bool = False) -> UpdateInfo:
+        """Initialise at the mission's first fix (position from the fix, velocity zero).
+
+        ``plan``: the mission is recorded (not growing): prepare the kernel steps of all its
+        knots at once (:meth:`run` does)."""
         (mission,) = check_missions([mission])
         s = self.settings
+        self._t_call = time.perf_counter()
         self.mission = mission
         self.model = mission_model(self.base_model, mission, self.effects)
         est = self.estimate if self.estimate is not None else default_estimate(self.model, "online")
@@ -82,7 +108,7 @@ class FixedLagSmoother:
         prm.findUnusedFactorSlots = True
         prm.relinearizeSkip = 1
         thr = gtsam.ISAM2ThresholdMap()
-        thr.insert(("x", np.full(6, s.relin_state)))
+        thr.insert(("x", np.repeat([s.relin_pos, s.relin_vel], 3)))
         for g in self.layout.groups:
             thr.insert((fc._GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
         prm.setRelinearizeThreshold(thr)
@@ -96,12 +122,15 @@ class FixedLagSmoother:
         self.seg_starts = [float(self.fix_t[0])]
         self.v_by_seg: dict[int, np.ndarray] = {}
         self.hist_t, self.hist_v, self.hist_s = [], [], []
-        self.timings = {"update": [], "correction": []}
+        self.timings = {"update": [], "update_total": [], "correction": []}
         self.n_fix = 0
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
         self._noise: dict = {}
         self.warming = s.warmup_tol > 0
+        self._plan = None
+        if plan:
+            self._make_plan()
         self.warmup_end = float("nan")
         # first knot: position from the first fix (interpolation of the fixes at t0)
         from .smoother_common import initial_states
@@ -133,6 +162,32 @@ class FixedLagSmoother:
             graph.add(f)
         return self._update(graph, vals, {k0: t0}, t0, 1)
 
+    def _make_plan(self) -> None:
+        """Knots of the whole recorded mission (the same rule as :meth:`update`) and their
+        kernel steps in one build_steps call, sliced per update (saves ~0.3 ms per update)."""
+        sp = self.settings.knot_spacing
+        ks = [np.array([self.fix_t[0]])]
+        t_last = float(self.fix_t[0])
+        for t_fix in self.fix_t[1:]:
+            ks.append(np.concatenate([np.arange(t_last + sp, t_fix - sp / 4, sp), [t_fix]]))
+            t_last = float(t_fix)
+        knots = np.concatenate(ks)
+        if len(knots) < 2:
+            self._plan = None
+            return
+        steps, off = self.model.steps(self.mission, knots)
+        self._plan = (knots, {float(t): i for i, t in enumerate(knots)}, steps, off)
+
+    def _steps(self, all_t: np.ndarray):
+        """Kernel steps for the intervals of ``all_t``: from the plan when it has them."""
+        if self._plan is not None:
+            knots, index, steps, off = self._plan
+            i = index.get(float(all_t[0]))
+            j = None if i is None else i + len(all_t) - 1
+            if j is not None and j < len(knots) and np.array_equal(knots[i:j + 1], all_t):
+                return steps.slice(int(off[i]), int(off[j])), off[i:j + 1] - off[i]
+        return _window_steps(self.model, self.mission, all_t)
+
     def _node(self, g: str, seg: int | None = None) -> int:
         return fc.node_key(g, 0, self.seg if (g == "variable" and seg is None) else (seg or 0))
 
@@ -156,10 +211,12 @@ class FixedLagSmoother:
         if mission is not None:
             self.mission = mission
             self.fix_t = np.unique(mission.fix_times())
+            self._plan = None                      # inputs may have changed: no plan
         if t_fix is None:
             if not self.pending():
                 raise ValueError("no fix left to process")
             t_fix = float(self.fix_t[self.n_fix])
+        self._t_call = time.perf_counter()
         t_last = self.knots[-1]
         if t_fix <= t_last + 1e-9:
             raise ValueError(f"fix time {t_fix} s is not after the last processed time {t_last} s")
@@ -170,7 +227,7 @@ class FixedLagSmoother:
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         new_t = np.concatenate([grid, [t_fix]])
         all_t = np.concatenate([[t_last], new_t])
-        steps, off = self.model.steps(self.mission, all_t)
+        steps, off = self._steps(all_t)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         stamps = {}
@@ -248,8 +305,10 @@ class FixedLagSmoother:
                 self.warming = False
                 self.warmup_end = float(t_fix)
                 self.smoother.setSmootherLag(self.window)
-        dt = time.perf_counter() - t_a
+        t_b = time.perf_counter()
+        dt = t_b - t_a
         self.timings["update"].append(dt)
+        self.timings["update_total"].append(t_b - getattr(self, "_t_call", t_a))
         # the fix knot's estimate (causal), and the latest estimates of knots in the window
         i_fix = len(self.knots) - 1
         self.anchor_idx.append(i_fix)
@@ -332,7 +391,7 @@ class FixedLagSmoother:
         """Process a recorded mission fix by fix; returns the Result (corrected track,
         filtered track, parameter history with 1-sigma, time per update)."""
         t_start = time.perf_counter()
-        self.start(mission)
+        self.start(mission, plan=True)
         n = len(self.fix_t)
         while self.pending():
             info = self.update()
