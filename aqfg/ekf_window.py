@@ -14,15 +14,21 @@ mean thrust demand ``d`` (thrust-lag filter carried across steps as the kernel d
 so without updates the filter reproduces :func:`aqfg.retrace.rollout` exactly. The body
 acceleration state is the model's (Eq. 10): ``a_b = R^T a`` of the knot's last step, with
 ``R = Rz(theta) R_raw`` (Eq. 6). The covariance of ``[x, v]`` is carried with the step
-Jacobians accumulated between knots that hold an update (``Phi``), then
+Jacobians accumulated between knots that hold an update (``Phi``; kinematic ``A = 0`` or the
+model's ``A = d a / d v``, see ``EkfConfig.cov_model``), then
 ``P <- M (Phi P Phi^T + Q) M^T + diag(0, 0, sigma_ab^2)``, with ``M`` appending
-``d a_b / d v = R^T A`` (the old ``a_b`` is overwritten by Eq. 10, so its rows drop).
+``d a_b / d v = R^T A`` ("full") or nothing ("kinematic"); the old ``a_b`` is overwritten by
+Eq. 10, so its rows drop.
 
 Updates: GNSS (north, east of the antenna, lever arm included); USBL range/bearing
 converted to a horizontal position (with the range-scale and bearing-bias parameters),
 covariance ``Rot(b) diag(sigma_rh^2, (r_h sigma_b)^2) Rot(b)^T``, chi^2 gate; depth; IMU
-acceleration (``a_b``). Joseph-form covariance update. A gated (rejected) node has zero
-update error.
+acceleration (``a_b``). Joseph-form covariance update. A gated (rejected) node leaves the
+state alone, and its update error is the one it would have at the gate boundary
+(``K nu`` scaled to the Mahalanobis distance ``sqrt(gate)``): ``E`` stays continuous and
+rejecting a fix never lowers ``E``, so the optimiser gains nothing by pushing fixes out of
+the gate. After ``max_rejects`` consecutive rejections the next USBL fix is taken whatever
+its distance (the counter is carried across windows in the anchors).
 """
 from __future__ import annotations
 
@@ -54,7 +60,8 @@ class WindowOut:
     innovation whitened by its covariance S (Cholesky), ``s`` (n, 3) sqrt(diag S),
     ``status`` (n,) REJECTED / ACCEPTED / NOOP (motor). ``x``/``P`` at ``k1``. With
     ``record``: ``X`` (k1 - k0 + 1, 9) state at every knot ``k0..k1`` after its updates and
-    ``Pn`` (n, 9, 9) covariance after each node.
+    ``Pn`` (n, 9, 9) covariance after each node. ``rejects``: consecutive USBL rejections
+    at ``k1`` (to carry into the next pass).
     """
     node_lo: int
     node_hi: int
@@ -67,6 +74,7 @@ class WindowOut:
     P: np.ndarray
     X: np.ndarray | None = None
     Pn: np.ndarray | None = None
+    rejects: int = 0          # consecutive USBL rejections at k1
 
     def error(self) -> float:
         """E over this window (Eq. 14): sum of squared update errors."""
@@ -104,7 +112,8 @@ def predict_covariance(P: np.ndarray, Sx: np.ndarray, Sv: np.ndarray, T: float, 
     P6 = Phi @ P[:6, :6] @ Phi.T + process_noise(T, cfg.q_h, cfg.q_v, planar)
     M = np.zeros((9, 6))
     M[:6, :6] = np.eye(6)
-    M[6:, 3:] = J_ab
+    if cfg.cov_model == "full":
+        M[6:, 3:] = J_ab
     Pn = M @ P6 @ M.T
     Pn[6:, 6:] += cfg.sigma_ab**2 * np.eye(3)
     return Pn
@@ -135,16 +144,16 @@ def _update(x, P, idx, z, hx, Rm, gate):
     """Kalman update of the state components ``idx`` measured directly (H = selection).
 
     Returns (accepted, e (9,), nu, nu_w, s, x, P)."""
-    d = len(idx)
     S = P[np.ix_(idx, idx)] + Rm
     nu = z - hx
     L = np.linalg.cholesky(S)
     nu_w = np.linalg.solve(L, nu)
     s = np.sqrt(np.diag(S))
-    if np.isfinite(gate) and float(nu_w @ nu_w) > gate:
-        return False, np.zeros(9), nu, nu_w, s, x, P
     K = np.linalg.solve(S, P[idx, :]).T          # P H^T S^-1  (S symmetric)
     e = K @ nu
+    m2 = float(nu_w @ nu_w)
+    if np.isfinite(gate) and m2 > gate:
+        return False, e * (gate / m2) ** 0.25, nu, nu_w, s, x, P
     IKH = np.eye(9)
     IKH[:, idx] -= K
     P = IKH @ P @ IKH.T + K @ Rm @ K.T
@@ -152,15 +161,17 @@ def _update(x, P, idx, z, hx, Rm, gate):
 
 
 def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0: int, k1: int,
-               record: bool = False) -> WindowOut:
+               record: bool = False, rejects: int = 0) -> WindowOut:
     """Numpy reference of the EKF pass from knot ``k0`` to ``k1`` with parameters ``p`` (full
-    vector of the model). See the module docstring for the maths."""
+    vector of the model); ``rejects``: consecutive USBL rejections before ``k0``. See the
+    module docstring for the maths."""
     cfg = hist.config
     model = hist.model
     geom = model.geometry
     user = model._user_layout()
     st = hist.steps
     planar = geom.planar
+    full = cfg.cov_model == "full"
 
     tau = float(p[ref.I_TAU])
     s0 = int(hist.offsets[k0])
@@ -189,7 +200,6 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     if record:
         X[0] = x
     m = lo
-    rejects = 0
     for k in range(k0, k1):
         for j in range(int(hist.offsets[k]), int(hist.offsets[k + 1])):
             h = float(st.h[j])
@@ -204,8 +214,9 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
             Rc = corrected_attitude(R_raw, tm, p)
             ab = Rc.T @ a                                  # Eq. 10 (model body acceleration)
             J_ab = Rc.T @ A
-            Sx = Sx + h * Sv + 0.5 * h * h * (A @ Sv)
-            Sv = Sv + h * (A @ Sv)
+            Ac = A if full else np.zeros((3, 3))           # covariance Jacobian (cov_model)
+            Sx = Sx + h * Sv + 0.5 * h * h * (Ac @ Sv)
+            Sv = Sv + h * (Ac @ Sv)
             pos = pos + h * vel + 0.5 * h * h * a
             vel = vel + h * a
         T += float(hist.knots[k + 1] - hist.knots[k])
@@ -252,16 +263,16 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     if T > 0:
         P = predict_covariance(P, Sx, Sv, T, J_ab, cfg, planar)
     return WindowOut(lo, hi, e_all, nu_all, nuw_all, s_all, status,
-                     np.concatenate([pos, vel, ab]), P, X, Pn)
+                     np.concatenate([pos, vel, ab]), P, X, Pn, rejects)
 
 
 def run_window(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0: int, k1: int,
-               record: bool = False, use_cpp: bool | None = None) -> WindowOut:
+               record: bool = False, use_cpp: bool | None = None, rejects: int = 0) -> WindowOut:
     """The EKF pass, in C++ when built (and no Python user effect is active), else numpy."""
     if use_cpp is None:
         use_cpp = _HAVE_CPP_EKF and not hist.model.user_effects
     if not use_cpp:
-        return window_ref(hist, p, x0, P0, k0, k1, record)
+        return window_ref(hist, p, x0, P0, k0, k1, record, rejects)
     if not _HAVE_CPP_EKF:
         raise RuntimeError("the C++ EKF window (aqfg._kernel.ekf_window) is not built")
     g = hist.model.geometry
@@ -275,7 +286,7 @@ def run_window(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
                           hist.offsets, hist.knots, int(hist.warm_start(k0)),
                           hist.node_knot, hist.node_kind, hist.node_z, hist.node_R,
                           hist.node_tm, hist.station, g.dirs, g.side, bool(g.planar),
-                          int(lo), int(hi), bool(record))
-    e, nu, nuw, s, status, x, P, X, Pn = out
+                          int(lo), int(hi), bool(record), int(rejects))
+    e, nu, nuw, s, status, x, P, X, Pn, rej = out
     return WindowOut(lo, hi, e, nu, nuw, s, status, x, P,
-                     X if record else None, Pn if record else None)
+                     X if record else None, Pn if record else None, int(rej))

@@ -35,25 +35,38 @@ inline void corrected(const double* Rraw, double c, double s, double* R) {
 // P (9x9) <- M (Phi P6 Phi^T + Q) M^T + diag(0, 0, sigma_ab^2): ekf_window.predict_covariance.
 void predict_cov(double* P, const double Sx[9], const double Sv[9], double T, const double Jab[9],
                  const Config& cfg, bool planar) {
-  double Phi[36] = {};
-  for (int i = 0; i < 6; ++i) Phi[7 * i] = 1.0;
+  // Phi = [[I, Sx], [0, Sv]] in 3x3 blocks: P6 = Phi P[:6, :6] Phi^T
+  double Pxx[9], Pxv[9], Pvv[9];
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) {
-      Phi[6 * r + 3 + c] = Sx[3 * r + c];
-      Phi[6 * (3 + r) + 3 + c] = Sv[3 * r + c];
+      Pxx[3 * r + c] = P[9 * r + c];
+      Pxv[3 * r + c] = P[9 * r + 3 + c];
+      Pvv[3 * r + c] = P[9 * (3 + r) + 3 + c];
     }
-  double T1[36] = {}, P6[36] = {};
-  for (int r = 0; r < 6; ++r)
-    for (int c = 0; c < 6; ++c) {
-      double acc = 0.0;
-      for (int k = 0; k < 6; ++k) acc += Phi[6 * r + k] * P[9 * k + c];
-      T1[6 * r + c] = acc;
-    }
-  for (int r = 0; r < 6; ++r)
-    for (int c = 0; c < 6; ++c) {
-      double acc = 0.0;
-      for (int k = 0; k < 6; ++k) acc += T1[6 * r + k] * Phi[6 * c + k];
-      P6[6 * r + c] = acc;
+  auto mul = [](const double* A, const double* B, double* C, bool bt) {  // C = A B (or A B^T)
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) {
+        double acc = 0.0;
+        for (int k = 0; k < 3; ++k) acc += A[3 * r + k] * (bt ? B[3 * c + k] : B[3 * k + c]);
+        C[3 * r + c] = acc;
+      }
+  };
+  double W[9], U[9], P6[36];
+  mul(Sx, Pvv, W, false);  // Sx Pvv
+  for (int i = 0; i < 9; ++i) U[i] = Pxv[i] + W[i];  // Pxv + Sx Pvv
+  double Nxx[9], Nxv[9], Nvv[9], T1[9], T2[9];
+  mul(U, Sx, T1, true);     // (Pxv + Sx Pvv) Sx^T
+  mul(Sx, Pxv, T2, true);   // Sx Pvx  (Pvx = Pxv^T)
+  for (int i = 0; i < 9; ++i) Nxx[i] = Pxx[i] + T2[i] + T1[i];
+  mul(U, Sv, Nxv, true);    // (Pxv + Sx Pvv) Sv^T
+  mul(Sv, Pvv, T1, false);
+  mul(T1, Sv, Nvv, true);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      P6[6 * r + c] = Nxx[3 * r + c];
+      P6[6 * r + 3 + c] = Nxv[3 * r + c];
+      P6[6 * (3 + c) + r] = Nxv[3 * r + c];
+      P6[6 * (3 + r) + 3 + c] = Nvv[3 * r + c];
     }
   const double q[3] = {cfg.q_h, cfg.q_h, planar ? 0.0 : cfg.q_v};
   for (int i = 0; i < 3; ++i) {
@@ -68,7 +81,7 @@ void predict_cov(double* P, const double Sx[9], const double Sv[9], double T, co
     for (int c = 0; c < 6; ++c) {
       double acc = 0.0;
       for (int k = 0; k < 3; ++k) acc += Jab[3 * r + k] * P6[6 * (3 + k) + c];
-      Bv[6 * r + c] = acc;
+      Bv[6 * r + c] = cfg.full_cov ? acc : 0.0;
     }
   for (int r = 0; r < 6; ++r)
     for (int c = 0; c < 6; ++c) P[9 * r + c] = P6[6 * r + c];
@@ -108,8 +121,6 @@ bool update(double* x, double* P, const int* idx, int d, const double* z, const 
     m2 += nu_w[i] * nu_w[i];
     s[i] = std::sqrt(S[d * i + i]);
   }
-  for (int i = 0; i < 9; ++i) e[i] = 0.0;
-  if (std::isfinite(gate) && m2 > gate) return false;
   // K = P[:, idx] S^-1 (9 x d): solve S k_r = P[idx, r] for each row r of K
   double K[27];
   for (int r = 0; r < 9; ++r) {
@@ -129,35 +140,52 @@ bool update(double* x, double* P, const int* idx, int d, const double* z, const 
     double acc = 0.0;
     for (int i = 0; i < d; ++i) acc += K[3 * r + i] * nu[i];
     e[r] = acc;
-    x[r] += acc;
   }
-  // Joseph form: P = (I - K H) P (I - K H)^T + K Rm K^T
-  double A[81];
-  for (int r = 0; r < 9; ++r)
-    for (int c = 0; c < 9; ++c) A[9 * r + c] = (r == c) ? 1.0 : 0.0;
-  for (int r = 0; r < 9; ++r)
-    for (int i = 0; i < d; ++i) A[9 * r + idx[i]] -= K[3 * r + i];
-  double AP[81];
-  for (int r = 0; r < 9; ++r)
-    for (int c = 0; c < 9; ++c) {
+  if (std::isfinite(gate) && m2 > gate) {  // rejected: error at the gate boundary, no update
+    const double sc = std::sqrt(std::sqrt(gate / m2));
+    for (int r = 0; r < 9; ++r) e[r] *= sc;
+    return false;
+  }
+  for (int r = 0; r < 9; ++r) x[r] += e[r];
+  // Joseph form: P = (I - K H) P (I - K H)^T + K Rm K^T. Only the block of the states
+  // correlated with the measured ones changes (K's other rows are exactly zero), so it is
+  // computed on that block alone: e.g. 3x3 for an IMU update under the kinematic covariance.
+  int act[9], na = 0;
+  for (int r = 0; r < 9; ++r) {
+    bool on = false;
+    for (int i = 0; i < d; ++i) on = on || P[9 * r + idx[i]] != 0.0 || r == idx[i];
+    if (on) act[na++] = r;
+  }
+  int pos_of[9];
+  for (int a = 0; a < na; ++a) pos_of[act[a]] = a;
+  double A[81], Pa[81], AP[81];
+  for (int a = 0; a < na; ++a)
+    for (int b = 0; b < na; ++b) {
+      A[9 * a + b] = (a == b) ? 1.0 : 0.0;
+      Pa[9 * a + b] = P[9 * act[a] + act[b]];
+    }
+  for (int a = 0; a < na; ++a)
+    for (int i = 0; i < d; ++i) A[9 * a + pos_of[idx[i]]] -= K[3 * act[a] + i];
+  for (int a = 0; a < na; ++a)
+    for (int b = 0; b < na; ++b) {
       double acc = 0.0;
-      for (int k = 0; k < 9; ++k) acc += A[9 * r + k] * P[9 * k + c];
-      AP[9 * r + c] = acc;
+      for (int k = 0; k < na; ++k) acc += A[9 * a + k] * Pa[9 * k + b];
+      AP[9 * a + b] = acc;
     }
   double KR[27];
-  for (int r = 0; r < 9; ++r)
+  for (int a = 0; a < na; ++a)
     for (int j = 0; j < d; ++j) {
       double acc = 0.0;
-      for (int i = 0; i < d; ++i) acc += K[3 * r + i] * Rm[d * i + j];
-      KR[3 * r + j] = acc;
+      for (int i = 0; i < d; ++i) acc += K[3 * act[a] + i] * Rm[d * i + j];
+      KR[3 * a + j] = acc;
     }
-  for (int r = 0; r < 9; ++r)
-    for (int c = 0; c < 9; ++c) {
+  for (int a = 0; a < na; ++a)
+    for (int b = 0; b < na; ++b) {
       double acc = 0.0;
-      for (int k = 0; k < 9; ++k) acc += AP[9 * r + k] * A[9 * c + k];
+      for (int k = 0; k < na; ++k) acc += AP[9 * a + k] * A[9 * b + k];
       double kk = 0.0;
-      for (int j = 0; j < d; ++j) kk += KR[3 * r + j] * K[3 * c + j];
-      P[9 * r + c] = acc + kk;
+      for (int j = 0; j < d; ++j) kk += KR[3 * a + j] * K[3 * act[b] + j];
+      P[9 * act[a] + act[b]] = acc + kk;
     }
   return true;
 }
@@ -194,10 +222,10 @@ void usbl_to_position(const double* z, const double* st, const double* pm, doubl
 
 }  // namespace
 
-void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
+int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
             const double* p, const double* pm, const Config& cfg, const Timeline& tl,
             const kn::Geometry& g, std::int64_t w0, std::int64_t lo, std::int64_t hi,
-            const Output& out) {
+            const Output& out, int rejects) {
   const kn::Steps& st = tl.steps;
   const std::ptrdiff_t nt = g.n_thr;
   const double tau = p[kn::P_TAU];
@@ -226,7 +254,6 @@ void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1
   }
   if (out.X) std::memcpy(out.X, x, sizeof x);
   std::int64_t m = lo;
-  int rejects = 0;
   for (std::int64_t k = k0; k < k1; ++k) {
     double* pos = x;
     double* vel = x + 3;
@@ -244,10 +271,11 @@ void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1
         for (int c = 0; c < 3; ++c)
           Jab[3 * r + c] = Rc[r] * A[c] + Rc[3 + r] * A[3 + c] + Rc[6 + r] * A[6 + c];
       }
-      double ASv[9];
-      for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c)
-          ASv[3 * r + c] = A[3 * r] * Sv[c] + A[3 * r + 1] * Sv[3 + c] + A[3 * r + 2] * Sv[6 + c];
+      double ASv[9] = {};
+      if (cfg.full_cov)
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 3; ++c)
+            ASv[3 * r + c] = A[3 * r] * Sv[c] + A[3 * r + 1] * Sv[3 + c] + A[3 * r + 2] * Sv[6 + c];
       const double hh = 0.5 * h * h;
       for (int i = 0; i < 9; ++i) {
         Sx[i] = Sx[i] + h * Sv[i] + hh * ASv[i];
@@ -318,6 +346,7 @@ void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1
   if (T > 0) predict_cov(P, Sx, Sv, T, Jab, cfg, g.planar);
   std::memcpy(out.x, x, sizeof x);
   std::memcpy(out.P, P, sizeof P);
+  return rejects;
 }
 
 // ------------------------------------------------------------------ Python binding
@@ -362,7 +391,7 @@ nb::ndarray<nb::numpy, T> new_out(std::initializer_list<std::size_t> shape, T*& 
 }
 
 using WindowResult =
-    std::tuple<OutF64, OutF64, OutF64, OutF64, OutI8, OutF64, OutF64, OutF64, OutF64>;
+    std::tuple<OutF64, OutF64, OutF64, OutF64, OutI8, OutF64, OutF64, OutF64, OutF64, int>;
 
 WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, std::int64_t k1,
                            const InF64& p, const InF64& pm, const InF64& cfg, const InF64& h,
@@ -371,12 +400,12 @@ WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, st
                            const InI64& node_knot, const InI32& node_kind, const InF64& node_z,
                            const InF64& node_R, const InF64& node_tm, const InF64& station,
                            const InF64& dirs, const InF64& side, bool planar, std::int64_t lo,
-                           std::int64_t hi, bool record) {
+                           std::int64_t hi, bool record, int rejects) {
   need("x0", x0, {9}, "(9,)");
   need("P0", P0, {9, 9}, "(9, 9)");
   need("p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
   need("pm", pm, {N_MEAS}, "(5,): range scale, bearing bias, lever arm x, y, z");
-  need("cfg", cfg, {9}, "(9,) = EkfConfig.vector()");
+  need("cfg", cfg, {10}, "(10,) = EkfConfig.vector()");
   need("h", h, {ANY}, "(n,)");
   const std::int64_t ns = static_cast<std::int64_t>(h.shape(0));
   need("dem", dem, {ns, ANY}, "(n, N_thrusters) with n = len(h)");
@@ -433,9 +462,10 @@ WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, st
   const Config c = Config::from(cfg.data());
   {
     nb::gil_scoped_release release;
-    window(x0.data(), P0.data(), k0, k1, p.data(), pm.data(), c, tl, g, w0, lo, hi, o);
+    rejects = window(x0.data(), P0.data(), k0, k1, p.data(), pm.data(), c, tl, g, w0, lo, hi, o,
+                     rejects);
   }
-  return {ae, anu, anw, as, ast, ax, aP, aX, aPn};
+  return {ae, anu, anw, as, ast, ax, aP, aX, aPn, rejects};
 }
 
 }  // namespace
@@ -446,10 +476,10 @@ void register_ekf(nb::module_& m) {
         nb::arg("tm"), nb::arg("offsets"), nb::arg("knots"), nb::arg("w0"),
         nb::arg("node_knot"), nb::arg("node_kind"), nb::arg("node_z"), nb::arg("node_R"),
         nb::arg("node_tm"), nb::arg("station"), nb::arg("dirs"), nb::arg("side"),
-        nb::arg("planar"), nb::arg("lo"), nb::arg("hi"), nb::arg("record"),
+        nb::arg("planar"), nb::arg("lo"), nb::arg("hi"), nb::arg("record"), nb::arg("rejects"),
         "One EKF pass of the update-error method from knot k0 to k1 (see aqfg.ekf_window). "
         "Returns (e (n, 9), nu (n, 3), nu_w (n, 3), s (n, 3), status (n,) int8, x (9,), "
-        "P (9, 9), X (k1-k0+1 or 0, 9), Pn (n or 0, 9, 9)).");
+        "P (9, 9), X (k1-k0+1 or 0, 9), Pn (n or 0, 9, 9), consecutive USBL rejections at k1).");
 }
 
 }  // namespace ekf

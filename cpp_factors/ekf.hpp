@@ -32,8 +32,10 @@ struct Config {
   double q_h, q_v, sigma_ab, sigma_range, sigma_bearing, gate_usbl, gate_gnss;
   int max_rejects;
   double lookback;
+  bool full_cov;  // covariance with the model's Jacobian (else kinematic, EkfConfig.cov_model)
   static Config from(const double* c) {
-    return Config{c[0], c[1], c[2], c[3], c[4], c[5], c[6], static_cast<int>(c[7]), c[8]};
+    return Config{c[0], c[1], c[2], c[3], c[4], c[5], c[6], static_cast<int>(c[7]), c[8],
+                  c[9] != 0.0};
   }
 };
 
@@ -70,11 +72,13 @@ struct Output {
 
 // The pass. p: the N_DYN dynamics parameters; pm: the N_MEAS measurement parameters;
 // w0: first thrust-lag warm-up step (<= offsets[k0]); nodes lo..hi-1 are those with knot
-// in (k0, k1].
-void window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
-            const double* p, const double* pm, const Config& cfg, const Timeline& tl,
-            const kernel::Geometry& g, std::int64_t w0, std::int64_t lo, std::int64_t hi,
-            const Output& out);
+// in (k0, k1]; rejects: consecutive USBL rejections before k0. Returns those at k1.
+// A rejected (gated) node leaves the state alone; its update error is K nu scaled to the
+// gate boundary (Mahalanobis distance sqrt(gate)).
+int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
+           const double* p, const double* pm, const Config& cfg, const Timeline& tl,
+           const kernel::Geometry& g, std::int64_t w0, std::int64_t lo, std::int64_t hi,
+           const Output& out, int rejects);
 
 // Adds ekf_window to the Python module aqfg._kernel (called from bindings.cpp).
 void register_ekf(nanobind::module_& m);
