@@ -76,12 +76,28 @@ def run_tasks(fn: Callable, tasks: Sequence, jobs: int = 1, label: str = "") -> 
             note(i, i + 1)
         return out
     import multiprocessing as mp
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork")) as ex:
-        futs = {ex.submit(fn, t): i for i, t in enumerate(tasks)}
-        from concurrent.futures import as_completed
-        for n, f in enumerate(as_completed(futs), 1):
-            out[futs[f]] = f.result()
-            note(futs[f], n)
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+    todo = list(range(len(tasks)))
+    done = 0
+    for attempt in range(4):
+        # a worker can die when the shared checkout's C++ extension is rebuilt under it:
+        # restart the pool for the tasks still to do (deterministic, so nothing changes).
+        # "spawn": fresh workers load the extension anew instead of inheriting a mapping.
+        try:
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+                futs = {ex.submit(fn, tasks[i]): i for i in todo}
+                for f in as_completed(futs):
+                    out[futs[f]] = f.result()
+                    todo.remove(futs[f])
+                    done += 1
+                    note(futs[f], done)
+            break
+        except BrokenProcessPool:
+            print(f"\n[{label}] a worker died; restarting the pool for {len(todo)} tasks",
+                  file=sys.stderr, flush=True)
+    else:
+        raise RuntimeError(f"{label}: worker processes kept dying")
     return out
 
 
