@@ -15,7 +15,7 @@ values for every row, so the table isolates the fixed parameters (with the truth
 variable ones the "true parameters" row is the floor: 0 m up to integration differences).
 Also: parameter errors divided by the reported sigma (are the covariances honest?).
 
-Full run: 20 seeds x 4 vehicles, 2 x 300 s training + 300 s test missions, about 6 min
+Full run: 20 seeds x 4 vehicles, 2 x 300 s training + 600 s test missions, about 5 min
 with 2 processes. ``--quick``: 2 seeds, 120 s missions.
 Run: ``python experiments/table2.py [--quick] [--seeds N] [--jobs J]``.
 """
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     args = C.parser(__doc__, seeds=20).parse_args(argv)
     started = time.perf_counter()
     S = C.n_seeds(args, 20)
-    T_train, T_test = (120.0, 120.0) if args.quick else (300.0, 300.0)
+    T_train, T_test = (120.0, 120.0) if args.quick else (300.0, 600.0)
     tasks = [(ri, s, T_train, T_test, s == 0) for ri in range(len(ROBOTS)) for s in range(S)]
     res = C.run_tasks(one, tasks, args.jobs, "table2")
     write(res, args, S, T_train, T_test, started)
