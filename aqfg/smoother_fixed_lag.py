@@ -32,8 +32,8 @@ from .mission import Mission
 from .model import Model
 from .result import MissionResult, ParamHistory, Result, Track
 from .smoother_common import (FGSettings, Measurements, check_missions, default_estimate,
-                              first_knot_prior, measurement_factors, mission_model,
-                              piecewise_inertial, progress_fn, residuals)
+                              first_knot_prior, initial_states, measurement_factors,
+                              mission_model, piecewise_inertial, progress_fn, residuals)
 
 
 @dataclass
@@ -133,7 +133,6 @@ class FixedLagSmoother:
             self._make_plan()
         self.warmup_end = float("nan")
         # first knot: position from the first fix (interpolation of the fixes at t0)
-        from .smoother_common import initial_states
         t0 = float(self.fix_t[0])
         x0 = initial_states(mission, np.array([t0, t0 + 1.0]))[0]
         x0[3:] = 0.0
@@ -189,7 +188,11 @@ class FixedLagSmoother:
         return _window_steps(self.model, self.mission, all_t)
 
     def _node(self, g: str, seg: int | None = None) -> int:
-        return fc.node_key(g, 0, self.seg if (g == "variable" and seg is None) else (seg or 0))
+        """Key of a parameter node; the variable node of segment ``seg`` (default: the
+        current random-walk segment)."""
+        if g != "variable":
+            return fc.node_key(g, 0)
+        return fc.node_key(g, 0, self.seg if seg is None else seg)
 
     def _node_keys(self, groups, seg: int | None = None) -> tuple:
         return tuple((g, self._node(g, seg)) for g in groups)
