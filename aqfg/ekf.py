@@ -83,7 +83,8 @@ class UpdateErrorEstimator:
     or None (``Model.for_mission`` with ``effects``). ``init``: starting parameter values
     by name (others at the table's nominal, i.e. the paper's "old" k=8, k_x=2, k_yz=0.3).
     ``preset``: "physical" (default) or "paper" (see :mod:`aqfg.ekf_optim`); ``metric``:
-    "update" (Eq. 14) or "innovation" (the public code's, with preset "paper").
+    "update" (Eq. 14), "innovation" (the public code's, with preset "paper") or "whitened"
+    (squared whitened innovations: not the paper's, see :mod:`aqfg.ekf_optim`).
     ``bounds``: ``{name: (lower, upper)}`` replacing the preset's bounds.
     ``use_cpp``: force the C++ (True) or numpy (False) window evaluation (default: C++ when
     built and no Python user effect is active).
@@ -102,6 +103,11 @@ class UpdateErrorEstimator:
         if preset not in ("physical", "paper"):
             raise ValueError(f"unknown preset {preset!r}; choose 'physical' or 'paper'")
         self.preset = preset
+        if metric not in ("update", "innovation", "whitened"):
+            raise ValueError(f"unknown metric {metric!r}; choose 'update' (Eq. 14), "
+                             "'innovation' (the public code's) or 'whitened'")
+        if metric == "innovation" and preset != "paper":
+            raise ValueError("metric='innovation' (the public code's scalar cost) needs preset='paper'")
         self.metric = metric
         self.user_bounds = dict(bounds or {})
         self.progress = progress
@@ -187,6 +193,7 @@ class UpdateErrorEstimator:
         lo, hi = bounds(self.preset, entries, self.models[0], theta0, self.user_bounds)
         self._log(f"offline: {len(wins)} mission(s), estimating {len(entries)} numbers")
         sol = minimise(obj, theta0, lo, hi, self.preset, self._scales(entries), max_nfev)
+        t_eval = list(obj.counter.times[-sol.evaluations:])
         self._log(f"offline: E={sol.E:.4g} after {sol.evaluations} evaluations, "
                   f"{sol.seconds:.2f} s ({sol.message})")
         sig = (gn_sigma(Objective(wins, entries, self.metric, self.use_cpp), sol.theta,
@@ -204,8 +211,7 @@ class UpdateErrorEstimator:
             estimated=tuple(dict.fromkeys(e.name for e in entries)),
             values=dict(zip(self.models[0].all_names, map(float, ps[0]))), sigma=sigma_d,
             missions=mres,
-            timings={"evaluation": list(obj.counter.times[-sol.evaluations:]),
-                     "optimisation": [sol.seconds]},
+            timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
             info={"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
                   "message": sol.message, "preset": self.preset, "metric": self.metric,
                   "sigma_method": "gauss-newton on whitened innovations" if sigma else "none",

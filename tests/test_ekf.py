@@ -268,3 +268,25 @@ def test_bad_input_is_named():
     m3, _, _ = synth_mission("auv", duration=10.0)
     with pytest.raises(ValueError, match="vehicle types"):
         fit_update_error([m2, m3])
+
+
+def test_a_user_effect_runs_on_the_numpy_path():
+    """A Python UserEffect is evaluated by the numpy window (the C++ one cannot call it):
+    at its null value the pass equals the built-in model's C++ pass; away from it, E moves."""
+    from aqfg.effects import UserEffect
+    cubic = UserEffect("cubic_drag", ("c3",), null=(0.0,), lower=(0.0,), upper=(10.0,),
+                       accel=lambda v, R, d, tm, q: -q[0] * R @ ((R.T @ v) ** 3))
+    m, p_true, _ = synth_mission("asv", duration=20.0, usbl=True)
+    base = Model.for_mission(m)
+    model = base.with_effects(cubic)
+    vals = dict(zip(base.all_names, p_true))
+    h0, h1 = build_history(base, m), build_history(model, m)
+    p0, p1 = base.nominal(vals), model.nominal(vals)
+    o0, o1 = _full_pass(h0, p0, use_cpp=True), _full_pass(h1, p1)
+    np.testing.assert_allclose(o1.X, o0.X, atol=1e-9)
+    np.testing.assert_allclose(o1.e, o0.e, atol=1e-9)
+    p1[model.index("cubic_drag.c3")] = 0.5
+    assert _full_pass(h1, p1).error() != pytest.approx(o0.error(), rel=1e-3)
+    est = UpdateErrorEstimator(model, m, init=vals)
+    r = est.run_offline(estimate=("cubic_drag.c3",), sigma=False)
+    assert 0.0 <= r.values["cubic_drag.c3"] < 0.3
