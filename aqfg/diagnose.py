@@ -236,7 +236,9 @@ class Diagnosis:
             flag = "*" if c.confirmed else (" " if not c.significant else "?")
             L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
                      f"{c.dbic:8.1f} {dr:>25}  {est}")
-        L.append("(* confirmed by refit; ? significant score, not confirmed)")
+        L.append("(* significant and confirmed by its refit; ? significant score, not confirmed. "
+                 "Effects below the first can be echoes of it: add the first with --effect "
+                 "and diagnose again.)")
         return "\n".join(L)
 
 
@@ -369,7 +371,8 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
         missions, base.full.model.effects)
     cands = [resolve(c) for c in cands] + [resolve(c) for c in extra_candidates
                                           if resolve(c).name not in {x.name for x in map(resolve, cands)}]
-    cands = [c for c in cands if c.name not in {e.name for e in base.full.model.effects}]
+    cands = [c for c in cands if c.name not in {e.name for e in base.full.model.effects}
+             and any(c.applicable(m) for m in missions)]
     ranking: list[Candidate] = []
     if cands:
         lin = linear_system(missions, base.full, cands, settings=settings)

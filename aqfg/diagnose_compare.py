@@ -63,7 +63,9 @@ class SensorSeries:
 
 _LABELS = {"gnss": (("north", "east"), ("m", "m")),
            "usbl": (("range", "bearing"), ("m", "rad")),
-           "depth": (("depth",), ("m",))}
+           "depth": (("depth",), ("m",)),
+           "dynamics": (("north", "east", "down", "vn", "ve", "vd"),
+                        ("m", "m", "m", "m/s", "m/s", "m/s"))}
 
 
 def sensor_series(mres: MissionResult) -> list[SensorSeries]:
@@ -78,7 +80,15 @@ def sensor_series(mres: MissionResult) -> list[SensorSeries]:
             labels, units = tuple(f"{name}[{i}]" for i in range(d)), ("-",) * d
         meas = None if r.measured is None else np.asarray(r.measured, float).reshape(len(r.t), -1)
         pred = None if r.predicted is None else np.asarray(r.predicted, float).reshape(len(r.t), -1)
-        out.append(SensorSeries(name, np.asarray(r.t, float), meas, pred, raw, nrm, labels, units))
+        # components the model pins (e.g. the vertical of a surface vehicle) carry nothing
+        keep = np.array([np.nanmax(np.abs(nrm[:, j])) > 1e-9 if len(nrm) else True
+                         for j in range(d)])
+        if not keep.any():
+            continue
+        sel = lambda a: None if a is None else a[:, keep]
+        out.append(SensorSeries(name, np.asarray(r.t, float), sel(meas), sel(pred), raw[:, keep],
+                                nrm[:, keep], tuple(np.array(labels)[keep]),
+                                tuple(np.array(units)[keep])))
     return out
 
 

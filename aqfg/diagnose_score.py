@@ -27,6 +27,7 @@ time (Kuensch 1989) of the ranking costs only small matrix sums.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -137,47 +138,44 @@ class ScoreTest:
                              for n, v, s in zip(self.params, self.estimate, self.sigma)}}
 
 
-def _free_sides(null: np.ndarray, lo: np.ndarray, hi: np.ndarray):
-    """Which way each parameter may move from its null: False where the null sits on the
-    (finite) lower / upper bound."""
-    on_lo = np.isfinite(lo) & (np.abs(null - lo) <= 1e-12 * np.maximum(1.0, np.abs(lo)))
-    on_hi = np.isfinite(hi) & (np.abs(hi - null) <= 1e-12 * np.maximum(1.0, np.abs(hi)))
-    return ~on_lo, ~on_hi
+def _box(null: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Bounds of the step ``d`` from the null: ``lo - null <= d <= hi - null``."""
+    return lo - null, hi - null
 
 
-def _feasible_step(g: np.ndarray, S: np.ndarray, free_lo: np.ndarray, free_hi: np.ndarray):
-    """Maximise ``2 g^T d - d^T S d`` over ``d`` with ``d_i >= 0`` where ``free_lo[i]`` is
-    False (null on the lower bound) and ``d_i <= 0`` where ``free_hi[i]`` is False.
-    Enumerates active sets (dim <= 3 here). Returns (d, statistic)."""
+def _lm(g: np.ndarray, S: np.ndarray, dlo: np.ndarray, dhi: np.ndarray):
+    """Best step ``d`` and the LM statistic ``max 2 g^T d - d^T S d`` over the box
+    ``dlo <= d <= dhi`` (the parameters' physical bounds). Without binding bounds this is
+    ``d = S^-1 g``, ``g^T S^-1 g``; otherwise every assignment of each coordinate to free /
+    lower / upper is tried (3^dim, dim <= 3 here). A binding bound can only lower the
+    statistic, so the chi-square p-value stays valid (conservative)."""
+    try:
+        d = np.linalg.solve(S, g)
+    except np.linalg.LinAlgError:
+        d = np.linalg.lstsq(S, g, rcond=None)[0]
+    if np.all(d >= dlo - 1e-15) and np.all(d <= dhi + 1e-15):
+        return d, float(2 * g @ d - d @ S @ d)
     k = len(g)
     best_d, best = np.zeros(k), 0.0
-    for mask in range(1 << k):
-        act = np.array([(mask >> i) & 1 for i in range(k)], bool)    # free coordinates
-        if not act.any():
+    for state in itertools.product((0, 1, 2), repeat=k):      # 0 free, 1 at lower, 2 at upper
+        st = np.array(state)
+        fixed = np.where(st == 1, dlo, np.where(st == 2, dhi, 0.0))
+        if np.any(~np.isfinite(fixed[st > 0])):
             continue
-        Sa = S[np.ix_(act, act)]
-        try:
-            da = np.linalg.solve(Sa, g[act])
-        except np.linalg.LinAlgError:
-            continue
-        d = np.zeros(k)
-        d[act] = da
-        if np.any((~free_lo) & (d < -1e-15)) or np.any((~free_hi) & (d > 1e-15)):
+        free = st == 0
+        d = fixed.copy()
+        if free.any():
+            rhs = g[free] - S[np.ix_(free, ~free)] @ fixed[~free]
+            try:
+                d[free] = np.linalg.solve(S[np.ix_(free, free)], rhs)
+            except np.linalg.LinAlgError:
+                continue
+        if np.any(d < dlo - 1e-12) or np.any(d > dhi + 1e-12):
             continue
         val = float(2 * g @ d - d @ S @ d)
         if val > best:
             best, best_d = val, d
     return best_d, best
-
-
-def _lm(g: np.ndarray, S: np.ndarray, free_lo: np.ndarray, free_hi: np.ndarray):
-    if np.all(free_lo) and np.all(free_hi):
-        try:
-            d = np.linalg.solve(S, g)
-        except np.linalg.LinAlgError:
-            d = np.linalg.lstsq(S, g, rcond=None)[0]
-        return d, float(g @ d)
-    return _feasible_step(g, S, free_lo, free_hi)
 
 
 def log_chi2_sf(x: float, k: int) -> float:
@@ -231,9 +229,9 @@ def score_tests(proj: Projected, effects: dict[str, tuple[str, ...]],
         g = Ce.T @ proj.bt
         S = Ce.T @ Ce
         null, lo, hi = proj.null[cols], proj.lower[cols], proj.upper[cols]
-        free_lo, free_hi = _free_sides(null, lo, hi)
-        one_sided = bool(np.any(~free_lo) or np.any(~free_hi))
-        d, lm = _lm(g, S, free_lo, free_hi)
+        dlo, dhi = _box(null, lo, hi)
+        one_sided = bool(np.any(dlo == 0) or np.any(dhi == 0))
+        d, lm = _lm(g, S, dlo, dhi)
         p, lp = _p_value(lm, len(cols), one_sided)
         try:
             cov = np.linalg.inv(S)
@@ -246,7 +244,7 @@ def score_tests(proj: Projected, effects: dict[str, tuple[str, ...]],
             np.add.at(gb, blk[ok], Ce[ok] * proj.bt[ok, None])
             gc = gb - gb.mean(axis=0)
             V = nb / (nb - 1) * gc.T @ gc
-            _, lmr = _lm(g, V, free_lo, free_hi)
+            _, lmr = _lm(g, V, dlo, dhi)
             pr, _ = _p_value(lmr, len(cols), one_sided)
         else:
             lmr, pr = float("nan"), float("nan")
@@ -280,8 +278,8 @@ def bootstrap_ranking(proj: Projected, effects: dict[str, tuple[str, ...]], n_bo
     for eff, pn in effects.items():
         cols = np.array([col[n] for n in pn])
         null, lo, hi = proj.null[cols], proj.lower[cols], proj.upper[cols]
-        free_lo, free_hi = _free_sides(null, lo, hi)
-        info.append((eff, cols, free_lo, free_hi, bool(np.any(~free_lo) or np.any(~free_hi))))
+        dlo, dhi = _box(null, lo, hi)
+        info.append((eff, cols, dlo, dhi, bool(np.any(dlo == 0) or np.any(dhi == 0))))
     rng = np.random.default_rng(seed)
     wins = {e: 0 for e in effects}
     for _ in range(n_boot):

@@ -118,8 +118,9 @@ def fig_consistency(diag):
         mid = 0.5 * (c.t0 + c.t1)
         w = c.t1 - c.t0
         ax.bar(mid, c.nis / c.dof, width=0.9 * w, color=np.where(c.fails, "tab:red", "tab:blue"))
-        ax.plot(mid, c.upper / c.dof, "k--", lw=1, label=f"{100 * (1 - c.alpha / 2):.1f}% bound")
-        ax.plot(mid, c.lower / c.dof, "k:", lw=1)
+        ax.hlines(c.upper / c.dof, c.t0, c.t1, color="k", ls="--", lw=1,
+                  label=f"{100 * (1 - c.alpha / 2):.1f}% band")
+        ax.hlines(c.lower / c.dof, c.t0, c.t1, color="k", ls=":", lw=1)
         ax.axhline(1.0, color="0.5", lw=0.8)
         ax.set_ylabel("NIS / dof")
         ax.set_title(f"{lab}: {c.summary()}", fontsize=8)

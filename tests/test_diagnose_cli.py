@@ -1,0 +1,71 @@
+"""``aqfg diagnose``: outputs exactly as the format doc's "Outputs", report, errors."""
+import json
+import re
+
+import numpy as np
+import pytest
+
+from aqfg.cli import main
+from aqfg.io import save_mission
+from aqfg.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def mission_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("m") / "wind"
+    m, truth = simulate("asv", seed=4, duration=240.0, effects={"wind_drag": [0.06, 0.04]})
+    save_mission(m, d, truth=truth)
+    return d
+
+
+def test_diagnose_writes_json_report_and_summary(mission_dir, tmp_path, capsys):
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(mission_dir), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    data = json.loads((out / "diagnosis.json").read_text())
+    # the format doc's keys
+    assert isinstance(data["missing"], bool) and isinstance(data["ranking"], list)
+    for r in data["ranking"]:
+        assert {"effect", "score", "p_value", "estimate", "rmse_before", "rmse_after"} <= set(r)
+        for v in r["estimate"].values():
+            assert set(v) == {"value", "sigma"}
+    names = [r["effect"] for r in data["ranking"]]
+    from aqfg.effects import BUILTIN
+    assert set(names) <= set(BUILTIN) and "usbl_range_scale" not in names   # no USBL here
+    assert data["missing"] and names[0] == "wind_drag"
+    assert data["ranking"][0]["rmse_after"] < data["ranking"][0]["rmse_before"]
+    est = data["ranking"][0]["estimate"]
+    assert abs(est["wind_drag.a_n"]["value"] - 0.06) < 3 * est["wind_drag.a_n"]["sigma"] + 0.005
+    assert "wind_drag" in printed and "rank" in printed
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 5
+    assert not re.search(r'(src|href)="(?!data:)', html)          # self-contained
+    assert "wind_drag" in html
+    # refuses to overwrite without --force
+    assert main(["diagnose", str(mission_dir), "--out", str(out)]) == 2
+
+
+def test_diagnose_with_effect_compares_before_after(mission_dir, tmp_path, capsys):
+    out = tmp_path / "diag2"
+    assert main(["diagnose", str(mission_dir), "--effect", "wind_drag", "--out", str(out),
+                 "--no-plots"]) == 0
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert data["model_effects"] == ["wind_drag"] and data["added"] == ["wind_drag"]
+    assert "wind_drag" not in [r["effect"] for r in data["ranking"]]
+    b, a = data["before"], data["base"]
+    assert a["rmse"] < 0.7 * b["rmse"]
+    assert a["consistency"]["passed"]
+    assert "wind_drag.a_n" in a["parameters"]
+    printed = capsys.readouterr().out
+    assert "Added wind_drag" in printed
+    assert "data:image/png" not in (out / "report.html").read_text()
+
+
+def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
+    assert main(["diagnose", str(mission_dir), "--effect", "no_such_effect",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "no_such_effect" in capsys.readouterr().err
+    assert main(["diagnose", str(tmp_path / "missing_dir"), "--out", str(tmp_path / "y")]) == 2
+    assert main(["diagnose", str(mission_dir), "--effect", "usbl_range_scale",
+                 "--out", str(tmp_path / "z")]) == 2
+    assert "not applicable" in capsys.readouterr().err
