@@ -290,3 +290,17 @@ def test_a_user_effect_runs_on_the_numpy_path():
     est = UpdateErrorEstimator(model, m, init=vals)
     r = est.run_offline(estimate=("cubic_drag.c3",), sigma=False)
     assert 0.0 <= r.values["cubic_drag.c3"] < 0.3
+
+
+def test_the_public_codes_innovation_metric_with_the_paper_preset():
+    m, p_true, _ = synth_mission("asv", duration=60.0)
+    init = dict(zip(("theta_e", "s_x", "s_y", "k", "k_x", "k_yz"), map(float, p_true[:6])))
+    init["k"] = 8.0
+    est = UpdateErrorEstimator(None, m, preset="paper", metric="innovation", init=init)
+    r = est.run_offline(estimate=("k",), sigma=False)
+    assert r.info["metric"] == "innovation"
+    assert abs(r.values["k"] / p_true[3] - 1) < 0.1
+    with pytest.raises(ValueError, match="needs preset='paper'"):
+        UpdateErrorEstimator(None, m, metric="innovation")
+    with pytest.raises(ValueError, match="unknown metric"):
+        UpdateErrorEstimator(None, m, metric="likelihood")
