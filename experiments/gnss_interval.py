@@ -70,6 +70,12 @@ def one(task) -> dict:
             out["stats"][(method, case)] = {
                 "rmse": e["rmse"], "p95": e["p95"], "p95_late": ev.percentile(e["err"][late]),
                 "rmse_late": float(np.sqrt(np.mean(e["err"][late] ** 2)))}
+            if case == "with":
+                pe = ev.param_errors(r.values, r.sigma, tp, VARIABLE)
+                t_h, th, _ = C.history_of(r, "theta_e")
+                th_late = np.abs(ev.wrap_angle(th - tp["theta_e"]))[t_h >= e["t"][0] + SETTLE]
+                out["stats"][(method, case)].update(
+                    z=pe.z, theta_late=float(np.median(th_late)) if len(th_late) else np.nan)
             bf = ev.error_between_fixes(e["t"], e["err"], m.gnss.t)
             sel = bf.t0 >= e["t"][0] + SETTLE
             out["growth"][(method, case)] = float(np.mean(bf.peak[sel])) if sel.any() else np.nan
@@ -98,16 +104,23 @@ def write(res, args, S, T, started) -> None:
         for mi, m in enumerate(C.METHODS):
             g = lambda case, k: [r["stats"].get((m, case), {}).get(k, np.nan) for r in rr]
             gr = lambda case: [r["growth"].get((m, case), np.nan) for r in rr]
+            z = np.array([r["stats"].get((m, "with"), {}).get("z", np.full(3, np.nan))
+                          for r in rr])
+            c = ev.consistency(z)
             rows.append([f"{iv:.0f} s" if mi == 0 else "", C.LABEL[m],
                          C.pm(g("without", "p95")), C.pm(g("with", "p95")),
                          C.pm(g("without", "p95_late")), C.pm(g("with", "p95_late")),
-                         C.pm(g("with", "rmse_late")), C.pm(gr("without")), C.pm(gr("with"))])
+                         C.pm(g("with", "rmse_late")), C.pm(gr("without")), C.pm(gr("with")),
+                         C.med(np.degrees(g("with", "theta_late"))),
+                         f"{c['rms']:.2f} / {100 * c['within2']:.0f} %"])
     t1 = C.md_table(["GNSS interval", "method", "95th pct without est. [m]",
                      "95th pct with est. [m]", f"95th pct without, after {SETTLE:.0f} s [m]",
                      f"95th pct with, after {SETTLE:.0f} s [m]",
                      f"RMSE with, after {SETTLE:.0f} s [m]",
                      "mean peak error between fixes without [m]",
-                     "mean peak error between fixes with [m]"], rows)
+                     "mean peak error between fixes with [m]",
+                     f"median abs theta_e error after {SETTLE:.0f} s [deg], median [p10, p90]",
+                     "final theta_e, s_x, s_y error/sigma: RMS / within 2 sigma"], rows)
     fails = [f"- seed {r['seed']} interval {r['interval']:.0f} s, {k}: {e}" for r in res
              for k, e in r["error"].items()]
     body = f"""
@@ -117,7 +130,8 @@ seeds for every interval), 30 deg true heading offset, window = 3 x interval for
 methods, fixed parameters at truth, theta_e = s = 0 initially. 95th percentile of the
 error samples on a 1 s grid from the first fix, over the whole mission and after the first
 {SETTLE:.0f} s; peak error between fixes averaged over the intervals after {SETTLE:.0f} s.
-Mean ± standard deviation over seeds.
+Mean ± standard deviation over seeds. Honesty of the sigma: final theta_e, s_x, s_y error
+divided by the reported sigma, pooled over seeds.
 
 {t1}
 
@@ -130,8 +144,8 @@ lines), `gnss_interval_p95.png` (95th percentile vs interval, every seed).
                args, started)
     C.write_headline(out, "gnss_interval", C.md_table(
         ["GNSS interval", "method", "95th pct without est. [m]", "95th pct with est. [m]",
-         f"95th pct with, after {SETTLE:.0f} s [m]"],
-        [[r[0], r[1], r[2], r[3], r[5]] for r in rows]), args)
+         f"95th pct with, after {SETTLE:.0f} s [m]", "error/sigma: RMS / within 2 sigma"],
+        [[r[0], r[1], r[2], r[3], r[5], r[10]] for r in rows]), args)
 
     fig, axs = plt.subplots(len(INTERVALS), 1, figsize=(7.5, 6.5), sharex=True)
     for ax, iv in zip(axs, INTERVALS):

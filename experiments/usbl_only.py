@@ -166,8 +166,9 @@ and the spread over seeds), `usbl_only_map.png` (seed 0 tracks, drifting case).
     C.write_md(out, "usbl_only", "Fig. 9 analog: USBL-only heading estimation", body, args,
                started)
     C.write_headline(out, "usbl_only", C.md_table(
-        ["case", "method", "theta_e RMS error [deg]", "causal RMSE with est. [m]",
-         "95th pct with est. [m]"], [[r[0], r[1], r[2], r[6], r[8]] for r in rows]), args)
+        ["case", "method", f"theta_e RMS error after {SETTLE:.0f} s [deg]",
+         "error/sigma: RMS / within 2 sigma", "causal RMSE with est. [m]",
+         "95th pct with est. [m]"], [[r[0], r[1], r[2], r[4], r[6], r[8]] for r in rows]), args)
 
     fig, axs = plt.subplots(2, 2, figsize=(9, 5.5), sharex=True)
     for ci, case in enumerate(CASES):
