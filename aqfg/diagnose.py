@@ -16,10 +16,11 @@ The steps (each in its own module):
 4. **Which effect** (:mod:`aqfg.diagnose_score`, :mod:`aqfg.diagnose_linearise`): every
    applicable catalogue effect gets a score (Lagrange-multiplier) test at its null on the
    full fit's linearised graph (no refit), Holm-corrected; the top candidates are refitted
-   (likelihood ratio, BIC, held-out dead-reckoning error); a block bootstrap over time
-   says how stable the ranking is.
+   (likelihood ratio, BIC, predictive likelihood and dead-reckoning error of the held-out
+   fixes); a block bootstrap over time says how stable the ranking is.
 5. **Verdict**: an effect is *missing* when its score test is significant (Holm-adjusted
-   p < ``alpha``) and its refit confirms it (likelihood-ratio p < ``alpha`` and BIC lower).
+   p < ``alpha``) and its refit confirms it (likelihood-ratio p < ``alpha``, BIC lower, and
+   the held-out fixes better predicted: higher predictive log-likelihood).
    Nothing significant and consistent residuals: "nothing missing". Inconsistent residuals
    that no candidate repairs: "something is missing that the catalogue does not explain".
 
@@ -136,6 +137,7 @@ class Candidate:
     lr: float = float("nan")            # likelihood ratio 2 (cost_base - cost_refit)
     lr_p: float = float("nan")
     dbic: float = float("nan")          # BIC(refit) - BIC(base): negative favours the effect
+    dll: float = float("nan")           # held-out predictive log-likelihood, refit - base
     significant: bool = False
     confirmed: bool = False
     bootstrap_first: float = float("nan")
@@ -188,6 +190,7 @@ class Diagnosis:
                 "score_robust": _num(c.score.statistic_robust),
                 "p_value_robust": _num(c.score.p_value_robust),
                 "lr": _num(c.lr), "lr_p_value": _num(c.lr_p), "delta_bic": _num(c.dbic),
+                "delta_heldout_loglik": _num(c.dll),
                 "consistent_after": (bool(c.refit.consistency.passed)
                                      if c.refit and c.refit.consistency else None),
                 "significant": bool(c.significant), "confirmed": bool(c.confirmed),
@@ -228,15 +231,16 @@ class Diagnosis:
                         L.append(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}")
         L.append("")
         L.append(f"{'rank':>4}  {'effect':<18} {'score':>9} {'p (Holm)':>9} {'dBIC':>8} "
-                 f"{'DR err before->after (m)':>25}  estimate")
+                 f"{'dLL held':>9} {'DR err before->after (m)':>25}  estimate")
         for i, c in enumerate(self.ranking, 1):
             est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
                             for n, v in c.estimate().items())
             dr = (f"{self.base.rmse:.2f} -> {c.refit.rmse:.2f}" if c.refit else "")
             flag = "*" if c.confirmed else (" " if not c.significant else "?")
             L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
-                     f"{c.dbic:8.1f} {dr:>25}  {est}")
-        L.append("(* significant and confirmed by its refit; ? significant score, not confirmed. "
+                     f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>25}  {est}")
+        L.append("(dLL held: change of the held-out fixes' predictive log-likelihood; "
+                 "* significant and confirmed by its refit; ? significant score, not confirmed. "
                  "Effects below the first can be echoes of it: add the first with --effect "
                  "and diagnose again.)")
         return "\n".join(L)
@@ -324,6 +328,22 @@ def evaluate(missions: list[Mission], splits: list[Split], model, effects, label
     return ev
 
 
+def heldout_loglik_change(base: FitEval, other: FitEval) -> float:
+    """Change of the predictive log-likelihood of the held-out fixes (next-fix innovations)
+    from ``base`` to ``other``, over the fixes both count (outliers left out by either are
+    left out of both)."""
+    tot = 0.0
+    n = 0
+    for hb, ho in zip(base.next_fix, other.next_fix):
+        kb = {(s, round(t, 6)): ll for s, t, ll, u in zip(hb.sensor, hb.t, hb.loglik, hb.used) if u}
+        for s, t, ll, u in zip(ho.sensor, ho.t, ho.loglik, ho.used):
+            k = (s, round(t, 6))
+            if u and k in kb:
+                tot += ll - kb[k]
+                n += 1
+    return float(tot) if n else float("nan")
+
+
 def _init_from(res: Result) -> dict:
     """Initial values for a related fit: the estimates of ``res``."""
     return {n: float(res.values[n]) for n in res.estimated}
@@ -401,7 +421,8 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
         c.lr = max(2.0 * (base.cost - c.refit.cost), 0.0)
         c.lr_p = float(stats.chi2.sf(c.lr, len(c.params)))
         c.dbic = c.refit.bic - base.bic
-        c.confirmed = bool(c.significant and c.lr_p < alpha and c.dbic < 0)
+        c.dll = heldout_loglik_change(base, c.refit)
+        c.confirmed = bool(c.significant and c.lr_p < alpha and c.dbic < 0 and c.dll > 0)
     timings["refit"] = time.perf_counter() - t2
     # final order: refitted candidates by BIC (confirmed first), then the rest by score
     refitted = sorted(ranking[:k], key=lambda c: (not c.confirmed, c.dbic))
@@ -422,6 +443,10 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
                    f"Score test p = {best.p_adjusted:.2g} (Holm), refit dBIC = {best.dbic:.1f}; "
                    f"held-out dead-reckoning error {base.rmse:.2f} -> {best.refit.rmse:.2f} m "
                    f"({_pct(base.rmse, best.refit.rmse)}).")
+        if cons is not None and cons.passed:
+            verdict += (f" It is small: the model was already consistent with the held-out "
+                        f"fixes (raw RMS distance {base.rmse_raw:.2f} -> "
+                        f"{best.refit.rmse_raw:.2f} m).")
         if after is not None and not after.passed:
             unexplained = True
             verdict += (" The held-out fixes are still not consistent with it: something else "
@@ -441,6 +466,24 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
             "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a}
     return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
                      series, before, tuple(resolve(e).name for e in effects), sett, timings)
+
+
+def diagnose_sequence(missions, model=None, effects: Sequence = (), max_steps: int = 4,
+                      **kw) -> list[Diagnosis]:
+    """Diagnose, add the confirmed best effect, diagnose again, ... until nothing more is
+    found or ``max_steps`` diagnoses have run. Returns the diagnoses in order; the effects
+    added are ``[d.best.effect for d in out if d.best]``."""
+    out: list[Diagnosis] = []
+    effects = tuple(effects)
+    for _ in range(max_steps):
+        d = diagnose(missions, model, effects, **kw)
+        out.append(d)
+        if d.best is None:
+            break
+        eff = next(c for c in candidate_effects(missions, effects, kw.get("extra_candidates", ()))
+                   if c.name == d.best.effect) if d.best.effect not in BUILTIN else d.best.effect
+        effects = effects + (eff,)
+    return out
 
 
 def resolve_description(name: str, cands) -> str:

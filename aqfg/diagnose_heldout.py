@@ -76,6 +76,12 @@ class HeldOut:
             return float("nan")
         return float(np.sqrt(max(np.mean(self.err[u] ** 2) - np.mean(self.noise[u]), 0.0)))
 
+    @property
+    def loglik(self) -> np.ndarray:
+        """Gaussian predictive log-likelihood of each held-out fix (n,):
+        ``-(nis + log det S + 2 log 2 pi) / 2``."""
+        return -0.5 * (self.nis + np.log(np.linalg.det(self.S)) + 2 * np.log(2 * np.pi))
+
     def consistency(self, window: float = 60.0, alpha: float = 0.05,
                     level: float = 0.01) -> ConsistencyTest:
         u = self.used

@@ -255,7 +255,7 @@ def _fmt(x, f=".3g") -> str:
 
 def ranking_table(diag) -> str:
     rows = ["<tr><th>rank</th><th>effect</th><th>score (LM)</th><th>p (Holm)</th>"
-            "<th>robust p</th><th>dBIC</th><th>bootstrap first</th><th>DR error before → after (m)</th>"
+            "<th>robust p</th><th>dBIC</th><th>held-out dLL</th><th>bootstrap first</th><th>DR error before → after (m)</th>"
             "<th>consistent after</th><th>estimate ± sigma</th><th>verdict</th></tr>"]
     for i, c in enumerate(diag.ranking, 1):
         est = "<br>".join(f"{html.escape(n)} = {v['value']:.4g} ± {v['sigma']:.2g}"
@@ -266,6 +266,7 @@ def ranking_table(diag) -> str:
         rows.append(f"<tr><td>{i}</td><td class=l>{html.escape(c.effect)}</td>"
                     f"<td>{_fmt(c.score.statistic, '.1f')}</td><td>{_fmt(c.p_adjusted, '.2g')}</td>"
                     f"<td>{_fmt(c.score.p_value_robust, '.2g')}</td><td>{_fmt(c.dbic, '.1f')}</td>"
+                    f"<td>{_fmt(c.dll, '.1f')}</td>"
                     f"<td>{_fmt(c.bootstrap_first, '.2f')}</td><td>{dr}</td><td>{cons}</td>"
                     f"<td class=l>{est}</td><td class=l>{v}</td></tr>")
     return "<table>" + "".join(rows) + "</table>"

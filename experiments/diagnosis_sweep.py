@@ -27,7 +27,7 @@ import numpy as np
 
 import common as C  # noqa: F401  (puts the checkout on sys.path)
 
-from aqfg.diagnose import diagnose, save_diagnosis  # noqa: E402
+from aqfg.diagnose import diagnose, diagnose_sequence, save_diagnosis  # noqa: E402
 from aqfg.diagnose_cases import CASES, simulate_case  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
@@ -61,13 +61,34 @@ def one(task) -> dict:
 
 
 def otter() -> dict:
+    """Diagnose the otter example, add the effect found, diagnose again, until nothing more."""
     from aqfg.io import load_mission
     m = load_mission(OTTER)
-    d = diagnose([m])
-    save_diagnosis(d, OUT / "otter-diagnosis", overwrite=True)
-    first = d.ranking[0] if d.ranking else None
-    return {"summary": d.summary(), "json": d.to_json(),
-            "top": first.effect if first else None}
+    seq = diagnose_sequence([m], max_steps=4)
+    steps = []
+    for i, d in enumerate(seq):
+        save_diagnosis(d, OUT / f"otter-diagnosis-{i + 1}", overwrite=True)
+        steps.append({"model_effects": list(d.base.effects), "verdict": d.verdict,
+                      "found": d.best.effect if d.best else None,
+                      "rmse": d.base.rmse, "rmse_raw": d.base.rmse_raw,
+                      "consistent": bool(d.base.consistency.passed),
+                      "nis": d.base.consistency.ratio, "conditions": d.conditions_text,
+                      "summary": d.summary(), "json": d.to_json()})
+    return {"steps": steps}
+
+
+def otter_md(ot: dict) -> list[str]:
+    rows = ["| step | model effects | held-out DR error (m) | raw vs fixes (m) | NIS/expected | "
+            "consistent | found next | where errors grow |", "|---|---|---|---|---|---|---|---|"]
+    for i, s in enumerate(ot["steps"], 1):
+        rows.append(f"| {i} | {', '.join(s['model_effects']) or 'base'} | {s['rmse']:.2f} | "
+                    f"{s['rmse_raw']:.2f} | {s['nis']:.2f} | {'yes' if s['consistent'] else 'no'} | "
+                    f"{s['found'] or 'nothing'} | {s['conditions']} |")
+    out = ["## otter-example (richer truth than aqfg's model)", "",
+           "Diagnose, add the effect found, diagnose again (diagnose_sequence).", ""] + rows
+    for i, s in enumerate(ot["steps"], 1):
+        out += ["", f"Step {i}:", "", "```", s["summary"], "```"]
+    return out + [""]
 
 
 def table(recs: list[dict]) -> str:
@@ -126,12 +147,13 @@ def main(argv=None) -> int:
     ot = None
     if not args.no_otter and OTTER.exists():
         ot = otter()
-        md += ["## otter-example (richer truth than aqfg's model)", "", "```", ot["summary"], "```", ""]
+        md += otter_md(ot)
     md.append(f"total time {time.perf_counter() - t0:.0f} s")
     text = "\n".join(md)
     (OUT / f"diagnosis_sweep{suffix}.md").write_text(text)
     with open(OUT / f"diagnosis_sweep{suffix}.json", "w") as f:
-        json.dump({"records": recs, "otter": ot["json"] if ot else None}, f, indent=1,
+        json.dump({"records": recs, "otter": [st["json"] for st in ot["steps"]] if ot else None},
+                  f, indent=1,
                   default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     print(text)
     return 0
