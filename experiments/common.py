@@ -34,8 +34,11 @@ from aqfg.mission import Depth, Gnss, Imu, Mission, Motors, Usbl  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("fg", "update-error")
-LABEL = {"fg": "factor graph", "update-error": "update-error (paper)"}
-COLOR = {"fg": "tab:blue", "update-error": "tab:red", "none": "tab:gray", "truth": "k"}
+LABEL = {"fg": "factor graph", "update-error": "update-error (paper)",
+         "update-error-6": "update-error, 6-fix window", "update-error-10":
+         "update-error, 10-fix window"}
+COLOR = {"fg": "tab:blue", "update-error": "tab:red", "none": "tab:gray", "truth": "k",
+         "update-error-6": "tab:orange", "update-error-10": "tab:orange"}
 MAX_PNG = 200_000      # bytes
 
 
