@@ -51,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--effect", action="append", default=[], metavar="NAME",
                        help="add a model effect (repeatable)")
         s.add_argument("--gnss-every", type=float, default=0.0, metavar="S",
-                       help="use one GNSS fix every S seconds (default: all)")
+                       help="use one GNSS fix every S seconds (default: all)" if name == "fit"
+                       else "held-out split: fit on one GNSS fix every S seconds (and every "
+                            "other USBL fix), test dead reckoning on the rest (default 8)")
         s.add_argument("--force", action="store_true", help="overwrite existing outputs")
         s.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
         if name == "fit":

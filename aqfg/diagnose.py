@@ -173,6 +173,31 @@ class Diagnosis:
     def best(self) -> Candidate | None:
         return self.ranking[0] if self.ranking and self.ranking[0].confirmed else None
 
+    def confidence(self) -> dict:
+        """How sure the ranking is: the first candidate's share of block-bootstrap
+        resamples in which it has the best score (``bootstrap_first``), its rank by score
+        alone (``score_rank``: 1 = score and refit agree), and the BIC margin to the second
+        refitted candidate (``bic_margin``; > 10 is "very strong" on Kass & Raftery's
+        scale)."""
+        if not self.ranking:
+            return {}
+        first = self.ranking[0]
+        by_score = sorted(self.ranking, key=lambda c: (c.score.log10_p, -c.score.statistic))
+        refitted = [c for c in self.ranking if c.refit is not None]
+        margin = (refitted[1].dbic - refitted[0].dbic) if len(refitted) > 1 else float("nan")
+        return {"first": first.effect, "bootstrap_first": first.bootstrap_first,
+                "score_rank": 1 + by_score.index(first), "bic_margin": margin}
+
+    def confidence_text(self) -> str:
+        c = self.confidence()
+        if not c or self.best is None:
+            return ""
+        agree = ("score test and refit agree" if c["score_rank"] == 1 else
+                 f"the refit promotes it from rank {c['score_rank']} by score")
+        return (f"Confidence in the ranking: {agree}; it has the best score in "
+                f"{100 * c['bootstrap_first']:.0f}% of time-block bootstrap resamples; BIC "
+                f"margin to the next candidate {c['bic_margin']:.1f}.")
+
     def to_json(self) -> dict:
         """The ``diagnosis.json`` of the format doc (extra keys allowed)."""
         rb = self.base.rmse
@@ -203,6 +228,7 @@ class Diagnosis:
                "consistency": self.base.consistency.to_json() if self.base.consistency else None,
                "conditions": {"text": self.conditions_text,
                               "tests": [e.to_json() for e in self.conditions]},
+               "confidence": self.confidence(),
                "settings": self.settings}
         if self.before is not None:
             out["before"] = self.before.to_json()
@@ -211,7 +237,10 @@ class Diagnosis:
 
     def summary(self) -> str:
         """The ranked summary printed by ``aqfg diagnose``."""
-        L = [self.verdict, ""]
+        L = [self.verdict]
+        if self.confidence_text():
+            L.append(self.confidence_text())
+        L.append("")
         c = self.base.consistency
         if c is not None:
             L.append(f"Held-out fixes vs the model ({'+'.join(self.base.effects) or 'base model'}): "
@@ -285,6 +314,23 @@ def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=()) -
     out = []
     for e in list(BUILTIN.values()) + [resolve(x) for x in extra]:
         if e.name in have or any(e.name == o.name for o in out):
+            continue
+        if any(e.applicable(m) for m in missions):
+            out.append(e)
+    return out
+
+
+def _candidates(missions, model_effects, candidates, extra) -> list:
+    """The effects to rank: ``candidates`` (default: the applicable catalogue) plus
+    ``extra``, without duplicates, those already in the model, and those that apply to
+    none of the missions."""
+    if candidates is None:
+        return candidate_effects(missions, model_effects, extra)
+    have = {e.name for e in model_effects}
+    out = []
+    for c in list(candidates) + list(extra):
+        e = resolve(c)
+        if e.name in have or any(o.name == e.name for o in out):
             continue
         if any(e.applicable(m) for m in missions):
             out.append(e)
@@ -387,12 +433,7 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
     # score tests on the full fit's linearised graph
     prog(0.2, "score tests")
     t1 = time.perf_counter()
-    cands = list(candidates) if candidates is not None else candidate_effects(
-        missions, base.full.model.effects)
-    cands = [resolve(c) for c in cands] + [resolve(c) for c in extra_candidates
-                                          if resolve(c).name not in {x.name for x in map(resolve, cands)}]
-    cands = [c for c in cands if c.name not in {e.name for e in base.full.model.effects}
-             and any(c.applicable(m) for m in missions)]
+    cands = _candidates(missions, base.full.model.effects, candidates, extra_candidates)
     ranking: list[Candidate] = []
     if cands:
         lin = linear_system(missions, base.full, cands, settings=settings)

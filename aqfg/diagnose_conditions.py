@@ -227,12 +227,25 @@ class ConditionEffect:
 
 
 def _binned(x: np.ndarray, y: np.ndarray, nb: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    q = np.quantile(x, np.linspace(0, 1, nb + 1))
-    j = np.clip(np.searchsorted(q, x, side="right") - 1, 0, nb - 1)
-    cnt = np.bincount(j, minlength=nb)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        m = np.bincount(j, y, minlength=nb) / cnt
-        c = np.bincount(j, x, minlength=nb) / cnt
+    """Mean of ``y`` per quantile bin of ``x`` (bin centres = mean ``x``); a condition that
+    is mostly at one value (e.g. no reverse command) gets a bin for that value and bins for
+    the rest."""
+    lo = float(np.min(x))
+    at_lo = x <= lo + 1e-12
+    if at_lo.mean() > 1.0 / nb and (~at_lo).any():
+        rest = x[~at_lo]
+        k = max(1, min(nb - 1, len(np.unique(rest))))
+        q = np.quantile(rest, np.linspace(0, 1, k + 1))
+        j = np.where(at_lo, 0, 1 + np.clip(np.searchsorted(q, x, side="right") - 1, 0, k - 1))
+        nbins = k + 1
+    else:
+        q = np.quantile(x, np.linspace(0, 1, nb + 1))
+        j = np.clip(np.searchsorted(q, x, side="right") - 1, 0, nb - 1)
+        nbins = nb
+    cnt = np.bincount(j, minlength=nbins)
+    ok = cnt > 0
+    m = np.bincount(j, y, minlength=nbins)[ok] / cnt[ok]
+    c = np.bincount(j, x, minlength=nbins)[ok] / cnt[ok]
     return c, m
 
 

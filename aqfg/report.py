@@ -52,7 +52,7 @@ def fig_map(diag, i: int = 0):
                 ax.plot(leg.pos[:, 1], leg.pos[:, 0], color="tab:green", lw=1,
                         label=f"model + {best.effect}" if j == 0 else None)
     from .diagnose_compare import fixes_of
-    fx = fixes_of(diag.base.thin.missions and _fit_mission(diag, i) or m)
+    fx = fixes_of(_fit_mission(diag, i))
     ax.scatter(fx.ne[:, 1], fx.ne[:, 0], s=18, facecolors="none", edgecolors="tab:blue",
                label="fit fixes", zorder=4)
     if m.usbl_station is not None:
@@ -186,6 +186,45 @@ def fig_heldout_time(diag, i: int = 0):
     return fig
 
 
+def fig_residuals_compare(diag, i: int = 0, window: float = 30.0):
+    """Normalised residuals of the fitted models over time (NIS per dof in ``window``-s
+    bins, per sensor): before/after an added effect, or the model vs the model with the
+    best candidate."""
+    plt = _plt()
+    from .diagnose_compare import sensor_series
+    evs = []
+    if diag.before is not None:
+        evs.append(diag.before)
+    evs.append(diag.base)
+    best = diag.best
+    if best is not None and best.refit is not None:
+        evs.append(best.refit)
+    if len(evs) < 2:
+        return None
+    sensors = [s.sensor for s in sensor_series(diag.base.full.missions[i])]
+    fig, axes = plt.subplots(len(sensors), 1, figsize=(10, 2.2 * len(sensors)), squeeze=False)
+    for ax, name in zip(axes[:, 0], sensors):
+        for ev in evs:
+            ss = {s.sensor: s for s in sensor_series(ev.full.missions[i])}
+            if name not in ss:
+                continue
+            s = ss[name]
+            edges = np.arange(s.t.min(), s.t.max() + window, window)
+            j = np.clip(np.digitize(s.t, edges) - 1, 0, len(edges) - 2)
+            nis = np.nansum(np.clip(s.normalised, -5, 5) ** 2, axis=1)    # outliers clipped
+            num = np.bincount(j, nis, len(edges) - 1)
+            den = np.bincount(j, s.dof, len(edges) - 1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ax.step(edges[:-1], num / den, where="post", label=ev.label)
+        ax.set_ylabel(f"{name}: NIS / dof", fontsize=8)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[0, 0].set_title(f"{diag.missions[i].name}: residuals of the fits to all fixes, "
+                         f"{window:.0f}-s means (components clipped at 5 sigma)")
+    axes[-1, 0].set_xlabel("t (s)")
+    fig.tight_layout()
+    return fig
+
+
 def fig_conditions(diag, max_panels: int = 6):
     """Mean NIS per dof by condition quartile for the strongest condition tests."""
     plt = _plt()
@@ -297,6 +336,7 @@ def render(diag, plots: bool = True) -> str:
          f"<style>{_CSS}</style></head><body>",
          f"<h1>aqfg diagnosis: {html.escape(', '.join(m.name for m in diag.missions))}</h1>",
          f"<p class=verdict>{html.escape(diag.verdict)}</p>",
+         f"<p>{html.escape(diag.confidence_text())}</p>",
          f"<p><b>Where it fails.</b> {html.escape(diag.conditions_text)}</p>"]
     H.append("<h2>Which effect is missing</h2>")
     H.append("<p>Every applicable catalogue effect is scored by a Lagrange-multiplier (score) "
@@ -331,6 +371,7 @@ def render(diag, plots: bool = True) -> str:
         for i in range(len(diag.missions)):
             H.append(_img(fig_map(diag, i)))
             H.append(_img(fig_heldout_time(diag, i)))
+            H.append(_img(fig_residuals_compare(diag, i)))
     H.append("<h2>Where the model fails</h2>")
     H.append("<p>Spearman rank correlation between the squared normalised residuals and each "
              "condition (averaged over the preceding "
