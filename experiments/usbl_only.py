@@ -89,6 +89,7 @@ def one(task) -> dict:
             err = ev.wrap_angle(th - ev.heading_truth(tp, th_t, full.t0))
             late = th_t >= t0 + SETTLE
             st["theta_rms"] = float(np.sqrt(np.mean(err[late] ** 2))) if late.any() else np.nan
+            st["theta_med"] = float(np.median(np.abs(err[late]))) if late.any() else np.nan
             st["theta_final"] = float(err[-1]) if len(err) else np.nan
             z = err[late] / sg[late] if late.any() else np.zeros(0)
             st["z"] = z[np.isfinite(z)]
@@ -129,6 +130,7 @@ def write(res, args, S, T, started) -> None:
             c = ev.consistency(z)
             rows.append([case if i == 0 else "", VLABEL[v],
                          C.pm(np.degrees(g("with", "theta_rms")), 1),
+                         C.med(np.degrees(g("with", "theta_med")), 1),
                          C.pm(np.degrees(g("with", "theta_final")), 1),
                          f"{c['rms']:.1f} / {100 * c['within2']:.0f} %",
                          C.pm([r["stats"].get((base, "without"), {}).get("rmse", np.nan)
@@ -138,6 +140,8 @@ def write(res, args, S, T, started) -> None:
                                for r in rr]) if v in ("update-error", "fg") else "(as above)",
                          C.pm(g("with", "p95"))])
     t1 = C.md_table(["case", "method", f"theta_e RMS error after {SETTLE:.0f} s [deg]",
+                     f"median abs theta_e error after {SETTLE:.0f} s [deg], median [p10, p90] "
+                     "over seeds",
                      "final theta_e error [deg]", "error/sigma: RMS / within 2 sigma",
                      "causal RMSE without est. [m]", "causal RMSE with est. [m]",
                      "95th pct without [m]", "95th pct with [m]"], rows)
@@ -171,8 +175,9 @@ and the spread over seeds), `usbl_only_map.png` (seed 0 tracks, drifting case).
                started)
     C.write_headline(out, "usbl_only", C.md_table(
         ["case", "method", f"theta_e RMS error after {SETTLE:.0f} s [deg]",
-         "error/sigma: RMS / within 2 sigma", "causal RMSE with est. [m]",
-         "95th pct with est. [m]"], [[r[0], r[1], r[2], r[4], r[6], r[8]] for r in rows]), args)
+         "median abs theta_e error [deg]", "error/sigma: RMS / within 2 sigma",
+         "causal RMSE with est. [m]", "95th pct with est. [m]"],
+        [[r[0], r[1], r[2], r[3], r[5], r[7], r[9]] for r in rows]), args)
 
     fig, axs = plt.subplots(2, 2, figsize=(9, 5.5), sharex=True)
     for ci, case in enumerate(CASES):
