@@ -168,8 +168,8 @@ Failures: {chr(10).join(fails) if fails else "none"}
 Runs whose theta_e RMS error exceeds 20 deg:
 {chr(10).join(bad) if bad else "- none"}
 
-Figures: `usbl_only_theta.png` (theta_e estimate vs truth over time, seed 0 of each case
-and the spread over seeds), `usbl_only_map.png` (seed 0 tracks, drifting case).
+Figures: `usbl_only_theta.png` (theta_e estimate vs truth over time, seed 0 of each case,
+and the median and 10-90 % band of the absolute error over seeds), `usbl_only_map.png` (seed 0 tracks, drifting case).
 """
     C.write_md(out, "usbl_only", "Fig. 9 analog: USBL-only heading estimation", body, args,
                started)
@@ -195,18 +195,27 @@ and the spread over seeds), `usbl_only_map.png` (seed 0 tracks, drifting case).
         ax.set_title(f"{case} heading offset, seed 0", fontsize=9)
         ax.set_ylabel("theta_e [deg]")
         ax = axs[1, ci]
+        tg = np.arange(0.0, T, 4.5)
         for v in VARIANTS:
-            for j, r in enumerate(rr):
-                if v not in r["hist"]:
+            E = []
+            for r in rr:
+                if v not in r["hist"] or not len(r["hist"][v][0]):
                     continue
                 t, val, _ = r["hist"][v]
                 err = np.degrees(ev.wrap_angle(val - np.interp(t, *r["theta_truth"])))
-                ax.plot(t, err, "-", color=VCOLOR[v], lw=0.4, alpha=0.4,
-                        label=VLABEL[v] if j == 0 else None)
-        ax.axhspan(-5, 5, color="0.9")
-        ax.set_ylim(-40, 40)
-        ax.set_title(f"{case}: estimate - truth, every seed", fontsize=9)
-        ax.set_ylabel("error [deg]")
+                E.append(np.where(tg >= t[0], np.interp(tg, t, err), np.nan))
+            if not E:
+                continue
+            E = np.abs(np.array(E))
+            with np.errstate(all="ignore"):
+                lo, mid, hi = np.nanpercentile(E, [10, 50, 90], axis=0)
+            ax.fill_between(tg, lo, hi, color=VCOLOR[v], alpha=0.15, lw=0)
+            ax.plot(tg, mid, "-", color=VCOLOR[v], lw=1, label=VLABEL[v])
+        ax.axhline(5, color="0.6", lw=0.8, ls=":")
+        ax.set_yscale("log")
+        ax.set_ylim(0.05, 180)
+        ax.set_title(f"{case}: |estimate - truth| over seeds (median, 10-90 %)", fontsize=9)
+        ax.set_ylabel("abs error [deg]")
         ax.set_xlabel("time since launch fix [s]")
     axs[0, 0].legend(fontsize=6)
     axs[1, 0].legend(fontsize=6)
