@@ -1,7 +1,7 @@
 """Regenerate every experiment's tables and figures into experiments/results/.
 
 Runs, in order: table2, online_heading, usbl_only, gnss_interval (Monte Carlo, 2 worker
-processes each) and compute_cost (single process, timings). About 25 min on a 2-core
+processes each) and compute_cost (single process, timings). About 15 min on a 2-core
 machine; ``--quick`` runs each in its reduced form (about 2 min, writes *_quick files).
 After a full run the headline tables (``results/<name>_headline.md``) are stitched into
 ``experiments/README.md`` between its ``<!-- headline:NAME -->`` markers; ``--readme``

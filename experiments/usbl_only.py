@@ -22,7 +22,7 @@ Methods, online, estimate after every fix:
 Neither model contains ``heading_drift``: following it is the estimator's job. Reported:
 RMS of (theta_e estimate - true theta_e(t)) after the first 60 s, causal position RMSE and
 95th percentile with and without estimation. Full run: 20 seeds x 2 cases, 600 s, about
-3 min with 2 processes. ``--quick``: 2 seeds, 240 s.
+3-5 min with 2 processes. ``--quick``: 2 seeds, 240 s.
 Run: ``python experiments/usbl_only.py [--quick] [--seeds N] [--jobs J]``.
 """
 from __future__ import annotations
