@@ -24,6 +24,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .kernel_ref import wrap_angle
 from .mission import Mission, Truth
 from .result import Track
 
@@ -155,11 +156,6 @@ def heading_truth(truth_params: Mapping[str, float], t: np.ndarray, t0: float = 
     heading drift ``heading_drift.rate`` (rad/s) from the mission start ``t0``."""
     rate = float(truth_params.get("heading_drift.rate", 0.0) or 0.0)
     return float(truth_params["theta_e"]) + rate * (np.asarray(t, float) - t0)
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped into [-pi, pi)."""
-    return (np.asarray(a, float) + np.pi) % (2 * np.pi) - np.pi
 
 
 @dataclass

@@ -302,5 +302,5 @@ def h_usbl(pos, R_raw, tm, p, station):
 
 
 def wrap_angle(a):
-    """Wrap to (-pi, pi]."""
+    """Angles (rad) wrapped into [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
