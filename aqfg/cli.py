@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     mod = importlib.import_module(f"aqfg.commands.{args.command}")
     try:
         return int(mod.run(args) or 0)
+    except BrokenPipeError:          # output piped into e.g. `head`: not an error
+        sys.stderr.close()
+        return 0
     except (FileNotFoundError, FileExistsError, ValueError, KeyError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"aqfg {args.command}: error: {msg}", file=sys.stderr)

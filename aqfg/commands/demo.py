@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 DEMO_SEED = 11
-DEMO_EFFECT = {"linear_drag": {"c_x": 0.3, "c_yz": 0.2}}
+DEMO_EFFECT = {"reverse_thrust": 0.6}   # propellers 40 % weaker backwards (aqfg.diagnose_cases)
 GNSS_EVERY = 8.0
 
 
