@@ -325,30 +325,16 @@ def _ok(c: ConsistencyTest | None) -> str:
 
 
 # ---------------------------------------------------------------- the steps
-def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=()) -> list:
-    """Catalogue effects applicable to at least one mission and not already in the model,
-    plus ``extra`` candidates (e.g. :class:`~aqfg.effects.UserEffect` objects)."""
+def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
+                      pool: Sequence | None = None) -> list:
+    """The effects to rank: ``pool`` (default: the built-in catalogue) plus ``extra`` (e.g.
+    :class:`~aqfg.effects.UserEffect` objects), without duplicates, without those already
+    in the model, and only those applicable to at least one mission."""
     have = {resolve(e).name for e in model_effects}
     out = []
-    for e in list(BUILTIN.values()) + [resolve(x) for x in extra]:
-        if e.name in have or any(e.name == o.name for o in out):
-            continue
-        if any(e.applicable(m) for m in missions):
-            out.append(e)
-    return out
-
-
-def _candidates(missions, model_effects, candidates, extra) -> list:
-    """The effects to rank: ``candidates`` (default: the applicable catalogue) plus
-    ``extra``, without duplicates, those already in the model, and those that apply to
-    none of the missions."""
-    if candidates is None:
-        return candidate_effects(missions, model_effects, extra)
-    have = {e.name for e in model_effects}
-    out = []
-    for c in list(candidates) + list(extra):
+    for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
         e = resolve(c)
-        if e.name in have or any(o.name == e.name for o in out):
+        if e.name in have or any(e.name == o.name for o in out):
             continue
         if any(e.applicable(m) for m in missions):
             out.append(e)
@@ -451,7 +437,7 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
     # score tests on the full fit's linearised graph
     prog(0.2, "score tests")
     t1 = time.perf_counter()
-    cands = _candidates(missions, base.full.model.effects, candidates, extra_candidates)
+    cands = candidate_effects(missions, base.full.model.effects, extra_candidates, candidates)
     ranking: list[Candidate] = []
     if cands:
         lin = linear_system(missions, base.full, cands, settings=settings)
@@ -542,8 +528,9 @@ def diagnose_sequence(missions, model=None, effects: Sequence = (), max_steps: i
         out.append(d)
         if d.best is None:
             break
-        eff = next(c for c in candidate_effects(missions, effects, kw.get("extra_candidates", ()))
-                   if c.name == d.best.effect) if d.best.effect not in BUILTIN else d.best.effect
+        eff = next(c for c in candidate_effects(missions, effects, kw.get("extra_candidates", ()),
+                                                kw.get("candidates"))
+                   if c.name == d.best.effect)
         effects = effects + (eff,)
     return out
 

@@ -14,7 +14,8 @@ reduces the held-out dead-reckoning error by >= 30 % and makes the residuals pas
 consistency test; "nothing missing" without a hidden effect.
 
 Run: ``python experiments/diagnosis_sweep.py [--seeds 10] [--jobs 2] [--quick]``; prints a
-table and writes ``experiments/out/diagnosis_sweep.md`` and ``.json``.
+table and writes ``experiments/out/diagnosis_sweep.md`` and ``.json`` (plus the otter
+reports), and a copy of the tables to ``experiments/results/diagnosis_sweep.md``.
 """
 from __future__ import annotations
 
@@ -167,6 +168,9 @@ def main(argv=None) -> int:
     md.append(f"total time {time.perf_counter() - t0:.0f} s")
     text = "\n".join(md)
     (OUT / f"diagnosis_sweep{suffix}.md").write_text(text)
+    if not args.quick:     # experiments/out/ is not versioned: keep the tables in results/
+        C.RESULTS.mkdir(parents=True, exist_ok=True)
+        (C.RESULTS / "diagnosis_sweep.md").write_text(text)
     with open(OUT / f"diagnosis_sweep{suffix}.json", "w") as f:
         json.dump({"records": recs, "otter": [st["json"] for st in ot["steps"]] if ot else None},
                   f, indent=1,
