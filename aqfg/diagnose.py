@@ -209,9 +209,13 @@ class Diagnosis:
             return ""
         agree = ("score test and refit agree" if c["score_rank"] == 1 else
                  f"the refit promotes it from rank {c['score_rank']} by score")
-        return (f"Confidence in the ranking: {agree}; it has the best score in "
-                f"{100 * c['bootstrap_first']:.0f}% of time-block bootstrap resamples; BIC "
-                f"margin to the next candidate {c['bic_margin']:.1f}.")
+        parts = [agree]
+        if np.isfinite(c["bootstrap_first"]):
+            parts.append(f"it has the best score in {100 * c['bootstrap_first']:.0f}% of "
+                         "time-block bootstrap resamples")
+        if np.isfinite(c["bic_margin"]):
+            parts.append(f"BIC margin to the next candidate {c['bic_margin']:.1f}")
+        return "Confidence in the ranking: " + "; ".join(parts) + "."
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` of the format doc (extra keys allowed)."""
