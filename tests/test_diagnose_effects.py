@@ -42,3 +42,15 @@ def test_no_hidden_effect_nothing_missing():
     assert all(not c.confirmed for c in d.ranking)
     js = d.to_json()
     assert js["missing"] is False and len(js["ranking"]) == len(d.ranking)
+
+
+def test_missing_physics_outside_the_candidates_is_reported():
+    """A strong wind the candidate list cannot explain: the held-out fixes fail the
+    consistency test and no candidate is confirmed -> "not explained by the catalogue"."""
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=4, duration=300.0, effects={"wind_drag": [0.06, 0.04]})
+    d = diagnose([m], candidates=["thrust_lag", "heading_drift"], n_boot=0)
+    assert not d.missing and d.unexplained, d.summary()
+    assert not d.base.consistency.passed
+    assert d.verdict.startswith("Something is missing that the catalogue does not explain")
+    assert d.to_json()["missing"] is False
