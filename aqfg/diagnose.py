@@ -430,7 +430,8 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
     ev_kw = dict(settings=settings, horizon=horizon, window=window)
 
     prog(0.02, "fitting the model")
-    base = evaluate(missions, splits, model, effects, "model", **ev_kw)
+    label = "with " + "+".join(resolve(e).name for e in effects) if effects else "model"
+    base = evaluate(missions, splits, model, effects, label, **ev_kw)
     timings["base"] = time.perf_counter() - t0
     before = None
     if effects:
