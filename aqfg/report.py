@@ -130,17 +130,21 @@ def fig_consistency(diag):
     return fig
 
 
+def _compared_fits(diag) -> list:
+    """The fits a before/after figure compares: without the user-added effects (if any),
+    the model as given, and with the best confirmed candidate (if any)."""
+    evs = [diag.before] if diag.before is not None else []
+    evs.append(diag.base)
+    if diag.best is not None and diag.best.refit is not None:
+        evs.append(diag.best.refit)
+    return evs
+
+
 def fig_growth(diag):
     """Dead-reckoning error vs time since the last fit fix (held-out fixes)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4))
-    evs = []
-    if diag.before is not None:
-        evs.append(diag.before)
-    evs.append(diag.base)
-    best = diag.best
-    if best is not None and best.refit is not None:
-        evs.append(best.refit)
+    evs = _compared_fits(diag)
     for ev in evs:
         if not ev.long:
             continue
@@ -169,13 +173,7 @@ def fig_heldout_time(diag, i: int = 0):
     """Held-out innovation distance over time (model vs model + best effect)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(10, 3))
-    evs = [diag.base]
-    best = diag.best
-    if diag.before is not None:
-        evs.insert(0, diag.before)
-    if best is not None and best.refit is not None:
-        evs.append(best.refit)
-    for ev in evs:
+    for ev in _compared_fits(diag):
         if ev.long:
             h = ev.long[i]
             ax.plot(h.t[h.used], h.err[h.used], ".", ms=3, label=ev.label)
@@ -192,13 +190,7 @@ def fig_residuals_compare(diag, i: int = 0, window: float = 30.0):
     best candidate."""
     plt = _plt()
     from .diagnose_compare import sensor_series
-    evs = []
-    if diag.before is not None:
-        evs.append(diag.before)
-    evs.append(diag.base)
-    best = diag.best
-    if best is not None and best.refit is not None:
-        evs.append(best.refit)
+    evs = _compared_fits(diag)
     if len(evs) < 2:
         return None
     sensors = [s.sensor for s in sensor_series(diag.base.full.missions[i])]
