@@ -63,6 +63,19 @@ def n_seeds(args, full: int) -> int:
 
 
 # ---------------------------------------------------------------- Monte Carlo runner
+def monte_carlo_main(doc: str, argv, label: str, one: Callable,
+                     tasks: Callable[[int, float], list], write: Callable) -> int:
+    """Entry point shared by the Monte Carlo scripts on 600-s missions (240 s with --quick):
+    parse the options, run ``one(*task)`` for every task of ``tasks(n_seeds, duration)``,
+    then ``write(results, args, n_seeds, duration, started)``."""
+    args = parser(doc, seeds=20).parse_args(argv)
+    started = time.perf_counter()
+    S = n_seeds(args, 20)
+    T = 240.0 if args.quick else 600.0
+    write(run_tasks(one, tasks(S, T), args.jobs, label), args, S, T, started)
+    return 0
+
+
 def run_tasks(fn: Callable, tasks: Sequence, jobs: int = 1, label: str = "") -> list:
     """``[fn(t) for t in tasks]``, in worker processes when ``jobs > 1`` (order kept);
     progress on stderr."""

@@ -21,7 +21,6 @@ Full run: 20 seeds x 3 intervals, 600 s missions, about 4 min with 2 processes.
 from __future__ import annotations
 
 import sys
-import time
 import traceback
 
 import numpy as np
@@ -85,14 +84,8 @@ def one(task) -> dict:
 
 
 def main(argv=None) -> int:
-    args = C.parser(__doc__, seeds=20).parse_args(argv)
-    started = time.perf_counter()
-    S = C.n_seeds(args, 20)
-    T = 240.0 if args.quick else 600.0
-    tasks = [(2000 + s, iv, T, s == 0) for iv in INTERVALS for s in range(S)]
-    res = C.run_tasks(one, tasks, args.jobs, "gnss_interval")
-    write(res, args, S, T, started)
-    return 0
+    return C.monte_carlo_main(__doc__, argv, "gnss_interval", one, lambda S, T: [
+        (2000 + s, iv, T, s == 0) for iv in INTERVALS for s in range(S)], write)
 
 
 def write(res, args, S, T, started) -> None:

@@ -152,14 +152,8 @@ def one(task) -> dict:
 
 
 def main(argv=None) -> int:
-    args = C.parser(__doc__, seeds=20).parse_args(argv)
-    started = time.perf_counter()
-    S = C.n_seeds(args, 20)
-    T = 240.0 if args.quick else 600.0
-    res = C.run_tasks(one, [(1000 + s, T, s == 0) for s in range(S)], args.jobs,
-                      "online_heading")
-    write(res, args, S, T, started)
-    return 0
+    return C.monte_carlo_main(__doc__, argv, "online_heading", one,
+                              lambda S, T: [(1000 + s, T, s == 0) for s in range(S)], write)
 
 
 def write(res, args, S, T, started) -> None:

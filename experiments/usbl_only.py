@@ -28,7 +28,6 @@ Run: ``python experiments/usbl_only.py [--quick] [--seeds N] [--jobs J]``.
 from __future__ import annotations
 
 import sys
-import time
 import traceback
 
 import numpy as np
@@ -107,14 +106,8 @@ def one(task) -> dict:
 
 
 def main(argv=None) -> int:
-    args = C.parser(__doc__, seeds=20).parse_args(argv)
-    started = time.perf_counter()
-    S = C.n_seeds(args, 20)
-    T = 240.0 if args.quick else 600.0
-    tasks = [(3000 + s, case, T, s == 0) for case in CASES for s in range(S)]
-    res = C.run_tasks(one, tasks, args.jobs, "usbl_only")
-    write(res, args, S, T, started)
-    return 0
+    return C.monte_carlo_main(__doc__, argv, "usbl_only", one, lambda S, T: [
+        (3000 + s, case, T, s == 0) for case in CASES for s in range(S)], write)
 
 
 def write(res, args, S, T, started) -> None:
