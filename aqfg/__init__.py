@@ -2,9 +2,30 @@
 # Run from a source checkout with the package installed (non-editable) elsewhere, as CI
 # does, the compiled aqfg._kernel lives only in the installed copy: let the package span both.
 __path__ = __import__("pkgutil").extend_path(__path__, __name__)
-from .effects import BUILTIN as EFFECTS, Effect, UserEffect
-from .mission import Mission, Truth
-from .model import Model
+__version__ = "0.1.0"          # the one version source (pyproject.toml reads it)
 
-__all__ = ["EFFECTS", "Effect", "UserEffect", "Mission", "Truth", "Model"]
-__version__ = "0.1.0"
+import logging as _logging
+
+_logging.getLogger(__name__).addHandler(_logging.NullHandler())   # a library: callers decide
+
+# The names below load on first use (PEP 562), so that `import aqfg` (and the command line
+# starting up) does not pull in numpy, GTSAM and the kernel before they are needed.
+_LAZY = {"EFFECTS": ("aqfg.model.effects", "BUILTIN"), "Effect": ("aqfg.model.effects", "Effect"),
+         "UserEffect": ("aqfg.model.effects", "UserEffect"),
+         "Mission": ("aqfg.data.mission", "Mission"), "Truth": ("aqfg.data.mission", "Truth"),
+         "Model": ("aqfg.model.vehicle", "Model")}
+
+__all__ = ["EFFECTS", "Effect", "Mission", "Model", "Truth", "UserEffect", "__version__"]
+
+
+def __getattr__(name: str):
+    import importlib
+    if name in _LAZY:
+        mod, attr = _LAZY[name]
+        value = getattr(importlib.import_module(mod), attr)
+        globals()[name] = value
+        return value
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None

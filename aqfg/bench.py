@@ -18,7 +18,7 @@ Figures (each a median over repeated runs; the machine may be shared, so read me
 The factor graph's per-update time includes the parameter marginal covariances; the
 update-error optimisation time excludes its Gauss-Newton sigma (computed after). Fixed-lag
 updates during the warm-up (window grown to everything since the start until the
-parameters have converged, :class:`aqfg.smoother_common.FGSettings`) are reported apart:
+parameters have converged, :class:`aqfg.fg.common.FGSettings`) are reported apart:
 the 24 s-window figure is the median after the warm-up.
 
 ``run(repeat)`` returns the figures as a dict; ``report(figs)`` formats them as markdown.
@@ -31,9 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .mission import with_gnss_every, without_gnss
-from .model import Model
-from .params import N_DYN, OLD_PARAMS, vector
+from aqfg.data.mission import with_gnss_every, without_gnss
+from aqfg.model.vehicle import Model
+from aqfg.model.params import N_DYN, OLD_PARAMS, vector
 
 TARGETS = {"kernel_us": 5.0, "fl_update_ms": 5.0, "ratio": 20.0, "batch_s": 3.0}
 VARIABLE = ("theta_e", "s_x", "s_y")
@@ -68,10 +68,10 @@ def kernel_time(repeat: int = 5, reps: int = 2000, seed: int = 0) -> list[float]
     """Seconds per C++ ``propagate`` over 1 s of a simulated ASV's 50 Hz inputs (all
     Jacobians), one figure per run; empty when the extension is not built."""
     try:
-        from . import _kernel as K
+        from aqfg import _kernel as K
     except ImportError:  # pragma: no cover
         return []
-    from .sim import simulate
+    from aqfg.sim.simulator import simulate
     m, tr = simulate("asv", seed=seed, duration=30.0, gnss_period=1.0)
     model = Model.for_mission(m)
     steps, off = model.steps(m, np.array([20.0, 21.0]))
@@ -87,7 +87,7 @@ def kernel_time(repeat: int = 5, reps: int = 2000, seed: int = 0) -> list[float]
 def online_mission(sc: Scenario, seed: int = 0):
     """The scenario's mission (what the estimators see), its truth, and the fixed
     parameters (held at truth)."""
-    from .sim import simulate
+    from aqfg.sim.simulator import simulate
     full, truth = simulate("asv", seed=seed, duration=sc.duration,
                            params={"theta_e": float(np.radians(30.0))}, gnss_period=1.0,
                            usbl=sc.source == "usbl")
@@ -99,8 +99,8 @@ def online_mission(sc: Scenario, seed: int = 0):
 def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
     """Per-update (fg) and per-optimisation / per-evaluation (update-error) times on the
     scenario's mission, both methods run alternately in this process ``repeat`` times."""
-    from .ekf import UpdateErrorEstimator
-    from .smoother import FixedLagSmoother
+    from aqfg.ekf.estimator import UpdateErrorEstimator
+    from aqfg.fg.fit import FixedLagSmoother
     m, _, init = online_mission(sc, seed)
     fl_all, fl_after, opt, evals, n_eval = [], [], [], [], []
     for _ in range(repeat):
@@ -126,8 +126,8 @@ def batch_times(repeat: int = 3, duration: float = 900.0, seed: int = 0,
     """Factor-graph batch over a ``duration`` s ASV mission (GNSS 1 Hz) estimating all six
     base parameters from the paper's old ones; optionally the update-error offline
     optimisation of the same mission (once: it takes much longer)."""
-    from .sim import simulate
-    from .smoother import fit_fg
+    from aqfg.sim.simulator import simulate
+    from aqfg.fg.fit import fit_fg
     m, truth = simulate("asv", seed=seed, duration=duration, gnss_period=1.0)
     six = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
     fg = []
@@ -139,7 +139,7 @@ def batch_times(repeat: int = 3, duration: float = 900.0, seed: int = 0,
         iters.append(r.info.get("iterations", np.nan))
     out = {"fg_batch": fg, "fg_iterations": iters, "duration": duration}
     if update_error:
-        from .ekf import fit_update_error
+        from aqfg.ekf.estimator import fit_update_error
         t0 = time.perf_counter()
         u = fit_update_error([m], mode="batch", estimate=six, init=dict(OLD_PARAMS), sigma=False)
         out["ue_batch"] = [time.perf_counter() - t0]

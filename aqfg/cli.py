@@ -1,12 +1,24 @@
-"""Command line: ``aqfg simulate | info | fit | diagnose | demo | bench``.
+"""Command line: ``aqfg simulate | import | info | fit | diagnose | fleet | demo | bench``.
 
-Each command's work lives in ``aqfg.commands.<name>.run(args)``; this module only parses.
+Each command's work lives in ``aqfg.commands.<name>.run(args)``; this module parses, sets
+up logging and maps failures to exit codes: 0 done, 1 internal error, 2 usage error (the
+command line), 3 data error (the input), 130 interrupted. No command ends in a traceback
+(``-v`` prints it for internal errors).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+import warnings
+
+from aqfg.commands.common import (
+    EXIT_DATA,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    UsageError,
+)
 
 
 def _effect_setting(text: str) -> tuple[str, str]:
@@ -14,14 +26,40 @@ def _effect_setting(text: str) -> tuple[str, str]:
     return name.strip(), val.strip()
 
 
+def _max_knots(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected >= 0 (0 = no limit), got {v}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from aqfg import __version__
+    from aqfg.data.preflight import DEFAULT_MAX_KNOTS
     ap = argparse.ArgumentParser(
         prog="aqfg",
         description="Estimate the motion-model parameters of small AUVs/ASVs from their logs "
                     "(factor-graph smoothing, and the update-error EKF method as baseline), "
-                    "and diagnose which physics the model is missing.")
+                    "and diagnose which physics the model is missing.",
+        epilog="exit codes: 0 done, 1 internal error, 2 usage error, 3 data error, "
+               "130 interrupted")
+    ap.add_argument("--version", action="version", version=f"aqfg {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    g = common.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_const", const=-1, dest="verbosity",
+                   default=0, help="only warnings and errors on stderr (no progress)")
+    g.add_argument("-v", "--verbose", action="store_const", const=1, dest="verbosity",
+                   help="details on stderr, and the traceback of an internal error")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
+    _add = sub.add_parser
+
+    def add_parser(*a, **kw):
+        return _add(*a, parents=[common], **kw)
+    sub.add_parser = add_parser                 # type: ignore[method-assign]
 
     s = sub.add_parser("simulate", help="simulate a mission (with optional hidden effects)",
                        description="Simulate an ASV or AUV mission in aqfg-mission/1 format.")
@@ -39,6 +77,21 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--usbl", action="store_true", help="record USBL range/bearing every 4.5 s")
     s.add_argument("--force", action="store_true", help="overwrite OUT_DIR if it holds a mission")
 
+    s = sub.add_parser("import", help="convert a vehicle log (ROS bag, MAVLink, ULog, NMEA) "
+                                      "into a mission",
+                       description="Read a ROS 2/1 bag, MAVLink tlog or DataFlash .bin, PX4 "
+                                   "ULog, or NMEA log into aqfg-mission/1 (NMEA: adds GNSS "
+                                   "fixes to an existing mission). See docs/mission-format.md.")
+    s.set_defaults(module="import_")
+    s.add_argument("format", metavar="FORMAT", choices=["ros2", "ros1", "mavlink", "ulog", "nmea"],
+                   help="ros2, ros1, mavlink, ulog or nmea")
+    s.add_argument("source", metavar="SOURCE", help="the log file (or ROS 2 bag directory)")
+    s.add_argument("--out", required=True, metavar="MISSION", help="mission directory to write")
+    s.add_argument("--map", metavar="MAP.toml",
+                   help="vehicle, thrusters, origin and topics the log does not say")
+    s.add_argument("--force", action="store_true", help="overwrite an existing mission "
+                                                        "(nmea: replace its GNSS fixes)")
+
     s = sub.add_parser("info", help="summarise a mission: streams, durations, rates, gaps",
                        description="Load a mission and print what it holds.")
     s.add_argument("mission", metavar="MISSION")
@@ -54,9 +107,32 @@ def build_parser() -> argparse.ArgumentParser:
                        help="use one GNSS fix every S seconds (default: all)" if name == "fit"
                        else "held-out split: fit on one GNSS fix every S seconds (and every "
                             "other USBL fix), test dead reckoning on the rest (default 8)")
-        s.add_argument("--force", action="store_true", help="overwrite existing outputs")
+        s.add_argument("--force", action="store_true",
+                       help="replace the previous outputs in DIR (the whole set)")
         s.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+        s.add_argument("--max-knots", type=_max_knots, default=DEFAULT_MAX_KNOTS, metavar="N",
+                       help="refuse missions needing a graph of more than N state knots "
+                            f"(one per second of mission; default {DEFAULT_MAX_KNOTS:,}, "
+                            "0 = no limit)")
         if name == "fit":
+            s.add_argument("--tum", action="store_true",
+                           help="also write trajectory.tum (TUM format, for evo)")
+        if name == "diagnose":
+            s.add_argument("--auto", action="store_true",
+                           help="diagnose, add the missing effect, refit, and again until "
+                                "nothing more is confirmed; writes model.json")
+            s.add_argument("--max-steps", type=int, default=6, metavar="N",
+                           help="--auto: add at most N effects (default 6)")
+            s.add_argument("--stop-when-consistent", action="store_true",
+                           help="--auto: also stop once the held-out fixes are consistent "
+                                "with the model")
+            s.add_argument("--jobs", type=int, default=None, metavar="N",
+                           help="worker processes for the candidates' refits "
+                                "(default: the CPUs available, at most 4)")
+        if name == "fit":
+            s.add_argument("--model", metavar="MODEL_JSON",
+                           help="start from a learned model (model.json of aqfg diagnose): "
+                                "its effects, and its vehicle parameters as initial values")
             s.add_argument("--method", choices=["fg", "update-error"], default="fg")
             s.add_argument("--mode", choices=["batch", "online"], default="batch")
             s.add_argument("--window", type=float, default=None,
@@ -69,6 +145,22 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--params-from", metavar="JSON",
                            help="take fixed values from a previous parameters.json")
 
+    s = sub.add_parser("fleet", help="calibrate every vehicle of a fleet from all its missions",
+                       description="Each vehicle's joint fit over its missions (a TOML "
+                                   "manifest), solved in parallel on Dask.")
+    s.add_argument("manifest", metavar="MANIFEST")
+    s.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    s.add_argument("--workers", type=int, default=2,
+                   help="local worker processes (default 2; ignored with --scheduler)")
+    s.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://host:8786")
+    s.add_argument("--diagnose", action="store_true", help="also diagnose each mission")
+    s.add_argument("--effect", action="append", default=[], metavar="NAME",
+                   help="add a model effect (repeatable)")
+    s.add_argument("--gnss-every", type=float, default=0.0, metavar="S",
+                   help="use one GNSS fix every S seconds (default: all)")
+    s.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
     s = sub.add_parser("demo", help="the main job on a built-in simulated mission",
                        description="Simulate a mission, fit it with the factor graph and the "
                                    "update-error baseline, diagnose it, and write a report.")
@@ -79,21 +171,71 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
     s.add_argument("--repeat", type=int, default=5)
     s.add_argument("--out", default=None, metavar="DIR", help="also write bench.md here")
+    s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")
     return ap
 
 
+def _by_interrupt(e: BaseException) -> bool:
+    """An exception raised because of Ctrl-C (a native module's import fails with
+    ImportError when interrupted during its initialisation)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    mod = importlib.import_module(f"aqfg.commands.{args.command}")
+    """Run one command; returns the exit code."""
     try:
-        return int(mod.run(args) or 0)
-    except BrokenPipeError:          # output piped into e.g. `head`: not an error
-        sys.stderr.close()
-        return 0
-    except (FileNotFoundError, FileExistsError, ValueError, KeyError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"aqfg {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        return _main(argv)
+    except KeyboardInterrupt:            # while the parser and the modules load
+        print("\naqfg: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: list[str] | None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    from aqfg import outputs
+    from aqfg.commands import common
+    from aqfg.data.io import MissionFormatError
+    outputs.COMMAND_LINE = ["aqfg", *argv]
+    name = args.command
+
+    def fail(code: int, msg: object, kind: str = "error") -> int:
+        print(f"aqfg {name}: {kind}: {msg}", file=sys.stderr)
+        return code
+
+    with warnings.catch_warnings():
+        common.setup(name, args.verbosity)
+        try:
+            mod = importlib.import_module(f"aqfg.commands.{getattr(args, 'module', name)}")
+            return int(mod.run(args) or 0)
+        except KeyboardInterrupt:
+            print(f"\naqfg {name}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except BrokenPipeError:          # output piped into e.g. `head`: not an error
+            sys.stderr.close()
+            return 0
+        except (UsageError, FileExistsError, KeyError) as e:
+            return fail(EXIT_USAGE, e.args[0] if isinstance(e, KeyError) and e.args else e)
+        except (MissionFormatError, FileNotFoundError, NotADirectoryError, ValueError) as e:
+            return fail(EXIT_DATA, e)
+        except OSError as e:
+            return fail(EXIT_INTERNAL, f"{e.strerror or e}"
+                        + (f": {e.filename}" if e.filename else ""))
+        except Exception as e:  # noqa: BLE001 - a fault in aqfg: one line (-v: traceback)
+            if _by_interrupt(e):
+                print(f"\naqfg {name}: interrupted", file=sys.stderr)
+                return EXIT_INTERRUPTED
+            if common.verbose():
+                import traceback
+                traceback.print_exc()
+            return fail(EXIT_INTERNAL, f"{type(e).__name__}: {e} (an internal error; "
+                        "run with -v for the traceback)", "internal error")
 
 
 if __name__ == "__main__":

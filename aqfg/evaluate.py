@@ -1,6 +1,6 @@
 """Accuracy metrics against ground truth (simulated missions): what the experiments report.
 
-Every function is pure numpy on :class:`aqfg.result.Track` / :class:`aqfg.mission.Truth`
+Every function is pure numpy on :class:`aqfg.result.Track` / :class:`aqfg.data.mission.Truth`
 arrays. Positions are NED metres, times seconds on the mission clock. Position errors are
 horizontal by default (the paper's ground truth is GNSS, §V), ``horizontal=False`` gives
 the 3-D distance.
@@ -19,14 +19,15 @@ the 3-D distance.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernel_ref import wrap_angle
-from .mission import Mission, Truth
-from .result import Track
+from aqfg.data.mission import Mission, Truth
+from aqfg.model.frames import heading, wrap_angle
+from aqfg.model.params import vector
+from aqfg.result import Track
 
 
 def _interp_rows(t_src: np.ndarray, X: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -87,7 +88,7 @@ def inertial_rmse(model, mission: Mission, p: np.ndarray, truth: Truth, rate: fl
     """RMSE (m) of the paper's inertial trajectory (Table II): the model alone integrates
     the mission's inputs with parameters ``p`` (full vector) from the first fix, sampled at
     ``rate`` Hz, compared with the truth."""
-    from .retrace import inertial_track
+    from aqfg.model.retrace import inertial_track
     tr = inertial_track(model, mission, np.asarray(p, float), rate=rate)
     return rmse(tr, truth, horizontal=horizontal)
 
@@ -154,8 +155,9 @@ def heading_truth(truth_params: Mapping[str, float], t: np.ndarray, t0: float = 
                   ) -> np.ndarray:
     """True heading offset theta_e (rad) at times ``t``: the constant plus the hidden
     heading drift ``heading_drift.rate`` (rad/s) from the mission start ``t0``."""
-    rate = float(truth_params.get("heading_drift.rate", 0.0) or 0.0)
-    return float(truth_params["theta_e"]) + rate * (np.asarray(t, float) - t0)
+    p = vector({"theta_e": float(truth_params["theta_e"]),
+                "heading_drift.rate": float(truth_params.get("heading_drift.rate", 0.0) or 0.0)})
+    return heading(p, np.asarray(t, float) - t0)
 
 
 @dataclass
@@ -180,7 +182,8 @@ def param_errors(values: Mapping[str, float], sigma: Mapping[str, float],
     or the truth.
     """
     names = tuple(names)
-    err, sig = [], []
+    errs: list[float] = []
+    sigs: list[float] = []
     for n in names:
         if n not in values:
             raise KeyError(f"parameter {n!r} is not in the estimate (has: {', '.join(values)})")
@@ -189,9 +192,9 @@ def param_errors(values: Mapping[str, float], sigma: Mapping[str, float],
         e = float(values[n]) - float(truth_params[n])
         if n == "theta_e":
             e = float(wrap_angle(e))
-        err.append(e)
-        sig.append(float(sigma.get(n, np.nan)))
-    err, sig = np.array(err), np.array(sig)
+        errs.append(e)
+        sigs.append(float(sigma.get(n, np.nan)))
+    err, sig = np.array(errs), np.array(sigs)
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.where(sig > 0, err / np.where(sig > 0, sig, 1.0), np.nan)
     return ParamErrors(names, err, sig, z)

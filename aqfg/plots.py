@@ -10,8 +10,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .mission import Mission
-from .result import Result
+from aqfg.data.mission import Mission
+from aqfg.result import Result
 
 
 def _plt():
@@ -25,7 +25,7 @@ def plot_map(result: Result, missions: Sequence[Mission], path: str | Path) -> P
     """Map of every mission: GNSS fixes, USBL fixes (converted with the estimated track's
     depth), the smoothed (or filtered-then-corrected) track, the causal track (online) and
     the inertial track re-traced with the estimated parameters."""
-    from .retrace import usbl_positions
+    from aqfg.model.retrace import usbl_positions
     plt = _plt()
     n = len(result.missions)
     cols = min(n, 3)

@@ -5,7 +5,6 @@ which estimator produced it.
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,8 +53,21 @@ class MissionResult:
     filtered: Track | None = None      # online modes: the causal (uncorrected) track
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """One parameter's estimate and its 1-sigma (NaN when not computed)."""
+    value: float
+    sigma: float = float("nan")
+
+
 @dataclass
 class Result:
+    """What every estimator returns.
+
+    Facts only some estimators have are typed attributes below (``per_mission``,
+    ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
+    in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
+    """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
     estimated: tuple[str, ...]         # names of the estimated parameters
@@ -66,41 +78,189 @@ class Result:
     history: ParamHistory | None = None
     info: dict = field(default_factory=dict)
     effects: tuple[str, ...] = ()
-    model: object | None = None        # the aqfg.model.Model used
+    model: object | None = None        # the aqfg.model.vehicle.Model used
+
+    # ---- typed views of the estimator-specific facts (stored in ``info``)
+    @property
+    def per_mission(self) -> dict[str, dict[str, Estimate]]:
+        """Estimates per mission, ``{mission name: {parameter: Estimate}}``: the
+        per-mission parameters of a joint fit, or each mission's when fitted one by one."""
+        raw = self.info.get("per_mission") or {}
+        return {m: {n: e if isinstance(e, Estimate) else
+                    Estimate(float(e["value"]), float(e.get("sigma", float("nan"))))
+                    for n, e in d.items()} for m, d in raw.items()}
+
+    @per_mission.setter
+    def per_mission(self, v: dict[str, dict[str, Estimate]]) -> None:
+        self.info["per_mission"] = {m: {n: {"value": float(e.value), "sigma": float(e.sigma)}
+                                        for n, e in d.items()} for m, d in v.items()}
+
+    @property
+    def histories(self) -> list[ParamHistory]:
+        """Parameter histories of every mission (online modes; the first is ``history``)."""
+        h = self.info.get("histories")
+        if h is None:
+            return [] if self.history is None else [self.history]
+        return list(h)
+
+    @histories.setter
+    def histories(self, v: list[ParamHistory]) -> None:
+        self.info["histories"] = list(v)
+
+    def _info_get(self, key: str, kind: type):
+        v = self.info.get(key)
+        return None if v is None else kind(v)
+
+    @property
+    def converged(self) -> bool | None:
+        """Whether the optimiser met its convergence test (None: not reported)."""
+        return self._info_get("converged", bool)
+
+    @converged.setter
+    def converged(self, v: bool | None) -> None:
+        self.info["converged"] = v
+
+    @property
+    def iterations(self) -> int | None:
+        """Optimiser iterations (None: not reported)."""
+        return self._info_get("iterations", int)
+
+    @iterations.setter
+    def iterations(self, v: int | None) -> None:
+        self.info["iterations"] = v
+
+    @property
+    def kernel(self) -> str | None:
+        """Which kernel integrated the model: "cpp" or "numpy" (None: not reported)."""
+        return self._info_get("kernel", str)
+
+    @kernel.setter
+    def kernel(self, v: str | None) -> None:
+        self.info["kernel"] = v
+
+    @property
+    def settings(self) -> object | None:
+        """The estimator's settings object (e.g. ``aqfg.fg.common.FGSettings``)."""
+        return self.info.get("settings")
+
+    @settings.setter
+    def settings(self, v: object | None) -> None:
+        self.info["settings"] = v
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(self.values[n]), "sigma": float(self.sigma.get(n, np.nan))}
                 for n in self.estimated}
 
 
-def _write_track(path: Path, tr: Track) -> None:
-    data = np.column_stack([tr.t, tr.pos, tr.vel])
-    np.savetxt(path, data, delimiter=",", header="t,north,east,down,vn,ve,vd", comments="",
-               fmt="%.6f")
+PARAMETERS_FORMAT = "aqfg-parameters/1"
+RESULT_FILES = ("parameters.json", "trajectory.csv", "inertial.csv", "trajectory.tum",
+                "track.geojson")
+NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the estimator "
+            "computed none")
 
 
-def save_result(result: Result, out_dir: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write ``parameters.json``, ``trajectory.csv`` and ``inertial.csv`` into ``out_dir``.
+def parameters_document(result: Result, provenance: dict | None = None) -> dict:
+    """The content of ``parameters.json`` (format doc, "Outputs"): the estimated parameters
+    (value, 1-sigma, unit), the fixed parameters the model used (value, unit), per-mission
+    values when several missions were fitted, and the provenance. A missing 1-sigma is
+    ``null`` with a ``sigma_note``."""
+    model = result.model
 
-    With several missions, the tracks go into ``out_dir/<mission name>/``. Refuses to
-    replace existing outputs unless ``overwrite``.
-    """
-    out = Path(out_dir)
-    targets = [out / "parameters.json"]
-    if len(result.missions) == 1:
-        dirs = [out]
+    def unit(n: str) -> str | None:
+        try:
+            return model.spec(n).unit if model is not None else None
+        except (KeyError, AttributeError):
+            return None
+
+    est: dict = {}
+    for n in result.estimated:
+        s = float(result.sigma.get(n, np.nan))
+        e = {"value": float(result.values[n]), "sigma": s if np.isfinite(s) else None,
+             "unit": unit(n)}
+        if not np.isfinite(s):
+            e["sigma_note"] = NO_SIGMA
+        est[n] = e
+    names = (model.active_names if model is not None and hasattr(model, "active_names")
+             else tuple(result.values))
+    fixed = {n: {"value": float(result.values[n]), "unit": unit(n)}
+             for n in names if n not in result.estimated and n in result.values}
+    doc: dict = {"format": PARAMETERS_FORMAT, "method": result.method, "mode": result.mode,
+                 "parameters": est, "fixed": fixed}
+    per = result.info.get("per_mission")
+    if per and len(result.missions) > 1:
+        doc["per_mission"] = per
+    if provenance is not None:
+        doc["provenance"] = provenance
+    return doc
+
+
+def read_parameter_values(doc: dict) -> dict[str, float]:
+    """``{name: value}`` from a parameters.json document (estimated and fixed), in the
+    current layout or the earlier flat one ``{name: {"value": v, "sigma": s}}``."""
+    if "parameters" in doc and isinstance(doc["parameters"], dict):
+        entries = {**doc.get("fixed", {}), **doc["parameters"]}
     else:
-        dirs = [out / m.name for m in result.missions]
-    for d in dirs:
-        targets += [d / "trajectory.csv", d / "inertial.csv"]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass overwrite=True / --force)")
-    for d in dirs:
-        d.mkdir(parents=True, exist_ok=True)
-    with open(out / "parameters.json", "w") as f:
-        json.dump(result.parameters_json(), f, indent=2, allow_nan=True)
-    for d, m in zip(dirs, result.missions):
-        _write_track(d / "trajectory.csv", m.track)
-        _write_track(d / "inertial.csv", m.inertial)
+        entries = {k: v for k, v in doc.items() if k not in ("provenance", "null_reasons")}
+    out = {}
+    for name, e in entries.items():
+        v = e.get("value") if isinstance(e, dict) else e
+        if v is None:
+            raise ValueError(f"entry {name!r} has no \"value\"")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"value of {name!r} must be a number, got {v!r}")  # noqa: TRY004
+        out[name] = float(v)
     return out
+
+
+def mission_dirs(result: Result) -> list[str]:
+    """Output sub-directory of each mission: "" for a single mission, otherwise its name
+    made safe as one path component (distinct)."""
+    from aqfg.outputs import unique_safe_names
+    if len(result.missions) == 1:
+        return [""]
+    return unique_safe_names(m.name for m in result.missions)
+
+
+def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
+                 tum: bool = False, provenance: dict | None = None) -> list[Path]:
+    """Write the result files into ``out_dir`` (a fresh directory; see :func:`save_result`).
+
+    ``parameters.json``; per mission ``trajectory.csv`` (+ ``lat, lon`` with an
+    ``[origin]``), ``inertial.csv``, ``track.geojson`` (with an ``[origin]``) and, with
+    ``tum``, ``trajectory.tum``. ``missions`` (the fitted Mission objects, matched by name)
+    give the origin and the attitude. Returns the paths written.
+    """
+    from aqfg import export
+    from aqfg.outputs import inside, write_json
+    out = Path(out_dir)
+    written = [write_json(out / "parameters.json", parameters_document(result, provenance))]
+    by_name = {m.name: m for m in (missions or ())}
+    for sub, mr in zip(mission_dirs(result), result.missions):
+        d = inside(out, out / sub) if sub else out
+        d.mkdir(parents=True, exist_ok=True)
+        m = by_name.get(mr.name)
+        origin = m.origin if m is not None else None
+        for name, tr in (("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)):
+            (d / name).write_text(export.track_csv(tr, origin))
+            written.append(d / name)
+        if tum and m is not None:
+            (d / "trajectory.tum").write_text(export.tum_text(result, mr, m))
+            written.append(d / "trajectory.tum")
+        if origin is not None:
+            written.append(write_json(d / "track.geojson",
+                                      export.geojson_track(result, mr, m, provenance)))
+    return written
+
+
+def save_result(result: Result, out_dir: str | os.PathLike, overwrite: bool = False,
+                missions=None, tum: bool = False, provenance: dict | None = None) -> Path:
+    """Write the result files (:func:`write_result`) into ``out_dir`` as one set: staged
+    beside it and moved in whole, so ``out_dir`` holds the complete new set or is left as
+    it was. Refuses to replace existing outputs unless ``overwrite``; with ``overwrite``
+    the previous set is replaced as a whole. With several missions, the tracks go into
+    ``out_dir/<mission name>/`` (names made safe path components)."""
+    from aqfg.outputs import OutputSet
+    names = [*RESULT_FILES, *(d for d in mission_dirs(result) if d)]
+    with OutputSet(out_dir, names, force=overwrite) as stage:
+        write_result(result, stage, missions=missions, tum=tum, provenance=provenance)
+    return Path(out_dir)

@@ -1,5 +1,5 @@
 // Python bindings (nanobind) of the vehicle-model kernel in kernel.hpp: module aqfg._kernel.
-// Signatures follow what aqfg/model.py calls; shapes are checked here and a bad one raises
+// Signatures follow what aqfg/model/vehicle.py calls; shapes are checked here and a bad one raises
 // ValueError naming the argument.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
@@ -26,6 +26,7 @@ using InI64 = nb::ndarray<const std::int64_t, nb::c_contig, nb::device::cpu>;
 using OutF64 = nb::ndarray<nb::numpy, double>;
 
 constexpr std::int64_t ANY = -1;
+const std::string P_SHAPE = "(N_DYN,) = (" + std::to_string(kn::N_DYN) + ",)";
 
 // The integration loops compiled twice on x86-64 Linux: for AVX2+FMA (x86-64-v3) and for
 // the baseline; the loader picks the one the CPU supports (GNU ifunc, so glibc and GCC >= 11
@@ -69,7 +70,7 @@ std::string shape_str(const Arr& a) {
 // Raise ValueError unless `a` has the shape `want` (ANY = any length on that axis).
 template <class Arr>
 void check_shape(const char* fn, const char* name, const Arr& a,
-                 std::initializer_list<std::int64_t> want, const char* meaning) {
+                 std::initializer_list<std::int64_t> want, const std::string& meaning) {
   bool ok = a.ndim() == want.size();
   std::size_t i = 0;
   for (auto w : want) {
@@ -113,7 +114,7 @@ struct Inputs {
 Inputs check_inputs(const char* fn, const InF64& p, const InF64& h, const InU8& warm,
                     const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
                     const InF64& side, bool planar) {
-  check_shape(fn, "p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
+  check_shape(fn, "p", p, {kn::N_DYN}, P_SHAPE);
   check_shape(fn, "h", h, {ANY}, "(n,)");
   const std::int64_t n = static_cast<std::int64_t>(h.shape(0));
   check_shape(fn, "dem", dem, {n, ANY}, "(n, N_thrusters) with n = len(h)");
@@ -202,7 +203,7 @@ std::tuple<OutF64, OutF64, OutF64> py_accel(const InF64& v, const InF64& R_raw, 
     check_shape(fn, "R_raw", R_raw, {3, 3}, "(9,) or (3, 3)");
   else
     check_shape(fn, "R_raw", R_raw, {9}, "(9,) or (3, 3)");
-  check_shape(fn, "p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
+  check_shape(fn, "p", p, {kn::N_DYN}, P_SHAPE);
   check_shape(fn, "d", d, {ANY}, "(N_thrusters,)");
   const std::int64_t nt = static_cast<std::int64_t>(d.shape(0));
   check_shape(fn, "dd_tau", dd_tau, {nt}, "(N_thrusters,) with N_thrusters = len(d)");
@@ -241,19 +242,22 @@ double py_bench_propagate(const InF64& x0, const InF64& p, const InF64& h, const
 
 NB_MODULE(_kernel, m) {
   m.doc() =
-      "C++ vehicle-model kernel (mirror of aqfg.kernel_ref): integration of the inputs over a "
+      "C++ vehicle-model kernel (mirror of aqfg.model.reference): integration of the inputs over a "
       "segment with analytic Jacobians w.r.t. the start state and the N_DYN dynamics "
       "parameters.";
   m.attr("N_DYN") = static_cast<int>(kn::N_DYN);
   nb::dict idx;
   for (int i = 0; i < kn::N_DYN; ++i) idx[kn::PARAM_NAMES[i]] = i;
   m.attr("PARAM_INDEX") = idx;
+  nb::dict midx;
+  for (int i = 0; i < aqfg::ekf::N_MEAS; ++i) midx[aqfg::ekf::MEAS_NAMES[i]] = i;
+  m.attr("MEAS_INDEX") = midx;
 
   m.def("propagate", &py_propagate, nb::arg("x0"), nb::arg("p"), nb::arg("h"), nb::arg("warm"),
         nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"),
         nb::arg("planar"),
         "State [pos, vel] (NED, m, m/s) after the steps; returns (x1 (6,), Jx (6, 6) = dx1/dx0, "
-        "Jp (6, N_DYN) = dx1/dp). As kernel_ref.propagate without user effects.");
+        "Jp (6, N_DYN) = dx1/dp). As aqfg.model.reference.propagate without user effects.");
   m.def("propagate_many", &py_propagate_many, nb::arg("X0"), nb::arg("p"), nb::arg("h"),
         nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("offsets"),
         nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
@@ -266,7 +270,7 @@ NB_MODULE(_kernel, m) {
   m.def("accel", &py_accel, nb::arg("v"), nb::arg("R_raw"), nb::arg("d"), nb::arg("dd_tau"),
         nb::arg("tm"), nb::arg("p"), nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
         "Ground acceleration (3,) and its Jacobians w.r.t. v (3, 3) and p (3, N_DYN); as "
-        "kernel_ref.accel.");
+        "aqfg.model.reference.accel.");
   m.def("bench_propagate", &py_bench_propagate, nb::arg("x0"), nb::arg("p"), nb::arg("h"),
         nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"),
         nb::arg("side"), nb::arg("planar"), nb::arg("repeats"),

@@ -23,15 +23,6 @@ namespace {
 
 constexpr double NaN = std::numeric_limits<double>::quiet_NaN();
 
-// Corrected attitude R = Rz(th) Rraw (Eq. 6), as kernel::accel_core forms it.
-inline void corrected(const double* Rraw, double c, double s, double* R) {
-  for (int j = 0; j < 3; ++j) {
-    R[j] = c * Rraw[j] - s * Rraw[3 + j];
-    R[3 + j] = s * Rraw[j] + c * Rraw[3 + j];
-    R[6 + j] = Rraw[6 + j];
-  }
-}
-
 // P (9x9) <- M (Phi P6 Phi^T + Q) M^T + diag(0, 0, sigma_ab^2): ekf_window.predict_covariance.
 void predict_cov(double* P, const double Sx[9], const double Sv[9], double T, const double Jab[9],
                  const Config& cfg, bool planar) {
@@ -142,7 +133,7 @@ bool update(double* x, double* P, const int* idx, int d, const double* z, const 
     e[r] = acc;
   }
   if (std::isfinite(gate) && m2 > gate) {  // rejected: error at the gate boundary, no update
-    const double sc = std::sqrt(std::sqrt(gate / m2));
+    const double sc = std::sqrt(gate / m2);
     for (int r = 0; r < 9; ++r) e[r] *= sc;
     return false;
   }
@@ -190,28 +181,33 @@ bool update(double* x, double* P, const int* idx, int d, const double* z, const 
   return true;
 }
 
-// Antenna / transponder position: pos + Rz(th) Rraw l (kernel_ref.sensor_position).
+// Antenna / transponder position: pos + Rz(th) Rraw l (aqfg.model.measurements.sensor_position).
 void sensor_position(const double* pos, const double* Rraw, double tm, const double* p,
                      const double* pm, double* out) {
-  const double th = p[kn::P_TH] + p[kn::P_HDR] * tm;
+  const double th = kn::heading(p, tm);
   double R[9];
-  corrected(Rraw, std::cos(th), std::sin(th), R);
+  kn::corrected_attitude(Rraw, std::cos(th), std::sin(th), R);
   for (int r = 0; r < 3; ++r)
-    out[r] = pos[r] + R[3 * r] * pm[M_LX] + R[3 * r + 1] * pm[M_LY] + R[3 * r + 2] * pm[M_LZ];
+    out[r] = pos[r] + R[3 * r] * pm[M_LEVER_ARM_X] + R[3 * r + 1] * pm[M_LEVER_ARM_Y] +
+             R[3 * r + 2] * pm[M_LEVER_ARM_Z];
 }
 
-// USBL (range, bearing, down) -> horizontal position and covariance (usbl_to_position).
+// USBL (range, bearing, down) -> horizontal position (kernel::usbl_inverse) and its
+// covariance (aqfg.ekf.window.usbl_to_position): the covariance axes and tangential spread at
+// the predicted position pr (north, east).
 void usbl_to_position(const double* z, const double* st, const double* pm, double sr0, double sb,
-                      double* pos, double* Rm) {
-  const double r = z[0] / pm[M_SCALE];
-  const double b = z[1] - pm[M_BIAS];
-  const double dz = z[2] - st[2];
-  const double rh = std::sqrt(std::max(r * r - dz * dz, 0.0));
-  const double c = std::cos(b), s = std::sin(b);
-  pos[0] = st[0] + rh * c;
-  pos[1] = st[1] + rh * s;
+                      const double* pr, double* pos, double* Rm) {
+  const kn::UsblFix f = kn::usbl_inverse(z[0], z[1], z[2], st, pm[M_USBL_RANGE_SCALE_SCALE],
+                                         pm[M_USBL_BEARING_BIAS_BIAS]);
+  const double r = f.r, rh = f.rh;
+  double c = std::cos(f.b), s = std::sin(f.b);
+  pos[0] = f.pos[0];
+  pos[1] = f.pos[1];
   const double sr = sr0 * std::min(r / std::max(rh, 1e-6), 10.0);
-  const double stg = std::max(rh, 1e-3) * sb;
+  const double dn = pr[0] - st[0], de = pr[1] - st[1];
+  const double rt = std::sqrt(dn * dn + de * de);
+  if (rt > 1e-6) c = dn / rt, s = de / rt;
+  const double stg = std::max(rt, 1e-3) * sb;
   const double vr = sr * sr, vt = stg * stg;
   // Rot diag(vr, vt) Rot^T, Rot = [[c, -s], [s, c]]
   Rm[0] = c * c * vr + s * s * vt;
@@ -228,7 +224,7 @@ int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
             const Output& out, int rejects) {
   const kn::Steps& st = tl.steps;
   const std::ptrdiff_t nt = g.n_thr;
-  const double tau = p[kn::P_TAU];
+  const double tau = p[kn::P_THRUST_LAG_TAU];
   std::vector<double> scratch(4 * static_cast<std::size_t>(std::max<std::ptrdiff_t>(nt, 1)));
   double *f = scratch.data(), *df = f + nt, *d = f + 2 * nt, *dd = f + 3 * nt;
   kn::LagCoeffs lag;
@@ -263,9 +259,9 @@ int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
       if (!(h > 0.0)) continue;
       const double tm = st.tm[j];
       const double* Rraw = st.R + 9 * j;
-      hd.update(p[kn::P_TH] + p[kn::P_HDR] * tm);
+      hd.update(kn::heading(p, tm));
       kn::accel_core<true>(vel, Rraw, d, dd, tm, p, g, hd.c, hd.s, a, A, Jp, kn::N_DYN);
-      corrected(Rraw, hd.c, hd.s, Rc);
+      kn::corrected_attitude(Rraw, hd.c, hd.s, Rc);
       for (int r = 0; r < 3; ++r) {  // a_b = Rc^T a, Jab = Rc^T A (Eq. 10)
         x[6 + r] = Rc[r] * a[0] + Rc[3 + r] * a[1] + Rc[6 + r] * a[2];
         for (int c = 0; c < 3; ++c)
@@ -276,15 +272,8 @@ int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
         for (int r = 0; r < 3; ++r)
           for (int c = 0; c < 3; ++c)
             ASv[3 * r + c] = A[3 * r] * Sv[c] + A[3 * r + 1] * Sv[3 + c] + A[3 * r + 2] * Sv[6 + c];
-      const double hh = 0.5 * h * h;
-      for (int i = 0; i < 9; ++i) {
-        Sx[i] = Sx[i] + h * Sv[i] + hh * ASv[i];
-        Sv[i] = Sv[i] + h * ASv[i];
-      }
-      for (int i = 0; i < 3; ++i) {
-        pos[i] = pos[i] + h * vel[i] + hh * a[i];
-        vel[i] = vel[i] + h * a[i];
-      }
+      kn::integrate_step(Sx, Sv, ASv, h, 9);
+      kn::integrate_step(pos, vel, a, h, 3);
     }
     T += tl.knots[k + 1] - tl.knots[k];
     std::int64_t b = m;
@@ -318,7 +307,7 @@ int window(const double* x0, const double* P0, std::int64_t k0, std::int64_t k1,
           Rm[0] = Rm[3] = z[2] * z[2];
           Rm[1] = Rm[2] = 0.0;
         } else {
-          usbl_to_position(z, tl.station, pm, cfg.sigma_range, cfg.sigma_bearing, zz, Rm);
+          usbl_to_position(z, tl.station, pm, cfg.sigma_range, cfg.sigma_bearing, zp, zz, Rm);
           gate = rejects < cfg.max_rejects ? cfg.gate_usbl : std::numeric_limits<double>::infinity();
         }
         ok = update(x, P, idx, 2, zz, zp, Rm, gate, e, nu, nuw, sd);
@@ -364,7 +353,7 @@ constexpr std::int64_t ANY = -1;
 
 template <class Arr>
 void need(const char* name, const Arr& a, std::initializer_list<std::int64_t> want,
-          const char* meaning) {
+          const std::string& meaning) {
   bool ok = a.ndim() == want.size();
   std::size_t i = 0;
   for (auto w : want) {
@@ -394,7 +383,7 @@ using WindowResult =
     std::tuple<OutF64, OutF64, OutF64, OutF64, OutI8, OutF64, OutF64, OutF64, OutF64, int>;
 
 WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, std::int64_t k1,
-                           const InF64& p, const InF64& pm, const InF64& cfg, const InF64& h,
+                           const InF64& p, const InF64& pm, const Config& cfg, const InF64& h,
                            const InF64& R, const InF64& dem, const InF64& tm,
                            const InI64& offsets, const InF64& knots, std::int64_t w0,
                            const InI64& node_knot, const InI32& node_kind, const InF64& node_z,
@@ -403,9 +392,8 @@ WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, st
                            std::int64_t hi, bool record, int rejects) {
   need("x0", x0, {9}, "(9,)");
   need("P0", P0, {9, 9}, "(9, 9)");
-  need("p", p, {kn::N_DYN}, "(N_DYN,) = (16,)");
-  need("pm", pm, {N_MEAS}, "(5,): range scale, bearing bias, lever arm x, y, z");
-  need("cfg", cfg, {10}, "(10,) = EkfConfig.vector()");
+  need("p", p, {kn::N_DYN}, "(N_DYN,) = (" + std::to_string(kn::N_DYN) + ",)");
+  need("pm", pm, {N_MEAS}, "(N_MEAS,) = (" + std::to_string(N_MEAS) + ",): the measurement parameters");
   need("h", h, {ANY}, "(n,)");
   const std::int64_t ns = static_cast<std::int64_t>(h.shape(0));
   need("dem", dem, {ns, ANY}, "(n, N_thrusters) with n = len(h)");
@@ -459,10 +447,9 @@ WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, st
               node_tm.data(),
               station.data()};
   kn::Geometry g{dirs.data(), side.data(), nt, planar};
-  const Config c = Config::from(cfg.data());
   {
     nb::gil_scoped_release release;
-    rejects = window(x0.data(), P0.data(), k0, k1, p.data(), pm.data(), c, tl, g, w0, lo, hi, o,
+    rejects = window(x0.data(), P0.data(), k0, k1, p.data(), pm.data(), cfg, tl, g, w0, lo, hi, o,
                      rejects);
   }
   return {ae, anu, anw, as, ast, ax, aP, aX, aPn, rejects};
@@ -471,13 +458,36 @@ WindowResult py_ekf_window(const InF64& x0, const InF64& P0, std::int64_t k0, st
 }  // namespace
 
 void register_ekf(nb::module_& m) {
+  nb::class_<Config>(m, "EkfSettings",
+                     "The EKF settings a window pass reads (aqfg.ekf.history.EkfConfig; "
+                     "full_cov: covariance with the model's Jacobian, cov_model 'full').")
+      .def(
+          "__init__",
+          [](Config* c, double q_h, double q_v, double sigma_ab, double sigma_range,
+             double sigma_bearing, double gate_usbl, double gate_gnss, int max_rejects,
+             bool full_cov) {
+            new (c) Config{q_h,       q_v,       sigma_ab,    sigma_range, sigma_bearing,
+                           gate_usbl, gate_gnss, max_rejects, full_cov};
+          },
+          nb::kw_only(), nb::arg("q_h"), nb::arg("q_v"), nb::arg("sigma_ab"),
+          nb::arg("sigma_range"), nb::arg("sigma_bearing"), nb::arg("gate_usbl"),
+          nb::arg("gate_gnss"), nb::arg("max_rejects"), nb::arg("full_cov"))
+      .def_rw("q_h", &Config::q_h)
+      .def_rw("q_v", &Config::q_v)
+      .def_rw("sigma_ab", &Config::sigma_ab)
+      .def_rw("sigma_range", &Config::sigma_range)
+      .def_rw("sigma_bearing", &Config::sigma_bearing)
+      .def_rw("gate_usbl", &Config::gate_usbl)
+      .def_rw("gate_gnss", &Config::gate_gnss)
+      .def_rw("max_rejects", &Config::max_rejects)
+      .def_rw("full_cov", &Config::full_cov);
   m.def("ekf_window", &py_ekf_window, nb::arg("x0"), nb::arg("P0"), nb::arg("k0"), nb::arg("k1"),
         nb::arg("p"), nb::arg("pm"), nb::arg("cfg"), nb::arg("h"), nb::arg("R"), nb::arg("dem"),
         nb::arg("tm"), nb::arg("offsets"), nb::arg("knots"), nb::arg("w0"),
         nb::arg("node_knot"), nb::arg("node_kind"), nb::arg("node_z"), nb::arg("node_R"),
         nb::arg("node_tm"), nb::arg("station"), nb::arg("dirs"), nb::arg("side"),
         nb::arg("planar"), nb::arg("lo"), nb::arg("hi"), nb::arg("record"), nb::arg("rejects"),
-        "One EKF pass of the update-error method from knot k0 to k1 (see aqfg.ekf_window). "
+        "One EKF pass of the update-error method from knot k0 to k1 (see aqfg.ekf.window). "
         "Returns (e (n, 9), nu (n, 3), nu_w (n, 3), s (n, 3), status (n,) int8, x (9,), "
         "P (9, 9), X (k1-k0+1 or 0, 9), Pn (n or 0, 9, 9), consecutive USBL rejections at k1).");
 }

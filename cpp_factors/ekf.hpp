@@ -1,4 +1,4 @@
-// EKF window evaluation of the update-error method: C++ mirror of aqfg/ekf_window.py
+// EKF window evaluation of the update-error method: C++ mirror of aqfg/ekf/window.py
 // (window_ref, the readable numpy version). tests/test_ekf.py holds the two equal.
 //
 // One pass of the paper's EKF (Eqs. 5-11, 13) from a state (x0, P0) at knot k0 to knot k1:
@@ -23,27 +23,22 @@ class module_;
 namespace aqfg {
 namespace ekf {
 
-// Node kinds and statuses: MUST follow aqfg/ekf_history.py and aqfg/ekf_window.py.
-enum NodeKind : std::int32_t { MOTOR = 0, GNSS = 1, USBL = 2, DEPTH = 3, IMU_ACC = 4 };
-enum Status : std::int8_t { REJECTED = 0, ACCEPTED = 1, NOOP = 2 };
+// Node kinds (NodeKind), statuses (Status) and the measurement parameters pm (MeasParam,
+// N_MEAS) are generated into layout.hpp from the Python definitions.
 
-// EkfConfig.vector() layout.
+// The settings a window pass reads: the fields of aqfg.ekf.history.EkfConfig of the same
+// names (units there); bound to Python as aqfg._kernel.EkfSettings.
 struct Config {
-  double q_h, q_v, sigma_ab, sigma_range, sigma_bearing, gate_usbl, gate_gnss;
-  int max_rejects;
-  double lookback;
-  bool full_cov;  // covariance with the model's Jacobian (else kinematic, EkfConfig.cov_model)
-  static Config from(const double* c) {
-    return Config{c[0], c[1], c[2], c[3], c[4], c[5], c[6], static_cast<int>(c[7]), c[8],
-                  c[9] != 0.0};
-  }
+  double q_h, q_v;        // acceleration noise PSD, horizontal / vertical, m^2/s^3
+  double sigma_ab;        // model error of a_b, m/s^2
+  double sigma_range;     // USBL slant range, m
+  double sigma_bearing;   // USBL bearing, rad
+  double gate_usbl, gate_gnss;  // chi^2(2) gates on the innovations
+  int max_rejects;        // after this many consecutive USBL rejections the next fix is taken
+  bool full_cov;          // covariance with the model's Jacobian (else kinematic, cov_model)
 };
 
-// Measurement-model parameters, in this order: usbl_range_scale.scale,
-// usbl_bearing_bias.bias, lever_arm.x, lever_arm.y, lever_arm.z.
-enum MeasParam : int { M_SCALE = 0, M_BIAS, M_LX, M_LY, M_LZ, N_MEAS };
-
-// The history of one mission (views, no ownership): see aqfg/ekf_history.py.
+// The history of one mission (views, no ownership): see aqfg/ekf/history.py.
 struct Timeline {
   kernel::Steps steps;          // contiguous in time; warm flags unused (all zero)
   const std::int64_t* offsets;  // (K,) first step of each knot's segment

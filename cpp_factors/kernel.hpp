@@ -1,11 +1,12 @@
-// Vehicle-model kernel: C++ mirror of aqfg/kernel_ref.py (the numpy reference).
+// Vehicle-model kernel: C++ mirror of aqfg/model/reference.py (the numpy reference), with
+// the frames (heading) and USBL functions of aqfg/model/frames.py and measurements.py.
 //
 // Header-only so that a C++ estimator (e.g. an EKF loop) can #include it directly; the
-// Python bindings live in bindings.cpp. Every formula here has its twin in kernel_ref.py
-// and tests/test_kernel.py holds the two equal (values and Jacobians).
+// Python bindings live in bindings.cpp. Every formula here has its twin in the numpy
+// reference and tests/test_kernel.py holds the two equal (values and Jacobians).
 //
 // Model (paper §II-D/E), per input step of length h, attitude R_raw and commands held:
-//   R   = Rz(theta_e + heading_drift.rate * tm) R_raw                          (Eq. 6)
+//   R   = Rz(theta(tm)) R_raw,  theta: heading() below                           (Eq. 6)
 //   s   = [s_x + ds_x tm, s_y + ds_y tm, 0],  v_r = R^T (v - s)                 (Eq. 3)
 //   a_b = sum_i g_i d_i dir_i - kq .* sign(v_r) .* v_r^2 - kl .* v_r          (Eqs. 1, 2)
 //   a   = R a_b + [a_n, a_e, 0]  (vertical zeroed for planar vehicles)     (Eqs. 9, 10)
@@ -16,11 +17,14 @@
 // row-major 3x3 flattened to 9.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <limits>
 #include <vector>
+
+#include "layout.hpp"  // ParamIndex (P_*), N_DYN, PARAM_NAMES: generated from aqfg/model/params.py
 
 // Hot functions are forced inline so that a caller compiled for a wider instruction set
 // (e.g. a target_clones wrapper, see bindings.cpp) gets them vectorised for that set.
@@ -33,41 +37,61 @@
 namespace aqfg {
 namespace kernel {
 
-// Parameter order of the dynamics kernel. MUST follow aqfg/params.py (PARAMS, the first
-// N_DYN entries); tests/test_kernel.py checks PARAM_NAMES and N_DYN against it.
-enum ParamIndex : int {
-  P_TH = 0,   // theta_e
-  P_SX,       // s_x
-  P_SY,       // s_y
-  P_K,        // k
-  P_KX,       // k_x
-  P_KYZ,      // k_yz
-  P_ASYM,     // thrust_asymmetry.ratio
-  P_REV,      // reverse_thrust.ratio
-  P_TAU,      // thrust_lag.tau
-  P_CX,       // linear_drag.c_x
-  P_CYZ,      // linear_drag.c_yz
-  P_HDR,      // heading_drift.rate
-  P_DSX,      // current_drift.ds_x
-  P_DSY,      // current_drift.ds_y
-  P_WN,       // wind_drag.a_n
-  P_WE,       // wind_drag.a_e
-  N_DYN
-};
-
-inline constexpr const char* PARAM_NAMES[N_DYN] = {
-    "theta_e",          "s_x",
-    "s_y",              "k",
-    "k_x",              "k_yz",
-    "thrust_asymmetry.ratio", "reverse_thrust.ratio",
-    "thrust_lag.tau",   "linear_drag.c_x",
-    "linear_drag.c_yz", "heading_drift.rate",
-    "current_drift.ds_x", "current_drift.ds_y",
-    "wind_drag.a_n",    "wind_drag.a_e",
-};
-
 // Below this time constant the lag filter is taken in its tau -> 0 limit (as filter_step).
 inline constexpr double TAU_MIN = 1e-9;
+
+// ------------------------------------------------------------------ frames, integration
+// Heading offset theta (rad) at tm s since the mission start, for the parameters p
+// (Eq. 6 with the heading drift): the twin of aqfg.model.frames.heading.
+AQFG_HOT_INLINE double heading(const double* p, double tm) {
+  return p[P_THETA_E] + p[P_HEADING_DRIFT_RATE] * tm;
+}
+
+// Corrected attitude R = Rz(theta) Rraw (3x3 row-major) given cos, sin of theta.
+AQFG_HOT_INLINE void corrected_attitude(const double* Rraw, double cth, double sth, double* R) {
+  for (int c = 0; c < 3; ++c) {
+    R[c] = cth * Rraw[c] - sth * Rraw[3 + c];
+    R[3 + c] = sth * Rraw[c] + cth * Rraw[3 + c];
+    R[6 + c] = Rraw[6 + c];
+  }
+}
+
+// One step of h s at constant acceleration over n components (Eqs. 8-9):
+// pos += h vel + h^2/2 acc, vel += h acc (aqfg.model.reference.integrate_step). Carries
+// the state and, column by column, its sensitivities.
+AQFG_HOT_INLINE void integrate_step(double* __restrict__ pos, double* __restrict__ vel,
+                                    const double* __restrict__ acc, double h, int n) {
+  const double hh = 0.5 * h * h;
+  for (int i = 0; i < n; ++i) {
+    pos[i] += h * vel[i] + hh * acc[i];
+    vel[i] += h * acc[i];
+  }
+}
+
+// ------------------------------------------------------------------ USBL
+// Position of a USBL fix, the inverse of the USBL measurement given the vehicle's depth
+// (aqfg.model.measurements.usbl_inverse): the range scale and bearing bias are removed
+// (r = range / scale, b = bearing - bias) and the depth below the station fixes the
+// vertical leg, r_h = sqrt(max(r^2 - dz^2, 0)).
+struct UsblFix {
+  double pos[3];  // NED, m (the transponder's)
+  double r;       // corrected slant range, m
+  double rh;      // horizontal range, m
+  double b;       // corrected bearing, rad
+};
+
+inline UsblFix usbl_inverse(double range, double bearing, double down, const double* station,
+                            double scale, double bias) {
+  UsblFix f;
+  f.r = range / scale;
+  f.b = bearing - bias;
+  const double dz = down - station[2];
+  f.rh = std::sqrt(std::max(f.r * f.r - dz * dz, 0.0));
+  f.pos[0] = station[0] + f.rh * std::cos(f.b);
+  f.pos[1] = station[1] + f.rh * std::sin(f.b);
+  f.pos[2] = down;
+  return f;
+}
 
 // Thruster layout: unit axes (n_thr x 3, row-major, body) and side (> 0: starboard).
 struct Geometry {
@@ -77,7 +101,7 @@ struct Geometry {
   bool planar;
 };
 
-// Input steps (views, no ownership), as kernel_ref.Steps. dem is n x n_thr row-major.
+// Input steps (views, no ownership), as reference.Steps. dem is n x n_thr row-major.
 struct Steps {
   const double* h;
   const std::uint8_t* warm;
@@ -108,7 +132,7 @@ struct LagCoeffs {
   }
 };
 
-// One filter step for every thruster, as kernel_ref.filter_step: from state f (and its
+// One filter step for every thruster, as reference.filter_step: from state f (and its
 // d/dtau df) under constant input c over h, the step mean d and its d/dtau dd; f and df
 // are advanced in place.
 AQFG_HOT_INLINE void filter_step(double* f, double* df, const double* c, double h, double tau,
@@ -142,24 +166,21 @@ AQFG_HOT_INLINE void filter_step(double* f, double* df, const double* c, double 
 // ------------------------------------------------------------------ acceleration
 // Ground acceleration a (3) for velocity v, raw attitude Rraw, mean demands d (n_thr) and
 // their d/dtau dd, time since mission start tm, params p (N_DYN), with cos/sin of the
-// corrected heading theta = p[P_TH] + p[P_HDR] * tm given (cth, sth).
+// corrected heading theta = heading(p, tm) given (cth, sth).
 // With Jac: also A = da/dv (3x3 row-major) and Jp = da/dp, written as Jp[r * ldj + col].
 template <bool Jac>
 AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const double* d, const double* dd,
                        double tm, const double* p, const Geometry& g, double cth, double sth,
                        double* a, double* A, double* Jp, std::ptrdiff_t ldj) {
   double R[9];
-  for (int c = 0; c < 3; ++c) {
-    R[c] = cth * Rraw[c] - sth * Rraw[3 + c];
-    R[3 + c] = sth * Rraw[c] + cth * Rraw[3 + c];
-    R[6 + c] = Rraw[6 + c];
-  }
-  const double w[3] = {v[0] - (p[P_SX] + p[P_DSX] * tm), v[1] - (p[P_SY] + p[P_DSY] * tm), v[2]};
+  corrected_attitude(Rraw, cth, sth, R);
+  const double w[3] = {v[0] - (p[P_S_X] + p[P_CURRENT_DRIFT_DS_X] * tm),
+                       v[1] - (p[P_S_Y] + p[P_CURRENT_DRIFT_DS_Y] * tm), v[2]};
   double vr[3];
   for (int m = 0; m < 3; ++m) vr[m] = R[m] * w[0] + R[3 + m] * w[1] + R[6 + m] * w[2];
 
   // thrust (Eq. 1) with asymmetry and reverse-thrust ratios
-  const double k = p[P_K], r_asym = p[P_ASYM], r_rev = p[P_REV];
+  const double k = p[P_K], r_asym = p[P_THRUST_ASYMMETRY_RATIO], r_rev = p[P_REVERSE_THRUST_RATIO];
   double at[3] = {0, 0, 0}, bk[3] = {0, 0, 0}, ba[3] = {0, 0, 0}, br[3] = {0, 0, 0},
          bt[3] = {0, 0, 0};
   for (std::ptrdiff_t i = 0; i < g.n_thr; ++i) {
@@ -187,8 +208,8 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
   }
 
   // drag (Eq. 2): quadratic + linear
-  const double kq[3] = {p[P_KX], p[P_KYZ], p[P_KYZ]};
-  const double kl[3] = {p[P_CX], p[P_CYZ], p[P_CYZ]};
+  const double kq[3] = {p[P_K_X], p[P_K_YZ], p[P_K_YZ]};
+  const double kl[3] = {p[P_LINEAR_DRAG_C_X], p[P_LINEAR_DRAG_C_YZ], p[P_LINEAR_DRAG_C_YZ]};
   double q2[3], ab[3];
   for (int m = 0; m < 3; ++m) {
     q2[m] = std::fabs(vr[m]) * vr[m];  // sign(v_r) v_r^2
@@ -196,8 +217,8 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
   }
   double Rab[3];
   for (int r = 0; r < 3; ++r) Rab[r] = R[3 * r] * ab[0] + R[3 * r + 1] * ab[1] + R[3 * r + 2] * ab[2];
-  a[0] = Rab[0] + p[P_WN];
-  a[1] = Rab[1] + p[P_WE];
+  a[0] = Rab[0] + p[P_WIND_DRAG_A_N];
+  a[1] = Rab[1] + p[P_WIND_DRAG_A_E];
   a[2] = g.planar ? 0.0 : Rab[2];
   if constexpr (!Jac) return;
 
@@ -221,22 +242,22 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
     const double* Rr = R + 3 * r;
     double* J = Jp + r * ldj;
     const double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2];
-    J[P_TH] = dth;
-    J[P_HDR] = dth * tm;
-    J[P_SX] = -A[3 * r];
-    J[P_SY] = -A[3 * r + 1];
-    J[P_DSX] = -A[3 * r] * tm;
-    J[P_DSY] = -A[3 * r + 1] * tm;
+    J[P_THETA_E] = dth;
+    J[P_HEADING_DRIFT_RATE] = dth * tm;
+    J[P_S_X] = -A[3 * r];
+    J[P_S_Y] = -A[3 * r + 1];
+    J[P_CURRENT_DRIFT_DS_X] = -A[3 * r] * tm;
+    J[P_CURRENT_DRIFT_DS_Y] = -A[3 * r + 1] * tm;
     J[P_K] = Rr[0] * bk[0] + Rr[1] * bk[1] + Rr[2] * bk[2];
-    J[P_KX] = -Rr[0] * q2[0];
-    J[P_KYZ] = -Rr[1] * q2[1] - Rr[2] * q2[2];
-    J[P_CX] = -Rr[0] * vr[0];
-    J[P_CYZ] = -Rr[1] * vr[1] - Rr[2] * vr[2];
-    J[P_ASYM] = Rr[0] * ba[0] + Rr[1] * ba[1] + Rr[2] * ba[2];
-    J[P_REV] = Rr[0] * br[0] + Rr[1] * br[1] + Rr[2] * br[2];
-    J[P_TAU] = Rr[0] * bt[0] + Rr[1] * bt[1] + Rr[2] * bt[2];
-    J[P_WN] = r == 0 ? 1.0 : 0.0;
-    J[P_WE] = r == 1 ? 1.0 : 0.0;
+    J[P_K_X] = -Rr[0] * q2[0];
+    J[P_K_YZ] = -Rr[1] * q2[1] - Rr[2] * q2[2];
+    J[P_LINEAR_DRAG_C_X] = -Rr[0] * vr[0];
+    J[P_LINEAR_DRAG_C_YZ] = -Rr[1] * vr[1] - Rr[2] * vr[2];
+    J[P_THRUST_ASYMMETRY_RATIO] = Rr[0] * ba[0] + Rr[1] * ba[1] + Rr[2] * ba[2];
+    J[P_REVERSE_THRUST_RATIO] = Rr[0] * br[0] + Rr[1] * br[1] + Rr[2] * br[2];
+    J[P_THRUST_LAG_TAU] = Rr[0] * bt[0] + Rr[1] * bt[1] + Rr[2] * bt[2];
+    J[P_WIND_DRAG_A_N] = r == 0 ? 1.0 : 0.0;
+    J[P_WIND_DRAG_A_E] = r == 1 ? 1.0 : 0.0;
   }
   if (g.planar) {
     for (int c = 0; c < 3; ++c) A[6 + c] = 0.0;
@@ -244,11 +265,11 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
   }
 }
 
-// kernel_ref.accel: a (3), A = da/dv (3x3 row-major), Jp = da/dp (3 x N_DYN row-major).
+// reference.accel: a (3), A = da/dv (3x3 row-major), Jp = da/dp (3 x N_DYN row-major).
 inline void accel(const double* v, const double* Rraw, const double* d, const double* dd,
                   double tm, const double* p, const Geometry& g, double* a, double* A,
                   double* Jp) {
-  const double th = p[P_TH] + p[P_HDR] * tm;
+  const double th = heading(p, tm);
   accel_core<true>(v, Rraw, d, dd, tm, p, g, std::cos(th), std::sin(th), a, A, Jp, N_DYN);
 }
 
@@ -292,7 +313,7 @@ struct Heading {
 // to a multiple of 4 doubles so the column loops vectorise.
 inline constexpr int N_SENS = ((3 + N_DYN + 3) / 4) * 4;
 
-// kernel_ref.propagate (no user effects): state x = [pos, vel] (NED) after the steps,
+// reference.propagate (no user effects): state x = [pos, vel] (NED) after the steps,
 // Jx = dx1/dx0 (6x6 row-major), Jp = dx1/dp (6 x N_DYN row-major).
 // Position does not feed back into the dynamics, so only the sensitivities w.r.t. v0 and
 // p are integrated (d x1 / d pos0 = identity).
@@ -306,7 +327,7 @@ AQFG_HOT_INLINE void propagate(const double* x0, const double* p, const Steps& s
   for (int i = 0; i < 3; ++i) Sv[i][i] = 1.0;
 
   const std::ptrdiff_t nt = g.n_thr;
-  const double tau = p[P_TAU];
+  const double tau = p[P_THRUST_LAG_TAU];
   detail::ThrusterScratch th(nt);
   if (s.n > 0)
     for (std::ptrdiff_t i = 0; i < nt; ++i) th.f[i] = s.dem[i], th.df[i] = 0.0;
@@ -319,14 +340,10 @@ AQFG_HOT_INLINE void propagate(const double* x0, const double* p, const Steps& s
     filter_step(th.f, th.df, s.dem + nt * j, h, tau, lag, th.d, th.dd, nt);
     if (s.warm[j] || !(h > 0.0)) continue;
     const double tm = s.tm[j];
-    hd.update(p[P_TH] + p[P_HDR] * tm);
+    hd.update(heading(p, tm));
     accel_core<true>(vel, s.R + 9 * j, th.d, th.dd, tm, p, g, hd.c, hd.s, a, A, &J[0][3],
                      N_SENS);
-    const double hh = 0.5 * h * h;
-    for (int i = 0; i < 3; ++i) {
-      pos[i] += h * vel[i] + hh * a[i];
-      vel[i] += h * a[i];
-    }
+    integrate_step(pos, vel, a, h, 3);
     if (g.planar) {
       // rows 2 of A and J vanish, so Sv's row 2 stays e_z: only rows 0, 1 evolve and
       // A's column 2 acts on the v0_z column alone.
@@ -335,11 +352,7 @@ AQFG_HOT_INLINE void propagate(const double* x0, const double* p, const Steps& s
         for (int c = 0; c < N_SENS; ++c) dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + J[i][c];
         dA[i][2] += A[3 * i + 2];
       }
-      for (int i = 0; i < 2; ++i)
-        for (int c = 0; c < N_SENS; ++c) {
-          Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
-          Sv[i][c] += h * dA[i][c];
-        }
+      for (int i = 0; i < 2; ++i) integrate_step(Sx[i], Sv[i], dA[i], h, N_SENS);
       Sx[2][2] += h;
     } else {
       for (int i = 0; i < 3; ++i) {
@@ -347,11 +360,7 @@ AQFG_HOT_INLINE void propagate(const double* x0, const double* p, const Steps& s
         for (int c = 0; c < N_SENS; ++c)
           dA[i][c] = a0 * Sv[0][c] + a1 * Sv[1][c] + a2 * Sv[2][c] + J[i][c];
       }
-      for (int i = 0; i < 3; ++i)
-        for (int c = 0; c < N_SENS; ++c) {
-          Sx[i][c] += h * Sv[i][c] + hh * dA[i][c];
-          Sv[i][c] += h * dA[i][c];
-        }
+      for (int i = 0; i < 3; ++i) integrate_step(Sx[i], Sv[i], dA[i], h, N_SENS);
     }
   }
 
@@ -379,7 +388,7 @@ AQFG_HOT_INLINE void rollout(const double* x0, const double* p, const Steps& s, 
                     double* X) {
   double pos[3] = {x0[0], x0[1], x0[2]}, vel[3] = {x0[3], x0[4], x0[5]};
   const std::ptrdiff_t nt = g.n_thr;
-  const double tau = p[P_TAU];
+  const double tau = p[P_THRUST_LAG_TAU];
   detail::ThrusterScratch th(nt);
   if (s.n > 0)
     for (std::ptrdiff_t i = 0; i < nt; ++i) th.f[i] = s.dem[i], th.df[i] = 0.0;
@@ -391,14 +400,10 @@ AQFG_HOT_INLINE void rollout(const double* x0, const double* p, const Steps& s, 
     filter_step(th.f, th.df, s.dem + nt * j, h, tau, lag, th.d, th.dd, nt);
     if (!s.warm[j] && h > 0.0) {
       const double tm = s.tm[j];
-      hd.update(p[P_TH] + p[P_HDR] * tm);
+      hd.update(heading(p, tm));
       accel_core<false>(vel, s.R + 9 * j, th.d, th.dd, tm, p, g, hd.c, hd.s, a, nullptr,
                         nullptr, 0);
-      const double hh = 0.5 * h * h;
-      for (int i = 0; i < 3; ++i) {
-        pos[i] += h * vel[i] + hh * a[i];
-        vel[i] += h * a[i];
-      }
+      integrate_step(pos, vel, a, h, 3);
     }
     double* x = X + 6 * j;
     for (int i = 0; i < 3; ++i) {
@@ -408,7 +413,7 @@ AQFG_HOT_INLINE void rollout(const double* x0, const double* p, const Steps& s, 
   }
 }
 
-// kernel_ref.propagate_many: K segments; segment k uses steps offsets[k]:offsets[k+1]
+// reference.propagate_many: K segments; segment k uses steps offsets[k]:offsets[k+1]
 // (offsets must be non-decreasing within [0, s.n]). Outputs X1 (K x 6), JX (K x 36),
 // JP (K x 6 N_DYN), row-major.
 inline void propagate_many(const double* X0, const double* p, const Steps& s,

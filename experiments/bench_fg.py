@@ -6,7 +6,7 @@
    * the kernel called from Python (``Model.propagate``),
    * per factor inside one batched ``propagate_many`` call (what the batch smoother does),
    * through the Python factor: ``CustomFactor.linearize`` of
-     :func:`aqfg.factors.dynamics_factor` (kernel + GTSAM bridging + numpy blocks), and
+     :func:`aqfg.fg.factors.dynamics_factor` (kernel + GTSAM bridging + numpy blocks), and
      of the batch smoother's cached factor (GTSAM bridging only).
 2. A fixed-lag update with a 24 s window (GNSS every 8 s, ASV, 30 deg heading offset;
    target <= 5 ms median), and the update-error optimisation of the same window measured
@@ -33,12 +33,12 @@ if str(ROOT) not in sys.path:
 import gtsam  # noqa: E402
 
 from aqfg import bench  # noqa: E402
-from aqfg import factors as fc  # noqa: E402
-from aqfg.mission import with_gnss_every  # noqa: E402
-from aqfg.model import Model  # noqa: E402
-from aqfg.params import N_DYN, OLD_PARAMS  # noqa: E402
-from aqfg.sim import simulate  # noqa: E402
-from aqfg.smoother import fit_fg  # noqa: E402
+from aqfg.fg import factors as fc  # noqa: E402
+from aqfg.data.mission import with_gnss_every  # noqa: E402
+from aqfg.model.vehicle import Model  # noqa: E402
+from aqfg.model.params import N_DYN, OLD_PARAMS  # noqa: E402
+from aqfg.sim.simulator import simulate  # noqa: E402
+from aqfg.fg.fit import fit_fg  # noqa: E402
 
 SIX = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
 
@@ -98,7 +98,7 @@ def factor_times(repeat: int, n: int = 2000) -> dict:
 def total_update_times(repeat: int) -> list[float]:
     """Seconds per whole ``FixedLagSmoother.update`` call after the warm-up (building the
     new factors and kernel steps included), on the same mission as aqfg.bench's gnss8."""
-    from aqfg.smoother import FixedLagSmoother
+    from aqfg.fg.fit import FixedLagSmoother
     sc = bench.SCENARIOS["gnss8"]
     m, _, init = bench.online_mission(sc)
     out = []

@@ -1,11 +1,11 @@
 """Benchmark of the C++ dynamics kernel: one factor = 1 s of 50 Hz inputs, state and all Jacobians.
 
-Target (issue): ``propagate`` over 50 steps with 2 thrusters, residual and all Jacobians,
+Target: ``propagate`` over 50 steps with 2 thrusters, residual and all Jacobians,
 <= 5 us. Prints, per scenario, the median (p10, p90) time per call
 
 * timed inside C++ (``_kernel.bench_propagate``: a loop of calls, no Python overhead),
 * called from Python (``_kernel.propagate``, argument checks and result arrays included),
-* of the numpy reference ``kernel_ref.propagate``,
+* of the numpy reference ``aqfg.model.reference.propagate``,
 
 and the ratios. Each figure is over several runs (batches); the machine is shared, so read
 medians. Run: ``python experiments/bench_kernel.py [--quick]``.
@@ -25,9 +25,9 @@ except ImportError:  # run from a checkout without PYTHONPATH
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aqfg import _kernel as K  # noqa: E402
-from aqfg import kernel_ref as ref  # noqa: E402
-from aqfg.model import LAG_LOOKBACK, euler_to_quat, quat_to_rot  # noqa: E402
-from aqfg.params import N_DYN, vector  # noqa: E402
+from aqfg.model import reference as ref  # noqa: E402
+from aqfg.model.vehicle import LAG_LOOKBACK, euler_to_quat, quat_to_rot  # noqa: E402
+from aqfg.model.params import N_DYN, vector  # noqa: E402
 
 RATE = 50.0  # Hz
 

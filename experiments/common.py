@@ -1,8 +1,8 @@
 """What the experiment scripts share: arguments, the Monte Carlo runner, running both methods
 the same way, markdown tables and small PNG figures.
 
-Every experiment runs the factor graph (``fg``, :func:`aqfg.smoother.fit_fg`) and the
-paper's update-error method (``update-error``, :func:`aqfg.ekf.fit_update_error`) on the
+Every experiment runs the factor graph (``fg``, :func:`aqfg.fg.fit.fit_fg`) and the
+paper's update-error method (``update-error``, :func:`aqfg.ekf.estimator.fit_update_error`) on the
 SAME simulated missions with the SAME initial values, and measures them with
 :mod:`aqfg.evaluate`. Seeds are fixed, so a run reproduces its numbers exactly (timings
 aside).
@@ -30,7 +30,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from aqfg import evaluate as ev  # noqa: E402
-from aqfg.mission import Depth, Gnss, Imu, Mission, Motors, Usbl  # noqa: E402
+from aqfg.data.mission import Depth, Gnss, Imu, Mission, Motors, Usbl  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("fg", "update-error")
@@ -119,14 +119,14 @@ def run_tasks(fn: Callable, tasks: Sequence, jobs: int = 1, label: str = "") -> 
 
 # ---------------------------------------------------------------- the two methods
 def fit(method: str, missions, **kw):
-    """Run one method: ``fg`` -> :func:`aqfg.smoother.fit_fg`, ``update-error`` ->
-    :func:`aqfg.ekf.fit_update_error`; returns ``(Result, wall seconds)``."""
+    """Run one method: ``fg`` -> :func:`aqfg.fg.fit.fit_fg`, ``update-error`` ->
+    :func:`aqfg.ekf.estimator.fit_update_error`; returns ``(Result, wall seconds)``."""
     t0 = time.perf_counter()
     if method == "fg":
-        from aqfg.smoother import fit_fg
+        from aqfg.fg.fit import fit_fg
         r = fit_fg(missions, **kw)
     elif method == "update-error":
-        from aqfg.ekf import fit_update_error
+        from aqfg.ekf.estimator import fit_update_error
         r = fit_update_error(missions, **kw)
     else:
         raise ValueError(f"unknown method {method!r}")
@@ -139,10 +139,10 @@ def run_without_estimation(method: str, mission: Mission, init: dict, window: fl
     (update-error) or the fixed-lag smoother with no parameter node (fg). The "without
     estimation" baseline of Figs. 7 and 10."""
     if method == "fg":
-        from aqfg.smoother import FixedLagSmoother
+        from aqfg.fg.fit import FixedLagSmoother
         return FixedLagSmoother(None, estimate=(), init=init, window=window or 24.0,
                                 settings=settings).run(mission)
-    from aqfg.ekf import UpdateErrorEstimator
+    from aqfg.ekf.estimator import UpdateErrorEstimator
     # ``every`` larger than the number of fixes: no optimisation ever runs
     return UpdateErrorEstimator(None, mission, init=init).run_online(every=10 ** 9, sigma=False)
 
@@ -180,10 +180,10 @@ def z_scores(result, truth_by_mission: dict, names: Sequence[str]) -> dict[str, 
 
     Fixed-group parameters (one per vehicle) count once, from ``result.values/sigma``
     against the first mission's truth; variable-group ones once per mission, from
-    ``result.info["per_mission"]`` (both estimators fill it in batch mode)."""
-    from aqfg.params import SPEC
+    ``result.per_mission`` (both estimators fill it in batch mode)."""
+    from aqfg.model.params import SPEC
     out: dict[str, list[float]] = {n: [] for n in names}
-    pmi = result.info.get("per_mission", {})
+    pmi = result.per_mission
     first = next(iter(truth_by_mission.values()))
     for n in names:
         if SPEC[n].group == "fixed":
@@ -195,8 +195,7 @@ def z_scores(result, truth_by_mission: dict, names: Sequence[str]) -> dict[str, 
             est = pmi.get(mname, {}).get(n)
             if est is None:
                 continue
-            out[n].append(float(ev.param_errors({n: est["value"]}, {n: est.get("sigma", np.nan)},
-                                                truth, [n]).z[0]))
+            out[n].append(float(ev.param_errors({n: est.value}, {n: est.sigma}, truth, [n]).z[0]))
     return out
 
 

@@ -27,8 +27,8 @@ import numpy as np
 
 import common as C
 from aqfg import evaluate as ev
-from aqfg.mission import with_gnss_every
-from aqfg.sim import simulate
+from aqfg.data.mission import with_gnss_every
+from aqfg.sim.simulator import simulate
 from online_heading import THETA0, VARIABLE
 
 INTERVALS = (4.0, 8.0, 12.0)
@@ -40,7 +40,7 @@ def run_online(method: str, mission, init: dict, interval: float):
     if method == "fg":
         return C.fit("fg", [mission], mode="online", estimate=VARIABLE, init=init,
                      window=window)[0]
-    from aqfg.ekf import UpdateErrorEstimator
+    from aqfg.ekf.estimator import UpdateErrorEstimator
     return UpdateErrorEstimator(None, mission, init=init).run_online(
         estimate=VARIABLE, window_fixes=3)
 

@@ -6,9 +6,9 @@ paper runs online estimation with the offline-optimal fixed parameters); true he
 offset 30 deg, current 0.07-0.13 m/s in a seeded direction; GNSS kept once every 8 s, all
 of it kept for the truth. Both methods start from theta_e = s_x = s_y = 0:
 
-* factor graph: :class:`aqfg.smoother.FixedLagSmoother`, window 24 s (3 fixes), update
+* factor graph: :class:`aqfg.fg.fit.FixedLagSmoother`, window 24 s (3 fixes), update
   after each fix; "without estimation" = the same smoother with no parameter node;
-* update-error: :meth:`aqfg.ekf.UpdateErrorEstimator.run_online`, window = last 3 fixes
+* update-error: :meth:`aqfg.ekf.estimator.UpdateErrorEstimator.run_online`, window = last 3 fixes
   (24 s), optimisation after each fix (the paper's settings), its default past correction
   (re-run of each optimised window); "without estimation" = the EKF alone;
 * update-error with a 6-fix (48 s) window: an extra row, because the estimator's own
@@ -38,8 +38,8 @@ import numpy as np
 
 import common as C
 from aqfg import evaluate as ev
-from aqfg.mission import with_gnss_every
-from aqfg.sim import simulate
+from aqfg.data.mission import with_gnss_every
+from aqfg.sim.simulator import simulate
 
 GNSS_EVERY = 8.0
 WINDOW_FIXES = 3
@@ -61,7 +61,7 @@ def run_online(method: str, mission, init: dict, window: float):
     if method == "fg":
         return C.fit("fg", [mission], mode="online", estimate=VARIABLE, init=init, window=window)
     t0 = time.perf_counter()
-    from aqfg.ekf import UpdateErrorEstimator
+    from aqfg.ekf.estimator import UpdateErrorEstimator
     r = UpdateErrorEstimator(None, mission, init=init).run_online(
         estimate=VARIABLE, window_fixes=6 if method == "update-error-6" else WINDOW_FIXES)
     return r, time.perf_counter() - t0
@@ -74,7 +74,7 @@ def past_correction(method: str, mission, truth, init: dict) -> dict:
     cut = C.truncate(mission, t_cut)
     grid = np.arange(tf[0], t_cut + 1e-9, 1.0)
     if method == "fg":
-        from aqfg.smoother import FixedLagSmoother
+        from aqfg.fg.fit import FixedLagSmoother
         before = FixedLagSmoother(None, estimate=(), init=init, window=24.0).run(cut)
         before_tr = before.missions[0].filtered
         fl = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=24.0)
@@ -82,7 +82,7 @@ def past_correction(method: str, mission, truth, init: dict) -> dict:
         after_tr = r.missions[0].track
         theta = r.values["theta_e"]
     else:
-        from aqfg.ekf import UpdateErrorEstimator
+        from aqfg.ekf.estimator import UpdateErrorEstimator
         r = UpdateErrorEstimator(None, cut, init=init).run_online(
             estimate=VARIABLE, window_fixes=K_PAST - 1, min_fixes=K_PAST - 1, correct="all")
         before_tr, after_tr = r.missions[0].filtered, r.missions[0].track

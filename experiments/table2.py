@@ -3,8 +3,8 @@
 Three ASVs with slightly different true parameters (the paper's ASV.1-3, Table II) and one
 AUV (the paper's AUV). Per vehicle and Monte Carlo seed: two training missions (GNSS at
 1 Hz, as in the paper's offline data) are fitted jointly by both methods -- batch factor
-graph (:func:`aqfg.smoother.fit_fg`, mode "batch") and the paper's offline update-error
-optimisation (:func:`aqfg.ekf.fit_update_error`, mode "batch") -- estimating the six base
+graph (:func:`aqfg.fg.fit.fit_fg`, mode "batch") and the paper's offline update-error
+optimisation (:func:`aqfg.ekf.estimator.fit_update_error`, mode "batch") -- estimating the six base
 parameters (k', k_x', k_yz' shared; theta_e, s_x, s_y per mission), both from the paper's
 old parameters (k'=8, k_x'=2, k_yz'=0.3, theta_e = s = 0).
 
@@ -29,10 +29,10 @@ import numpy as np
 
 import common as C
 from aqfg import evaluate as ev
-from aqfg.model import Model
-from aqfg.params import BASE_NAMES, FIXED_BASE, NAMES, OLD_PARAMS, vector
-from aqfg.retrace import inertial_track
-from aqfg.sim import simulate
+from aqfg.model.vehicle import Model
+from aqfg.model.params import BASE_NAMES, FIXED_BASE, NAMES, OLD_PARAMS, vector
+from aqfg.model.retrace import inertial_track
+from aqfg.sim.simulator import simulate
 
 # name, simulator vehicle, true fixed parameters (paper Table II)
 ROBOTS = (

@@ -11,7 +11,7 @@ paper's Fig. 9b/c). Fixed parameters at truth; theta_e = s_x = s_y = 0 initially
 Methods, online, estimate after every fix:
 
 * update-error: window of the last 3 acoustic fixes (the paper: 15 s, three range/bearing
-  measurements), the paper's method as implemented in :mod:`aqfg.ekf`;
+  measurements), the paper's method as implemented in :mod:`aqfg.ekf.estimator`;
 * update-error with a 10-fix (45 s) window: an extra row, because the estimator's own
   Monte Carlo (tests/test_update_error.py) found the paper's 3-fix window noisy here;
 * factor graph: fixed-lag window 15 s, constant variable parameters (default);
@@ -34,9 +34,9 @@ import numpy as np
 
 import common as C
 from aqfg import evaluate as ev
-from aqfg.mission import without_gnss
-from aqfg.sim import simulate
-from aqfg.smoother import FGSettings
+from aqfg.data.mission import without_gnss
+from aqfg.sim.simulator import simulate
+from aqfg.fg.fit import FGSettings
 
 VARIABLE = ("theta_e", "s_x", "s_y")
 WINDOW_S = 15.0
@@ -53,7 +53,7 @@ VCOLOR = {"update-error": C.COLOR["update-error"], "fg": C.COLOR["fg"], "fg-rw":
 
 def run_variant(v: str, mission, init: dict):
     if v.startswith("update-error"):
-        from aqfg.ekf import UpdateErrorEstimator
+        from aqfg.ekf.estimator import UpdateErrorEstimator
         return UpdateErrorEstimator(None, mission, init=init).run_online(
             estimate=VARIABLE, window_fixes=10 if v == "update-error-10" else WINDOW_FIXES)
     settings = FGSettings(walk_sigma=dict(WALK)) if v == "fg-rw" else None
@@ -98,7 +98,7 @@ def one(task) -> dict:
             out["tracks"][(v, kind)] = r.missions[0].filtered.pos[::5, :2]
     if keep:
         out["tracks"]["truth"] = truth.pos[::10, :2]
-        from aqfg.retrace import usbl_positions
+        from aqfg.model.retrace import usbl_positions
         out["tracks"]["usbl"] = usbl_positions(m)[:, :2]
     t_h = np.arange(0.0, T, 5.0)
     out["theta_truth"] = (t_h, ev.heading_truth(tp, t_h + t0, full.t0))

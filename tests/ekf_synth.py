@@ -1,17 +1,17 @@
 """A tiny synthetic mission for the EKF unit tests, made with the shared model itself.
 
-Prescribed yaw and commands (no controller), truth integrated by :func:`aqfg.retrace.rollout`
+Prescribed yaw and commands (no controller), truth integrated by :func:`aqfg.model.retrace.rollout`
 with the true parameters, fixes from the truth plus noise. Small and fast, independent of
-:mod:`aqfg.sim` so that the unit tests do not move when the simulator is retuned.
+:mod:`aqfg.sim.simulator` so that the unit tests do not move when the simulator is retuned.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from aqfg.mission import Depth, Gnss, Imu, Mission, Motors, Usbl
-from aqfg.model import Model, euler_to_quat
-from aqfg.params import vector
-from aqfg.retrace import rollout
+from aqfg.data.mission import Depth, Gnss, Imu, Mission, Motors, Usbl
+from aqfg.model.vehicle import Model, euler_to_quat
+from aqfg.model.params import vector
+from aqfg.model.retrace import rollout
 
 
 def synth_mission(vehicle: str = "asv", duration: float = 60.0, seed: int = 0,
@@ -44,7 +44,7 @@ def synth_mission(vehicle: str = "asv", duration: float = 60.0, seed: int = 0,
     tr_t = tr.t
     if imu_acc:
         a_g = np.gradient(tr.vel, tr_t, axis=0)
-        from aqfg.model import quat_to_rot
+        from aqfg.model.vehicle import quat_to_rot
         R_true = quat_to_rot(euler_to_quat(roll, pitch, yaw))
         f = np.einsum("nji,nj->ni", R_true, a_g - np.array([0, 0, 9.80665]))
         m.imu.acc = f + rng.normal(0, 0.02, f.shape)

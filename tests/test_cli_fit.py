@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from aqfg.cli import main
-from aqfg.io import save_mission
-from aqfg.sim import simulate
+from aqfg.data.io import save_mission
+from aqfg.sim.simulator import simulate
 
 HEADER = "t,north,east,down,vn,ve,vd"
 
@@ -35,10 +35,12 @@ def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
     (d, tr), _ = missions
     out = tmp_path / "fit"
     assert main(["fit", str(d), "--out", str(out), "--gnss-every", "8"]) == 0
-    params = json.loads((out / "parameters.json").read_text())
+    doc = json.loads((out / "parameters.json").read_text())
+    params = doc["parameters"]
     assert list(params) == ["k", "k_x", "k_yz", "theta_e", "s_x", "s_y"]
     for n, e in params.items():
-        assert set(e) == {"value", "sigma"} and e["sigma"] > 0
+        assert set(e) == {"value", "sigma", "unit"} and e["sigma"] > 0
+    assert params["theta_e"]["unit"] == "rad" and doc["fixed"] == {}
     assert abs(params["theta_e"]["value"] - tr.params["theta_e"]) < 3 * params["theta_e"]["sigma"]
     traj, inert = read_track(out / "trajectory.csv"), read_track(out / "inertial.csv")
     assert traj.shape[1] == inert.shape[1] == 7 and np.all(np.diff(traj[:, 0]) > 0)
@@ -51,19 +53,24 @@ def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
     assert "refusing to overwrite" in capsys.readouterr().err
     assert main(["fit", str(d), "--out", str(out), "--force", "--no-plots",
                  "--estimate", "theta_e,s_x,s_y", "--init", "k=9.26"]) == 0
-    params = json.loads((out / "parameters.json").read_text())
-    assert list(params) == ["theta_e", "s_x", "s_y"]
+    doc = json.loads((out / "parameters.json").read_text())
+    assert list(doc["parameters"]) == ["theta_e", "s_x", "s_y"]
+    assert doc["fixed"]["k"]["value"] == 9.26 and set(doc["fixed"]) == {"k", "k_x", "k_yz"}
+    assert not (out / "map.png").exists()          # --force replaced the whole set
 
 
 def test_fit_online_and_two_missions(missions, tmp_path):
     (d1, tr1), (d2, _) = missions
     out = tmp_path / "online"
     fixed = tmp_path / "fixed.json"
-    fixed.write_text(json.dumps({n: {"value": tr1.params[n], "sigma": 0.0}
+    fixed.write_text(json.dumps({n: {"value": tr1.params[n], "sigma": 0.0}   # earlier layout
                                  for n in ("k", "k_x", "k_yz")}))
     assert main(["fit", str(d1), "--out", str(out), "--mode", "online", "--window", "24",
                  "--gnss-every", "8", "--params-from", str(fixed)]) == 0
-    assert set(json.loads((out / "parameters.json").read_text())) == {"theta_e", "s_x", "s_y"}
+    doc = json.loads((out / "parameters.json").read_text())
+    assert set(doc["parameters"]) == {"theta_e", "s_x", "s_y"}
+    assert {n: e["value"] for n, e in doc["fixed"].items()} == \
+        {n: tr1.params[n] for n in ("k", "k_x", "k_yz")}      # the fixed values it used
     assert (out / "parameters.png").stat().st_size > 10_000
     traj = read_track(out / "trajectory.csv")
     assert traj[-1, 0] == pytest.approx(150.0, abs=0.1)
@@ -81,12 +88,13 @@ def test_fit_update_error_method(missions, tmp_path):
     out = tmp_path / "ue"
     assert main(["fit", str(d), "--out", str(out), "--method", "update-error",
                  "--estimate", "theta_e,s_x,s_y", "--gnss-every", "8", "--no-plots"]) == 0
-    assert set(json.loads((out / "parameters.json").read_text())) == {"theta_e", "s_x", "s_y"}
+    assert set(json.loads((out / "parameters.json").read_text())["parameters"]) == \
+        {"theta_e", "s_x", "s_y"}
 
 
 def test_fit_bad_input(missions, tmp_path, capsys):
     (d, _), _ = missions
-    assert main(["fit", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["fit", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 3   # data
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--estimate", "k,bogus"]) == 2
     assert "bogus" in capsys.readouterr().err
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--init", "k=abc"]) == 2
@@ -94,4 +102,5 @@ def test_fit_bad_input(missions, tmp_path, capsys):
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--effect", "warp_drive"]) == 2
     assert "warp_drive" in capsys.readouterr().err
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--params-from",
-                 str(tmp_path / "missing.json")]) == 2
+                 str(tmp_path / "missing.json")]) == 3
+    assert not (tmp_path / "o").exists()

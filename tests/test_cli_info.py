@@ -11,15 +11,7 @@ import pytest
 from aqfg.cli import main
 from aqfg.commands.info import stream_stats
 
-REPO = Path(__file__).resolve().parents[1]
-OTTER = next((p for p in (REPO.parent / "shared/data/otter-example",
-                          Path("/work/shared/data/otter-example")) if p.is_dir()), None)
 
-
-@pytest.fixture(scope="module")
-def otter() -> Path:
-    assert OTTER is not None, "shared/data/otter-example not found beside the repository"
-    return OTTER
 
 
 def column(path: Path, name: str) -> np.ndarray:
@@ -47,8 +39,8 @@ def test_info_on_otter_example(otter, capsys):
 def test_info_never_reads_truth_values(otter, tmp_path, capsys, monkeypatch):
     root = Path(shutil.copytree(otter, tmp_path / "m"))
     (root / "truth.csv").write_text("t,north,east,down\n0,not-a-number,0,0\n")
-    import aqfg.io
-    monkeypatch.setattr(aqfg.io, "load_truth", lambda *a: pytest.fail("truth was read"))
+    import aqfg.data.io
+    monkeypatch.setattr(aqfg.data.io, "load_truth", lambda *a: pytest.fail("truth was read"))
     assert main(["info", str(root)]) == 0
     assert "truth      present" in capsys.readouterr().out
 
@@ -76,7 +68,7 @@ def test_info_on_broken_copy_prints_located_error(otter, tmp_path, capsys):
     cells[2] = "1.7"                                  # u2 on file row 5: out of [-1, 1]
     lines[4] = ",".join(cells)
     (root / "motors.csv").write_text("\n".join(lines) + "\n")
-    assert main(["info", str(root)]) == 2
+    assert main(["info", str(root)]) == 3               # a data error
     err = capsys.readouterr().err
     assert err.startswith("aqfg info: error: ")
     assert f"{root / 'motors.csv'}, row 5, column 'u2': value 1.7 is above 1.0" in err
@@ -85,7 +77,7 @@ def test_info_on_broken_copy_prints_located_error(otter, tmp_path, capsys):
 
 def test_info_on_missing_file(otter, tmp_path, capsys):
     root = Path(shutil.copytree(otter, tmp_path / "m", ignore=shutil.ignore_patterns("imu.csv")))
-    assert main(["info", str(root)]) == 2
+    assert main(["info", str(root)]) == 3               # a data error
     assert "imu.csv: missing required file" in capsys.readouterr().err
 
 

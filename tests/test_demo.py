@@ -6,7 +6,7 @@ import numpy as np
 
 from aqfg.cli import main
 from aqfg.commands.demo import DEMO_EFFECT
-from aqfg.io import load_mission, load_truth
+from aqfg.data.io import load_mission, load_truth
 
 SIX = {"theta_e", "s_x", "s_y", "k", "k_x", "k_yz"}
 
@@ -20,13 +20,15 @@ def test_demo_finds_the_hidden_effect_and_the_error_falls(tmp_path, capsys):
     assert hidden in truth.params["effects"]
 
     for method in ("fg", "update-error"):
-        params = json.loads((out / f"fit-{method}" / "parameters.json").read_text())
-        assert set(params) == SIX
+        doc = json.loads((out / f"fit-{method}" / "parameters.json").read_text())
+        params = doc["parameters"]
+        assert set(params) == SIX and doc["provenance"]["method"] == method
         assert all(np.isfinite(v["value"]) for v in params.values())
         tr = np.loadtxt(out / f"fit-{method}" / "trajectory.csv", delimiter=",", skiprows=1)
         assert tr.shape[1] == 7 and tr[0, 0] <= mission.gnss.t[0] + 1.0
 
     diag = json.loads((out / "diagnosis" / "diagnosis.json").read_text())
+    assert diag["provenance"]["aqfg"]
     assert diag["missing"] is True
     top = diag["ranking"][0]
     assert top["effect"] == hidden
@@ -35,7 +37,8 @@ def test_demo_finds_the_hidden_effect_and_the_error_falls(tmp_path, capsys):
     after = json.loads((out / f"diagnosis-with-{hidden}" / "diagnosis.json").read_text())
     assert after["consistency"]["passed"] is True
     assert (out / "diagnosis" / "report.html").stat().st_size > 10_000
-    with_eff = json.loads((out / f"fit-fg-with-{hidden}" / "parameters.json").read_text())
+    with_eff = json.loads((out / f"fit-fg-with-{hidden}" / "parameters.json").read_text())[
+        "parameters"]
     name = f"{hidden}.ratio"
     assert abs(with_eff[name]["value"] - truth.params[name]) < 3 * with_eff[name]["sigma"] + 0.02
     # a second run into the same directory is refused, nothing overwritten

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from aqfg.cli import main
-from aqfg.io import save_mission
-from aqfg.sim import simulate
+from aqfg.data.io import save_mission
+from aqfg.sim.simulator import simulate
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def test_diagnose_writes_json_report_and_summary(mission_dir, tmp_path, capsys):
         for v in r["estimate"].values():
             assert set(v) == {"value", "sigma"}
     names = [r["effect"] for r in data["ranking"]]
-    from aqfg.effects import BUILTIN
+    from aqfg.model.effects import BUILTIN
     assert set(names) <= set(BUILTIN) and "usbl_range_scale" not in names   # no USBL here
     assert data["missing"] and names[0] == "wind_drag"
     assert data["ranking"][0]["rmse_after"] < data["ranking"][0]["rmse_before"]
@@ -65,7 +65,7 @@ def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
     assert main(["diagnose", str(mission_dir), "--effect", "no_such_effect",
                  "--out", str(tmp_path / "x")]) == 2
     assert "no_such_effect" in capsys.readouterr().err
-    assert main(["diagnose", str(tmp_path / "missing_dir"), "--out", str(tmp_path / "y")]) == 2
+    assert main(["diagnose", str(tmp_path / "missing_dir"), "--out", str(tmp_path / "y")]) == 3
     assert main(["diagnose", str(mission_dir), "--effect", "usbl_range_scale",
                  "--out", str(tmp_path / "z")]) == 2
     assert "not applicable" in capsys.readouterr().err

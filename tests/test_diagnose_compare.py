@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from aqfg.diagnose_compare import (fixes_of, predict_measurements, sensor_series, split_fixes)
-from aqfg.diagnose_conditions import condition_signals
-from aqfg.model import Model
-from aqfg.params import vector
+from aqfg.diagnose.compare import (fixes_of, predict_measurements, sensor_series, split_fixes)
+from aqfg.diagnose.conditions import condition_signals
+from aqfg.model.vehicle import Model
+from aqfg.model.params import vector
 from aqfg.result import MissionResult, Track
-from aqfg.sim import simulate
+from aqfg.sim.simulator import simulate
 
 
 @pytest.fixture(scope="module")

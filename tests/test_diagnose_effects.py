@@ -1,6 +1,6 @@
 """Acceptance of the diagnosis (issue 5) on simulated missions with a hidden effect.
 
-For each catalogue effect, one mission (seed 0 of :mod:`aqfg.diagnose_cases`, sizes and
+For each catalogue effect, one mission (seed 0 of :mod:`aqfg.sim.cases`, sizes and
 missions documented there) where the effect is in the truth but not in the model: the
 diagnosis must rank it first and confirm it, adding it must cut the held-out
 dead-reckoning error by at least 30 % and make the held-out fixes pass the consistency
@@ -9,9 +9,9 @@ effect) is experiments/diagnosis_sweep.py.
 """
 import pytest
 
-from aqfg.diagnose import diagnose
-from aqfg.diagnose_cases import CASES, simulate_case
-from aqfg.params import SPEC
+from aqfg.diagnose.workflow import diagnose
+from aqfg.sim.cases import CASES, simulate_case
+from aqfg.model.params import SPEC
 
 
 @pytest.mark.slow
@@ -47,7 +47,7 @@ def test_no_hidden_effect_nothing_missing():
 def test_missing_physics_outside_the_candidates_is_reported():
     """A strong wind the candidate list cannot explain: the held-out fixes fail the
     consistency test and no candidate is confirmed -> "not explained by the catalogue"."""
-    from aqfg.sim import simulate
+    from aqfg.sim.simulator import simulate
     m, _ = simulate("asv", seed=4, duration=300.0, effects={"wind_drag": [0.06, 0.04]})
     d = diagnose([m], candidates=["thrust_lag", "heading_drift"], n_boot=0)
     assert not d.missing and d.unexplained, d.summary()

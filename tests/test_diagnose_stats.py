@@ -4,10 +4,10 @@ import pytest
 import scipy.sparse as sp
 from scipy import stats
 
-from aqfg.diagnose_conditions import (ConditionSignals, circular_linear, effective_n, holm,
+from aqfg.diagnose.conditions import (ConditionSignals, circular_linear, effective_n, holm,
                                       in_words, relate, adjust, spearman_autocorr)
-from aqfg.diagnose_consistency import nis_test
-from aqfg.diagnose_score import (LinearSystem, bootstrap_ranking, covariance, log_chi2_sf,
+from aqfg.diagnose.consistency import nis_test
+from aqfg.diagnose.score import (LinearSystem, bootstrap_ranking, covariance, log_chi2_sf,
                                  project, score_tests)
 
 

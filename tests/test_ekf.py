@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aqfg.ekf import UpdateErrorEstimator, fit_update_error
-from aqfg.ekf_history import (DEPTH, GNSS, IMU_ACC, MOTOR, USBL, EkfConfig, build_history,
+from aqfg.ekf.estimator import UpdateErrorEstimator, fit_update_error
+from aqfg.ekf.history import (DEPTH, GNSS, IMU_ACC, MOTOR, USBL, EkfConfig, build_history,
                               usbl_prefilter)
-from aqfg.ekf_optim import Entry, Objective, Window, bounds, minimise
-from aqfg.ekf_window import (ACCEPTED, NOOP, REJECTED, _HAVE_CPP_EKF, run_window,
+from aqfg.ekf.optim import Entry, Objective, Window, bounds, gradient_descent, minimise
+from aqfg.ekf.window import (ACCEPTED, NOOP, REJECTED, _HAVE_CPP_EKF, run_window,
                              usbl_to_position, window_ref)
-from aqfg.mission import without_gnss
-from aqfg.model import Model, euler_to_quat
+from aqfg.data.mission import without_gnss
+from aqfg.model.vehicle import Model, euler_to_quat
 from aqfg.result import save_result
-from aqfg.retrace import rollout
+from aqfg.model.retrace import rollout
 from ekf_synth import synth_mission
 
 def _history(vehicle="asv", effects=(), config=None, **kw):
@@ -138,7 +138,7 @@ def test_usbl_covariance_is_stretched_tangentially_with_range():
         assert tang @ R @ tang == pytest.approx((r * 0.02) ** 2)
         assert radial @ R @ tang == pytest.approx(0.0, abs=1e-12)
     # the range scale and bearing bias parameters correct the measurement first
-    from aqfg.params import INDEX
+    from aqfg.model.params import INDEX
     q = p.copy()
     q[INDEX["usbl_range_scale.scale"]] = 1.1
     q[INDEX["usbl_bearing_bias.bias"]] = 0.1
@@ -160,7 +160,7 @@ def test_usbl_gate_rejects_an_outlier_without_lowering_E_and_gives_up_after_max_
     h.node_kind[u[4]] = USBL
     np.testing.assert_allclose(same.X, out.X, atol=1e-12)
     # the rejected node's error sits at the gate boundary: |nu_w|^2 > gate, and its
-    # error is K nu shrunk by (gate / m2)^(1/4), i.e. more than zero
+    # error is K nu shrunk by sqrt(gate / m2), i.e. more than zero
     m2 = float(np.nansum(out.nu_w[r] ** 2))
     assert m2 > h.config.gate_usbl and np.linalg.norm(out.e[r]) > 0
     # with an impossibly tight gate every fix is rejected except after max_rejects in a row
@@ -170,6 +170,54 @@ def test_usbl_gate_rejects_an_outlier_without_lowering_E_and_gives_up_after_max_
     st = o2.status[h2.node_kind[o2.node_lo:o2.node_hi] == USBL]
     assert st.tolist()[:8] == [REJECTED] * 3 + [ACCEPTED] + [REJECTED] * 3 + [ACCEPTED]
     assert o2.rejects == (len(st) % 4 if st[-1] == REJECTED else 0)
+
+
+def test_a_gated_fix_pulls_no_harder_than_one_at_the_gate_whatever_its_size():
+    """A rejected fix counts in E with its update error scaled to the gate boundary, so an
+    outlier 4x larger contributes the same (it used to grow like sqrt(|nu|), which let a
+    few gated outliers carry half of E and move the parameters by several sigma)."""
+    sizes = (8.0, 32.0)
+    norms, whitened = [], []
+    for d in sizes:
+        h, p, _ = _history("asv", usbl=True, duration=60.0, gnss_period=100.0)
+        u = np.nonzero(h.node_kind == USBL)[0]
+        h.node_z[u[4], 0] += d                  # a range outlier, past the pre-filter
+        out = _full_pass(h, p)
+        r = u[4] - out.node_lo
+        assert out.status[r] == REJECTED
+        norms.append(np.linalg.norm(out.e[r]))
+        m2 = float(np.nansum(out.nu_w[r] ** 2))
+        # update error = (K nu) sqrt(gate / m2): K nu itself is that of the accepted update
+        whitened.append(m2)
+    assert whitened[1] > 8 * whitened[0]               # the second one is much further out
+    assert norms[1] == pytest.approx(norms[0], rel=0.05)
+    # the same for the whitened metric: a gated node's residual has norm sqrt(gate)
+    h, p, _ = _history("asv", usbl=True, duration=60.0, gnss_period=100.0)
+    u = np.nonzero(h.node_kind == USBL)[0]
+    h.node_z[u[4], 0] += 20.0
+    a = h.anchors[h.k_start]
+    obj = Objective([Window(h, h.k_start, len(h.knots) - 1, a.x, a.P, p.copy())],
+                    [Entry("theta_e", (0,))], metric="whitened")
+    t = obj.node_terms(np.array([p[0]]))
+    rej = t.status == REJECTED
+    assert rej.sum() == 1
+    assert np.linalg.norm(t.rows[rej]) == pytest.approx(np.sqrt(h.config.gate_usbl))
+
+
+def test_usbl_covariance_axes_follow_the_predicted_position():
+    """With the filter's prediction given, the radial/tangential axes and the tangential
+    spread are those of the predicted position, not of the measured (noisy) bearing."""
+    p = Model.for_mission(synth_mission("asv", duration=5.0)[0]).nominal()
+    st = np.array([0.0, 0.0, 0.0])
+    z = np.array([100.0, 0.3, 0.0])
+    pred = np.array([80.0 * np.cos(0.2), 80.0 * np.sin(0.2)])
+    pos, R = usbl_to_position(z, st, p, 0.2, 0.02, predicted=pred)
+    np.testing.assert_allclose(pos, [100 * np.cos(0.3), 100 * np.sin(0.3)], atol=1e-12)
+    radial = np.array([np.cos(0.2), np.sin(0.2)])
+    tang = np.array([-np.sin(0.2), np.cos(0.2)])
+    assert radial @ R @ radial == pytest.approx(0.2 ** 2)
+    assert tang @ R @ tang == pytest.approx((80.0 * 0.02) ** 2)
+    assert radial @ R @ tang == pytest.approx(0.0, abs=1e-12)
 
 
 def test_usbl_prefilter_drops_gross_outliers_only():
@@ -188,7 +236,7 @@ def test_usbl_prefilter_drops_gross_outliers_only():
 def test_imu_acceleration_nodes_remove_gravity_with_the_reported_attitude():
     m, _, _ = synth_mission("auv", duration=10.0)
     # a vehicle at rest, tilted: the accelerometer reads -g along the body's "up"
-    from aqfg.model import attitude_at
+    from aqfg.model.vehicle import attitude_at
     Rb = attitude_at(m, m.imu.t)
     m.imu.acc = -9.80665 * Rb[:, 2, :]                  # f = R^T (0 - g e_z)
     m.motors.u[:] = 0.0
@@ -223,6 +271,76 @@ def test_bounds_of_the_presets_and_that_they_are_respected():
         assert sol.evaluations > 0 and sol.seconds > 0
     with pytest.raises(ValueError, match="empty bounds"):
         bounds("physical", ents, model, np.array([4.0, 0.0]), {"k": (5.0, 2.0)})
+
+
+def test_gradient_descent_does_not_wander_along_a_flat_direction():
+    """The paper's optimiser: a well-determined direction converges, a nearly flat one
+    (a heading offset traded for a current, in a short window) stays at its start, where a
+    Gauss-Newton solver jumps to the flat direction's exact minimum."""
+    def f(x):
+        return (x[0] - 1.0) ** 2 + 1e-6 * (x[1] - 3.0) ** 2 + 0.5
+    lo, hi = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
+    x, fx, status, _ = gradient_descent(f, np.array([0.0, 0.0]), lo, hi, np.ones(2))
+    assert x[0] == pytest.approx(1.0, abs=1e-2)
+    assert abs(x[1]) < 0.05
+    assert fx == pytest.approx(f(x)) and status in (0, 1, 2)
+    # bounds hold and the evaluation budget is respected
+    n = [0]
+
+    def g(x):
+        n[0] += 1
+        return (x[0] - 10.0) ** 2 + x[1] ** 2
+    x, _, _, _ = gradient_descent(g, np.array([0.0, 1.0]), lo, hi, np.ones(2), budget=30)
+    assert x[0] == pytest.approx(5.0) and n[0] <= 30
+
+
+def test_the_online_window_holds_three_fixes_of_every_active_stream():
+    from aqfg.ekf.estimator import window_start
+    tg = np.arange(0.0, 200.0, 8.0)                     # GNSS every 8 s
+    tu = np.arange(2.0, 200.0, 4.5)                     # USBL every 4.5 s
+    t = np.unique(np.concatenate([tg, tu]))
+    streams = {GNSS: np.nonzero(np.isin(t, tg))[0], USBL: np.nonzero(np.isin(t, tu))[0]}
+    n = int(np.searchsorted(t, 160.0))                  # a GNSS fix
+    j = window_start(t, streams, n, 3)
+    assert t[n] - t[j] == pytest.approx(24.0)            # 3 GNSS intervals, not 3 fixes (~9 s)
+    i = int(np.nonzero(tg == 160.0)[0][0])
+    assert window_start(tg, {GNSS: np.arange(len(tg))}, i, 3) == i - 3   # one stream: 3 fixes
+    # a stream that has stopped (GNSS before a dive) does not stretch the window
+    stop = {GNSS: streams[GNSS][t[streams[GNSS]] < 60.0], USBL: streams[USBL]}
+    n = len(t) - 1
+    j = window_start(t, stop, n, 3)
+    assert t[n] - t[j] == pytest.approx(13.5, abs=1e-9)   # 3 USBL intervals
+    assert window_start(t, streams, 2, 3) == 0           # too few fixes yet: from the start
+
+
+def test_a_still_vehicle_gives_not_determined_not_nan():
+    """All motor commands zero and the fixes scattered around one point: the current is
+    determined (zero), the heading offset and the thrust/drag constants are not; no sigma
+    is NaN, each missing one has a reason, and an optimiser that ran out of evaluations
+    says so."""
+    import json
+    m, _, _ = synth_mission("asv", duration=60.0, gnss_period=1.0)
+    m.motors.u[:] = 0.0
+    rng = np.random.default_rng(1)
+    m.gnss.ne = rng.normal(0.0, 0.5, m.gnss.ne.shape)
+    r = fit_update_error([m], mode="batch")
+    assert all(np.isfinite(v) for v in r.sigma.values())
+    assert set(r.sigma) == {"s_x", "s_y"}
+    obs = r.info["observability"]
+    for n in ("theta_e", "k", "k_x", "k_yz"):
+        assert obs[n] == "not determined" and r.info["sigma_notes"][n]
+    for n in ("s_x", "s_y"):
+        assert obs[n] in ("determined", "weakly determined")
+        assert abs(r.values[n]) < 3 * r.sigma[n]
+    assert isinstance(r.info["converged"], bool)
+    if not r.info["converged"]:
+        assert any("without converging" in w for w in r.info["warnings"])
+    json.dumps({k: r.info[k] for k in ("observability", "sigma_notes", "per_mission",
+                                       "warnings", "consistency", "converged")},
+               allow_nan=False)
+    on = fit_update_error([m], mode="online")
+    assert all(np.isfinite(v) for v in on.sigma.values())
+    assert on.info["observability"]["theta_e"] == "not determined"
 
 
 def test_fit_update_error_returns_a_complete_result(tmp_path):
@@ -273,7 +391,7 @@ def test_bad_input_is_named():
 def test_a_user_effect_runs_on_the_numpy_path():
     """A Python UserEffect is evaluated by the numpy window (the C++ one cannot call it):
     at its null value the pass equals the built-in model's C++ pass; away from it, E moves."""
-    from aqfg.effects import UserEffect
+    from aqfg.model.effects import UserEffect
     cubic = UserEffect("cubic_drag", ("c3",), null=(0.0,), lower=(0.0,), upper=(10.0,),
                        accel=lambda v, R, d, tm, q: -q[0] * R @ ((R.T @ v) ** 3))
     m, p_true, _ = synth_mission("asv", duration=20.0, usbl=True)

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from aqfg import evaluate as ev
-from aqfg.mission import Truth
-from aqfg.model import Model
+from aqfg.data.mission import Truth
+from aqfg.model.vehicle import Model
 from aqfg.result import Track
 
 

@@ -6,10 +6,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from aqfg import factors as fc
-from aqfg.effects import UserEffect
-from aqfg.model import Model, attitude_at
-from aqfg.sim import simulate
+from aqfg.fg import factors as fc
+from aqfg.model.effects import UserEffect
+from aqfg.model.vehicle import Model, attitude_at
+from aqfg.sim.simulator import simulate
 
 FD_TOL = 1e-5        # relative: central differences at eps 1e-6 on smooth functions
 
@@ -193,7 +193,8 @@ def test_robust_loss_downweights_outliers(asv):
             br = np.linalg.norm(f_r.linearize(vals).jacobian()[1])
             bg = np.linalg.norm(f_g.linearize(vals).jacobian()[1])
             assert (br < 0.2 * bg) if shrink else br == pytest.approx(bg, rel=0.05)
-    assert fc.SensorNoise().wrap(base, "gnss") is base        # robust_on: usbl only
+    assert fc.SensorNoise().wrap(base, "depth") is base       # robust_on: gnss and usbl
+    assert fc.SensorNoise().wrap(base, "gnss") is not base
     with pytest.raises(ValueError, match="robust loss"):
         fc.SensorNoise(robust="tukey")
 

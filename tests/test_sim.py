@@ -4,13 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aqfg import io, params, sim
+from aqfg.data import io
+from aqfg.model import params
+from aqfg.sim import simulator as sim
 from aqfg.cli import main as cli_main
-from aqfg.effects import BUILTIN
-from aqfg.kernel_ref import wrap_angle
-from aqfg.model import Model, quat_to_rot, yaw_of
-from aqfg.retrace import rollout
-from aqfg.sim_plan import depth_reference
+from aqfg.model.effects import BUILTIN
+from aqfg.model.reference import wrap_angle
+from aqfg.model.vehicle import Model, quat_to_rot, yaw_of
+from aqfg.model.retrace import rollout
+from aqfg.sim.plan import depth_reference
 
 DYN_EFFECTS = ("thrust_asymmetry", "reverse_thrust", "thrust_lag", "linear_drag",
                "heading_drift", "current_drift", "wind_drag")

@@ -7,27 +7,29 @@ nothing here asserts on them.
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
-from .. import bench
+from aqfg import bench
 
 
 def run(args) -> int:
+    from aqfg.commands.common import UsageError, log
+    from aqfg.outputs import OutputSet
     repeat = int(args.repeat)
     if repeat < 1:
-        raise ValueError(f"--repeat must be >= 1, got {repeat}")
+        raise UsageError(f"--repeat must be >= 1, got {repeat}")
+    outs = OutputSet(args.out, ["bench.md"], force=args.force) if args.out else None
+    if outs is not None:
+        outs.check()
     t0 = time.perf_counter()
-    figs = bench.run(repeat, progress=lambda msg: print(f"[bench] {msg} ...", file=sys.stderr,
-                                                        flush=True))
+    figs = bench.run(repeat, progress=lambda msg: log.info("%s ...", msg))
     text = bench.report(figs)
     footer = (f"\n\n`aqfg bench --repeat {repeat}`: {time.perf_counter() - t0:.0f} s, "
               f"{time.strftime('%Y-%m-%d %H:%M')}.")
     print(text + footer)
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "bench.md").write_text("# aqfg bench\n\n" + text + footer + "\n")
-        print(f"wrote {out / 'bench.md'}", file=sys.stderr)
+    if outs is not None:
+        with outs as stage:
+            (stage / "bench.md").write_text("# aqfg bench\n\n" + text + footer + "\n")
+        log.info("wrote %s", Path(args.out) / "bench.md")
     return 0

@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 
 DEMO_SEED = 11
-DEMO_EFFECT = {"reverse_thrust": 0.6}   # propellers 40 % weaker backwards (aqfg.diagnose_cases)
+DEMO_EFFECT = {"reverse_thrust": 0.6}   # propellers 40 % weaker backwards (aqfg.sim.cases)
 GNSS_EVERY = 8.0
+DEMO_OUTPUTS = ("mission", "fit-fg", "fit-update-error", "diagnosis", "diagnosis-with-*",
+                "fit-fg-with-*")
 
 
 def _say(msg: str) -> None:
@@ -27,40 +29,60 @@ def _say(msg: str) -> None:
 
 
 def run(args) -> int:
-    from ..evaluate import inertial_rmse
-    from ..io import load_truth, save_mission
-    from ..mission import with_gnss_every
-    from ..model import Model
-    from ..params import OLD_PARAMS
-    from ..result import save_result
-    from ..sim import simulate
+    from aqfg.commands.common import input_warnings
+    from aqfg.commands.diagnose import finish_json
+    from aqfg.outputs import OutputSet, provenance
 
     out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise FileExistsError(f"refusing to write into non-empty {out} (pass --force)")
+    outs = OutputSet(out, DEMO_OUTPUTS, force=args.force)
+    outs.check()
+    with outs as stage:
+        _demo(out, stage)
+        finish_json(stage, provenance(inputs=[], warnings=input_warnings()))
+    _say(f"open {out / 'diagnosis' / 'report.html'}")
+    return 0
+
+
+def _demo(out: Path, stage: Path) -> None:
+    """The four steps, writing into ``stage``; messages name the final place ``out``."""
+    from aqfg.data.io import load_truth, save_mission
+    from aqfg.data.mission import with_gnss_every
+    from aqfg.ekf.estimator import fit_update_error
+    from aqfg.evaluate import inertial_rmse
+    from aqfg.fg.fit import fit_fg
+    from aqfg.model.params import OLD_PARAMS
+    from aqfg.model.vehicle import Model
+    from aqfg.outputs import provenance
+    from aqfg.plots import plot_fit
+    from aqfg.result import write_result
+    from aqfg.sim.simulator import simulate
+
+    def save_fit(res, name: str, missions) -> None:
+        d = stage / name
+        d.mkdir()
+        write_result(res, d, missions, provenance=provenance(
+            method=res.method, mode=res.mode, effects=res.effects,
+            settings={"gnss_every": GNSS_EVERY}, inputs=[out / "mission"]))
+        plot_fit(res, missions, d)
+
     t_start = time.perf_counter()
 
     _say("1/4 simulating a 10-minute ASV mission (GNSS 1 Hz, IMU 50 Hz, motors 10 Hz) with a "
          "hidden effect the base model lacks ...")
     mission, truth = simulate("asv", seed=DEMO_SEED, duration=600.0, effects=DEMO_EFFECT)
-    save_mission(mission, out / "mission", truth=truth, overwrite=args.force)
-    truth = load_truth(out / "mission")     # evaluation only: estimators never see it
+    save_mission(mission, stage / "mission", truth=truth)
+    truth = load_truth(stage / "mission")   # evaluation only: estimators never see it
     thin = with_gnss_every(mission, GNSS_EVERY)
     _say(f"    wrote {out / 'mission'}; the fits use one GNSS fix every {GNSS_EVERY:.0f} s "
          f"({len(thin.gnss.t)} of {len(mission.gnss.t)})")
 
     _say("2/4 fitting all six parameters: factor graph (batch) and update-error EKF (offline) ...")
-    from ..ekf import fit_update_error
-    from ..plots import plot_fit
-    from ..smoother import fit_fg
     fits = {}
     for label, fit in (("fg", fit_fg), ("update-error", fit_update_error)):
         t0 = time.perf_counter()
         res = fit([thin], mode="batch")
         fits[label] = (res, time.perf_counter() - t0)
-        d = out / f"fit-{label}"
-        save_result(res, d, overwrite=args.force)
-        plot_fit(res, [thin], d)
+        save_fit(res, f"fit-{label}", [thin])
     model = Model.for_mission(mission)
     p_old = model.nominal(OLD_PARAMS)
     p_true = model.nominal({k: v for k, v in truth.params.items() if k in model.all_names})
@@ -84,26 +106,26 @@ def run(args) -> int:
 
     _say("3/4 diagnosing: consistency of held-out fixes, conditions, score test of every "
          "catalogue effect, refit of the top candidates ...")
-    from ..diagnose import diagnose, save_diagnosis
+    from aqfg.diagnose.workflow import diagnose, save_diagnosis
     diag = diagnose([mission], gnss_every=GNSS_EVERY)
-    save_diagnosis(diag, out / "diagnosis", overwrite=args.force)
+    save_diagnosis(diag, stage / "diagnosis")
     _say("\n".join("    " + line for line in diag.summary().splitlines()))
 
     if diag.best is not None:
         eff = diag.best.effect
         _say(f"4/4 adding '{eff}' to the model and refitting (aqfg fit --effect {eff}) ...")
         after = diagnose([mission], effects=(eff,), gnss_every=GNSS_EVERY)
-        save_diagnosis(after, out / f"diagnosis-with-{eff}", overwrite=args.force)
+        save_diagnosis(after, stage / f"diagnosis-with-{eff}")
         b, a = diag.base, after.base
         _say(f"    held-out dead-reckoning error {b.rmse:.2f} m -> {a.rmse:.2f} m; "
              f"consistency test {'passed' if b.consistency and b.consistency.passed else 'failed'}"
              f" -> {'passed' if a.consistency and a.consistency.passed else 'failed'}")
         for n, v in a.values(tuple(p for e in a.full.model.effects if e.name == eff
                                    for p in e.params)).items():
-            _say(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}   (true: {truth.params.get(n, np.nan):.4g})")
+            true = truth.params.get(n, np.nan)
+            _say(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}   (true: {true:.4g})")
         refit = fit_fg([thin], mode="batch", effects=(eff,))
-        save_result(refit, out / f"fit-fg-with-{eff}", overwrite=args.force)
-        plot_fit(refit, [thin], out / f"fit-fg-with-{eff}")
+        save_fit(refit, f"fit-fg-with-{eff}", [thin])
         e_before = rows[1][1]
         e_after = inertial_rmse(refit.model or model, mission, refit.missions[0].p, truth)
         _say(f"    factor graph with {eff}: dead-reckoning RMSE vs the truth {e_before:.2f} m -> "
@@ -111,10 +133,9 @@ def run(args) -> int:
              f"k_yz={refit.values['k_yz']:.3g})")
     else:
         _say("4/4 the diagnosis found nothing missing: no effect to add.")
-    _say(f"done in {time.perf_counter() - t_start:.0f} s; open {out / 'diagnosis' / 'report.html'}")
-    return 0
+    _say(f"done in {time.perf_counter() - t_start:.0f} s")
 
 
 if __name__ == "__main__":  # pragma: no cover
-    from ..cli import main
+    from aqfg.cli import main
     sys.exit(main(["demo", *sys.argv[1:]]))

@@ -1,44 +1,104 @@
-"""``aqfg diagnose MISSION... [--effect NAME ...] --out DIR``: which physics is the model missing?
+"""``aqfg diagnose MISSION... [--effect NAME ...] [--auto] --out DIR``: which physics is the
+model missing?
 
 Fits the model (batch factor graph), tests the held-out fixes for consistency, relates the
 residuals to what the vehicle was doing, ranks every applicable catalogue effect by a score
 test confirmed by refits, and writes ``DIR/diagnosis.json`` (format doc, "Outputs") and a
 self-contained ``DIR/report.html``; prints a ranked summary. ``--effect NAME`` adds an
-effect to the model and shows the before/after comparison. ``--gnss-every S``: the
-held-out split fits on one GNSS fix every S seconds (default 8) and evaluates dead
-reckoning on the others.
+effect to the model and shows the before/after comparison (and writes the model with it,
+``DIR/model.json``). ``--auto`` repeats diagnose -> add the missing effect -> refit until
+nothing more is confirmed (at most ``--max-steps``), prints the story step by step and
+writes the learned model to ``DIR/model.json`` (reuse it with ``aqfg fit --model``).
+``--gnss-every S``: the held-out split fits on one GNSS fix every S seconds (default 8) and
+evaluates dead reckoning on the others.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
+
+DIAGNOSE_FITS = 7            # base + held-out fit + up to 5 refits: for the cost estimate
+OUTPUTS = ("diagnosis.json", "report.html")
+
+
+def finish_json(stage: Path, prov: dict) -> None:
+    """Every JSON file in ``stage``: strict (no NaN: null and a reason), with ``prov`` as
+    provenance where it has none."""
+    import json
+
+    from aqfg.outputs import write_json
+    for p in sorted(stage.rglob("*.json")):
+        doc = json.loads(p.read_text())
+        if isinstance(doc, dict):
+            doc.setdefault("provenance", prov)
+        write_json(p, doc)
 
 
 def run(args) -> int:
-    from ..diagnose import diagnose, save_diagnosis
-    from ..effects import resolve
-    from ..io import load_mission
+    from aqfg.commands.common import (
+        Progress,
+        UsageError,
+        input_warnings,
+        load_missions,
+        log,
+    )
+    from aqfg.diagnose.sequence import diagnose_sequence, save_sequence
+    from aqfg.diagnose.workflow import diagnose, save_diagnosis
+    from aqfg.model.effects import resolve
+    from aqfg.outputs import OutputSet, provenance
+    auto = bool(getattr(args, "auto", False))
     out = Path(args.out)
-    existing = [str(out / f) for f in ("diagnosis.json", "report.html") if (out / f).exists()]
-    if existing and not args.force:
-        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
     if args.gnss_every < 0:
-        raise ValueError(f"--gnss-every must be positive, got {args.gnss_every}")
-    effects = tuple(resolve(e).name for e in args.effect)     # unknown names: clear KeyError
-    missions = [load_mission(p) for p in args.missions]
+        raise UsageError(f"--gnss-every must be positive, got {args.gnss_every}")
+    max_steps = getattr(args, "max_steps", 6)
+    if max_steps < 1:
+        raise UsageError(f"--max-steps must be at least 1, got {max_steps}")
+    jobs = getattr(args, "jobs", None)
+    if jobs is not None and jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {jobs}")
+    try:
+        effects = tuple(resolve(e).name for e in args.effect)
+    except KeyError as e:
+        raise UsageError(f"--effect: {e.args[0]}") from None
+    files = [*OUTPUTS, "model.json"] if (auto or effects) else list(OUTPUTS)
+    outs = OutputSet(out, files, force=args.force)
+    outs.check()
+    missions = load_missions(args.missions, args.max_knots, fits=DIAGNOSE_FITS)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ, got {names}")
     for e in effects:
         eff = resolve(e)
         if not any(eff.applicable(m) for m in missions):
-            raise ValueError(f"--effect {e}: not applicable to {', '.join(names)} "
+            raise UsageError(f"--effect {e}: not applicable to {', '.join(names)} "
                              f"(vehicles {sorted({m.vehicle for m in missions})})")
-    print(f"aqfg diagnose: {len(missions)} mission(s)"
-          + (f", model + {', '.join(effects)}" if effects else ""), file=sys.stderr)
-    diag = diagnose(missions, effects=effects, gnss_every=args.gnss_every or 8.0,
-                    progress=True)
-    save_diagnosis(diag, out, overwrite=args.force, plots=not args.no_plots)
+    log.info("%d mission(s)%s%s", len(missions),
+             f", model + {', '.join(effects)}" if effects else "",
+             f", --auto (at most {max_steps} effects)" if auto else "")
+    gnss_every = args.gnss_every or 8.0
+    kw = {"gnss_every": gnss_every, "progress": Progress("diagnose"), "jobs": jobs}
+    prov = provenance(method="fg", mode="batch", effects=effects,
+                      settings={"gnss_every": gnss_every, "auto": auto, "max_steps": max_steps},
+                      inputs=args.missions, warnings=input_warnings())
+    if auto:
+        seq = diagnose_sequence(missions, effects=effects, max_steps=max_steps,
+                                stop_when_consistent=getattr(args, "stop_when_consistent",
+                                                             False), **kw)
+        with outs as stage:
+            save_sequence(seq, stage, overwrite=True, plots=not args.no_plots)
+            finish_json(stage, prov)
+        print(seq.summary())
+        print(f"wrote {', '.join(files)} to {out}")
+        return 0
+    diag = diagnose(missions, effects=effects, **kw)
+    with outs as stage:
+        save_diagnosis(diag, stage, plots=not args.no_plots)
+        if effects:
+            from aqfg.model.modelfile import ModelFile
+            ModelFile.from_result(diag.base.full, source={
+                "made_by": "aqfg diagnose --effect " + " --effect ".join(effects),
+                "missions": names, "heldout_rmse": diag.base.rmse}).write(
+                    stage / "model.json", overwrite=True)
+        finish_json(stage, prov)
     print(diag.summary())
-    print(f"wrote diagnosis.json, report.html to {out}")
+    print(f"wrote {', '.join(files)} to {out}")
     return 0

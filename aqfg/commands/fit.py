@@ -1,29 +1,33 @@
 """``aqfg fit MISSION... --out DIR``: estimate the parameters and the trajectory.
 
-``--method fg`` (factor graph, :func:`aqfg.smoother.fit_fg`) or ``update-error`` (the
-paper's method, :func:`aqfg.ekf.fit_update_error`), ``--mode batch|online``. Writes the
-"Outputs" of the format doc (``parameters.json``, ``trajectory.csv``, ``inertial.csv``;
-per-mission sub-directories when several missions are fitted), plus ``map.png`` and, for
-online fits, ``parameters.png``; prints a parameter table with 1-sigma.
+``--method fg`` (factor graph, :func:`aqfg.fg.fit.fit_fg`) or ``update-error`` (the
+paper's method, :func:`aqfg.ekf.estimator.fit_update_error`), ``--mode batch|online``. Writes the
+"Outputs" of the format doc (``parameters.json``, ``trajectory.csv``, ``inertial.csv``,
+``track.geojson`` with an ``[origin]``, ``trajectory.tum`` with ``--tum``; per-mission
+sub-directories when several missions are fitted), plus ``map.png`` and, for online fits,
+``parameters.png``, as one set (:class:`aqfg.outputs.OutputSet`); prints a parameter table
+with 1-sigma.
 """
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
-from ..mission import with_gnss_every
-from ..result import Result, save_result
+from aqfg.commands.common import UsageError
+from aqfg.data.mission import with_gnss_every
+from aqfg.result import Result, read_parameter_values
+
+PLOTS = ("map.png", "parameters.png")
 
 
 def _float(name: str, text: str, where: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"{where}: value of {name!r} must be a number, got {text!r}") from None
+        raise UsageError(f"{where}: value of {name!r} must be a number, got {text!r}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{where}: value of {name!r} must be finite, got {text!r}")
+        raise UsageError(f"{where}: value of {name!r} must be finite, got {text!r}")
     return v
 
 
@@ -39,87 +43,126 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
         except json.JSONDecodeError as e:
             raise ValueError(f"--params-from {p}: not valid JSON ({e})") from None
         if not isinstance(data, dict):
-            raise ValueError(f"--params-from {p}: expected {{name: {{\"value\": ...}}}}")
-        for name, entry in data.items():
-            v = entry.get("value") if isinstance(entry, dict) else entry
-            if v is None:
-                raise ValueError(f"--params-from {p}: entry {name!r} has no \"value\"")
-            out[name] = _float(name, str(v), f"--params-from {p}")
+            raise ValueError(f"--params-from {p}: expected a parameters.json document")
+        try:
+            out.update(read_parameter_values(data))
+        except ValueError as e:
+            raise ValueError(f"--params-from {p}: {e}") from None
     for name, text in init:
         if not name or not text:
-            raise ValueError(f"--init expects NAME=VALUE, got {name!r}={text!r}")
+            raise UsageError(f"--init expects NAME=VALUE, got {name!r}={text!r}")
         out[name] = _float(name, text, "--init")
     return out
-
-
-def _outputs_exist(out: Path, n_missions: int, names: list[str]) -> list[str]:
-    files = [out / "parameters.json"]
-    dirs = [out] if n_missions == 1 else [out / n for n in names]
-    for d in dirs:
-        files += [d / "trajectory.csv", d / "inertial.csv"]
-    return [str(f) for f in files if f.exists()]
 
 
 def parameter_table(result: Result) -> str:
     """The short table ``aqfg fit`` prints: name, value, 1-sigma (per mission for the
     per-mission parameters when several missions were fitted)."""
     lines = [f"{'parameter':<26}{'value':>12}{'sigma':>12}"]
-    per = result.info.get("per_mission") or {}
+    per = result.per_mission
     multi = len(result.missions) > 1 and per
     for n in result.estimated:
         if multi and any(n in v for v in per.values()):
             for mname, vals in per.items():
                 if n in vals:
                     e = vals[n]
-                    lines.append(f"{n + ' [' + mname + ']':<26}{e['value']:>12.5g}"
-                                 f"{e.get('sigma', float('nan')):>12.3g}")
+                    lines.append(f"{n + ' [' + mname + ']':<26}{e.value:>12.5g}{e.sigma:>12.3g}")
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"
                          f"{result.sigma.get(n, float('nan')):>12.3g}")
     return "\n".join(lines)
 
 
+def _check_names(missions, effects, estimate, init) -> None:
+    """Effect and parameter names of the command line, checked before any fitting."""
+    from aqfg.model.effects import resolve
+    from aqfg.model.vehicle import Model
+    for e in effects:
+        try:
+            resolve(e)
+        except KeyError as err:
+            raise UsageError(f"--effect: {err.args[0]}") from None
+    try:
+        model = Model.for_mission(missions[0], effects)
+    except ValueError as err:
+        raise UsageError(f"--effect: {err}") from None
+    for opt, names in (("--estimate", estimate or ()), ("--init", init)):
+        bad = [n for n in names if n not in model.all_names]
+        if bad:
+            raise UsageError(f"{opt}: unknown parameter {bad[0]!r}; this model has: "
+                             f"{', '.join(model.active_names)}")
+
+
 def run(args) -> int:
-    from ..io import load_mission
+    from aqfg.commands.common import Progress, input_warnings, load_missions, log
+    from aqfg.outputs import OutputSet, provenance, unique_safe_names
+    from aqfg.result import RESULT_FILES, write_result
     out = Path(args.out)
-    missions = [load_mission(p) for p in args.missions]
-    names = [m.name for m in missions]
-    if len(set(names)) != len(names):
-        raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
-    existing = _outputs_exist(out, len(missions), names)
-    if existing and not args.force:
-        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
-    if args.gnss_every:
-        if args.gnss_every < 0:
-            raise ValueError(f"--gnss-every must be positive, got {args.gnss_every}")
-        missions = [with_gnss_every(m, args.gnss_every) for m in missions]
+    if args.gnss_every < 0:
+        raise UsageError(f"--gnss-every must be positive, got {args.gnss_every}")
     estimate = None
     if args.estimate:
         estimate = [s.strip() for s in args.estimate.split(",") if s.strip()]
         if not estimate:
-            raise ValueError("--estimate: no parameter names given")
+            raise UsageError("--estimate: no parameter names given")
     init = initial_values(args.init, args.params_from)
-    kw = dict(mode=args.mode, estimate=estimate, init=init, effects=tuple(args.effect),
-              window=args.window, progress=True)
-    print(f"aqfg fit: {len(missions)} mission(s), method {args.method}, mode {args.mode}",
-          file=sys.stderr)
+    missions = load_missions(args.missions, args.max_knots)
+    names = [m.name for m in missions]
+    if len(set(names)) != len(names):
+        raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
+    effects = tuple(args.effect)
+    model_path = getattr(args, "model", None)
+    if model_path:
+        # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial
+        # values (under --params-from and --init, which override them)
+        from aqfg.model.modelfile import read_model
+        mf = read_model(model_path)
+        veh = sorted({m.vehicle for m in missions})
+        if veh != [mf.vehicle]:
+            raise ValueError(f"--model {model_path}: a model of an {mf.vehicle}, the "
+                             f"missions are {', '.join(veh)}")
+        effects = tuple(dict.fromkeys(mf.effects + effects))
+        init = {**mf.init(), **init}
+    _check_names(missions, effects, estimate,
+                 [n for n, _ in args.init])
+    subdirs = unique_safe_names(names) if len(missions) > 1 else []
+    outs = OutputSet(out, [*RESULT_FILES, *PLOTS, *subdirs], force=args.force)
+    outs.check()                       # refuse now, not after the fit
+    if args.gnss_every:
+        missions = [with_gnss_every(m, args.gnss_every) for m in missions]
+    kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
+          "window": args.window}
+    log.info("%d mission(s), method %s, mode %s%s", len(missions), args.method, args.mode,
+             f", model {model_path} ({' + '.join(effects) or 'no effects'})" if model_path
+             else "")
     if args.method == "fg":
-        from ..smoother import fit_fg
-        result = fit_fg(missions, **kw)
+        from aqfg.fg.fit import fit_fg
+        result = fit_fg(missions, progress=Progress("fit"), **kw)
     else:
-        from ..ekf import fit_update_error
-        result = fit_update_error(missions, **kw)
-    save_result(result, out, overwrite=args.force)
-    written = ["parameters.json", "trajectory.csv", "inertial.csv"]
-    if not args.no_plots:
-        from ..plots import plot_fit
-        written += [p.name for p in plot_fit(result, missions, out)]
+        from aqfg.ekf.estimator import fit_update_error
+        result = fit_update_error(missions, progress=True, **kw)
+    model = result.model
+    prov = provenance(
+        method=result.method, mode=result.mode, effects=result.effects,
+        settings={"options": {"estimate": list(result.estimated), "init": init,
+                              "window": args.window, "gnss_every": args.gnss_every or None},
+                  "estimator": result.info.get("settings")},
+        units=({n: model.spec(n).unit for n in model.active_names} if model is not None
+               else None),
+        inputs=args.missions, warnings=input_warnings())
+    with outs as stage:
+        written = write_result(result, stage, missions, tum=args.tum, provenance=prov)
+        if not args.no_plots:
+            from aqfg.plots import plot_fit
+            written += plot_fit(result, missions, stage)
+        shown = sorted({str(p.relative_to(stage)) for p in written})
     print(parameter_table(result))
     t = result.timings
     if "batch" in t:
-        print(f"batch solve: {t['batch'][0]:.2f} s, {result.info.get('iterations', '?')} iterations")
-    if "update" in t and t["update"]:
+        n_it = "?" if result.iterations is None else result.iterations
+        print(f"batch solve: {t['batch'][0]:.2f} s, {n_it} iterations")
+    if t.get("update"):
         import numpy as np
         print(f"online: {len(t['update'])} updates, median {1e3 * np.median(t['update']):.2f} ms")
-    print(f"wrote {', '.join(written)} to {out}")
+    print(f"wrote {', '.join(shown)} to {out}")
     return 0

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io import load_mission, truth_sources
-from ..mission import FORMAT, Mission
+from aqfg.data.io import load_mission, truth_sources
+from aqfg.data.mission import FORMAT, Mission
 
 GAP_FACTOR = 3.0          # an interval longer than this many median intervals is a gap
 
@@ -119,6 +119,8 @@ def describe(m: Mission, truth_parts: list[str] | None = None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from aqfg.data.preflight import estimate_cost
     m = load_mission(args.mission)
     print(describe(m, truth_sources(args.mission)))
+    print(f"fit cost   {estimate_cost([m]).describe()} (estimate)")
     return 0

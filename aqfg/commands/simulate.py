@@ -2,19 +2,20 @@
 
 ``--effect NAME[=VALUE]`` takes an effect name (``thrust_asymmetry=0.8`` sets its first
 parameter; ``lever_arm=0.3,0.1,0`` sets its parameters in order; a bare name uses the
-defaults of :data:`aqfg.sim.EFFECT_DEFAULTS`) or a full parameter name
+defaults of :data:`aqfg.sim.simulator.EFFECT_DEFAULTS`) or a full parameter name
 (``lever_arm.x=0.4``). ``--param NAME=VALUE`` sets a true parameter (e.g. ``theta_e=0.5``).
 """
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from .. import io
-from ..sim import simulate
+from aqfg.commands.common import Progress, UsageError
+from aqfg.data import io
+from aqfg.outputs import OutputSet
+from aqfg.sim.simulator import simulate
 
 PROGRESS_MIN_DURATION = 120.0   # s of mission time above which progress is shown
 
@@ -23,7 +24,7 @@ def _effects(settings: list[tuple[str, str]]) -> dict:
     out: dict = {}
     for name, text in settings:
         if not name:
-            raise ValueError(f"--effect needs NAME[=VALUE], got {name}={text!r}")
+            raise UsageError(f"--effect needs NAME[=VALUE], got {name}={text!r}")
         if text == "":
             out[name] = None
         elif "," in text:
@@ -37,7 +38,7 @@ def _params(settings: list[tuple[str, str]]) -> dict[str, float]:
     out = {}
     for name, text in settings:
         if not name or text == "":
-            raise ValueError(f"--param needs NAME=VALUE, got {name!r}")
+            raise UsageError(f"--param needs NAME=VALUE, got {name!r}")
         out[name] = _number(text, f"--param {name}")
     return out
 
@@ -46,28 +47,7 @@ def _number(text: str, where: str) -> float:
     try:
         return float(text)
     except ValueError:
-        raise ValueError(f"{where}: {text!r} is not a number") from None
-
-
-class _Progress:
-    """Percentage on stderr: in place on a terminal, every 10 % otherwise."""
-
-    def __init__(self, stream=None):
-        self.stream = sys.stderr if stream is None else stream
-        self.tty = self.stream.isatty()
-        self.last = -1
-
-    def __call__(self, frac: float) -> None:
-        pct = int(100 * frac)
-        step = 1 if self.tty else 10
-        if pct // step == self.last // step and pct < 100:
-            return
-        if pct == self.last:
-            return
-        self.last = pct
-        end = "" if self.tty and pct < 100 else "\n"
-        self.stream.write(("\r" if self.tty else "") + f"simulating: {pct:3d}%" + end)
-        self.stream.flush()
+        raise UsageError(f"{where}: {text!r} is not a number") from None
 
 
 def _line(name: str, t: np.ndarray, detail: str = "") -> str:
@@ -92,16 +72,18 @@ def run(args: argparse.Namespace) -> int:
     effects = _effects(args.effect)
     params = _params(args.param)
     out = Path(args.out_dir)
-    present = [n for n in io.MISSION_FILES if (out / n).exists()]
-    if present and not args.force:
-        raise FileExistsError(f"{out} already holds a mission ({', '.join(present)}); "
-                              "pass --force to overwrite it")
-    progress = _Progress() if args.duration >= PROGRESS_MIN_DURATION else None
-    mission, truth = simulate(args.vehicle, seed=args.seed, duration=args.duration,
-                              params=params, effects=effects,
-                              gnss_period=args.gnss_period or None, usbl=args.usbl,
-                              progress=progress)
-    io.save_mission(mission, out, truth, overwrite=args.force)
+    outs = OutputSet(out, io.MISSION_FILES, force=args.force)
+    outs.check()
+    progress = Progress("simulate") if args.duration >= PROGRESS_MIN_DURATION else None
+    try:                  # everything simulate() is given comes from the command line
+        mission, truth = simulate(args.vehicle, seed=args.seed, duration=args.duration,
+                                  params=params, effects=effects,
+                                  gnss_period=args.gnss_period or None, usbl=args.usbl,
+                                  progress=progress)
+    except (KeyError, ValueError) as e:
+        raise UsageError(e.args[0] if isinstance(e, KeyError) and e.args else e) from None
+    with outs as stage:
+        io.save_mission(mission, stage, truth)
 
     tp = truth.params
     print(f"simulated {mission.vehicle} mission '{mission.name}' ({args.duration:g} s, seed "

@@ -1,0 +1,49 @@
+"""``aqfg import FORMAT SOURCE --out MISSION [--map MAP.toml]``: a vehicle log -> mission.
+
+FORMAT: ``ros2`` (bag directory, .mcap or .db3), ``ros1`` (.bag), ``mavlink`` (.tlog or
+DataFlash .bin), ``ulog`` (.ulg), ``nmea`` (adds the log's fixes to the existing mission
+MISSION). The map file gives what the log cannot (vehicle, thrusters, origin, topics); see
+docs/mission-format.md, "Importing logs".
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from aqfg.data.importers import MissingExtraError, import_log, load_map
+from aqfg.data.io import load_mission, load_truth, save_mission
+
+EXIT_MISSING_EXTRA = 2
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    imap = load_map(args.map)
+    try:
+        if args.format == "nmea":
+            if not (out / "mission.toml").is_file():
+                raise FileNotFoundError(f"{out} holds no mission; 'aqfg import nmea' adds GNSS "
+                                        "fixes to a mission imported first from the vehicle's "
+                                        "own log")
+            base = load_mission(out)
+            truth = load_truth(out)
+            if base.gnss is not None and not args.force:
+                raise FileExistsError(f"{out} already has GNSS fixes (gnss.csv); pass --force "
+                                      "to replace them with the NMEA log's")
+            result = import_log("nmea", args.source, imap, base=base)
+            save_mission(result.mission, out, truth, overwrite=True)
+        else:
+            if (out / "mission.toml").exists() and not args.force:
+                raise FileExistsError(f"{out} already holds a mission; pass --force to "
+                                      "overwrite it")
+            result = import_log(args.format, args.source, imap)
+            save_mission(result.mission, out, overwrite=args.force)
+    except MissingExtraError as e:
+        print(f"aqfg import: error: {e}", file=sys.stderr)
+        return EXIT_MISSING_EXTRA
+    m = result.mission
+    what = "added GNSS fixes to" if args.format == "nmea" else "imported"
+    print(f"{what} {m.vehicle} mission '{m.name}' from {args.source} ({args.format}) -> {out}")
+    print(result.summary())
+    return 0

@@ -1,0 +1,313 @@
+"""The import map file (TOML): what a log cannot say about the vehicle, and where its
+streams are.
+
+Top-level ``vehicle`` (and optional ``name``) and the ``[thrusters]``, ``[usbl]`` and
+``[origin]`` tables have exactly the shape they have in ``mission.toml`` (they are checked
+by the mission reader's own rules); the importer-only tables are ``[topics]`` (stream ->
+topic or message name), ``[motors]`` (output channels, sign and PWM range) and ``[time]``
+(which stamps to use, how far stamps may jump). The shape is documented in
+docs/mission-format.md, "Importing logs".
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+try:                                     # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:              # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+import tomli_w
+
+from aqfg.data.io import MissionFormatError, MissionWarning, load_mission
+from aqfg.data.mission import FORMAT, VEHICLES
+
+STREAMS = ("imu", "gnss", "motors", "usbl", "depth")
+MISSION_KEYS = ("vehicle", "name")
+MISSION_TABLES = ("thrusters", "usbl", "origin")
+IMPORT_TABLES = ("topics", "motors", "time")
+TOPIC_KEYS = {                       # keys a [topics] entry may hold when it is a table
+    "imu": ("topic", "instance"),
+    "gnss": ("topic", "instance"),
+    "motors": ("topic", "instance"),
+    "depth": ("topic", "instance", "field", "scale", "offset"),
+    "usbl": ("topic", "instance", "range", "bearing", "elevation", "angle_unit"),
+}
+STAMPS = ("header", "log")
+DEFAULT_MAX_GAP = 60.0       # s: a longer forward step within one stream is a clock jump
+DEFAULT_MAX_SKEW = 5.0       # s: |header stamp - record time| beyond this: two clocks
+
+
+@dataclass
+class TopicSpec:
+    """Where one stream is in the log: topic (ROS) or message (MAVLink, DataFlash, ULog,
+    NMEA) name, the instance (DataFlash ``I`` field, ULog multi_id) and, for depth and
+    USBL, the fields to read."""
+    topic: str
+    instance: int | None = None
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class PwmRange:
+    """PWM pulse widths (microseconds) of full reverse, neutral and full forward, one per
+    thruster."""
+    min: np.ndarray
+    trim: np.ndarray
+    max: np.ndarray
+
+
+@dataclass
+class ImportMap:
+    """A parsed map file (see the module docstring); every field may be absent."""
+    path: str | None = None
+    vehicle: str | None = None
+    name: str | None = None
+    thruster_dir: np.ndarray | None = None      # (N, 3) unit axes, body FRD
+    thruster_pos: np.ndarray | None = None      # (N, 3) m, body FRD
+    usbl_station: np.ndarray | None = None      # (3,) NED, m
+    origin: tuple[float, float] | None = None   # (lat, lon) deg
+    topics: dict[str, TopicSpec] = field(default_factory=dict)
+    channels: list[int] | None = None           # 1-based output per thruster
+    reversed: list[bool] | None = None          # negate the command of each thruster
+    pwm: PwmRange | None = None
+    stamp: str = "header"                       # ROS: "header" or "log"
+    max_gap: float = DEFAULT_MAX_GAP
+    max_skew: float = DEFAULT_MAX_SKEW
+    utc_zero: float | None = None               # UTC (unix s) of mission t = 0, for NMEA
+    extra: dict[str, Any] = field(default_factory=dict)   # mission.toml extras
+
+    @property
+    def n_thrusters(self) -> int | None:
+        return None if self.thruster_dir is None else len(self.thruster_dir)
+
+    def topic(self, stream: str, default: str | None) -> TopicSpec | None:
+        """The map's entry for ``stream``, else ``default`` as a plain topic (or None)."""
+        if stream in self.topics:
+            return self.topics[stream]
+        return None if default is None else TopicSpec(default)
+
+
+def load_map(path: str | os.PathLike | None) -> ImportMap:
+    """Read and check a map file; ``None`` gives the empty map (every default)."""
+    if path is None:
+        return ImportMap()
+    p = Path(path)
+    f = str(p)
+    if not p.is_file():
+        raise MissionFormatError(f, "no such map file; expected a TOML file (see "
+                                    "docs/mission-format.md, 'Importing logs')")
+    try:
+        with open(p, "rb") as fh:
+            raw = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise MissionFormatError(f, f"not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise MissionFormatError(f, f"not UTF-8 text ({e.reason})") from None
+    return parse_map(raw, f)
+
+
+def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
+    """Check a map file's dict (as read by tomllib); errors name the file and the key."""
+    for k in raw:
+        if k in ("format", "truth"):
+            raise MissionFormatError(f, f"{k!r} belongs in mission.toml, not in a map file",
+                                     column=k)
+        if k not in MISSION_KEYS + MISSION_TABLES + IMPORT_TABLES:
+            raise MissionFormatError(
+                f, "unknown key; a map file holds vehicle, name, [thrusters], [usbl], "
+                   "[origin], [topics], [motors] and [time]", column=k)
+    m = ImportMap(path=f)
+    m.vehicle = raw.get("vehicle")
+    if m.vehicle is not None and m.vehicle not in VEHICLES:
+        raise MissionFormatError(f, f"got {m.vehicle!r}; expected one of "
+                                    f"{', '.join(map(repr, VEHICLES))}", column="vehicle")
+    m.name = raw.get("name")
+    if m.name is not None and not isinstance(m.name, str):
+        raise MissionFormatError(f, f"got {m.name!r}; expected a string", column="name")
+    _mission_tables(m, raw, f)
+    _topics(m, raw.get("topics"), f)
+    _motors(m, raw.get("motors"), f)
+    _time(m, raw.get("time"), f)
+    return m
+
+
+def _mission_tables(m: ImportMap, raw: dict[str, Any], f: str) -> None:
+    """[thrusters], [usbl], [origin]: parsed by the mission reader itself (so the shape is
+    exactly mission.toml's), from a minimal mission written to a scratch directory."""
+    meta: dict[str, Any] = {"format": FORMAT, "vehicle": m.vehicle or VEHICLES[0]}
+    meta.update({k: raw[k] for k in MISSION_TABLES if k in raw})
+    meta.setdefault("thrusters", {"direction": [[1.0, 0.0, 0.0]]})   # placeholder only
+    thr = meta["thrusters"]
+    n = len(thr["direction"]) if isinstance(thr, dict) and isinstance(
+        thr.get("direction"), list) and thr["direction"] else 1
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        try:
+            (root / "mission.toml").write_text(tomli_w.dumps(meta))
+        except (TypeError, ValueError) as e:     # pragma: no cover - tomllib output dumps
+            raise MissionFormatError(f, f"cannot use the mission tables ({e})") from None
+        (root / "imu.csv").write_text("t,qw,qx,qy,qz\n0,1,0,0,0\n")
+        (root / "motors.csv").write_text("t," + ",".join(f"u{i + 1}" for i in range(n))
+                                         + "\n0" + ",0" * n + "\n")
+        try:
+            with warnings.catch_warnings():     # a placeholder mission: no data to judge
+                warnings.simplefilter("ignore", MissionWarning)
+                parsed = load_mission(root)
+        except MissionFormatError as e:
+            raise MissionFormatError(f, e.problem, column=e.column) from None
+    if "thrusters" in raw:
+        m.thruster_dir, m.thruster_pos = parsed.thruster_dir, parsed.thruster_pos
+    m.usbl_station, m.origin = parsed.usbl_station, parsed.origin
+    m.extra = {k: v for k, v in parsed.extra.items() if k in MISSION_TABLES}
+
+
+def _entry(f: str, stream: str, v: Any) -> TopicSpec:
+    col = f"[topics] {stream}"
+    if isinstance(v, str):
+        if not v:
+            raise MissionFormatError(f, "empty topic name", column=col)
+        return TopicSpec(v)
+    if not isinstance(v, dict):
+        raise MissionFormatError(f, f"got {v!r}; expected a topic name or a table "
+                                    "{ topic = ..., ... }", column=col)
+    allowed = TOPIC_KEYS[stream]
+    for k in v:
+        if k not in allowed:
+            raise MissionFormatError(f, f"unknown key {k!r}; expected {', '.join(allowed)}",
+                                     column=col)
+    topic = v.get("topic")
+    if not isinstance(topic, str) or not topic:
+        raise MissionFormatError(f, "missing 'topic' (the topic or message name)", column=col)
+    inst = v.get("instance")
+    if inst is not None and (isinstance(inst, bool) or not isinstance(inst, int) or inst < 0):
+        raise MissionFormatError(f, f"instance {inst!r}; expected an integer >= 0",
+                                 column=col)
+    fields = {k: x for k, x in v.items() if k not in ("topic", "instance")}
+    need = {"depth": ("field",), "usbl": ("range", "bearing")}.get(stream, ())
+    for k in need:
+        if not isinstance(fields.get(k), str) or not fields[k]:
+            raise MissionFormatError(f, f"missing {k!r}: the message field holding the "
+                                        f"{'depth (m)' if k == 'field' else k}", column=col)
+    if "elevation" in fields and not isinstance(fields["elevation"], str):
+        raise MissionFormatError(f, "'elevation' must name a field", column=col)
+    for k in ("scale", "offset"):
+        if k in fields and not _is_num(fields[k]):
+            raise MissionFormatError(f, f"{k} {fields[k]!r}; expected a finite number",
+                                     column=col)
+    if fields.get("angle_unit", "rad") not in ("rad", "deg"):
+        raise MissionFormatError(f, f"angle_unit {fields['angle_unit']!r}; expected "
+                                    "'rad' or 'deg'", column=col)
+    return TopicSpec(topic, inst, fields)
+
+
+def _topics(m: ImportMap, t: Any, f: str) -> None:
+    if t is None:
+        return
+    if not isinstance(t, dict):
+        raise MissionFormatError(f, f"got {t!r}; expected a [topics] table", column="topics")
+    for k, v in t.items():
+        if k not in STREAMS:
+            raise MissionFormatError(f, f"unknown stream; expected one of {', '.join(STREAMS)}",
+                                     column=f"[topics] {k}")
+        m.topics[k] = _entry(f, k, v)
+    if "usbl" in m.topics and m.usbl_station is None:
+        raise MissionFormatError(f, "a usbl topic needs [usbl] station = [north, east, down] "
+                                    "(m)", column="[usbl] station")
+
+
+def _is_num(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _per_thruster(f: str, key: str, v: Any, n: int | None) -> np.ndarray:
+    col = f"[motors] {key}"
+    if _is_num(v):
+        return np.full(n or 1, float(v))
+    if not (isinstance(v, list) and v and all(_is_num(x) for x in v)):
+        raise MissionFormatError(f, f"got {v!r}; expected a number (microseconds) or one "
+                                    "per thruster", column=col)
+    if n is not None and len(v) != n:
+        raise MissionFormatError(f, f"has {len(v)} entries; expected one per thruster ({n})",
+                                 column=col)
+    return np.array(v, dtype=float)
+
+
+def _motors(m: ImportMap, t: Any, f: str) -> None:
+    if t is None:
+        return
+    if not isinstance(t, dict):
+        raise MissionFormatError(f, f"got {t!r}; expected a [motors] table", column="motors")
+    known = ("channels", "reversed", "pwm_min", "pwm_trim", "pwm_max")
+    for k in t:
+        if k not in known:
+            raise MissionFormatError(f, f"unknown key; expected {', '.join(known)}",
+                                     column=f"[motors] {k}")
+    n = m.n_thrusters
+    if "channels" in t:
+        c = t["channels"]
+        if not (isinstance(c, list) and c and all(isinstance(x, int) and not isinstance(x, bool)
+                                                  and x >= 1 for x in c)):
+            raise MissionFormatError(f, f"got {c!r}; expected a list of output numbers "
+                                        "(1-based), one per thruster", column="[motors] channels")
+        if n is not None and len(c) != n:
+            raise MissionFormatError(f, f"has {len(c)} entries; expected one per thruster "
+                                        f"({n}, as in [thrusters] direction)",
+                                     column="[motors] channels")
+        m.channels = list(c)
+    if "reversed" in t:
+        r = t["reversed"]
+        if not (isinstance(r, list) and all(isinstance(x, bool) for x in r)) or (
+                n is not None and len(r) != n):
+            raise MissionFormatError(f, f"got {r!r}; expected one true/false per thruster",
+                                     column="[motors] reversed")
+        m.reversed = list(r)
+    pw = [k for k in ("pwm_min", "pwm_trim", "pwm_max") if k in t]
+    if pw and len(pw) < 3:
+        miss = next(k for k in ("pwm_min", "pwm_trim", "pwm_max") if k not in t)
+        raise MissionFormatError(f, "pwm_min, pwm_trim and pwm_max come together",
+                                 column=f"[motors] {miss}")
+    if pw:
+        lo, mid, hi = (_per_thruster(f, k, t[k], n) for k in ("pwm_min", "pwm_trim", "pwm_max"))
+        if not (len(lo) == len(mid) == len(hi)):
+            raise MissionFormatError(f, "pwm_min, pwm_trim, pwm_max have different lengths",
+                                     column="[motors] pwm_min")
+        if not (np.all(lo < mid) and np.all(mid < hi)):
+            raise MissionFormatError(f, f"got min {lo.tolist()}, trim {mid.tolist()}, max "
+                                        f"{hi.tolist()}; expected pwm_min < pwm_trim < pwm_max",
+                                     column="[motors] pwm_trim")
+        m.pwm = PwmRange(lo, mid, hi)
+
+
+def _time(m: ImportMap, t: Any, f: str) -> None:
+    if t is None:
+        return
+    if not isinstance(t, dict):
+        raise MissionFormatError(f, f"got {t!r}; expected a [time] table", column="time")
+    for k, v in t.items():
+        col = f"[time] {k}"
+        if k == "stamp":
+            if v not in STAMPS:
+                raise MissionFormatError(f, f"got {v!r}; expected 'header' (the messages' own "
+                                            "stamps) or 'log' (the recorder's)", column=col)
+            m.stamp = v
+        elif k in ("max_gap", "max_skew"):
+            if not _is_num(v) or v <= 0:
+                raise MissionFormatError(f, f"got {v!r}; expected seconds > 0", column=col)
+            setattr(m, k, float(v))
+        elif k == "utc_zero":
+            if not _is_num(v) or v < 0:
+                raise MissionFormatError(f, f"got {v!r}; expected the UTC time of mission "
+                                            "t = 0 in unix seconds", column=col)
+            m.utc_zero = float(v)
+        else:
+            raise MissionFormatError(f, "unknown key; expected stamp, max_gap, max_skew, "
+                                        "utc_zero", column=col)

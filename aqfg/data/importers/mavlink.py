@@ -1,0 +1,289 @@
+"""MAVLink telemetry logs (``.tlog``) and ArduPilot DataFlash logs (``.bin``) -> mission,
+read with ``pymavlink`` (the optional extra ``aqfg[mavlink]``).
+
+Both are NED/FRD already. Default messages: tlog ``ATTITUDE`` (or
+``ATTITUDE_QUATERNION``), ``GPS_RAW_INT`` (or ``GPS2_RAW``), ``SERVO_OUTPUT_RAW``;
+DataFlash ``ATT``, ``GPS`` (accuracy from ``GPA.HAcc``), ``RCOU``. Servo outputs are PWM
+pulse widths, normalised with the map's ``[motors] pwm_min/pwm_trim/pwm_max``.
+
+Clocks: a tlog's messages carry the time the ground station logged them (unix time, one
+clock for every message; telemetry latency is not removed); DataFlash messages carry
+``TimeUS``, the autopilot's time since boot, tied to UTC through the GPS week and
+milliseconds when a GPS message has them.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aqfg.data.importers.common import (
+    ImportResult,
+    LogFormatError,
+    Series,
+    assemble,
+    motor_commands,
+    require,
+    scalar_streams,
+)
+from aqfg.data.importers.frames import euler_to_quat
+from aqfg.data.importers.mapfile import ImportMap, TopicSpec
+
+TLOG_DEFAULTS = {"imu": "ATTITUDE", "gnss": "GPS_RAW_INT", "motors": "SERVO_OUTPUT_RAW"}
+DF_DEFAULTS = {"imu": "ATT", "gnss": "GPS", "motors": "RCOU"}
+TLOG_TYPES = {"imu": ("ATTITUDE", "ATTITUDE_QUATERNION"), "gnss": ("GPS_RAW_INT", "GPS2_RAW"),
+              "motors": ("SERVO_OUTPUT_RAW",)}
+DF_TYPES = {"imu": ("ATT",), "gnss": ("GPS", "GPS2"), "motors": ("RCOU",)}
+GPS_EPOCH_UNIX = 315964800            # 1980-01-06T00:00:00Z in unix seconds
+# GPS - UTC (leap seconds) from the given unix time on
+LEAP_SECONDS = ((1136073600, 14), (1230768000, 15), (1341100800, 16), (1435708800, 17),
+                (1483228800, 18))
+DF_MAGIC = b"\xa3\x95"
+
+
+def read_mavlink(source: str | Path, imap: ImportMap) -> ImportResult:
+    """A tlog or a DataFlash ``.bin`` (told apart by the DataFlash header bytes)."""
+    source = Path(source)
+    src = str(source)
+    if not source.is_file():
+        raise LogFormatError(src, "no such file; expected a MAVLink .tlog or a DataFlash .bin")
+    require("pymavlink", "mavlink", "MAVLink logs")
+    with open(source, "rb") as fh:
+        head = fh.read(2)
+    if head == DF_MAGIC:
+        return _read_dataflash(source, imap)
+    return _read_tlog(source, imap)
+
+
+# ---------------------------------------------------------------------------- common
+
+def _select(src: str, imap: ImportMap, defaults: dict[str, str], types: dict[str, tuple],
+            present: dict[str, int], what: str) -> dict[str, TopicSpec]:
+    chosen: dict[str, TopicSpec] = {}
+    listing = ", ".join(f"{k} ({v})" for k, v in sorted(present.items())) or "none"
+    for stream in ("imu", "gnss", "motors", "usbl", "depth"):
+        spec = imap.topic(stream, defaults.get(stream))
+        if spec is None:
+            continue
+        if not present.get(spec.topic):
+            if stream == "gnss" and "gnss" not in imap.topics and "usbl" in imap.topics:
+                continue
+            raise LogFormatError(src, f"no {spec.topic} messages in the {what} (it has: "
+                                      f"{listing}); map [topics] {stream} to the message "
+                                      f"holding the {stream} stream", topic=spec.topic)
+        want = types.get(stream)
+        if want is not None and spec.topic not in want:
+            raise LogFormatError(src, f"the {stream} stream reads {' or '.join(want)}, not "
+                                      f"{spec.topic}", topic=spec.topic)
+        chosen[stream] = spec
+    return chosen
+
+
+def _generic(src: str, spec: TopicSpec, stream: str, rows: list[Any]) -> dict[str, np.ndarray]:
+    try:
+        return scalar_streams(spec.fields, stream, rows)
+    except (AttributeError, IndexError, KeyError, TypeError, ValueError) as e:
+        raise LogFormatError(src, f"cannot read the {stream} fields of {spec.topic}: {e}",
+                             topic=spec.topic) from None
+
+
+def _ns(seconds: float) -> int:
+    return round(seconds * 1e6) * 1000
+
+
+# ------------------------------------------------------------------------------ tlog
+
+def _mavutil():
+    from pymavlink import mavutil
+    # MAVLink 2 frames (and the 1.0 ones) parse only with the 2.0 dialect modules; pymavlink
+    # itself switches this way when it first meets a 2.0 frame.
+    if not mavutil.mavlink20() or mavutil.current_dialect != "ardupilotmega":
+        os.environ["MAVLINK20"] = "1"
+        mavutil.set_dialect("ardupilotmega")
+    return mavutil
+
+
+def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
+    src = str(source)
+    mavutil = _mavutil()
+    # mavmmaplog directly: mavlink_connection() would execute a path containing "/bin/"
+    try:
+        log = mavutil.mavmmaplog(src)
+    except Exception as e:  # noqa: BLE001 - pymavlink raises bare Exceptions on bad files
+        raise LogFormatError(src, f"cannot read as a MAVLink telemetry log: {e}") from None
+    present = {log.id_to_name[k]: n for k, n in getattr(log, "counts", {}).items()}
+    if not present:
+        raise LogFormatError(src, "no MAVLink messages found; expected a .tlog (8-byte "
+                                  "timestamp before each MAVLink message) or a DataFlash .bin")
+    chosen = _select(src, imap, TLOG_DEFAULTS, TLOG_TYPES, present, "telemetry log")
+    names = {s.topic for s in chosen.values()}
+    rows: dict[str, list[Any]] = {n: [] for n in names}
+    try:
+        while True:
+            msg = log.recv_match(type=names)
+            if msg is None:
+                break
+            if msg.get_type() in rows:
+                rows[msg.get_type()].append(msg)
+    finally:
+        log.close()
+    series: dict[str, Series] = {}
+    notes: list[str] = []
+    sysid = None
+    for stream, spec in chosen.items():
+        msgs = rows[spec.topic]
+        systems = sorted({m.get_srcSystem() for m in msgs})
+        want = spec.instance if spec.instance is not None else sysid
+        if want is None:
+            if len(systems) > 1:
+                raise LogFormatError(src, f"sent by several MAVLink systems {systems}; choose "
+                                          f"one: [topics] {stream} = {{ topic = "
+                                          f"\"{spec.topic}\", instance = SYSTEM_ID }}",
+                                     topic=spec.topic)
+            want = systems[0]
+        if stream == "imu":
+            sysid = want
+        msgs = [m for m in msgs if m.get_srcSystem() == want]
+        if not msgs:
+            raise LogFormatError(src, f"no {spec.topic} messages from MAVLink system {want} "
+                                      f"(systems sending it: {systems})", topic=spec.topic)
+        t = np.array([_ns(m._timestamp) for m in msgs], dtype=np.int64)
+        s = Series(stream, spec.topic, spec.topic, t, {})
+        if stream == "imu":
+            if spec.topic == "ATTITUDE":
+                q = euler_to_quat(*(np.array([getattr(m, k) for m in msgs], dtype=float)
+                                    for k in ("roll", "pitch", "yaw")))
+            else:
+                q = np.array([(m.q1, m.q2, m.q3, m.q4) for m in msgs], dtype=float)
+            s.data = {"q": q, "gyro": np.array([(m.rollspeed, m.pitchspeed, m.yawspeed)
+                                                for m in msgs], dtype=float)}
+        elif stream == "gnss":
+            s = _tlog_gnss(spec.topic, msgs, t)
+        elif stream == "motors":
+            port = np.array([getattr(m, "port", 0) for m in msgs])
+            if (port != 0).any():
+                notes.append(f"motors: {int((port != 0).sum())} {spec.topic} messages of "
+                             "port 1 (outputs 9-16 in MAVLink 1) left out")
+                msgs = [m for m, p in zip(msgs, port) if p == 0]
+                t = t[port == 0]
+            pwm = np.array([[getattr(m, f"servo{k}_raw", 0) for k in range(1, 17)]
+                            for m in msgs], dtype=float)
+            s = Series(stream, spec.topic, spec.topic, t,
+                       {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
+                                            what="servo output")})
+        else:
+            s.data = _generic(src, spec, stream, msgs)
+        series[stream] = s
+    return assemble(src, imap, series, "mavlink", "unix (ground station log time)",
+                    utc_offset=0.0, notes=notes)
+
+
+def _tlog_gnss(topic: str, msgs: list[Any], t: np.ndarray) -> Series:
+    fix = np.array([m.fix_type for m in msgs])
+    lat = np.array([m.lat for m in msgs], dtype=float) * 1e-7
+    lon = np.array([m.lon for m in msgs], dtype=float) * 1e-7
+    hacc = np.array([getattr(m, "h_acc", 0) for m in msgs], dtype=float) * 1e-3
+    keep = fix >= 2                                   # GPS_FIX_TYPE_2D_FIX and better
+    sigma = np.where(hacc > 0, hacc, np.nan)
+    return Series("gnss", topic, topic, t[keep],
+                  {"lat": lat[keep], "lon": lon[keep], "sigma": sigma[keep]},
+                  {"no fix (fix_type < 2)": int((~keep).sum())})
+
+
+# ------------------------------------------------------------------------- DataFlash
+
+def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
+    src = str(source)
+    from pymavlink import DFReader
+    try:
+        log = DFReader.DFReader_binary(src, zero_time_base=False)
+    except Exception as e:  # noqa: BLE001 - DFReader raises bare Exceptions on bad files
+        raise LogFormatError(src, f"cannot read as an ArduPilot DataFlash log: {e}") from None
+    present = {n: c for n, c in _df_counts(log).items() if c}
+    chosen = _select(src, imap, DF_DEFAULTS, DF_TYPES, present, "DataFlash log")
+    names = {s.topic for s in chosen.values()}
+    if "gnss" in chosen:
+        names.add("GPA")
+    rows: dict[str, list[Any]] = {n: [] for n in names}
+    while True:
+        msg = log.recv_match(type=names)
+        if msg is None:
+            break
+        if msg.get_type() in rows:
+            rows[msg.get_type()].append(msg)
+    series: dict[str, Series] = {}
+    notes: list[str] = []
+    utc_offset = None
+    for stream, spec in chosen.items():
+        msgs = rows[spec.topic]
+        if msgs and "I" in msgs[0].get_fieldnames():
+            inst = spec.instance or 0
+            msgs = [m for m in msgs if m.I == inst]
+            if not msgs:
+                raise LogFormatError(src, f"no {spec.topic} messages of instance I = {inst}",
+                                     topic=spec.topic)
+        t = np.array([int(m.TimeUS) * 1000 for m in msgs], dtype=np.int64)
+        s = Series(stream, spec.topic, spec.topic, t, {})
+        if stream == "imu":
+            att = np.radians(np.array([(m.Roll, m.Pitch, m.Yaw) for m in msgs], dtype=float))
+            s.data = {"q": euler_to_quat(att[:, 0], att[:, 1], att[:, 2])}
+        elif stream == "gnss":
+            s = _df_gnss(spec, msgs, rows.get("GPA", []), t)
+            utc_offset = _df_utc_offset(msgs)
+        elif stream == "motors":
+            cols = sorted(int(k[1:]) for k in msgs[0].get_fieldnames()
+                           if k[0] == "C" and k[1:].isdigit())
+            pwm = np.array([[getattr(m, f"C{k}") for k in range(1, max(cols) + 1)]
+                            for m in msgs], dtype=float)
+            s.data = {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
+                                          what="output")}
+        else:
+            s.data = _generic(src, spec, stream, msgs)
+        series[stream] = s
+    if utc_offset is None:
+        notes.append("no GPS week/time in the log: the mission's UTC time is unknown")
+    return assemble(src, imap, series, "mavlink", "boot (DataFlash TimeUS)",
+                    utc_offset=utc_offset, notes=notes)
+
+
+def _df_counts(log) -> dict[str, int]:
+    """Messages per type name of a DataFlash log (as DFReader indexed it)."""
+    counts = getattr(log, "counts", None)
+    out: dict[str, int] = {}
+    if counts is not None:
+        for mtype, n in enumerate(counts):
+            fmt = log.formats.get(mtype)
+            if fmt is not None and n:
+                out[fmt.name] = out.get(fmt.name, 0) + int(n)
+    return out
+
+
+def _df_gnss(spec: TopicSpec, msgs: list[Any], gpa: list[Any], t: np.ndarray) -> Series:
+    status = np.array([m.Status for m in msgs])
+    lat = np.array([m.Lat for m in msgs], dtype=float)
+    lon = np.array([m.Lng for m in msgs], dtype=float)
+    inst = spec.instance or 0
+    hacc = {int(m.TimeUS): float(m.HAcc) for m in gpa if getattr(m, "I", 0) == inst}
+    sigma = np.array([hacc.get(int(m.TimeUS), np.nan) for m in msgs])
+    sigma = np.where(sigma > 0, sigma, np.nan)
+    keep = status >= 2                                # 2D fix and better
+    return Series("gnss", spec.topic, spec.topic, t[keep],
+                  {"lat": lat[keep], "lon": lon[keep], "sigma": sigma[keep]},
+                  {"no fix (Status < 2)": int((~keep).sum())})
+
+
+def _df_utc_offset(msgs: list[Any]) -> float | None:
+    """UTC (unix s) at TimeUS = 0, from the first GPS message with a GPS week."""
+    for m in msgs:
+        wk, ms = int(getattr(m, "GWk", 0)), int(getattr(m, "GMS", 0))
+        if wk > 0:
+            gps = GPS_EPOCH_UNIX + wk * 604800 + ms * 1e-3
+            leap = 0
+            for since, n in LEAP_SECONDS:
+                if gps >= since:
+                    leap = n
+            return gps - leap - int(m.TimeUS) * 1e-6
+    return None
+

@@ -1,0 +1,164 @@
+"""Before a fit: make loaded missions safe to estimate from, and say what the fit will cost
+before anything is built.
+
+:func:`prepare` applies what the loader's warnings announce (fixes outside the inputs are
+not used, unknown GNSS sigmas take the mission's typical value, impossibly small ones are
+floored); :func:`estimate_cost` counts the state knots a factor graph of the missions needs
+and turns them into rough memory and time figures; :func:`check_cost` refuses, with the
+override named, above a limit. Pure functions of the missions: nothing here reads files.
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from aqfg.data.io.plausibility import GNSS_SIGMA_FLOOR
+from aqfg.data.mission import Depth, Gnss, Mission, Usbl
+
+log = logging.getLogger(__name__)
+
+# Measured per state knot of a 1-knot-per-second graph fed by a 50-Hz IMU and 10-Hz motors
+# (docs/reliability.md, "Cost estimate"); rough on purpose, the refusal is about orders of
+# magnitude (a mission whose times are in milliseconds needs 1000 times too many knots).
+KNOT_BYTES = 40e3           # peak resident memory per knot, bytes (update-error; graph 15e3)
+KNOT_SECONDS = 3.5e-3       # wall time per knot and fit, s (one core)
+DEFAULT_MAX_KNOTS = 50_000   # about 14 h of mission at one knot per second: ~2 GB, ~3 min
+
+
+class CostLimitError(ValueError):
+    """A fit whose estimated cost exceeds the limit; the message says how to override."""
+
+
+def _keep(s, sel):
+    if s is None or sel.all():
+        return s
+    if isinstance(s, Gnss):
+        return Gnss(s.t[sel], s.ne[sel], None if s.sigma is None else s.sigma[sel],
+                    None if s.latlon is None else s.latlon[sel])
+    if isinstance(s, Usbl):
+        return Usbl(s.t[sel], s.range[sel], s.bearing[sel],
+                    None if s.elevation is None else s.elevation[sel])
+    return Depth(s.t[sel], s.depth[sel])
+
+
+def prepare(mission: Mission) -> tuple[Mission, list[str]]:
+    """A copy of ``mission`` ready for the estimators, and one note per change made.
+
+    - GNSS, USBL and depth rows outside the inputs' span ``[mission.t0, mission.t1]`` are
+      left out (nothing predicts the motion there);
+    - GNSS ``sigma`` NaN ("unknown in this row", format doc) takes the median of the
+      mission's known sigmas, or, when none is known, the column is dropped so the
+      estimator's default applies;
+    - GNSS ``sigma`` below :data:`GNSS_SIGMA_FLOOR` is raised to it.
+
+    The input mission is not modified.
+    """
+    m = copy.copy(mission)
+    notes: list[str] = []
+    t0, t1 = mission.t0, mission.t1
+    for key in ("gnss", "usbl", "depth"):
+        s = getattr(m, key)
+        if s is None or not len(s.t):
+            continue
+        sel = (s.t >= t0) & (s.t <= t1)
+        if not sel.all():
+            notes.append(f"{mission.name}: {int((~sel).sum())} {key} rows outside the inputs "
+                         f"(t {t0:.6g} .. {t1:.6g} s) not used")
+            setattr(m, key, _keep(s, sel))
+    g = m.gnss
+    if g is not None and g.sigma is not None and len(g.t):
+        sig = np.asarray(g.sigma, dtype=float)
+        unknown = ~np.isfinite(sig)
+        if unknown.all():
+            notes.append(f"{mission.name}: GNSS sigma unknown in every row: the estimator's "
+                         "default is used")
+            sig = None
+        else:
+            if unknown.any():
+                typical = float(np.median(sig[~unknown]))
+                notes.append(f"{mission.name}: GNSS sigma unknown in {int(unknown.sum())} rows: "
+                             f"the mission's median {typical:.3g} m is used there")
+                sig = np.where(unknown, typical, sig)
+            low = sig < GNSS_SIGMA_FLOOR
+            if low.any():
+                notes.append(f"{mission.name}: GNSS sigma below {GNSS_SIGMA_FLOOR} m in "
+                             f"{int(low.sum())} rows raised to {GNSS_SIGMA_FLOOR} m")
+                sig = np.maximum(sig, GNSS_SIGMA_FLOOR)
+        if sig is None or not np.array_equal(sig, g.sigma, equal_nan=True):
+            m.gnss = Gnss(g.t, g.ne, sig, g.latlon)
+    for n in notes:
+        log.debug(n)
+    return m, notes
+
+
+@dataclass(frozen=True)
+class Cost:
+    """What fitting some missions will take, estimated before building anything."""
+    duration: float          # s of mission time covered by state knots, all missions
+    knots: int               # state knots of one factor graph over all missions
+    inputs: int              # IMU and motor rows integrated by the motion model
+    fixes: int               # GNSS and USBL fixes inside the inputs
+    fits: int                # how many times the graph is built and solved
+    memory_bytes: float      # rough peak memory of one fit
+    seconds: float           # rough wall time of all fits
+
+    def describe(self) -> str:
+        return (f"{self.knots:,} state knots ({_hours(self.duration)} of mission), "
+                f"{self.inputs:,} input rows, {self.fixes:,} fixes: about "
+                f"{_bytes(self.memory_bytes)} and {_duration(self.seconds)}"
+                + (f" for {self.fits} fits" if self.fits > 1 else ""))
+
+
+def _hours(s: float) -> str:
+    return f"{s / 3600:.3g} h" if s >= 3600 else f"{s / 60:.3g} min" if s >= 60 else f"{s:.3g} s"
+
+
+def _duration(s: float) -> str:
+    return _hours(s)
+
+
+def _bytes(b: float) -> str:
+    for unit, size in (("GB", 1e9), ("MB", 1e6)):
+        if b >= size:
+            return f"{b / size:.3g} {unit}"
+    return f"{b / 1e3:.3g} kB"
+
+
+def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
+                  fits: int = 1) -> Cost:
+    """Knots of a graph with one knot every ``knot_spacing`` s (plus one per fix) from each
+    mission's first fix to the end of its inputs, and the rough memory and time they need
+    (:data:`KNOT_BYTES`, :data:`KNOT_SECONDS`) for ``fits`` solves."""
+    if knot_spacing <= 0:
+        raise ValueError(f"knot spacing must be positive, got {knot_spacing}")
+    knots = inputs = fixes = 0
+    duration = 0.0
+    for m in missions:
+        t0, t1 = m.t0, m.t1
+        tf = m.fix_times()
+        tf = tf[(tf >= t0) & (tf <= t1)]
+        start = float(tf[0]) if len(tf) else t0
+        span = max(t1 - start, 0.0)
+        duration += span
+        knots += math.ceil(span / knot_spacing) + 1 + len(np.unique(tf))
+        inputs += len(m.imu.t) + len(m.motors.t)
+        fixes += len(tf)
+    return Cost(duration, knots, inputs, fixes, fits, knots * KNOT_BYTES,
+                knots * KNOT_SECONDS * fits)
+
+
+def check_cost(cost: Cost, max_knots: int | None = DEFAULT_MAX_KNOTS,
+               override: str = "--max-knots") -> None:
+    """Raise :class:`CostLimitError` when ``cost.knots`` exceeds ``max_knots`` (None: no
+    limit); the message gives the estimate, the likely cause and the override."""
+    if max_knots is None or cost.knots <= max_knots:
+        return
+    raise CostLimitError(
+        f"refusing to build a graph of {cost.describe()}; the limit is {max_knots:,} knots. "
+        "Are the times in seconds (not milliseconds), and is there no long gap between "
+        f"streams? To fit anyway, pass {override} {cost.knots}")

@@ -1,0 +1,169 @@
+"""The base fit's linearised factor graph with candidate effects added at their null value.
+
+This is the hook the score test needs (:mod:`aqfg.diagnose.score`): rebuild the batch
+smoother's graph (:class:`aqfg.fg.batch.BatchSmoother`, same settings, same knots) for
+a model with the candidate effects switched on and their parameters estimated, set every
+variable to the base fit's optimum with the candidate parameters at their null value,
+linearise once, and split the whitened Jacobian into the base fit's columns and the
+candidate columns. The dynamics factors get their candidate columns from the kernel's
+``J_p`` (which covers every dynamics parameter), the measurement factors from the
+measurement Jacobians (every parameter), so nothing is refitted.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+
+from aqfg.data.mission import Mission
+from aqfg.diagnose.score import LinearSystem
+from aqfg.fg.batch import BatchSmoother, BuiltGraph
+from aqfg.fg.common import FGSettings
+from aqfg.result import Result
+
+
+def linear_system(missions: list[Mission], result: Result, candidates, *,
+                  settings: FGSettings | None = None, built: BuiltGraph | None = None
+                  ) -> LinearSystem:
+    """Linearise the base fit ``result`` of ``missions`` with the ``candidates`` (effect
+    names or objects) added at their null value.
+
+    ``result`` must come from :class:`BatchSmoother` on the same missions (its knots are
+    re-derived from the missions and the settings and checked against the fitted tracks).
+    ``built``: the graph that fit was solved on (no candidates): reused instead of a rebuild.
+    """
+    settings = settings or result.info.get("settings") or FGSettings()
+    if settings.walk_sigma:
+        raise ValueError("the score test needs constant variable parameters (walk_sigma=None)")
+    base_model = result.model
+    cand = [c for c in candidates if c not in (base_model.effects if base_model else ())]
+    model = base_model.with_effects(*cand)
+    cand_effects = [e for e in model.effects if e.name not in {b.name for b in base_model.effects}]
+    cand_names = tuple(n for e in cand_effects for n in e.params)
+    estimate = tuple(result.estimated) + cand_names
+    if built is not None and not cand_names and tuple(built.layout.estimated) == estimate:
+        bg = built
+    else:
+        bg = BatchSmoother(model, estimate=estimate, settings=settings).build(list(missions))
+    layout, values, parts, node_list = bg.layout, bg.values, bg.parts, bg.nodes
+    # states from the fitted tracks (the knots must match)
+    for part, mres in zip(parts, result.missions):
+        if len(part.knots) != len(mres.track.t) or np.max(np.abs(part.knots - mres.track.t)) > 1e-6:
+            raise ValueError(f"mission {part.mission.name!r}: the fit's knots differ from the "
+                             "rebuilt graph's (fit and diagnosis must use the same settings)")
+        X = np.column_stack([mres.track.pos, mres.track.vel])
+        for k, x in zip(part.keys, X):
+            values.update(k, x)
+    # parameter nodes from the fitted full vectors (candidates at their null value)
+    for g, k, mi in node_list:
+        p = result.missions[mi or 0].p
+        full = model.nominal()
+        full[:len(p)] = p
+        v = full[layout.idx[g]]
+        for j, n in enumerate(layout.names[g]):
+            if n in cand_names:
+                v[j] = model.spec(n).null
+        values.update(k, v)
+    gfg = bg.linearize(values)
+
+    # columns: every state and node entry; candidate entries go to C
+    col_of: dict[int, np.ndarray] = {}
+    is_cand: list[bool] = []
+    names_c: list[str] = []
+    n = 0
+    for part in parts:
+        for k in part.keys:
+            col_of[k] = np.arange(n, n + 6)
+            is_cand += [False] * 6
+            n += 6
+    for g, k, _ in node_list:
+        d = layout.dim(g)
+        col_of[k] = np.arange(n, n + d)
+        for nm in layout.names[g]:
+            is_cand.append(nm in cand_names)
+            if nm in cand_names:
+                names_c.append(nm)
+        n += d
+    is_cand = np.array(is_cand)
+    # candidate columns may repeat (one sensor node per mission): sum them per name
+    cand_name_of_col = {}
+    for g, k, _ in node_list:
+        for i, nm in enumerate(layout.names[g]):
+            if nm in cand_names:
+                cand_name_of_col[int(col_of[k][i])] = nm
+    base_cols = np.nonzero(~is_cand)[0]
+    base_pos = -np.ones(n, int)
+    base_pos[base_cols] = np.arange(len(base_cols))
+    cpos = {nm: i for i, nm in enumerate(cand_names)}
+    # where the base fit's variables sit among the base columns
+    knot_cols = [base_pos[np.array([col_of[k] for k in part.keys])] for part in parts]
+    param_cols: dict = {}
+    for g, k, mi in node_list:
+        for i, nm in enumerate(layout.names[g]):
+            if nm not in cand_names:
+                for mj in (range(len(parts)) if mi is None else (mi,)):
+                    param_cols[(mj, nm)] = int(base_pos[col_of[k][i]])
+
+    knot_t = {}
+    for part in parts:
+        for i, k in enumerate(part.keys):
+            knot_t[k] = float(part.knots[i])
+    rows_i, rows_j, rows_v = [], [], []
+    C_rows, b_all, t_all, kind_all = [], [], [], []
+    r0 = 0
+    for fi in range(gfg.size()):
+        f = gfg.at(fi)
+        if f is None:
+            continue
+        A, b = f.jacobian()
+        keys = list(f.keys())
+        m = A.shape[0]
+        cols = np.concatenate([col_of[k] for k in keys])
+        Cblk = np.zeros((m, len(cand_names)))
+        cand_mask = is_cand[cols]
+        if cand_mask.any():
+            for c_local in np.nonzero(cand_mask)[0]:
+                Cblk[:, cpos[cand_name_of_col[int(cols[c_local])]]] += A[:, c_local]
+        bmask = ~cand_mask
+        # drop the prior rows of candidate parameters (the test is at the null, no prior)
+        keep_row = np.any(A[:, bmask] != 0, axis=1) | ~np.any(A[:, cand_mask] != 0, axis=1) \
+            if cand_mask.any() else np.ones(m, bool)
+        xs = [knot_t[k] for k in keys if k in knot_t]
+        nx = len(xs)
+        if nx == 2:
+            kind, t = "dynamics", max(xs)
+        elif nx == 1 and isinstance(bg.graph.at(fi), gtsam.CustomFactor):
+            kind, t = ("depth" if m == 1 else "fix"), xs[0]
+        else:
+            kind, t = "prior", np.nan
+        rr = np.nonzero(keep_row)[0]
+        Ab = A[np.ix_(rr, np.nonzero(bmask)[0])]
+        bc = base_pos[cols[bmask]]
+        ii, jj = np.nonzero(Ab)
+        rows_i.append(r0 + ii)
+        rows_j.append(bc[jj])
+        rows_v.append(Ab[ii, jj])
+        C_rows.append(Cblk[rr])
+        b_all.append(b[rr])
+        t_all.append(np.full(len(rr), t))
+        kind_all.append(np.full(len(rr), kind, dtype="<U8"))
+        r0 += len(rr)
+    Abase = sp.csr_matrix((np.concatenate(rows_v), (np.concatenate(rows_i), np.concatenate(rows_j))),
+                          shape=(r0, len(base_cols)))
+    specs = [model.spec(nm) for nm in cand_names]
+    return LinearSystem(Abase, np.vstack(C_rows), np.concatenate(b_all), cand_names,
+                        np.concatenate(t_all), np.concatenate(kind_all),
+                        np.array([s.null for s in specs]), np.array([s.lower for s in specs]),
+                        np.array([s.upper for s in specs]), np.array([s.scale for s in specs]),
+                        knots=[p.knots.copy() for p in parts], knot_cols=knot_cols,
+                        param_cols=param_cols)
+
+
+def effect_params(model, candidates) -> dict[str, tuple[str, ...]]:
+    """``{effect name: its full parameter names}`` for candidate effects."""
+    from aqfg.model.effects import resolve
+    out = {}
+    for c in candidates:
+        e = resolve(c)
+        out[e.name] = tuple(e.params)
+    return out

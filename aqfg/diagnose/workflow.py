@@ -1,0 +1,673 @@
+"""Model diagnosis: where the model fails, which physical effect is missing, and what adding
+it buys. ``diagnose(missions, model=None, effects=()) -> Diagnosis``; the loop that adds
+effects one at a time is :func:`aqfg.diagnose.sequence.diagnose_sequence`.
+
+The steps (each in its own module):
+
+1. **Compare** (:mod:`aqfg.diagnose.compare`): fit the model to all fixes (batch factor
+   graph); per sensor, measured vs predicted and the normalised residuals.
+2. **Hold out and dead-reckon** (:mod:`aqfg.diagnose.heldout`,
+   :mod:`aqfg.diagnose.fiteval`): refit on thinned fixes (GNSS one every ``gnss_every`` s,
+   every other USBL fix); from each fix of that fit the model alone predicts the held-out
+   fixes. Innovations to the next fit fix feed the consistency test
+   (:mod:`aqfg.diagnose.consistency`, windowed NIS vs chi-square); a longer ``horizon``
+   gives the dead-reckoning error (``rmse``).
+3. **Where it fails** (:mod:`aqfg.diagnose.conditions`): rank correlation of the residual
+   size with turns, speed, heading, thrust, reverse commands, distance to the station and
+   elapsed time, in words.
+4. **Which effect** (:mod:`aqfg.diagnose.score`, :mod:`aqfg.diagnose.linearise`): every
+   applicable catalogue effect gets a score (Lagrange-multiplier) test at its null on the
+   full fit's linearised graph (no refit), Holm-corrected; a block bootstrap over time
+   says how stable the ranking is. The significant ones (and the first whatever its
+   score) are refitted in score order (forward selection by the score statistic),
+   warm-started from the base fits
+   (:mod:`aqfg.diagnose.refit`; the fit to all fixes and the held-out fit in two
+   processes with ``jobs > 1``), until one is confirmed or ``max_refit`` were tried.
+5. **Verdict** (:mod:`aqfg.diagnose.confirm`): a candidate is *confirmed* when its
+   refit's likelihood ratio (Bonferroni over all candidates) and BIC, the direction of its
+   estimate against its score, and the held-out fixes (predictive likelihood up,
+   dead-reckoning error down) all agree. The first confirmed candidate is the *missing* effect;
+   every other candidate is tested again with the missing effect in the model (score test
+   at its refit) and labelled an *echo* of it (its evidence is gone) or *independent*
+   evidence (to add next), with the information it shares with the missing effect (can the
+   data tell them apart?). Nothing confirmed and consistent held-out fixes: "nothing
+   missing"; inconsistent held-out fixes that no candidate repairs: "something is missing
+   that the catalogue does not explain".
+
+``effects`` are effects the user adds to the model ("add it and watch the error fall"):
+the diagnosis then also fits the model without them and reports the before/after
+comparison, and keeps looking for anything else missing.
+
+From a notebook::
+
+    from aqfg.data import load_mission
+    from aqfg.diagnose import diagnose
+    m = load_mission("lake-run-07")
+    d = diagnose([m])
+    print(d.summary())                       # verdict, consistency, conditions, ranking
+    d.best.effect, d.best.estimate()         # the missing effect and its size +- sigma
+    report.fig_map(d); report.fig_growth(d)  # matplotlib figures
+    d2 = diagnose([m], effects=(d.best.effect,))   # add it: before/after in d2.before
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from aqfg.data.mission import Mission
+from aqfg.diagnose.compare import sensor_series, split_fixes
+from aqfg.diagnose.conditions import (
+    ConditionEffect,
+    adjust,
+    condition_signals,
+    in_words,
+    relate,
+)
+from aqfg.diagnose.confirm import (
+    SHARED_MAX,
+    Evidence,
+    HeldoutGain,
+    direction_agrees,
+    heldout_gain,
+    wald_statistic,
+)
+from aqfg.diagnose.consistency import ConsistencyTest
+from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
+from aqfg.diagnose.linearise import linear_system
+from aqfg.diagnose.score import (
+    Projected,
+    ScoreTest,
+    bootstrap_ranking,
+    project,
+    score_tests,
+    shared_information,
+)
+from aqfg.fg.common import FGSettings, check_missions, progress_fn
+from aqfg.model.effects import BUILTIN, resolve
+
+__all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
+           "evaluate", "save_diagnosis"]
+
+# what a candidate is, relative to the missing effect (or why it is not)
+STATUS_TEXT = {
+    "missing": "missing",
+    "independent": "independent evidence",
+    "echo": "echo",
+    "rejected": "not confirmed",
+    "untested": "significant score, not refitted",
+    "not significant": "no evidence",
+}
+
+
+@dataclass
+class Candidate:
+    """One catalogue effect, as ranked: its score test, its refit when done, and what it
+    is (``status``: "missing", "echo", "independent", "rejected", "not significant")."""
+    effect: str
+    params: tuple[str, ...]
+    score: ScoreTest
+    p_adjusted: float = float("nan")
+    refit: FitEval | None = None
+    lr: float = float("nan")            # likelihood ratio 2 (cost_base - cost_refit)
+    lr_p: float = float("nan")
+    wald: float = float("nan")          # Wald statistic of the refit's estimate
+    wald_p: float = float("nan")        # its p-value (Bonferroni over the candidates)
+    dbic: float = float("nan")          # BIC(refit) - BIC(base): negative favours the effect
+    gain: HeldoutGain | None = None     # held-out predictive gain of the refit
+    evidence: Evidence | None = None
+    significant: bool = False
+    confirmed: bool = False             # passes every test on its own (confirm module)
+    bootstrap_first: float = float("nan")
+    status: str = "not significant"
+    conditional: ScoreTest | None = None    # score test with the missing effect added
+    p_conditional: float = float("nan")     # its Holm-adjusted p-value
+    shared: float = float("nan")            # information shared with the missing effect
+
+    @property
+    def dll(self) -> float:
+        """Held-out predictive log-likelihood change of the refit (nan if not refitted)."""
+        return self.gain.dll if self.gain is not None else float("nan")
+
+    def estimate(self) -> dict:
+        """The effect's parameters with 1-sigma: from the refit when done, else the score
+        test's one-step estimate."""
+        if self.refit is not None:
+            return self.refit.values(self.params)
+        return {n: {"value": float(v), "sigma": float(s)}
+                for n, v, s in zip(self.params, self.score.estimate, self.score.sigma)}
+
+    def estimate_text(self) -> str:
+        return ", ".join(f"{n.split('.')[-1]} = {v['value']:.3g} +- {v['sigma']:.2g}"
+                         for n, v in self.estimate().items())
+
+    def status_text(self, missing: str | None = None) -> str:
+        """The status in words, e.g. "echo of linear_drag" or "not confirmed: BIC not
+        lower"."""
+        s = self.status
+        if s == "echo" and missing:
+            out = f"echo of {missing}"
+        elif s == "independent" and missing:
+            out = f"independent of {missing}"
+        elif s == "rejected" and self.evidence is not None:
+            out = "not confirmed: " + "; ".join(self.evidence.failed())
+        else:
+            out = STATUS_TEXT.get(s, s)
+        if missing and s != "missing" and np.isfinite(self.shared) and self.shared >= SHARED_MAX:
+            out += f" (not separable from {missing}: shared information {self.shared:.2f})"
+        return out
+
+
+@dataclass
+class Screen:
+    """Score tests of the candidates at one fit (``fit``), with the projected linear
+    system they came from (reused by the bootstrap and the next step of a sequence)."""
+    fit: object
+    proj: Projected | None
+    tests: list[ScoreTest]
+    adjusted: np.ndarray
+
+
+@dataclass
+class Diagnosis:
+    """Everything the diagnosis found (plot it from a notebook, or write it with
+    :func:`save_diagnosis`)."""
+    missions: list[Mission]
+    base: FitEval
+    ranking: list[Candidate]
+    missing: bool
+    unexplained: bool
+    verdict: str
+    conditions: list[ConditionEffect]
+    conditions_text: str
+    series: dict                                # mission name -> list[SensorSeries]
+    before: FitEval | None = None               # the model without the user-added effects
+    added: tuple[str, ...] = ()
+    settings: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    next_screen: Screen | None = None           # score tests with the missing effect added
+
+    @property
+    def best(self) -> Candidate | None:
+        """The missing effect (None when nothing is confirmed)."""
+        return self.ranking[0] if self.ranking and self.ranking[0].status == "missing" else None
+
+    def labelled(self, status: str) -> list[Candidate]:
+        return [c for c in self.ranking if c.status == status]
+
+    def confidence(self) -> dict:
+        """How sure the ranking is: the first candidate's share of block-bootstrap
+        resamples in which it has the best score (``bootstrap_first``), its rank by score
+        alone (``score_rank``: 1 = score and refit agree), and the BIC margin to the second
+        refitted candidate (``bic_margin``; > 10 is "very strong" on Kass & Raftery's
+        scale)."""
+        if not self.ranking:
+            return {}
+        first = self.ranking[0]
+        by_score = sorted(self.ranking, key=lambda c: (c.score.log10_p, -c.score.statistic))
+        refitted = sorted((c for c in self.ranking if c.refit is not None),
+                          key=lambda c: c.dbic)
+        margin = (refitted[1].dbic - refitted[0].dbic) if len(refitted) > 1 else float("nan")
+        return {"first": first.effect, "bootstrap_first": first.bootstrap_first,
+                "score_rank": 1 + by_score.index(first), "bic_margin": margin}
+
+    def confidence_text(self) -> str:
+        c = self.confidence()
+        if not c or self.best is None:
+            return ""
+        agree = ("score test and refit agree" if c["score_rank"] == 1 else
+                 f"the refit promotes it from rank {c['score_rank']} by score")
+        parts = [agree]
+        if np.isfinite(c["bootstrap_first"]):
+            parts.append(f"it has the best score in {100 * c['bootstrap_first']:.0f}% of "
+                         "time-block bootstrap resamples")
+        if np.isfinite(c["bic_margin"]):
+            parts.append(f"BIC margin to the next candidate {c['bic_margin']:.1f}")
+        return "Confidence in the ranking: " + "; ".join(parts) + "."
+
+    def to_json(self) -> dict:
+        """The ``diagnosis.json`` of the format doc (extra keys allowed)."""
+        rb = self.base.rmse
+        best = self.best.effect if self.best else None
+        rank = []
+        for c in self.ranking:
+            g = c.gain
+            rank.append({
+                "effect": c.effect, "status": c.status, "status_text": c.status_text(best),
+                "score": _num(c.score.statistic),
+                "p_value": _num(c.score.p_value), "p_adjusted": _num(c.p_adjusted),
+                "log10_p": _num(c.score.log10_p),
+                "estimate": {k: {"value": _num(v["value"]), "sigma": _num(v["sigma"])}
+                             for k, v in c.estimate().items()},
+                "rmse_before": _num(rb), "rmse_after": _num(c.refit.rmse) if _ho(c) else None,
+                "rmse_raw_before": _num(self.base.rmse_raw),
+                "rmse_raw_after": _num(c.refit.rmse_raw) if _ho(c) else None,
+                "score_robust": _num(c.score.statistic_robust),
+                "p_value_robust": _num(c.score.p_value_robust),
+                "lr": _num(c.lr), "lr_p_value": _num(c.lr_p), "delta_bic": _num(c.dbic),
+                "wald": _num(c.wald), "wald_p_value": _num(c.wald_p),
+                "refit_start": c.refit.full.info.get("start") if c.refit else None,
+                "delta_heldout_loglik": _num(c.dll),
+                "heldout_p_value": _num(g.p) if g is not None else None,
+                "consistent_after": (bool(c.refit.consistency.passed)
+                                     if c.refit and c.refit.consistency else None),
+                "failed": c.evidence.failed() if c.evidence is not None else None,
+                "p_conditional": _num(c.p_conditional),
+                "shared_with_missing": _num(c.shared),
+                "significant": bool(c.significant), "confirmed": bool(c.confirmed),
+                "bootstrap_first": _num(c.bootstrap_first)})
+        out = {"missing": bool(self.missing), "ranking": rank,
+               "missing_effect": best,
+               "unexplained": bool(self.unexplained), "verdict": self.verdict,
+               "missions": [m.name for m in self.missions],
+               "model_effects": list(self.base.effects),
+               "base": self.base.to_json(),
+               "consistency": self.base.consistency.to_json() if self.base.consistency else None,
+               "conditions": {"text": self.conditions_text,
+                              "tests": [e.to_json() for e in self.conditions]},
+               "confidence": self.confidence(),
+               "settings": self.settings,
+               "timings": self.timings}
+        if self.before is not None:
+            out["before"] = self.before.to_json()
+            out["added"] = list(self.added)
+        return _clean(out)
+
+    def summary(self) -> str:
+        """The ranked summary printed by ``aqfg diagnose``."""
+        L = [self.verdict]
+        if self.confidence_text():
+            L.append(self.confidence_text())
+        L.append("")
+        c = self.base.consistency
+        if c is not None:
+            L.append(f"Held-out fixes vs the model ({'+'.join(self.base.effects) or 'base model'}): "
+                     + c.summary())
+        L.append(f"Held-out dead-reckoning error: {self.base.rmse:.2f} m (the fixes' own noise "
+                 f"removed; RMS distance to the fixes {self.base.rmse_raw:.2f} m)")
+        L.append(self.conditions_text)
+        if self.before is not None:
+            b, a = self.before, self.base
+            L.append("")
+            L.append(f"Added {', '.join(self.added)}: held-out dead-reckoning error "
+                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({_pct(b.rmse, a.rmse)}; raw "
+                     f"{b.rmse_raw:.2f} -> {a.rmse_raw:.2f} m), consistency "
+                     f"{_ok(b.consistency)} -> {_ok(a.consistency)}, BIC {a.bic - b.bic:+.1f}")
+            for e in a.full.model.effects:
+                if e.name in self.added:
+                    for n, v in a.values(e.params).items():
+                        L.append(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}")
+        L.append("")
+        best = self.best.effect if self.best else None
+        L.append(f"{'rank':>4}  {'effect':<18} {'score':>9} {'p (Holm)':>9} {'dBIC':>8} "
+                 f"{'dLL held':>9} {'DR error before->after (raw), m':>32}  estimate; status")
+        for i, c in enumerate(self.ranking, 1):
+            est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
+                            for n, v in c.estimate().items())
+            dr = (f"{self.base.rmse:.2f} -> {c.refit.rmse:.2f} ({self.base.rmse_raw:.2f} -> "
+                  f"{c.refit.rmse_raw:.2f})" if _ho(c) else "")
+            flag = "*" if c.status == "missing" else " "
+            L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
+                     f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>32}  {est}; {c.status_text(best)}")
+        L.append("(* the missing effect: score, refit (LR, BIC, direction) and held-out fixes "
+                 "agree. dLL held: change of the held-out fixes' predictive log-likelihood. "
+                 "An echo's evidence is gone once the missing effect is in the model; "
+                 "independent evidence remains: add the missing effect and diagnose again, "
+                 "or use --auto.)")
+        return "\n".join(L)
+
+
+def _ho(c: Candidate) -> bool:
+    return c.refit is not None and c.refit.has_heldout
+
+
+def _num(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _clean(o):
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        return _num(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
+
+
+def _pct(a: float, b: float) -> str:
+    if not (np.isfinite(a) and np.isfinite(b)) or a <= 0:
+        return "n/a"
+    return f"{100 * (b - a) / a:+.0f}%"
+
+
+def _ok(c: ConsistencyTest | None) -> str:
+    return "n/a" if c is None else ("pass" if c.passed else "FAIL")
+
+
+# ---------------------------------------------------------------- the steps
+def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
+                      pool: Sequence | None = None) -> list:
+    """The effects to rank: ``pool`` (default: the built-in catalogue) plus ``extra`` (e.g.
+    :class:`~aqfg.model.effects.UserEffect` objects), without duplicates, without those already
+    in the model, and only those applicable to at least one mission."""
+    have = {resolve(e).name for e in model_effects}
+    out = []
+    for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
+        e = resolve(c)
+        if e.name in have or any(e.name == o.name for o in out):
+            continue
+        if any(e.applicable(m) for m in missions):
+            out.append(e)
+    return out
+
+
+def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
+           n_blocks: int = 20) -> Screen:
+    """Score tests of ``cands`` at the full fit ``fit`` (a :class:`~aqfg.result.Result`),
+    Holm-adjusted."""
+    if not cands:
+        return Screen(fit, None, [], np.zeros(0))
+    lin = linear_system(missions, fit, cands, settings=settings)
+    proj = project(lin)
+    tests = score_tests(proj, {c.name: tuple(c.params) for c in cands}, n_blocks=n_blocks)
+    return Screen(fit, proj, tests, _holm_log(np.array([t.log10_p for t in tests])))
+
+
+def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float) -> None:
+    """Likelihood ratio, BIC, direction and held-out tests of a refitted candidate."""
+    r = c.refit
+    c.lr = max(2.0 * (base.cost - r.cost), 0.0)
+    # Bonferroni over every candidate: valid although the refitted ones were chosen by
+    # their scores
+    c.lr_p = float(min(1.0, n_cands * stats.chi2.sf(c.lr, len(c.params))))
+    c.dbic = r.bic - base.bic
+    delta = np.array([r.full.values[n] - r.full.model.spec(n).null for n in c.params])
+    c.wald = wald_statistic(delta, effect_covariance(r.full, c.params))
+    c.wald_p = float(min(1.0, n_cands * stats.chi2.sf(c.wald, len(c.params))))
+    c.gain = heldout_gain(base.next_fix, r.next_fix, window)
+    c.evidence = Evidence(score=c.significant, lr=c.lr_p < alpha, bic=c.dbic < 0,
+                          direction=direction_agrees(c.score.gradient, delta),
+                          heldout=bool(np.isfinite(c.gain.dll) and c.gain.dll > 0),
+                          dr_error=bool(np.isfinite(r.rmse_raw) and r.rmse_raw < base.rmse_raw),
+                          wald=bool(np.isfinite(c.wald_p) and c.wald_p < alpha))
+    c.confirmed = c.evidence.confirmed
+
+
+def effect_covariance(res, names) -> np.ndarray:
+    """Joint covariance of the parameters ``names`` of a batch fit (first mission's nodes;
+    NaN where they sit in different nodes or were not estimated)."""
+    model = res.model
+    groups = {model.spec(n).group for n in names}
+    cov = res.info.get("covariance", {})
+    nan = np.full((len(names), len(names)), np.nan)
+    if len(groups) != 1 or not all(n in res.estimated for n in names):
+        return nan
+    g = groups.pop()
+    if g not in cov:
+        return nan
+    in_g = [n for n in res.estimated if model.spec(n).group == g]
+    idx = [in_g.index(n) for n in names]
+    return np.asarray(cov[g], float)[np.ix_(idx, idx)]
+
+
+def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (), **kw
+             ) -> Diagnosis:
+    """:func:`diagnose_step` with the BLAS thread pool limited to one thread (see
+    :func:`aqfg.diagnose.fiteval.blas_threads`); the arguments are :func:`diagnose_step`'s."""
+    with blas_threads(1):
+        return diagnose_step(missions, model, effects, **kw)
+
+
+def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (), *,
+             candidates: Sequence | None = None, extra_candidates: Sequence = (),
+             gnss_every: float = 8.0, horizon: float = 60.0, window: float = 60.0,
+             alpha: float = 0.01, n_refit: int = 1, max_refit: int = 4, n_boot: int = 200,
+             n_blocks: int = 20, memory: float = 8.0, settings: FGSettings | None = None,
+             jobs: int | None = None, progress=None, base_eval: FitEval | None = None,
+             base_screen: Screen | None = None) -> Diagnosis:
+    """Diagnose which effect the model (``model`` + ``effects``) is missing for ``missions``.
+
+    ``candidates``: effects to rank (default: every applicable catalogue effect not in the
+    model) plus ``extra_candidates`` (e.g. a :class:`~aqfg.model.effects.UserEffect`).
+    ``gnss_every`` (s): GNSS thinning of the held-out fits; ``horizon`` (s): dead-reckoning
+    legs for the held-out error; ``window`` (s): NIS test windows and the time blocks of
+    the held-out predictive test; ``alpha``: significance level of every test (after the
+    corrections named in the module docstring). The candidates with a significant score,
+    and the top ``n_refit`` whatever their score, are refitted best score first until one
+    is confirmed, at most ``max(n_refit, max_refit)`` of them.
+    ``memory`` (s): how far back conditions are averaged before each residual. ``jobs``:
+    processes for a refit (default 2 where two CPUs are available; 1 = no worker).
+    ``base_eval`` / ``base_screen``: the model's evaluation and score tests when already
+    computed (the previous step of a sequence).
+    """
+    prog = progress_fn(progress)
+    missions = check_missions(missions)
+    settings = settings or FGSettings()
+    effects = tuple(resolve(e) for e in effects)
+    jobs = default_jobs() if jobs is None else max(1, int(jobs))
+    timings: dict = {}
+    t0 = time.perf_counter()
+    splits = [split_fixes(m, gnss_every) for m in missions]
+    ev_kw = {"settings": settings, "horizon": horizon, "window": window}
+    names = tuple(e.name for e in effects)
+
+    prog(0.02, "fitting the model")
+    label = "with " + "+".join(names) if effects else "model"
+    base = base_eval if base_eval is not None else evaluate(missions, splits, model, effects,
+                                                            label, **ev_kw)
+    before = None
+    if effects and base_eval is None:
+        prog(0.1, "fitting the model without the added effects")
+        before = evaluate(missions, splits, model, (), "without " + "+".join(names), **ev_kw)
+    timings["base"] = time.perf_counter() - t0
+
+    # score tests on the full fit's linearised graph
+    prog(0.2, "score tests")
+    t1 = time.perf_counter()
+    cands = candidate_effects(missions, base.full.model.effects, extra_candidates, candidates)
+    cand_of = {c.name: c for c in cands}
+    if (base_screen is not None and base_screen.fit is base.full
+            and [t.effect for t in base_screen.tests] == [c.name for c in cands]):
+        scr = base_screen
+    else:
+        scr = screen(missions, base.full, cands, settings, n_blocks)
+    ranking: list[Candidate] = []
+    if scr.tests:
+        eff_params = {c.name: tuple(c.params) for c in cands}
+        boot = (bootstrap_ranking(scr.proj, eff_params, n_boot=n_boot, n_blocks=n_blocks)
+                if n_boot else {})
+        for t, a in zip(scr.tests, scr.adjusted):
+            ranking.append(Candidate(t.effect, t.params, t, float(a),
+                                     significant=bool(a < alpha),
+                                     bootstrap_first=boot.get(t.effect, float("nan"))))
+        ranking.sort(key=lambda c: (c.score.log10_p, -c.score.statistic))
+    timings["score"] = time.perf_counter() - t1
+
+    # refit the significant candidates in score order (forward selection by the score
+    # statistic), warm-started from the base fits, until one is confirmed
+    t2 = time.perf_counter()
+    n_sig = sum(c.significant for c in ranking)
+    k = min(len(ranking), max(n_refit, min(n_sig, max_refit)))
+    best = None
+    for i, c in enumerate(ranking[:k]):
+        prog(0.3 + 0.5 * i / k, f"refitting with {c.effect}")
+        c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
+                           f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
+        _judge(c, base, len(ranking), alpha, window)
+        if c.confirmed:
+            best = c
+            break
+    timings["refit"] = time.perf_counter() - t2
+
+    # the missing effect, and what the others are once it is in the model
+    t3 = time.perf_counter()
+    next_scr = None
+    if best is not None:
+        prog(0.85, f"testing the others with {best.effect} added")
+        best.status = "missing"
+        others = [c for c in cands if c.name != best.effect]
+        next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
+        cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+        for c in ranking:
+            if c is best:
+                continue
+            c.conditional, c.p_conditional = cond.get(c.effect, (None, float("nan")))
+            c.shared = shared_information(scr.proj, best.params, c.params)
+            if np.isfinite(c.p_conditional) and c.p_conditional < alpha:
+                c.status = "independent"
+            elif c.significant:
+                c.status = "echo"
+            else:
+                c.status = "not significant"
+    else:
+        for c in ranking:
+            c.status = ("not significant" if not c.significant else
+                        "rejected" if c.refit is not None else "untested")
+    order = {"missing": 0, "independent": 1, "echo": 2, "rejected": 3, "untested": 4,
+             "not significant": 5}
+    ranking.sort(key=lambda c: (order[c.status],
+                                c.p_conditional if c.status == "independent" else 0.0,
+                                c.dbic if c.refit is not None else np.inf,
+                                c.score.log10_p))
+    timings["conditional"] = time.perf_counter() - t3
+
+    # where it fails
+    prog(0.92, "relating residuals to conditions")
+    conds, series = _conditions(missions, base, memory)
+    text = in_words(conds)
+    missing = best is not None
+    verdict, unexplained = _verdict(base, ranking, best, cand_of)
+    timings["total"] = time.perf_counter() - t0
+    prog(1.0, "done")
+    sett = {"gnss_every": gnss_every, "horizon": horizon, "window": window, "alpha": alpha,
+            "max_refit": max_refit, "n_blocks": n_blocks, "n_boot": n_boot, "memory": memory,
+            "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
+            "jobs": jobs}
+    return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
+                     series, before, names if base_eval is None else (), sett, timings,
+                     next_scr)
+
+
+def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
+             cand_of: dict) -> tuple[str, bool]:
+    cons = base.consistency
+    if best is not None:
+        r = best.refit
+        g = best.gain
+        v = (f"Missing: {best.effect} ({cand_of[best.effect].description}): "
+             f"{best.estimate_text()}. Score test p = {best.p_adjusted:.2g} (Holm); refit: "
+             f"likelihood-ratio p = {best.lr_p:.2g}, dBIC = {best.dbic:.1f}; held-out fixes "
+             f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); held-out "
+             f"dead-reckoning error {base.rmse:.2f} -> {r.rmse:.2f} m "
+             f"({_pct(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
+             f"included: {base.rmse_raw:.2f} -> {r.rmse_raw:.2f} m).")
+        if cons is not None and cons.passed:
+            v += (" The model was already consistent with the held-out fixes; the effect "
+                  "still predicts them better.")
+        echoes = [c.effect for c in ranking if c.status == "echo"]
+        indep = [c for c in ranking if c.status == "independent"]
+        insep = [c for c in ranking if c is not best and np.isfinite(c.shared)
+                 and c.shared >= SHARED_MAX and (c.significant or c.status == "independent")]
+        if echoes:
+            v += (f" Echoes of {best.effect} (their evidence is gone once it is in the model): "
+                  f"{', '.join(echoes)}.")
+        if indep:
+            v += (f" Independent evidence with {best.effect} in the model: "
+                  + ", ".join(f"{c.effect} (p = {c.p_conditional:.2g})" for c in indep)
+                  + f"; add {best.effect} and diagnose again (or use --auto).")
+        if insep:
+            v += (f" The data cannot tell {best.effect} apart from "
+                  + ", ".join(f"{c.effect} (shared information {c.shared:.2f})" for c in insep)
+                  + ": the choice rests on the refits.")
+        after = r.consistency
+        unexplained = False
+        if after is not None and not after.passed and not indep:
+            unexplained = True
+            v += (" The held-out fixes are still not consistent with it added, and no other "
+                  "candidate keeps independent evidence: something the catalogue does not "
+                  "explain is missing as well.")
+        return v, unexplained
+    rejected = [c for c in ranking if c.status == "rejected"]
+    why = ""
+    if rejected:
+        why = " " + " ".join(f"{c.effect} has a significant score but is {c.status_text()}."
+                             for c in rejected[:3])
+    if cons is not None and not cons.passed:
+        return ("Something is missing that the catalogue does not explain: the held-out "
+                "fixes are not consistent with the model, and no candidate effect is "
+                "confirmed." + why), True
+    return ("Nothing missing: no candidate effect is confirmed, and the held-out fixes are "
+            "consistent with the model." + why), False
+
+
+def resolve_description(name: str, cands) -> str:
+    for c in cands:
+        if c.name == name:
+            return c.description
+    return ""
+
+
+def _holm_log(log10_p: np.ndarray) -> np.ndarray:
+    """Holm-adjusted p-values from log10 p-values (exact for tiny p)."""
+    m = len(log10_p)
+    o = np.argsort(log10_p)
+    adj = np.empty(m)
+    run = -np.inf
+    for k, i in enumerate(o):
+        run = max(run, min(0.0, math.log10(m - k) + log10_p[i]))
+        adj[i] = 10 ** run
+    return adj
+
+
+def _conditions(missions, base: FitEval, memory: float):
+    """Residual series of the base model related to the conditions of each mission."""
+    series = {}
+    effects: list[ConditionEffect] = []
+    per_series: dict[str, list] = {}
+    for i, m in enumerate(missions):
+        mres = base.full.missions[i]
+        sig = condition_signals(m, mres.track, float(mres.p[0]))
+        ss = sensor_series(mres)
+        series[m.name] = ss
+        for s in ss:
+            per_series.setdefault(f"fit {s.sensor}", []).append(
+                (s.t, s.nis / np.maximum(s.dof, 1), sig))
+        if base.next_fix:
+            h = base.next_fix[i]
+            u = h.used
+            per_series.setdefault("held-out fixes", []).append((h.t[u], h.nis[u] / 2.0, sig))
+    for name, parts in per_series.items():
+        for t, y, sig in parts:
+            effects += relate(name, t, y, sig, memory=memory)
+    return adjust(effects), series
+
+
+# ---------------------------------------------------------------- output
+def save_diagnosis(diag: Diagnosis, out_dir, overwrite: bool = False, plots: bool = True):
+    """Write ``diagnosis.json`` and a self-contained ``report.html`` into ``out_dir``."""
+    from pathlib import Path
+
+    from aqfg.diagnose.report import write_report
+    out = Path(out_dir)
+    targets = [out / "diagnosis.json", out / "report.html"]
+    existing = [str(p) for p in targets if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "diagnosis.json", "w") as f:
+        json.dump(diag.to_json(), f, indent=2)
+    write_report(diag, out / "report.html", plots=plots)
+    return out

@@ -1,0 +1,98 @@
+"""Trajectories in formats other tools read (format doc, "Outputs").
+
+- :func:`track_csv`: ``t, north, east, down, vn, ve, vd`` and, when the mission has an
+  ``[origin]``, ``lat, lon`` (degrees WGS84, :mod:`aqfg.data.geodesy`);
+- :func:`tum_text`: the TUM trajectory format (``t x y z qx qy qz qw``, space separated)
+  read by evo and most SLAM evaluation tools: position NED (m), orientation body (FRD) ->
+  NED, i.e. the IMU attitude turned by the estimated heading offset (paper Eq. 6);
+- :func:`geojson_track`: an RFC 7946 FeatureCollection (lon, lat) of the estimated and the
+  model-only tracks, for GIS; needs an ``[origin]``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from aqfg.data.geodesy import ne_to_latlon
+from aqfg.data.mission import Mission
+from aqfg.result import MissionResult, Result, Track
+
+TRACK_HEADER = "t,north,east,down,vn,ve,vd"
+
+
+def track_csv(tr: Track, origin: tuple[float, float] | None = None) -> str:
+    """CSV text of a track; ``lat, lon`` columns appended when ``origin`` is given."""
+    cols = [np.asarray(tr.t)[:, None], np.asarray(tr.pos), np.asarray(tr.vel)]
+    fmt = ["%.6f"] * 7
+    header = TRACK_HEADER
+    if origin is not None and len(tr.t):
+        cols.append(ne_to_latlon(np.asarray(tr.pos)[:, :2], origin))
+        fmt += ["%.9f", "%.9f"]
+        header += ",lat,lon"
+    data = np.column_stack(cols) if len(tr.t) else np.zeros((0, len(fmt)))
+    lines = [header] + [",".join(f % v for f, v in zip(fmt, row)) for row in data]
+    return "\n".join(lines) + "\n"
+
+
+def _value(result: Result, mr: MissionResult, name: str, default: float = 0.0) -> float:
+    """One mission's value of a parameter: its own vector when the model is known."""
+    model = result.model
+    if model is not None and name in getattr(model, "all_names", ()):
+        return float(mr.p[model.index(name)])
+    return float(result.values.get(name, default))
+
+
+def heading_offset(result: Result, mr: MissionResult, t: np.ndarray, t0: float) -> np.ndarray:
+    """theta_e (+ heading_drift.rate x (t - t0)) of one mission, rad, at times ``t``."""
+    th = _value(result, mr, "theta_e")
+    rate = _value(result, mr, "heading_drift.rate")
+    return th + rate * (np.asarray(t, dtype=float) - t0)
+
+
+def orientation(result: Result, mr: MissionResult, mission: Mission, t: np.ndarray
+                ) -> np.ndarray:
+    """(n, 4) quaternions w, x, y, z body -> NED: the IMU attitude at ``t`` turned about
+    down by the estimated heading offset (true yaw = reported yaw + theta_e)."""
+    from aqfg.model.vehicle import interp_quat
+    q = interp_quat(mission.imu.t, mission.imu.q, np.asarray(t, dtype=float))
+    h = 0.5 * heading_offset(result, mr, t, mission.t0)
+    c, s = np.cos(h), np.sin(h)              # rotation about z: (c, 0, 0, s) (x) q
+    w, x, y, z = q.T
+    return np.stack([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w], axis=1)
+
+
+def tum_text(result: Result, mr: MissionResult, mission: Mission) -> str:
+    """The estimated track in TUM format (``t x y z qx qy qz qw``), NED metres."""
+    tr = mr.track
+    q = orientation(result, mr, mission, tr.t)
+    data = np.column_stack([tr.t, tr.pos, q[:, 1:], q[:, :1]])
+    head = ("# aqfg trajectory, TUM format: t x y z qx qy qz qw; x north, y east, z down (m); "
+            "orientation body (x forward, y starboard, z down) -> NED\n")
+    return head + "".join(" ".join(f"{v:.9f}" if k < 1 else f"{v:.6f}" if k < 4 else f"{v:.9f}"
+                                   for k, v in enumerate(row)) + "\n" for row in data)
+
+
+def geojson_track(result: Result, mr: MissionResult, mission: Mission,
+                  provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A GeoJSON FeatureCollection with the estimated and the model-only (inertial) track
+    as LineStrings of [lon, lat] (WGS84 degrees); needs ``mission.origin``."""
+    if mission.origin is None:
+        raise ValueError(f"mission {mission.name!r} has no [origin]: no geographic track")
+    feats = []
+    lab = "smoothed" if result.mode == "batch" else "corrected"
+    for kind, tr in ((lab, mr.track), ("inertial", mr.inertial)):
+        if not len(tr.t):
+            continue
+        ll = ne_to_latlon(np.asarray(tr.pos)[:, :2], mission.origin)
+        feats.append({"type": "Feature",
+                      "geometry": {"type": "LineString",
+                                   "coordinates": [[round(float(lo), 8), round(float(la), 8)]
+                                                   for la, lo in ll]},
+                      "properties": {"mission": mr.name, "track": kind,
+                                     "method": result.method, "mode": result.mode,
+                                     "t_start": float(tr.t[0]), "t_end": float(tr.t[-1])}})
+    doc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
+    if provenance is not None:
+        doc["provenance"] = provenance
+    return doc

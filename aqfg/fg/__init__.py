@@ -1,0 +1,8 @@
+"""Factor-graph smoothing on GTSAM: dynamics and sensor factors with parameter nodes, the
+batch smoother of whole missions and the online fixed-lag smoother."""
+from aqfg.fg.batch import BatchSmoother
+from aqfg.fg.common import FGSettings
+from aqfg.fg.fit import fit_fg
+from aqfg.fg.fixed_lag import FixedLagSmoother
+
+__all__ = ["BatchSmoother", "FGSettings", "FixedLagSmoother", "fit_fg"]

@@ -1,0 +1,84 @@
+"""Is a batch solution physically plausible? Detects the degenerate basins a misspecified
+model can prefer.
+
+When the model is not the vehicle, the lowest cost can belong to a solution no vessel can
+realise: a heading offset tens of degrees off, with the vehicle sliding sideways through
+the water (sway drag near zero), the process noise doing the work the thrust should do.
+Two checks, neither tied to a particular vehicle:
+
+* **slip**: a propeller pushes a hull along its thrust axis; the water-relative velocity
+  of a propelled vehicle is (nearly) along that axis. The median angle between the
+  water-relative body velocity and the thrust axis, over the samples where the vehicle
+  thrusts and moves, must stay below ``max_slip`` (45 deg: halfway to sideways).
+* **bounds**: an estimated thrust or drag constant pinned at its lower bound (no thrust,
+  or no drag on an axis) is not a vehicle.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aqfg.data.mission import Mission
+from aqfg.model.reference import rot_z
+from aqfg.model.vehicle import Model, attitude_at, demand
+
+
+@dataclass
+class Plausibility:
+    """Verdict on one solution."""
+    plausible: bool
+    slip_deg: float | None               # median slip angle (deg); None if not testable
+    pinned: list[str] = field(default_factory=list)   # constants at their lower bound
+    reasons: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"plausible": self.plausible, "slip_deg": self.slip_deg,
+                "pinned": list(self.pinned), "reasons": list(self.reasons)}
+
+
+def slip_angle(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.ndarray
+               ) -> float | None:
+    """Median angle (deg) between the water-relative body velocity and the thrust axis at
+    times ``t`` (states ``X`` (n, 6), parameters ``p``), over thrusting, moving samples."""
+    if mission.motors is None or not len(mission.motors.t) or len(t) < 10:
+        return None
+    th = p[model.index("theta_e")] + (p[model.index("heading_drift.rate")]
+                                      * (t - model.t0) if "heading_drift.rate" in model.all_names
+                                      else 0.0)
+    R_raw = attitude_at(mission, t)
+    th = np.broadcast_to(th, t.shape)
+    R = np.einsum("nij,njk->nik", np.array([rot_z(a) for a in th]), R_raw)
+    v_r = X[:, 3:6] - np.array([p[model.index("s_x")], p[model.index("s_y")], 0.0])
+    v_b = np.einsum("nji,nj->ni", R, v_r)
+    jm = np.clip(np.searchsorted(mission.motors.t, t, side="right") - 1, 0, None)
+    d = demand(mission.motors.u[jm])                      # (n, N)
+    f_b = d @ model.geometry.dirs                         # (n, 3) thrust direction, body
+    vh, fh = v_b[:, :2], f_b[:, :2]
+    sv, sf = np.linalg.norm(vh, axis=1), np.linalg.norm(fh, axis=1)
+    if not np.any(sf > 0) or not np.any(sv > 0):
+        return None
+    sel = (sf > 0.2 * np.percentile(sf, 90)) & (sv > max(0.25 * np.median(sv), 0.05))
+    if sel.sum() < max(10, 0.1 * len(t)):
+        return None
+    c = np.abs(np.sum(vh[sel] * fh[sel], axis=1)) / (sv[sel] * sf[sel])
+    return float(np.degrees(np.median(np.arccos(np.clip(c, 0.0, 1.0)))))
+
+
+def check(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.ndarray,
+          estimated: tuple[str, ...], max_slip: float = 45.0) -> Plausibility:
+    """Slip and bound checks of one mission's solution (see the module docstring)."""
+    reasons = []
+    slip = slip_angle(model, mission, t, X, p)
+    if slip is not None and slip > max_slip:
+        reasons.append(f"the vehicle moves {slip:.0f} deg off its thrust axis through the water "
+                       f"(a hull is pushed along it; above {max_slip:.0f} deg is not a vessel)")
+    pinned = []
+    for n in ("k", "k_x", "k_yz"):
+        if n in estimated:
+            spec = model.spec(n)
+            if p[model.index(n)] <= spec.lower * 10.0:
+                pinned.append(n)
+    if pinned:
+        reasons.append(f"{', '.join(pinned)} at the lower bound (no thrust or no drag)")
+    return Plausibility(not reasons, slip, pinned, reasons)

@@ -1,0 +1,244 @@
+"""Every vehicle's joint fit on Dask: the client runs each vehicle's Levenberg-Marquardt
+loop (:func:`aqfg.fg.schur.joint_lm`) and the workers hold the missions.
+
+Each round, every vehicle still iterating asks all its missions for the same operation; the
+rounds of all vehicles go out together as one task per mission, pinned to the worker that
+holds the mission's session (first come: spread evenly). A worker that dies has its tasks
+re-run elsewhere by Dask; the new worker rebuilds the mission from its path and the loop
+goes on (see :class:`aqfg.fg.schur.MissionSession`).
+"""
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aqfg.fg.common import FGSettings
+from aqfg.fg.schur import Solution, combine, joint_lm
+from aqfg.fleet.manifest import Manifest
+from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, release
+from aqfg.result import Result
+
+
+class FleetError(ValueError):
+    """A fleet run that cannot go on; the message names the vehicle and mission."""
+
+
+@dataclass
+class FleetResult:
+    """Each vehicle's joint fit (a :class:`Result` shaped as ``BatchSmoother.run``'s) and
+    how the run went."""
+    manifest: Manifest
+    results: dict[str, Result]
+    diagnosis: dict[str, dict[str, dict]] = field(default_factory=dict)  # vehicle -> mission
+    stats: dict = field(default_factory=dict)
+
+
+def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
+              scheduler: str | None = None, settings: FGSettings | None = None,
+              effects: Sequence = (), estimate: Sequence[str] | None = None,
+              init: dict | None = None, gnss_every: float = 0.0, diagnose: bool = False,
+              progress=None, timeout: float | None = None) -> FleetResult:
+    """Fit every vehicle of ``manifest`` (its fixed parameters shared by its missions)
+    on Dask; equal to ``BatchSmoother(...).run(missions)`` per vehicle.
+
+    ``client``: a ``dask.distributed.Client``; without one, a client of the scheduler at
+    ``scheduler`` or of a new ``LocalCluster`` of ``workers`` processes (one thread each)
+    is made for the call and closed after it. ``gnss_every``: keep one GNSS fix every so
+    many seconds (``aqfg fit --gnss-every``). ``diagnose``: also run each mission's
+    diagnosis (``aqfg diagnose`` on it alone). ``progress``: as for the smoothers (True:
+    a line on stderr). ``timeout``: seconds a round may take before the run fails.
+    """
+    from aqfg.fg.common import progress_fn
+    show = progress_fn(progress)
+    own = None
+    if client is None:
+        client, own = _client(workers, scheduler)
+    try:
+        return _fit(client, manifest, settings or FGSettings(), tuple(effects),
+                    None if estimate is None else tuple(estimate), dict(init or {}),
+                    float(gnss_every), diagnose, show, timeout)
+    finally:
+        if own is not None:
+            client.close()
+            own.close()
+
+
+def _client(workers: int, scheduler: str | None):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise FleetError("the fleet needs Dask: pip install 'aqfg[fleet]' "
+                         "(dask[distributed])") from None
+    import logging
+    if scheduler:
+        try:
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError) as e:
+            raise FleetError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
+    if workers < 1:
+        raise FleetError(f"--workers must be at least 1, got {workers}")
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,
+         timeout) -> FleetResult:
+    from distributed import as_completed
+    t0 = time.perf_counter()
+    run = uuid.uuid4().hex[:12]
+    specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
+                                  effects, estimate, init, gnss_every)
+                      for i, m in enumerate(v.missions)] for v in manifest.vehicles}
+    iters = {v: 0 for v in specs}
+
+    def counter(v):
+        def bump(msg: str) -> None:
+            iters[v] += 1
+        return bump
+    gens = {v: joint_lm(len(ms), settings, counter(v)) for v, ms in specs.items()}
+    pending = {v: next(g) for v, g in gens.items()}
+    sols: dict[str, Solution] = {}
+    where: dict[tuple, str] = {}               # mission key -> worker address
+    # by_op: {op: [missions served, compute seconds, reply bytes]}
+    stats = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
+             "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
+    n_total = manifest.n_missions
+    built_once: set = set()
+    while pending:
+        stats["rounds"] += 1
+        t_round = time.perf_counter()
+        alive = _workers(client)
+        chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
+        for v, reqs in pending.items():
+            for spec, (op, args) in zip(specs[v], reqs):
+                w = where.get(spec.key)
+                if w not in alive:
+                    w = where[spec.key] = _least_loaded(alive, where)
+                chunks.setdefault(w, []).append((v, spec, op, args))
+        futs = {client.submit(missions_op, [c[1:] for c in items], pure=False, workers=[w],
+                              allow_other_workers=True, retries=2,
+                              key=f"aqfg-{run}-{stats['rounds']}-{i}"): items
+                for i, (w, items) in enumerate(chunks.items())}
+        n_round = sum(len(items) for items in futs.values())
+        done = 0
+        replies: dict = {}
+        try:
+            for fut in as_completed(list(futs), timeout=timeout):
+                items = futs[fut]
+                try:
+                    reps = fut.result()
+                except Exception as e:             # re-raised with context
+                    names = ", ".join(f"{v}/{spec.name}" for v, spec, _, _ in items[:4])
+                    raise FleetError(f"a task for missions {names}"
+                                     f"{' ...' if len(items) > 4 else ''} failed: "
+                                     f"{type(e).__name__}: {e}") from e
+                for (v, spec, _, _), r in zip(items, reps):
+                    if "error" in r:
+                        raise FleetError(f"vehicle {v!r}, mission {spec.name!r} ({spec.path}): "
+                                         f"{r['error']}")
+                    replies[spec.key] = r
+                done += len(items)
+                stats["tasks"] += 1
+                its = ", ".join(f"{x} {iters[x]}" for x in gens if x not in sols)
+                show(min(0.99, len(sols) / len(gens)),
+                     f"round {stats['rounds']}: {done}/{n_round} missions done; "
+                     f"iterations: {its or '-'}")
+        except TimeoutError:
+            raise FleetError(f"round {stats['rounds']} took longer than {timeout} s") from None
+        t_client = time.perf_counter()
+        stats["round_seconds"].append(t_client - t_round)
+        new_pending = {}
+        for v, reqs in pending.items():
+            out = []
+            for spec in specs[v]:
+                r = replies[spec.key]
+                where[spec.key] = r.pop("worker")
+                if r.pop("built"):
+                    stats["rebuilt"] += spec.key in built_once
+                    built_once.add(spec.key)
+                sec = r.pop("seconds")
+                stats["task_seconds"] += sec
+                by = stats.setdefault("by_op", {}).setdefault(reqs[0][0], [0, 0.0, 0])
+                by[0] += 1
+                by[1] += sec
+                out.append(r)
+            nbytes = _size(out)
+            stats["by_op"][reqs[0][0]][2] += nbytes
+            stats["reply_bytes"] += nbytes
+            stats["request_bytes"] += _size(reqs)
+            try:
+                new_pending[v] = gens[v].send(out)
+            except StopIteration as stop:
+                sols[v] = stop.value
+        pending = new_pending
+        stats["client_seconds"] = stats.get("client_seconds", 0.0) + time.perf_counter() - t_client
+    stats["memory"] = _memory(client)
+    stats["workers"] = len(_workers(client))
+    client.run(release, run)
+    results = {v: combine(sols[v]) for v in specs}
+    diag = {}
+    if diagnose:
+        show(0.99, f"diagnosing {n_total} missions")
+        diag = _diagnose(client, specs, timeout)
+    stats["seconds"] = time.perf_counter() - t0
+    show(1.0, f"done: {len(results)} vehicles, {n_total} missions, {stats['rounds']} rounds, "
+              f"{stats['seconds']:.1f} s")
+    return FleetResult(manifest, results, diag, stats)
+
+
+def _diagnose(client, specs, timeout) -> dict:
+    futs = {(v, s.name): client.submit(diagnose_op, s, pure=False, retries=2)
+            for v, ms in specs.items() for s in ms}
+    out: dict = {}
+    for (v, name), fut in futs.items():
+        try:
+            out.setdefault(v, {})[name] = fut.result(timeout=timeout)
+        except Exception as e:  # noqa: BLE001 - a verdict, not the run
+            out.setdefault(v, {})[name] = {"verdict": f"diagnosis failed: {e}",
+                                           "missing": None, "best": None}
+    return out
+
+
+def _workers(client) -> list[str]:
+    return sorted(client.scheduler_info(n_workers=-1)["workers"])
+
+
+def _least_loaded(alive: list[str], where: dict) -> str:
+    if not alive:
+        raise FleetError("no Dask worker is running")
+    load = {w: 0 for w in alive}
+    for w in where.values():
+        if w in load:
+            load[w] += 1
+    return min(alive, key=lambda w: (load[w], w))
+
+
+def _memory(client) -> dict:
+    try:
+        return client.run(memory)
+    except Exception:  # noqa: BLE001 - statistics only
+        return {}
+
+
+def _size(obj) -> int:
+    import pickle
+    try:
+        return len(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+    except Exception:  # noqa: BLE001 - statistics only
+        return 0
+
+
+def vehicle_arrays(fr: FleetResult) -> tuple[list[str], tuple[str, ...], np.ndarray, np.ndarray]:
+    """Vehicles, fixed-parameter names, values (V, d) and covariances (V, d, d)."""
+    vs = list(fr.results)
+    names = tuple(n for n in fr.results[vs[0]].estimated
+                  if n not in next(iter(fr.results[vs[0]].info["per_mission"].values()), {}))
+    X = np.array([[fr.results[v].values[n] for n in names] for v in vs])
+    C = np.array([np.array(fr.results[v].info["covariance"].get("fixed", np.zeros((0, 0))))
+                  for v in vs])
+    return vs, names, X, C

@@ -1,0 +1,117 @@
+"""What runs on a Dask worker: a mission's session, built from its path on first use and
+kept in the worker process between rounds (keyed by run, vehicle and mission)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aqfg.fg.common import FGSettings
+from aqfg.fg.schur import MissionProblem, MissionSession
+
+_SESSIONS: dict[tuple, MissionSession] = {}
+
+
+@dataclass(frozen=True)
+class MissionSpec:
+    """Everything a worker needs to build a mission's graph: its path (read on the
+    worker), and the fit's options."""
+    run: str
+    vehicle: str
+    index: int
+    name: str
+    path: str
+    fixed_prior: bool
+    settings: FGSettings
+    effects: tuple = ()
+    estimate: tuple | None = None
+    init: dict = field(default_factory=dict)
+    gnss_every: float = 0.0
+
+    @property
+    def key(self) -> tuple:
+        return (self.run, self.vehicle, self.index)
+
+
+def load(spec: MissionSpec):
+    from aqfg.data.io import load_mission
+    from aqfg.data.mission import with_gnss_every
+    try:
+        m = load_mission(spec.path)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{e} (read on worker {_address()}: the missions must be on a "
+                                "file system the workers share)") from None
+    return with_gnss_every(m, spec.gnss_every) if spec.gnss_every else m
+
+
+def smoother(spec: MissionSpec):
+    from aqfg.fg.batch import BatchSmoother
+    return BatchSmoother(None, effects=spec.effects, estimate=spec.estimate,
+                         init=spec.init, settings=spec.settings)
+
+
+def mission_op(spec: MissionSpec, op: str, args: dict) -> dict:
+    """Serve one request of :func:`aqfg.fg.schur.joint_lm` for the mission ``spec``."""
+    t0 = time.perf_counter()
+    sess = _SESSIONS.get(spec.key)
+    built = sess is None
+    if built:
+        sess = MissionSession(MissionProblem(smoother(spec), load(spec),
+                                             fixed_prior=spec.fixed_prior))
+        _SESSIONS[spec.key] = sess
+    reply = sess.handle(op, args)
+    if op == "result":
+        _SESSIONS.pop(spec.key, None)
+    reply.update(worker=_address(), built=built, seconds=time.perf_counter() - t0)
+    return reply
+
+
+def missions_op(items: list) -> list[dict]:
+    """Serve a round's requests ``[(spec, op, args), ...]`` for the missions this worker
+    holds (one task per worker and round: the scheduler's cost is per task). A mission
+    whose request fails answers ``{"error": text}``."""
+    out = []
+    for spec, op, args in items:
+        try:
+            out.append(mission_op(spec, op, args))
+        except (OSError, ValueError, KeyError, RuntimeError, np.linalg.LinAlgError) as e:
+            out.append({"error": f"{type(e).__name__}: {e}"})
+    return out
+
+
+def diagnose_op(spec: MissionSpec) -> dict:
+    """The diagnosis verdict of one mission alone (``aqfg diagnose``'s workflow)."""
+    from aqfg.diagnose.workflow import diagnose
+    # jobs=1: a Dask worker process is daemonic and may not start the refits' own
+    # processes; the parallelism here is one mission per worker
+    d = diagnose([load(spec)], effects=spec.effects, gnss_every=spec.gnss_every or 8.0,
+                 jobs=1, progress=False)
+    best = d.best
+    return {"verdict": d.verdict, "missing": bool(d.missing),
+            "best": None if best is None else best.effect}
+
+
+def release(run: str) -> int:
+    """Drop the sessions of ``run`` from this worker; how many there were."""
+    keys = [k for k in _SESSIONS if k[0] == run]
+    for k in keys:
+        del _SESSIONS[k]
+    return len(keys)
+
+
+def memory() -> dict:
+    """This process's resident and peak resident memory (bytes)."""
+    import resource
+
+    import psutil
+    return {"rss": psutil.Process().memory_info().rss,
+            "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
+
+
+def _address() -> str:
+    try:
+        from distributed import get_worker
+        return get_worker().address
+    except (ImportError, ValueError):
+        return "local"

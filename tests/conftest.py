@@ -1,0 +1,33 @@
+"""Shared fixtures: the repository's own independent-vehicle missions (tests/data, see its
+README for their origin). Nothing here reads outside the repository."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+# Property tests: a moderate number of examples in CI; `pytest --hypothesis-profile=thorough`
+# for a deep local run.
+_QUIET = [HealthCheck.too_slow, HealthCheck.data_too_large]
+settings.register_profile("ci", max_examples=150, deadline=None, suppress_health_check=_QUIET)
+settings.register_profile("thorough", max_examples=10_000, deadline=None,
+                          suppress_health_check=_QUIET)
+settings.load_profile("ci")
+
+DATA = Path(__file__).resolve().parent / "data"
+OTTER_MISSIONS = ("otter-example", "otter-dev-calm-a", "otter-dev-calm-b",
+                  "otter-dev-current-weakprop", "otter-dev-yawdrift")
+
+
+def data_path(name: str) -> Path:
+    """Path of a mission in tests/data (fails clearly if the checkout lacks it)."""
+    p = DATA / name
+    assert (p / "mission.toml").is_file(), f"test mission {p} is missing from the checkout"
+    return p
+
+
+@pytest.fixture(scope="session")
+def otter() -> Path:
+    """The Otter USV example mission (Fossen's 6-DOF model; truth in mission.toml)."""
+    return data_path("otter-example")

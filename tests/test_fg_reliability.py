@@ -1,0 +1,55 @@
+"""The batch factor graph does not hand out confident nonsense: outlying fixes are
+down-weighted and reported, parameters the data cannot determine are flagged, and an
+optimiser that stops at its iteration limit says so."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from aqfg.fg import FGSettings, fit_fg
+from aqfg.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def asv():
+    return simulate("asv", seed=5, duration=600.0, gnss_period=1.0)
+
+
+@pytest.fixture(scope="module")
+def clean_fit(asv):
+    return fit_fg([asv[0]])
+
+
+def test_one_bad_gnss_fix_is_down_weighted_and_reported(asv, clean_fit):
+    m = copy.deepcopy(asv[0])
+    i = len(m.gnss.t) // 2
+    m.gnss.ne[i] += np.array([1000.0, 0.0])          # one fix moved by 1 km
+    res = fit_fg([m])
+    for n in ("theta_e", "k", "k_x", "s_x", "s_y"):
+        assert abs(res.values[n] - clean_fit.values[n]) < 2 * clean_fit.sigma[n], n
+    flagged = res.info["outliers"][m.name]["gnss"]
+    assert any(abs(o["t"] - m.gnss.t[i]) < 1e-6 for o in flagged)
+    assert any("outliers" in w for w in res.info["warnings"])
+
+
+def test_no_thrust_means_thrust_and_drag_not_determined(asv):
+    m = copy.deepcopy(asv[0])
+    m.motors.u[:] = 0.0
+    res = fit_fg([m])
+    obs = res.info["observability"]
+    for n in ("k", "k_x"):
+        assert obs[n]["verdict"] == "not determined", (n, obs[n])
+        assert "commanded" in obs[n]["reason"]
+    assert any("k is not determined" in w for w in res.info["warnings"])
+
+
+def test_a_rich_mission_determines_the_heading(clean_fit):
+    assert clean_fit.info["observability"]["theta_e"]["verdict"] == "determined"
+
+
+def test_iteration_limit_is_flagged(asv):
+    res = fit_fg([asv[0]], settings=FGSettings(max_iterations=2, rel_tol=0.0, abs_tol=0.0))
+    assert res.info["hit_iteration_limit"]
+    assert any("iteration limit" in w for w in res.info["warnings"])

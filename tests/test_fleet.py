@@ -1,0 +1,220 @@
+"""aqfg fleet: the manifest, the joint fits on a two-process Dask LocalCluster (equal to the
+single-process joint fit), a worker killed mid-run, and the outputs."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+
+import numpy as np
+import pytest
+from conftest import data_path
+
+from aqfg.cli import main
+from aqfg.commands.common import EXIT_DATA
+from aqfg.data.io import load_mission, save_mission
+from aqfg.data.mission import with_gnss_every
+from aqfg.fg.batch import BatchSmoother
+from aqfg.fg.common import FGSettings
+from aqfg.fleet import ManifestError, fit_fleet, load_manifest, write_manifest
+from aqfg.fleet.report import differs_from_fleet, save_fleet
+from aqfg.sim import simulate, true_params
+
+distributed = pytest.importorskip("distributed")
+
+
+# ---------------------------------------------------------------- manifest
+def _mission_dir(root, name):
+    d = root / name
+    d.mkdir(parents=True)
+    (d / "mission.toml").write_text('format = "aqfg-mission/1"\n')
+    return d
+
+
+def _manifest(root, text):
+    p = root / "fleet.toml"
+    p.write_text(text)
+    return p
+
+
+def test_manifest_reads_vehicles_and_relative_paths(tmp_path):
+    _mission_dir(tmp_path, "runs/a")
+    _mission_dir(tmp_path, "runs/b")
+    p = _manifest(tmp_path, '[[vehicle]]\nname = "otter-1"\nmissions = ["runs/a"]\n'
+                            '[[vehicle]]\nname = "otter-2"\nmissions = ["runs/b"]\n')
+    man = load_manifest(p)
+    assert [v.name for v in man.vehicles] == ["otter-1", "otter-2"]
+    assert man.vehicles[1].missions[0].path == tmp_path / "runs" / "b"
+    assert man.n_missions == 2
+
+
+@pytest.mark.parametrize("text, words", [
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/none"]\n', ["no such mission directory", "runs/none"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/a"]\n[[vehicle]]\nname = "v"\nmissions = ["runs/b"]\n',
+     ["duplicate vehicle name", "'v'"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["../outside"]\n', ["outside the manifest's directory"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/../../outside"]\n', ["outside the manifest's directory"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["/abs/path"]\n', ["absolute paths are not allowed"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/a", "runs/./a"]\n', ["listed twice"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/a", "other/a"]\n', ["two missions named 'a'"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/empty"]\n', ["holds no mission.toml"]),
+    ('[[vehicle]]\nname = "../x"\nmissions = ["runs/a"]\n', ["name must be"]),
+    ('[[vehicle]]\nname = "v"\nmissions = []\n', ["non-empty list"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/a"]\nweight = 3\n', ["unknown key(s) weight"]),
+    ('vehicle = 3\n', ["no [[vehicle]] table"]),
+    ('[[vehicle]\n', ["not valid TOML"]),
+])
+def test_manifest_errors_name_what_and_where(tmp_path, text, words):
+    _mission_dir(tmp_path, "runs/a")
+    _mission_dir(tmp_path, "runs/b")
+    _mission_dir(tmp_path, "other/a")
+    (tmp_path / "runs" / "empty").mkdir()
+    (tmp_path.parent / "outside").mkdir(exist_ok=True)
+    p = _manifest(tmp_path, text)
+    with pytest.raises(ManifestError) as e:
+        load_manifest(p)
+    assert str(p) in str(e.value)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_cli_reports_manifest_errors_without_traceback(tmp_path, capsys):
+    p = _manifest(tmp_path, '[[vehicle]]\nname = "v"\nmissions = ["nowhere"]\n')
+    assert main(["fleet", str(p), "--out", str(tmp_path / "out")]) == EXIT_DATA
+    err = capsys.readouterr().err
+    assert "aqfg fleet: error:" in err and "nowhere" in err and "Traceback" not in err
+    assert main(["fleet", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "o")]) == EXIT_DATA
+    assert "no such manifest file" in capsys.readouterr().err
+
+
+def test_differs_from_fleet_flags_the_odd_vehicle():
+    rng = np.random.default_rng(0)
+    C = np.array([np.diag([0.01, 0.02]) ** 2] * 8)
+    X = np.array([1.0, 2.0]) + rng.normal(0, 1, (8, 2)) * np.array([0.01, 0.02])
+    X[3] += [0.07, 0.0]                       # 7 sigma off in the first parameter
+    t = differs_from_fleet(X, C)
+    assert [o["differs"] for o in t] == [False, False, False, True, False, False, False, False]
+    assert abs(t[3]["z"][0]) > 5 and t[3]["p_holm"] < 1e-6
+
+
+# ---------------------------------------------------------------- on a LocalCluster
+@pytest.fixture(scope="module")
+def cluster():
+    import logging
+
+    from distributed import Client, LocalCluster
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=logging.ERROR) as lc, Client(lc) as c:
+        yield c
+
+
+def _sim_vehicle(root, seeds, k_scale, duration=240.0):
+    k = true_params("asv")["k"]
+    paths = []
+    for s in seeds:
+        m, tr = simulate("asv", seed=s, duration=duration, gnss_period=8.0,
+                         params={"k": k_scale * k})
+        paths.append(save_mission(m, root / f"sim-{s}", truth=tr))
+    return paths
+
+
+def _assert_joint(fr_res, batch, tol=0.05):
+    """Within tol x the batch's model sigma (stricter than its sandwich-inflated sigma),
+    fixed parameters and every mission's own; the same sigmas (model and inflated)."""
+    sm = batch.info.get("sigma_model", batch.sigma)
+    for n in batch.estimated:
+        assert abs(fr_res.values[n] - batch.values[n]) < tol * sm[n], \
+            (n, fr_res.values[n], batch.values[n], sm[n])
+        assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
+        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=0.02), n
+    for m, pm in batch.info["per_mission"].items():
+        for n, e in pm.items():
+            got = fr_res.info["per_mission"][m][n]
+            assert abs(got["value"] - e["value"]) < tol * sm[n]
+            assert got["sigma"] == pytest.approx(e["sigma"], rel=0.02), (m, n)
+
+
+@pytest.mark.slow
+def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
+    """Two Otter missions (one vehicle, GNSS thinned to 8 s) and two simulated missions of
+    a second vehicle: each vehicle's parameters equal BatchSmoother.run on its missions."""
+    for n in ("otter-example", "otter-dev-calm-a"):
+        os.symlink(data_path(n), tmp_path / n)
+    _sim_vehicle(tmp_path, (21, 22), 1.15)
+    p = write_manifest(tmp_path / "fleet.toml", {"otter": ["otter-example", "otter-dev-calm-a"],
+                                                 "sim-asv": ["sim-21", "sim-22"]})
+    man = load_manifest(p)
+    fr = fit_fleet(man, cluster, gnss_every=8.0, timeout=300)
+    for v in man.vehicles:
+        ms = [with_gnss_every(load_mission(m.path), 8.0) for m in v.missions]
+        _assert_joint(fr.results[v.name], BatchSmoother().run(ms))
+    # outputs: per vehicle, per mission, fleet table with a test per vehicle, report
+    out = tmp_path / "out"
+    save_fleet(fr, out)
+    table = json.loads((out / "fleet.json").read_text())
+    assert table["parameters"] == ["k", "k_x", "k_yz"]
+    assert set(table["vehicles"]) == {"otter", "sim-asv"}
+    for v in ("otter", "sim-asv"):
+        par = json.loads((out / v / "parameters.json").read_text())
+        assert par["format"] == "aqfg-parameters/1" and par["provenance"]["mode"] == "fleet"
+        assert par["parameters"]["k"]["value"] == pytest.approx(fr.results[v].values["k"])
+        assert table["vehicles"][v]["test"]["differs"] is True     # Otter vs simulated ASV
+    mp = json.loads((out / "sim-asv" / "sim-22" / "parameters.json").read_text())["parameters"]
+    assert set(mp) == {"k", "k_x", "k_yz", "theta_e", "s_x", "s_y"}
+    traj = np.loadtxt(out / "otter" / "otter-dev-calm-a" / "trajectory.csv", delimiter=",",
+                      skiprows=1)
+    assert traj.shape[1] == 7 and len(traj) > 500
+    assert "sim-asv" in (out / "fleet.html").read_text()
+    with pytest.raises(FileExistsError):
+        save_fleet(fr, out)
+
+
+@pytest.mark.slow
+def test_worker_killed_mid_run_is_retried(tmp_path, cluster):
+    """SIGKILL one of the two worker processes during a round: Dask re-runs its tasks, the
+    missions are rebuilt from their paths on the surviving or restarted worker, and the
+    result still equals the joint fit."""
+    paths = _sim_vehicle(tmp_path, (31, 32, 33), 0.9)
+    p = write_manifest(tmp_path / "fleet.toml", {"asv": [x.name for x in paths]})
+    killed = []
+
+    def holds_missions():
+        from aqfg.fleet import worker
+        return len(worker._SESSIONS)
+
+    def progress(frac, msg):
+        if not killed and msg.startswith("round 6:") and "missions done" in msg:
+            held = cluster.run(holds_missions)
+            pids = cluster.run(os.getpid)
+            pid = pids[max(held, key=held.get)]          # a worker that holds missions
+            killed.append(pid)
+            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+    # after a rebuild the iterates leave the batch's path, so both are run to tight
+    # tolerances (the default stopping rule leaves up to ~0.1 sigma between two paths)
+    tight = FGSettings(rel_tol=1e-12, abs_tol=1e-9)
+    fr = fit_fleet(load_manifest(p), cluster, settings=tight, progress=progress, timeout=120)
+    assert killed and killed[0] not in cluster.run(os.getpid).values()
+    assert fr.stats["rebuilt"] >= 1, fr.stats
+    batch = BatchSmoother(settings=tight).run([load_mission(x) for x in paths])
+    _assert_joint(fr.results["asv"], batch)
+
+
+@pytest.mark.slow
+def test_cli_fleet_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
+    paths = _sim_vehicle(tmp_path, (41, 42), 1.0, duration=150.0)
+    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": [x.name for x in paths]})
+    out = tmp_path / "out"
+    assert main(["fleet", str(p), "--out", str(out), "--workers", "1", "--diagnose"]) == 0
+    text = capsys.readouterr().out
+    assert "asv-a" in text and "k_yz" in text
+    for f in ("fleet.json", "fleet.html", "asv-a/parameters.json", "asv-a/sim-41/trajectory.csv",
+              "asv-a/sim-42/inertial.csv"):
+        assert (out / f).is_file(), f
+    veh = json.loads((out / "fleet.json").read_text())["vehicles"]["asv-a"]
+    assert veh["test"]["differs"] is None                       # one vehicle: no test
+    # the simulator's physics is the model: each mission's diagnosis finds nothing missing
+    assert [veh["diagnosis"][m]["missing"] for m in ("sim-41", "sim-42")] == [False, False]
+    assert "Nothing missing" in (out / "fleet.html").read_text()
+    assert main(["fleet", str(p), "--out", str(out), "--workers", "1"]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err

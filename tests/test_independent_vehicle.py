@@ -1,0 +1,141 @@
+"""Right on a vehicle that is not the model: the factor graph on missions of Fossen's 6-DOF
+Otter USV (tests/data; truth in mission.toml), whose physics the paper's model lacks.
+
+Tolerances are those the independent-vehicle work asks for: batch theta_e within 3 deg of
+truth, current within 0.05 m/s, |error| / sigma <= 3; online runs complete, recover from
+GTSAM failures and never leave a NaN in their estimates.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import data_path
+
+from aqfg.data import load_mission, load_truth
+from aqfg.data.mission import with_gnss_every
+from aqfg.fg import BatchSmoother, FixedLagSmoother, fit_fg
+
+DEG = np.pi / 180
+
+
+def wrap(a: float) -> float:
+    return float(np.angle(np.exp(1j * a)))
+
+
+def mission(name: str, every: float):
+    return with_gnss_every(load_mission(data_path(name)), every), load_truth(data_path(name))
+
+
+def check_batch(res, truth, theta_true=None):
+    P = truth.params
+    th = P["theta_e"] if theta_true is None else theta_true
+    e_th = wrap(res.values["theta_e"] - th)
+    assert abs(e_th) < 3 * DEG, f"theta_e off by {e_th / DEG:.1f} deg"
+    assert abs(e_th) <= 3 * res.sigma["theta_e"], "theta_e error above 3 sigma"
+    for n in ("s_x", "s_y"):
+        e = res.values[n] - P.get(n, 0.0)
+        assert abs(e) < 0.05, f"{n} off by {e:.3f} m/s"
+        assert abs(e) <= 3 * res.sigma[n], f"{n} error {e:.3f} above 3 sigma {res.sigma[n]:.3f}"
+    assert res.info["plausible"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, every", [("otter-dev-calm-a", 8.0), ("otter-dev-calm-b", 4.0),
+                                         ("otter-dev-current-weakprop", 8.0)])
+def test_batch_heading_and_current_on_the_otter(name, every):
+    """calm-a at 8-s fixes used to end at theta_e -49 deg (k_yz -> 0) with sigma 0.56 deg."""
+    m, truth = mission(name, every)
+    res = fit_fg([m])
+    check_batch(res, truth)
+    # the model is wrong here: the honest sigma is above the Hessian's, and it says so
+    assert res.sigma["s_x"] > res.info["sigma_model"]["s_x"]
+    assert any("does not explain the fixes" in w for w in res.info["warnings"])
+
+
+@pytest.mark.slow
+def test_heading_drift_recovered_on_the_otter():
+    m, truth = mission("otter-dev-yawdrift", 8.0)
+    res = fit_fg([m], effects=["heading_drift"])
+    check_batch(res, truth)
+    rate, true_rate = res.values["heading_drift.rate"], truth.params["heading_drift.rate"]
+    assert abs(rate - true_rate) < 3 * res.sigma["heading_drift.rate"]
+
+
+@pytest.mark.slow
+def test_a_degenerate_start_is_detected_and_left():
+    """Started in the degenerate basin the first fit reached (the vehicle sliding sideways
+    at a heading 80 deg off, no sway drag), the solve recognises it as implausible,
+    solves from the closed-form heading basins and returns the plausible one."""
+    m, truth = mission("otter-dev-calm-a", 8.0)
+    res = BatchSmoother(init={"theta_e": -0.85, "k": 1.45, "k_x": 19.0, "k_yz": 9e-4}).run([m])
+    basins = res.info["basins"]
+    assert not basins[0]["plausible"] and basins[0]["start"] == "user start"
+    assert basins[0]["checks"][m.name]["slip_deg"] > 45
+    assert any(b["plausible"] for b in basins[1:])
+    # (the user's values also centre the weak priors, k_x ~ 19 +- 3 here, so only the
+    # heading is held to the usual tolerance)
+    assert res.info["plausible"]
+    assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG
+
+
+@pytest.mark.slow
+def test_online_all_six_parameters_completes():
+    m, truth = mission("otter-dev-calm-a", 8.0)
+    res = FixedLagSmoother(estimate=("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")).run(m)
+    assert np.all(np.isfinite(res.history.values))
+    assert np.all(np.isfinite(res.missions[0].filtered.pos))
+    assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
+    assert any(e["event"].startswith("re-initialised") for e in res.info["events"])
+
+
+@pytest.mark.slow
+def test_online_with_another_missions_fixed_parameters():
+    """The paper's protocol: fixed parameters from an offline fit of another mission of the
+    same vehicle, heading offset and current online."""
+    other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
+    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
+    m, truth = mission("otter-example", 8.0)
+    res = FixedLagSmoother(init=init).run(m)
+    assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
+    f = res.missions[0].filtered
+    pt = np.column_stack([np.interp(f.t, truth.t, truth.pos[:, a]) for a in range(2)])
+    rmse = float(np.sqrt(np.mean(np.sum((f.pos[:, :2] - pt) ** 2, axis=1))))
+    assert rmse < 4.0, f"causal RMSE {rmse:.2f} m"
+
+
+def test_online_survives_a_gtsam_failure(monkeypatch):
+    """A failing smoother update (GTSAM's indeterminate-system and missing-key failures
+    after marginalisation) is recovered by a restart and recorded, not raised."""
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=3, duration=120.0, gnss_period=8.0)
+    fl = FixedLagSmoother(window=24.0)
+    fl.start(m, plan=True)
+    for _ in range(5):
+        fl.update()
+    real = type(fl.smoother).update
+    calls = {"n": 0}
+
+    def flaky(self, *a):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise RuntimeError("Indeterminate linear system detected while working near variable")
+        return real(self, *a)
+    monkeypatch.setattr(type(fl.smoother), "update", flaky)
+    while fl.pending():
+        fl.update()
+    res = fl.result()
+    assert res.info["events"] and res.info["events"][0]["event"].startswith("restarted")
+    assert np.all(np.isfinite(res.missions[0].track.pos))
+
+
+def test_process_noise_adapts_only_when_the_model_is_wrong():
+    """With the true parameters the fixes are explained and the process noise stays
+    nominal; with the paper's parameters of another vehicle it grows."""
+    from aqfg.sim import simulate
+    m, truth = simulate("asv", seed=2, duration=300.0, gnss_period=4.0)
+    true_fixed = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
+    good = FixedLagSmoother(init=true_fixed).run(m)
+    bad = FixedLagSmoother(init={"k": 40.0, "k_x": 0.5, "k_yz": 0.3}).run(m)
+    assert good.info["process_noise_scale"] <= 2.0
+    assert bad.info["process_noise_scale"] >= 4.0 * good.info["process_noise_scale"]

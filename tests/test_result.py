@@ -1,0 +1,35 @@
+"""Typed Result attributes read and write the same facts as the ``info`` keys older code uses."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from aqfg.result import Estimate, ParamHistory, Result
+
+
+def _result(info=None, history=None) -> Result:
+    return Result("fg", "batch", ("k",), {"k": 8.0}, {"k": 0.1}, [], history=history,
+                  info=dict(info or {}))
+
+
+def test_typed_attributes_read_info():
+    r = _result({"per_mission": {"a": {"theta_e": {"value": 0.5, "sigma": 0.01}},
+                                 "b": {"theta_e": {"value": 0.6}}},
+                 "converged": True, "iterations": 7, "kernel": "cpp"})
+    assert r.per_mission["a"]["theta_e"] == Estimate(0.5, 0.01)
+    assert r.per_mission["b"]["theta_e"].value == 0.6 and math.isnan(r.per_mission["b"]["theta_e"].sigma)
+    assert (r.converged, r.iterations, r.kernel, r.settings) == (True, 7, "cpp", None)
+
+
+def test_typed_attributes_write_info():
+    r = _result()
+    assert r.per_mission == {} and r.histories == [] and r.converged is None
+    r.per_mission = {"m": {"s_x": Estimate(0.1, 0.02)}}
+    r.iterations = 3
+    assert r.info["per_mission"] == {"m": {"s_x": {"value": 0.1, "sigma": 0.02}}}
+    assert r.info["iterations"] == 3
+    h = ParamHistory(np.zeros(1), ("k",), np.ones((1, 1)), np.ones((1, 1)))
+    assert _result(history=h).histories == [h]
+    r.histories = [h, h]
+    assert r.info["histories"] == [h, h] and len(r.histories) == 2

@@ -1,0 +1,73 @@
+"""The joint batch fit computed mission by mission (aqfg.fg.schur) equals BatchSmoother.run."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aqfg.fg.batch import BatchSmoother
+from aqfg.fg.schur import (
+    MissionProblem,
+    MissionSession,
+    combine,
+    drive,
+    joint_lm,
+    solve_apart,
+)
+from aqfg.sim import simulate, true_params
+
+
+@pytest.fixture(scope="module")
+def missions():
+    k = true_params("asv")["k"]
+    return [simulate("asv", seed=s, duration=240.0, gnss_period=8.0, params={"k": 1.1 * k})[0]
+            for s in (11, 12)]
+
+
+@pytest.fixture(scope="module")
+def batch(missions):
+    return BatchSmoother().run(missions)
+
+
+def _assert_equal(a, b, tol=0.05):
+    """Every parameter (fixed, and each mission's own) within tol x the batch's model sigma
+    and the same sigmas (model, and sandwich-inflated)."""
+    sm = b.info.get("sigma_model", b.sigma)
+    for n in b.estimated:
+        assert abs(a.values[n] - b.values[n]) < tol * sm[n], (n, a.values[n], b.values[n])
+        assert a.sigma[n] == pytest.approx(b.sigma[n], rel=0.02), n      # sandwich-inflated
+        assert a.info["sigma_model"][n] == pytest.approx(sm[n], rel=0.02), n
+    for m, pm in b.info["per_mission"].items():
+        for n, e in pm.items():
+            got = a.info["per_mission"][m][n]
+            assert abs(got["value"] - e["value"]) < tol * sm[n], (m, n)
+            assert got["sigma"] == pytest.approx(e["sigma"], rel=0.02), (m, n)
+
+
+def test_apart_equals_joint_batch(missions, batch):
+    res = solve_apart(BatchSmoother(), missions)
+    # the same Levenberg-Marquardt iterates, not only the same optimum
+    assert res.info["iterations"] == batch.info["iterations"]
+    assert res.info["cost"] == pytest.approx(batch.info["cost"], rel=1e-9)
+    _assert_equal(res, batch, tol=1e-3)
+    for a, b in zip(res.missions, batch.missions):
+        assert np.max(np.abs(a.track.pos - b.track.pos)) < 1e-4
+
+
+def test_lost_mission_is_rebuilt_and_the_run_goes_on(missions, batch):
+    """A session replaced by a fresh one mid-run (its worker died) re-solves its locals at
+    the current fixed parameters; the run still converges to the joint optimum."""
+    sm = BatchSmoother()
+    sessions = [MissionSession(MissionProblem(sm, m, fixed_prior=(i == 0)))
+                for i, m in enumerate(missions)]
+    rounds = {"n": 0, "lost": 0}
+
+    def serve(reqs):
+        rounds["n"] += 1
+        if rounds["n"] in (6, 9):          # lose mission 1 after a "sys" and after a "step"
+            sessions[1] = MissionSession(MissionProblem(sm, missions[1], fixed_prior=False))
+        reps = [s.handle(op, args) for s, (op, args) in zip(sessions, reqs)]
+        rounds["lost"] += sum(bool(r.get("lost")) for r in reps)
+        return reps
+    sol = drive(joint_lm(len(sessions), sm.settings), serve)
+    assert sol.recovered >= 1 and rounds["lost"] >= 1 and sol.converged
+    _assert_equal(combine(sol), batch)
