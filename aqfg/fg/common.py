@@ -327,7 +327,9 @@ class Measurements:
         if g is not None and len(g.t):
             sel = (g.t >= t_start - 1e-9) & (g.t <= t_end + 1e-9)
             gt, gz = g.t[sel], g.ne[sel]
-            gs = g.sigma[sel] if g.sigma is not None else np.full(len(gt), sn.gnss_sigma)
+            gs = (np.where(np.isfinite(g.sigma[sel]) & (g.sigma[sel] > 0), g.sigma[sel],
+                           sn.gnss_sigma)          # the column is optional per row (NaN)
+                  if g.sigma is not None else np.full(len(gt), sn.gnss_sigma))
         else:
             gt, gz, gs = np.zeros(0), z2, np.zeros(0)
         u = mission.usbl
