@@ -28,6 +28,7 @@ experiments/bench_fg.py):
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -46,6 +47,8 @@ from aqfg.fg.plausibility import Plausibility
 from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
                               first_knot_prior, initial_states, knot_times, outliers, measurement_factors,
                               mission_model, piecewise_inertial, progress_fn, residuals)
+
+log = logging.getLogger(__name__)
 
 @dataclass
 class MissionPart:
@@ -144,6 +147,7 @@ class BatchSmoother:
         the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
         as for the heading basins."""
         self.also_start = dict(also_start) if also_start else None
+        self.log_warnings = True           # info["warnings"] also to the log (WARNING)
         self.model = model
         self.effects = tuple(effects)
         self.estimate = None if estimate is None else tuple(estimate)
@@ -360,6 +364,9 @@ class BatchSmoother:
         if n_out:
             res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
                                         "down-weighted as outliers (listed in info['outliers'])")
+        if self.log_warnings:
+            for w in res.info["warnings"]:
+                log.warning("fg: %s", w)
         res.info.update({"iterations": n_it, "trials": n_trials, "converged": converged,
                          "cost": float(err), "n_states": sum(len(p.keys) for p in parts),
                          "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp

@@ -21,6 +21,7 @@ or simply ``FixedLagSmoother(...).run(mission) -> Result``.
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, replace
 
@@ -37,6 +38,8 @@ from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_es
                               first_knot_prior, initial_states, measurement_factors,
                               mission_model, piecewise_inertial, progress_fn, residuals)
 
+
+log = logging.getLogger(__name__)
 
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
 # system, a key missing from the Bayes tree after marginalisation, ...)
@@ -107,6 +110,27 @@ class FixedLagSmoother:
         self.mission = mission
         self.model = mission_model(self.base_model, mission, self.effects)
         est = self.estimate if self.estimate is not None else default_estimate(self.model, "online")
+        vehicle = ("k", "k_x", "k_yz")
+        if not getattr(self, "_replaying", False):
+            self.warnings = []
+            given = [n for n in vehicle if n in self.init]
+            self._estimate_vehicle = self.estimate is None and not given
+            if self._estimate_vehicle:
+                # no constants of this vehicle: the paper's values are another vehicle's;
+                # estimate them too (held until the first batch re-initialisation)
+                self.warnings.append(
+                    "no thrust/drag constants of this vehicle were given: the online fit "
+                    "estimates them too; for the paper's protocol pass --params-from a batch "
+                    "fit's parameters.json")
+            elif not given and not any(n in est for n in vehicle):
+                self.warnings.append(
+                    "the thrust/drag constants are held at the paper's values for another "
+                    "vehicle (none given): pass --params-from a batch fit's parameters.json or "
+                    "estimate them too")
+            for w in self.warnings:
+                log.warning("fg online: %s", w)
+        if self._estimate_vehicle:
+            est = tuple(dict.fromkeys((*est, *vehicle)))
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
@@ -390,10 +414,12 @@ class FixedLagSmoother:
             # a wrong basin cannot pull a good online estimate into it
             own = (None if self._hold_idx else
                    {n: float(p[self.model.index(n)]) for n in self.layout.estimated})
-            bres = BatchSmoother(self.base_model, effects=self.effects,
-                                 estimate=self.layout.estimated, init=self.init,
-                                 settings=replace(self.settings, online_init_after=0.0),
-                                 also_start=own).run([view])
+            bs = BatchSmoother(self.base_model, effects=self.effects,
+                               estimate=self.layout.estimated, init=self.init,
+                               settings=replace(self.settings, online_init_after=0.0),
+                               also_start=own)
+            bs.log_warnings = False
+            bres = bs.run([view])
         except (ValueError, *GTSAM_ERRORS) as exc:
             self.events.append({"t": float(t_fix), "event": "batch re-initialisation failed",
                                 "error": (str(exc).strip().splitlines() or [""])[0]})
@@ -754,6 +780,7 @@ class FixedLagSmoother:
                                                  np.array(self.pred_x).reshape(-1, 6)),
                             "update_median_s": float(np.median(ups)) if ups else float("nan"),
                             "events": list(self.events),
+                            "warnings": list(getattr(self, "warnings", [])),
                             "process_noise_scale": float(self.q_scale),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
                             "settings": self.settings},
