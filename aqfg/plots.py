@@ -5,8 +5,8 @@ Axes: east (m) horizontal, north (m) vertical, equal scale, like a map.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

@@ -260,7 +260,7 @@ def relate(series: str, t: np.ndarray, nis_per_dof: np.ndarray, signals: Conditi
     out: list[ConditionEffect] = []
     if len(t) < min_n:
         return out
-    for name, vals in signals.values.items():
+    for name in signals.values:
         x = signals.mean_before(name, t, memory)
         good = np.isfinite(x)
         if good.sum() < min_n:

@@ -301,7 +301,7 @@ def bootstrap_ranking(proj: Projected, effects: dict[str, tuple[str, ...]], n_bo
     G = g0 + W @ Gb                                     # (n_boot, c)
     S = S0 + np.tensordot(W, Sb, axes=1)                # (n_boot, c, c)
     lp = np.empty((n_boot, len(info)))
-    for j, (eff, cols, flo, fhi, one) in enumerate(info):
+    for j, (_eff, cols, flo, fhi, one) in enumerate(info):
         lm = np.array([_lm(G[r, cols], S[r][np.ix_(cols, cols)], flo, fhi)[1]
                        for r in range(n_boot)])
         lp[:, j] = _log10_p(lm, len(cols), one)

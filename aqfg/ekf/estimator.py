@@ -72,17 +72,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from aqfg.ekf.history import (DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History,
-                          build_history)
-from aqfg.ekf.optim import (Counter, Entry, Objective, Solution, Window, bounds,
-                            default_optimiser, minimise)
+from aqfg.data.mission import Mission
+from aqfg.ekf.history import DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History, build_history
+from aqfg.ekf.optim import Counter, Entry, Objective, Solution, Window, bounds, default_optimiser, minimise
 from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
-from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
+from aqfg.model.vehicle import Model
+from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
 
 log = logging.getLogger(__name__)
 

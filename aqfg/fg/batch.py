@@ -35,17 +35,30 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from aqfg.fg import factors as fc
 from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, Track
-from aqfg.fg.covariance import block_sandwich, honest_covariance
+from aqfg.fg import factors as fc
 from aqfg.fg import observability, plausibility
+from aqfg.fg.common import (
+    FGSettings,
+    Measurements,
+    check_missions,
+    default_estimate,
+    first_knot_prior,
+    initial_states,
+    knot_times,
+    measurement_factors,
+    mission_model,
+    outliers,
+    piecewise_inertial,
+    progress_fn,
+    residuals,
+)
+from aqfg.fg.covariance import block_sandwich, honest_covariance
 from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
 from aqfg.fg.plausibility import Plausibility
-from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
-                              first_knot_prior, initial_states, knot_times, outliers, measurement_factors,
-                              mission_model, piecewise_inertial, progress_fn, residuals)
+from aqfg.model.vehicle import Model
+from aqfg.result import MissionResult, ParamHistory, Result, Track
+
 
 @dataclass
 class MissionPart:
@@ -417,7 +430,8 @@ class BatchSmoother:
                     if n in names and (implausible or n not in self.init):
                         f[names.index(n)] = st0.fixed[n]
                 vals.update(key, bg.layout.project("fixed", f))
-            yield f"alternative heading start {np.degrees(heads[0][min(j, len(heads[0]) - 1)].theta_e):.0f} deg", vals
+            theta_e = heads[0][min(j, len(heads[0]) - 1)].theta_e
+            yield f"alternative heading start {np.degrees(theta_e):.0f} deg", vals
 
     # ---------------------------------------------------------------- result
     def _result(self, layout, values, parts, node_list, cov) -> Result:
@@ -438,7 +452,7 @@ class BatchSmoother:
             nseg = len(part.seg_starts)
             p_segments = [p_seg(j) for j in range(nseg)]
 
-            def p_at(t, part=part, p_segments=p_segments):
+            def p_at(t, part=part, p_segments=p_segments, nseg=nseg):
                 j = int(np.clip(np.searchsorted(part.seg_starts, t, side="right") - 1, 0, nseg - 1))
                 return p_segments[j]
             X = np.array([values.atVector(k) for k in part.keys])

@@ -5,17 +5,17 @@ Times are seconds on the mission clock; states are ``[north, east, down, vn, ve,
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import gtsam
 import numpy as np
 
+from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.model import retrace as retrace
-from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model, attitude_at
 from aqfg.model.params import BASE_NAMES
+from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import Residuals, Track
 
 
@@ -81,7 +81,7 @@ class FGSettings:
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 
-    def with_(self, **kw) -> "FGSettings":
+    def with_(self, **kw) -> FGSettings:
         return replace(self, **kw)
 
 
@@ -171,7 +171,7 @@ def robust_fixes(mission: Mission) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], p[keep]
 
 
-def robust_fix_table(mission: Mission, settings: "FGSettings"
+def robust_fix_table(mission: Mission, settings: FGSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fix times, horizontal NED positions (n, 2) and their per-axis variance (m^2) (GNSS
     sigma, or the USBL tangential sigma at the fix's range), for innovation statistics."""
@@ -320,7 +320,7 @@ class Measurements:
 
     @classmethod
     def of(cls, mission: Mission, settings: FGSettings, t_start: float = -np.inf,
-           t_end: float = np.inf) -> "Measurements":
+           t_end: float = np.inf) -> Measurements:
         sn = settings.sensors
         z2 = np.zeros((0, 2))
         g = mission.gnss

@@ -28,17 +28,17 @@ Jacobians with the same :func:`dynamics_blocks`.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping
 
 import gtsam
 import numpy as np
 
 from aqfg.model.effects import SensorOffsetTerm
 from aqfg.model.frames import HEADING_PARAMS
+from aqfg.model.params import N_PARAMS
 from aqfg.model.reference import Steps, wrap_angle
 from aqfg.model.vehicle import Model
-from aqfg.model.params import N_PARAMS
 
 GROUPS = ("fixed", "variable", "sensor")
 _GROUP_CHAR = {"fixed": "f", "variable": "v", "sensor": "s"}
@@ -152,7 +152,7 @@ class ParamLayout:
 
     @classmethod
     def build(cls, model: Model, estimate: Iterable[str], init: Mapping[str, float] | None = None
-              ) -> "ParamLayout":
+              ) -> ParamLayout:
         estimate = tuple(dict.fromkeys(estimate))
         active = set(model.active_names)
         for n in estimate:
@@ -269,8 +269,8 @@ def propagator(model: Model, steps: Steps) -> Callable:
     integration itself, see docs/architecture.md)."""
     if not model.uses_cpp:
         return lambda x0, p: model.propagate(x0, p, steps)
-    from aqfg.model.vehicle import _cpp
     from aqfg.model.params import N_DYN
+    from aqfg.model.vehicle import _cpp
     g = model.geometry
     args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
             np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),

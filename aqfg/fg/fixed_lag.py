@@ -27,16 +27,24 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from aqfg.fg import factors as fc
-
 from aqfg.data.mission import Mission
+from aqfg.fg import factors as fc
+from aqfg.fg.common import (
+    FGSettings,
+    Measurements,
+    check_missions,
+    default_estimate,
+    first_knot_prior,
+    initial_states,
+    measurement_factors,
+    mission_model,
+    piecewise_inertial,
+    progress_fn,
+    residuals,
+    robust_fix_table,
+)
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
-from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
-                             robust_fix_table,
-                              first_knot_prior, initial_states, measurement_factors,
-                              mission_model, piecewise_inertial, progress_fn, residuals)
-
 
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
 # system, a key missing from the Bayes tree after marginalisation, ...)

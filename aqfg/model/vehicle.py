@@ -18,9 +18,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from aqfg.model import batched
-from aqfg.model.effects import UserEffect
 from aqfg.data.mission import Mission
+from aqfg.model import batched
 from aqfg.model import measurements as meas
 from aqfg.model import reference as ref
 from aqfg.model.effects import BUILTIN, DemandLagTerm, Effect, GroundForceTerm, resolve
