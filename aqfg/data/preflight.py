@@ -72,7 +72,7 @@ def prepare(mission: Mission) -> tuple[Mission, list[str]]:
             setattr(m, key, _keep(s, sel))
     g = m.gnss
     if g is not None and g.sigma is not None and len(g.t):
-        sig = np.asarray(g.sigma, dtype=float)
+        sig: np.ndarray | None = np.asarray(g.sigma, dtype=float)
         unknown = ~np.isfinite(sig)
         if unknown.all():
             notes.append(f"{mission.name}: GNSS sigma unknown in every row: the estimator's "

@@ -186,7 +186,7 @@ def fixes_of(mission: Mission, gnss_sigma: float = DEFAULT_GNSS_SIGMA,
 def sensor_sigmas(series: list[SensorSeries]) -> dict:
     """Noise sigmas a fit used, read back from its residuals: ``{"gnss": m,
     "usbl": (range m, bearing rad)}`` (entries only for sensors present)."""
-    out = {}
+    out: dict[str, float | tuple[float, float]] = {}
     for s in series:
         sig = s.sigma()
         if s.sensor == "gnss" and np.all(np.isfinite(sig)):

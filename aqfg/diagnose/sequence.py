@@ -111,7 +111,7 @@ class DiagnosisSequence:
         """The model after each step: bare, + first effect, ..., final."""
         evs = [self.bare]
         for d in self.diagnoses:
-            if d.best is not None:
+            if d.best is not None and d.best.refit is not None:
                 evs.append(d.best.refit)
         return evs
 
@@ -188,8 +188,8 @@ class DiagnosisSequence:
         return _clean(out)
 
 
-def _passed(ev: FitEval) -> bool:
-    return bool(ev.consistency is not None and ev.consistency.passed)
+def _passed(ev: FitEval | None) -> bool:
+    return bool(ev is not None and ev.consistency is not None and ev.consistency.passed)
 
 
 def _cons(ev: FitEval) -> str:
@@ -201,6 +201,7 @@ def _cons(ev: FitEval) -> str:
 
 def _step(d: Diagnosis) -> Step:
     c = d.best
+    assert c is not None and c.refit is not None and c.gain is not None, "a confirmed effect"
     r = c.refit
     return Step(c.effect, c.estimate(), d.base.rmse, r.rmse, d.base.rmse_raw, r.rmse_raw,
                 _passed(r), c.dbic, c.p_adjusted, c.lr_p, c.gain.p,

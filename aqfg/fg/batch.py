@@ -192,7 +192,7 @@ class BatchSmoother:
                 seg_of = np.zeros(K, int)
             nseg = int(seg_of.max()) + 1 if K else 1
             seg_starts = knots[0] + s.walk_segment * np.arange(nseg) if walk else knots[:1]
-            slices = []
+            slices: list[tuple | None] = []
             for j in range(nseg):
                 ii = np.nonzero(seg_of == j)[0]
                 if not len(ii):
@@ -290,8 +290,10 @@ class BatchSmoother:
 
             def mkeys(stream, t, part=part, mi=mi):
                 return nkeys(layout.meas_groups(stream), seg_at(t))
-            for f in measurement_factors(part.model, layout, meas, part.knots,
-                                         lambda i, part=part: part.keys[i], mkeys, s):
+
+            def knot_key(i, part=part):
+                return part.keys[i]
+            for f in measurement_factors(part.model, layout, meas, part.knots, knot_key, mkeys, s):
                 graph.add(f)
         return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts)
 
@@ -383,8 +385,7 @@ class BatchSmoother:
             X = np.array([values.atVector(k) for k in part.keys])
             nd = {}
             for g in bg.layout.groups:
-                mi = None if g == "fixed" else part.index
-                nd[g] = values.atVector(fc.node_key(g, mi, 0) if g != "fixed" else fc.node_key(g))
+                nd[g] = values.atVector(fc.node_key(g) if g == "fixed" else fc.node_key(g, part.index, 0))
             p = bg.layout.full(nd)
             out.append(plausibility.check(part.model, part.mission, part.knots, X, p,
                                           bg.layout.estimated))
@@ -567,11 +568,11 @@ def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Or
 
 def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
     """Summary of one solve for ``Result.info["basins"]``."""
-    th = {}
+    th: dict[str, float] = {}
     if "variable" in bg.layout.names and "theta_e" in bg.layout.names["variable"]:
         i = bg.layout.names["variable"].index("theta_e")
         for n in bg.nodes:
-            if n.group == "variable":
+            if n.group == "variable" and n.mission is not None:
                 th.setdefault(bg.parts[n.mission].mission.name, float(out.values.atVector(n.key)[i]))
     return {"start": label, "cost": out.cost, "theta_e": th, "converged": out.converged,
             "iterations": out.iterations,
@@ -666,7 +667,7 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
 
 def _sigma_by_name(layout, node_list, cov) -> dict:
     """1-sigma of the first mission's nodes by parameter name (as Result.sigma)."""
-    out = {}
+    out: dict[str, float] = {}
     for g, k, mi in node_list:
         if mi not in (None, 0) or k not in cov:
             continue
@@ -703,7 +704,7 @@ def _warnings(info: dict, n_it: int) -> list[str]:
     infl = info.get("sigma_inflation", {})
     big = {n: f for n, f in infl.items() if f > 3.0}
     if big:
-        worst = max(big, key=big.get)
+        worst = max(big, key=lambda n: big[n])
         out.append(f"the model does not explain the fixes as its noise model says: sigma "
                    f"inflated up to {big[worst]:.1f}x ({worst}) to stay honest; run "
                    "`aqfg diagnose` to find the missing physics")

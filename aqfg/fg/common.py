@@ -365,10 +365,10 @@ def depth_assignment(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.n
         return np.zeros(0, int), np.zeros(0, int)
     k = knot_index(knots, t)
     d = np.abs(knots[k] - t)
-    best = {}
+    best: dict[int, int] = {}
     for i in np.argsort(d, kind="stable"):
         best.setdefault(int(k[i]), int(i))
-    ki = np.array(sorted(best), dtype=int)
+    ki = np.array(sorted(best), dtype=np.int64)
     return np.array([best[j] for j in ki], dtype=int), ki
 
 
@@ -387,6 +387,7 @@ def measurement_factors(model: Model, layout: fc.ParamLayout, meas: Measurements
         out.append(fc.gnss_factor(model, layout, kx(k), node_keys("gnss", t), meas.gnss_z[i],
                                   meas.gnss_R[i], t, noise, base))
     for i in range(len(meas.usbl_t)):
+        assert meas.station is not None, "USBL fixes come with the station position"
         t = float(meas.usbl_t[i])
         k = int(knot_index(knots, np.array([t]))[0])
         noise = sn.wrap(gtsam.noiseModel.Diagonal.Sigmas(meas.usbl_sigma[i]), "usbl")

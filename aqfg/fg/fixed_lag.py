@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -137,8 +138,10 @@ class FixedLagSmoother:
         self.seg = 0
         self.seg_starts = [float(self.fix_t[0])]
         self.v_by_seg: dict[int, np.ndarray] = {}
-        self.hist_t, self.hist_v, self.hist_s = [], [], []
-        self.timings = {"update": [], "update_total": [], "correction": []}
+        self.hist_t: list[float] = []
+        self.hist_v: list[np.ndarray] = []
+        self.hist_s: list[np.ndarray] = []
+        self.timings: dict[str, list[float]] = {"update": [], "update_total": [], "correction": []}
         self.n_fix = 0
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
@@ -151,7 +154,7 @@ class FixedLagSmoother:
         self._innov: list[float] = []              # normalised squared fix innovations
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
-        self._plan = None
+        self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
         if plan:
             self._make_plan()
         self.warmup_end = float("nan")
@@ -560,7 +563,8 @@ class FixedLagSmoother:
         s = self.settings
         last = self.keys[self._n_committed - 1]     # the newest knot the smoother holds
         keys = [last] + [self._node(g) for g in self.layout.groups]
-        est, cov = {}, {}
+        est: dict[int, np.ndarray | None] = {}
+        cov: dict[int, np.ndarray | None] = {}
         for k in keys:
             est[k] = cov[k] = None
             if hard:
@@ -578,20 +582,22 @@ class FixedLagSmoother:
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag, self._isam_params)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        stamps = {}
+        stamps: dict[Any, float] = {}
         for k in keys:
+            e = est[k]
             if k == last:
-                x = est[k] if est[k] is not None else self._last_finite_state()
+                x = e if e is not None else self._last_finite_state()
                 broad = np.array([10.0, 10.0, 1.0, 2.0, 2.0, 0.5])
             else:
                 g = next(g for g in self.layout.groups if self._node(g) == k)
-                x = self.layout.project(g, est[k]) if est[k] is not None else \
+                x = self.layout.project(g, e) if e is not None else \
                     self.layout.initial(g) if hard else \
                     self.layout.project(g, np.asarray(self._last_params.get(g, self.layout.initial(g))))
                 broad = np.array([s.prior_scale * self.model.spec(n).scale
                                   for n in self.layout.names[g]])
                 graph.add(fc.bound_factor(self.layout, g, k))
             C = cov[k]
+            noise: gtsam.noiseModel.Base
             if C is None or not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
                 noise = gtsam.noiseModel.Diagonal.Sigmas(broad)
             else:
@@ -727,16 +733,16 @@ def _mission_until(mission: Mission, t: float) -> Mission:
         g = copy.copy(mission.gnss)
         k = mission.gnss.t <= t + 1e-9
         g.t, g.ne = mission.gnss.t[k], mission.gnss.ne[k]
-        if g.sigma is not None:
+        if mission.gnss.sigma is not None:
             g.sigma = mission.gnss.sigma[k]
-        if g.latlon is not None:
+        if mission.gnss.latlon is not None:
             g.latlon = mission.gnss.latlon[k]
         view.gnss = g
     if mission.usbl is not None:
         u = copy.copy(mission.usbl)
         k = mission.usbl.t <= t + 1e-9
         u.t, u.range, u.bearing = mission.usbl.t[k], mission.usbl.range[k], mission.usbl.bearing[k]
-        if u.elevation is not None:
+        if mission.usbl.elevation is not None:
             u.elevation = mission.usbl.elevation[k]
         view.usbl = u
     return view
