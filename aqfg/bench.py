@@ -106,6 +106,7 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
     for _ in range(repeat):
         r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)
         ups = np.asarray(r.timings["update"])
+        assert r.history is not None, "the fixed-lag smoother records its history"
         t_up = np.asarray(r.history.t)
         we = r.info.get("warmup_end", float("nan"))
         fl_all += list(ups[1:])                    # the first is the start (prior only)

@@ -250,7 +250,7 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
         if tum and m is not None:
             (d / "trajectory.tum").write_text(export.tum_text(result, mr, m))
             written.append(d / "trajectory.tum")
-        if origin is not None:
+        if origin is not None and m is not None:
             written.append(write_json(d / "track.geojson",
                                       export.geojson_track(result, mr, m, provenance)))
     return written

@@ -69,6 +69,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -234,7 +235,7 @@ class UpdateErrorEstimator:
                                                           for h, w in zip(hs, wins)))
         ps = obj.params(sol.theta)
         outs = obj.run(sol.theta, record=True)
-        mres = [self._mission_result(h, p, o.X[:, :], None, o) for h, p, o in zip(hs, ps, outs)]
+        mres = [self._mission_result(h, p, o.recorded()[0], None, o) for h, p, o in zip(hs, ps, outs)]
         per_mission = {}
         for wi, m in enumerate(self.missions):
             per_mission[m.name] = {
@@ -247,7 +248,7 @@ class UpdateErrorEstimator:
         names = [entries[i].name for i in first]
         sigma_d = ({n: float(unc.sigma[i]) for n, i in zip(names, first)
                     if np.isfinite(unc.sigma[i])} if unc else {})
-        info = {"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
+        info: dict[str, Any] = {"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
                 "message": sol.message, "preset": self.preset, "metric": self.metric,
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
@@ -435,6 +436,7 @@ class UpdateErrorEstimator:
         counter, given ``rejects`` at ``k0``)."""
         kinds = h.node_kind[out.node_lo:out.node_hi]
         knots = h.node_knot[out.node_lo:out.node_hi]
+        X, Pn = out.recorded()
         for r in np.nonzero((kinds == GNSS) | (kinds == USBL))[0]:
             if kinds[r] == USBL:
                 rejects = rejects + 1 if out.status[r] == REJECTED else 0
@@ -442,7 +444,7 @@ class UpdateErrorEstimator:
             last = r + int(np.searchsorted(knots[r:], k, side="right")) - 1
             if kinds[last] in (GNSS, USBL) and last != r:
                 continue          # the anchor goes after the last fix of this knot
-            h.set_anchor(k, out.X[k - k0], out.Pn[last], rejects)
+            h.set_anchor(k, X[k - k0], Pn[last], rejects)
 
     # ------------------------------------------------------------------ result
     def _mission_result(self, h: History, p: np.ndarray, X: np.ndarray, X_filt, out, nodes=None
@@ -512,11 +514,11 @@ def _verdict_info(unc: Uncertainty | None, names: list[str], cols: list[int], so
                   sigma: bool) -> dict:
     """``info`` entries of a batch fit: the sigma method, per-parameter observability
     verdicts and notes, the measured consistency, convergence, and plain-text warnings."""
-    warn = []
+    warn: list[str] = []
     if not sol.converged:
         warn.append(f"the optimiser stopped without converging ({sol.message}): the "
                     "estimates are where it stopped, not an optimum")
-    out = {"converged": bool(sol.converged)}
+    out: dict[str, Any] = {"converged": bool(sol.converged)}
     if unc is None:
         out.update({"sigma_method": "none", "warnings": warn})
         return out
@@ -542,7 +544,7 @@ def _online_verdicts(unc: Uncertainty | None, names: list[str], nonconv: np.ndar
     paper's non-convergence measure (§III-F) turned into a per-parameter flag."""
     out: dict = {"sigma_method": ("gauss-newton on whitened innovations x consistency, per "
                                   "window" if sigma else "none")}
-    warn = []
+    warn: list[str] = []
     if unc is None:
         out.update({"converged": {}, "warnings": warn})
         return out

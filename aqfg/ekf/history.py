@@ -259,6 +259,7 @@ def build_history(model: Model, mission: Mission, config: EkfConfig | None = Non
     t_s = float(tf[0])
     usbl_kept = np.ones(len(u), bool)
     if len(u):
+        assert mission.usbl_station is not None       # checked by _absolute_fixes
         pu = usbl_positions(mission)
         su = np.maximum(cfg.sigma_range, np.linalg.norm(pu[:, :2] - mission.usbl_station[:2], axis=1)
                         * cfg.sigma_bearing)
@@ -281,14 +282,17 @@ def build_history(model: Model, mission: Mission, config: EkfConfig | None = Non
     rows += [(t, MOTOR, 0.0, 0.0, 0.0, 0.0) for t in mission.motors.t]
     nodes = np.array(rows, dtype=float).reshape(-1, 6)
     nodes = nodes[(nodes[:, 0] > t_s + 1e-9) & (nodes[:, 0] <= t_e + 1e-9)]
-    order = np.lexsort(([_APPLY_ORDER[int(k)] for k in nodes[:, 1]], nodes[:, 0]))
+    order = np.lexsort((np.array([_APPLY_ORDER[int(k)] for k in nodes[:, 1]]), nodes[:, 0]))
     nodes = nodes[order]
 
     # knots: warm-up start, filter start, node times, output grid, end
     lb = model.lookback
     grid = t_s + np.arange(1, int(np.floor((t_e - t_s) * cfg.output_rate)) + 1) / cfg.output_rate
     grid = grid[grid < t_e - 1e-9]
-    knots = np.concatenate([[t_s], nodes[:, 0], grid, [t_e]] + ([[t_s - lb]] if lb > 0 else []))
+    parts = [np.array([t_s]), nodes[:, 0], grid, np.array([t_e])]
+    if lb > 0:
+        parts.append(np.array([t_s - lb]))
+    knots = np.concatenate(parts)
     knots = np.unique(np.round(knots, 9))
     steps, off = build_steps(mission, knots, lookback=0.0)
     step_t = steps.tm + mission.t0

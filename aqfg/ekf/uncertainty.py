@@ -173,7 +173,8 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
 
     sig_s = np.sqrt(np.clip(np.diag(cov_s), 0.0, None))
     sigma = sig_s * scales
-    verdict, note = [], []
+    verdict: list[str] = []
+    note: list[str | None] = []
     for i, spec in enumerate(specs):
         at_lo = lo is not None and abs(theta[i] - lo[i]) <= 1e-4 * scales[i]
         at_hi = hi is not None and abs(theta[i] - hi[i]) <= 1e-4 * scales[i]
@@ -183,7 +184,9 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
             note.append("a gated fix changes its accept/reject decision at the estimate: "
                         "no derivative")
         elif at_lo or at_hi:
-            b = lo[i] if at_lo else hi[i]
+            bound = lo if at_lo else hi
+            assert bound is not None
+            b = bound[i]
             verdict.append("at bound")
             note.append(f"at its {'lower' if at_lo else 'upper'} bound {b:.6g}: the fit "
                         "pushes it beyond, no interior value is supported")

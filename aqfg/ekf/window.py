@@ -46,7 +46,7 @@ from aqfg.model.params import INDEX, MEAS_INDEX, N_DYN
 I_TAU = INDEX["thrust_lag.tau"]
 
 try:
-    from aqfg import _kernel as _cpp  # type: ignore[attr-defined]
+    from aqfg import _kernel as _cpp
     _HAVE_CPP_EKF = hasattr(_cpp, "ekf_window")
 except ImportError:  # pragma: no cover - no build
     _cpp = None
@@ -80,6 +80,12 @@ class WindowOut:
     X: np.ndarray | None = None
     Pn: np.ndarray | None = None
     rejects: int = 0          # consecutive USBL rejections at k1
+
+    def recorded(self) -> tuple[np.ndarray, np.ndarray]:
+        """``X`` and ``Pn`` of a pass run with ``record``."""
+        if self.X is None or self.Pn is None:
+            raise ValueError("the pass was run without record=True")
+        return self.X, self.Pn
 
     def error(self) -> float:
         """E over this window (Eq. 14): sum of squared update errors."""
@@ -202,8 +208,9 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     nuw_all = np.full((n, 3), np.nan)
     s_all = np.full((n, 3), np.nan)
     status = np.full(n, NOOP, dtype=np.int8)
-    X = np.zeros((k1 - k0 + 1, 9)) if record else None
-    Pn = np.zeros((n, 9, 9)) if record else None
+    # (the arrays exist unused when not recording: one allocation, simpler typing)
+    X = np.zeros((k1 - k0 + 1 if record else 0, 9))
+    Pn = np.zeros((n if record else 0, 9, 9))
     if record:
         X[0] = x
     m = lo
@@ -267,7 +274,8 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     if T > 0:
         P = predict_covariance(P, Sx, Sv, T, J_ab, cfg, planar)
     return WindowOut(lo, hi, e_all, nu_all, nuw_all, s_all, status,
-                     np.concatenate([pos, vel, ab]), P, X, Pn, rejects)
+                     np.concatenate([pos, vel, ab]), P, X if record else None,
+                     Pn if record else None, rejects)
 
 
 def kernel_settings(cfg):

@@ -56,7 +56,7 @@ def mission_op(spec: MissionSpec, op: str, args: dict) -> dict:
     t0 = time.perf_counter()
     sess = _SESSIONS.get(spec.key)
     built = sess is None
-    if built:
+    if sess is None:
         sess = MissionSession(MissionProblem(smoother(spec), load(spec),
                                              fixed_prior=spec.fixed_prior))
         _SESSIONS[spec.key] = sess

@@ -27,7 +27,7 @@ from aqfg.model.params import BASE_NAMES, INDEX, N_DYN, N_PARAMS, ParamSpec
 from aqfg.model.reference import Geometry, Steps
 
 try:  # the compiled kernel; the numpy mirror serves when it is missing
-    from aqfg import _kernel as _cpp  # type: ignore[attr-defined]
+    from aqfg import _kernel as _cpp
 except ImportError:  # pragma: no cover - exercised only without a build
     _cpp = None
 
