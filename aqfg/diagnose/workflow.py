@@ -56,7 +56,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, SupportsFloat
 
 import numpy as np
 from scipy import stats
@@ -241,28 +241,28 @@ class Diagnosis:
             rh = c.refit if _ho(c) else None
             rank.append({
                 "effect": c.effect, "status": c.status, "status_text": c.status_text(best),
-                "score": _num(c.score.statistic),
-                "p_value": _num(c.score.p_value), "p_adjusted": _num(c.p_adjusted),
-                "log10_p": _num(c.score.log10_p),
-                "estimate": {k: {"value": _num(v["value"]), "sigma": _num(v["sigma"])}
+                "score": json_num(c.score.statistic),
+                "p_value": json_num(c.score.p_value), "p_adjusted": json_num(c.p_adjusted),
+                "log10_p": json_num(c.score.log10_p),
+                "estimate": {k: {"value": json_num(v["value"]), "sigma": json_num(v["sigma"])}
                              for k, v in c.estimate().items()},
-                "rmse_before": _num(rb), "rmse_after": _num(rh.rmse) if rh is not None else None,
-                "rmse_raw_before": _num(self.base.rmse_raw),
-                "rmse_raw_after": _num(rh.rmse_raw) if rh is not None else None,
-                "score_robust": _num(c.score.statistic_robust),
-                "p_value_robust": _num(c.score.p_value_robust),
-                "lr": _num(c.lr), "lr_p_value": _num(c.lr_p), "delta_bic": _num(c.dbic),
-                "wald": _num(c.wald), "wald_p_value": _num(c.wald_p),
+                "rmse_before": json_num(rb), "rmse_after": json_num(rh.rmse) if rh is not None else None,
+                "rmse_raw_before": json_num(self.base.rmse_raw),
+                "rmse_raw_after": json_num(rh.rmse_raw) if rh is not None else None,
+                "score_robust": json_num(c.score.statistic_robust),
+                "p_value_robust": json_num(c.score.p_value_robust),
+                "lr": json_num(c.lr), "lr_p_value": json_num(c.lr_p), "delta_bic": json_num(c.dbic),
+                "wald": json_num(c.wald), "wald_p_value": json_num(c.wald_p),
                 "refit_start": c.refit.full.info.get("start") if c.refit else None,
-                "delta_heldout_loglik": _num(c.dll),
-                "heldout_p_value": _num(g.p) if g is not None else None,
+                "delta_heldout_loglik": json_num(c.dll),
+                "heldout_p_value": json_num(g.p) if g is not None else None,
                 "consistent_after": (bool(c.refit.consistency.passed)
                                      if c.refit and c.refit.consistency else None),
                 "failed": c.evidence.failed() if c.evidence is not None else None,
-                "p_conditional": _num(c.p_conditional),
-                "shared_with_missing": _num(c.shared),
+                "p_conditional": json_num(c.p_conditional),
+                "shared_with_missing": json_num(c.shared),
                 "significant": bool(c.significant), "confirmed": bool(c.confirmed),
-                "bootstrap_first": _num(c.bootstrap_first)})
+                "bootstrap_first": json_num(c.bootstrap_first)})
         out = {"missing": bool(self.missing), "ranking": rank,
                "missing_effect": best,
                "unexplained": bool(self.unexplained), "verdict": self.verdict,
@@ -278,7 +278,7 @@ class Diagnosis:
         if self.before is not None:
             out["before"] = self.before.to_json()
             out["added"] = list(self.added)
-        return _clean(out)
+        return json_ready(out)
 
     def summary(self) -> str:
         """The ranked summary printed by ``aqfg diagnose``."""
@@ -297,7 +297,7 @@ class Diagnosis:
             b, a = self.before, self.base
             L.append("")
             L.append(f"Added {', '.join(self.added)}: held-out dead-reckoning error "
-                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({_pct(b.rmse, a.rmse)}; raw "
+                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({percent_change(b.rmse, a.rmse)}; raw "
                      f"{b.rmse_raw:.2f} -> {a.rmse_raw:.2f} m), consistency "
                      f"{_ok(b.consistency)} -> {_ok(a.consistency)}, BIC {a.bic - b.bic:+.1f}")
             for e in a.model.effects:
@@ -329,20 +329,23 @@ def _ho(c: Candidate) -> bool:
     return c.refit is not None and c.refit.has_heldout
 
 
-def _num(x):
+def json_num(x: SupportsFloat | None) -> float | None:
+    """``x`` as a JSON number: a float, or None (null) for None, NaN and infinities."""
     if x is None:
         return None
     x = float(x)
     return x if math.isfinite(x) else None
 
 
-def _clean(o):
+def json_ready(o: Any) -> Any:
+    """``o`` with numpy scalars as Python numbers and non-finite floats as None, nested
+    dicts/lists/tuples included (tuples become lists), ready for ``json.dumps``."""
     if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
+        return {k: json_ready(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
+        return [json_ready(v) for v in o]
     if isinstance(o, (np.floating, float)):
-        return _num(o)
+        return json_num(o)
     if isinstance(o, np.integer):
         return int(o)
     if isinstance(o, np.bool_):
@@ -350,7 +353,8 @@ def _clean(o):
     return o
 
 
-def _pct(a: float, b: float) -> str:
+def percent_change(a: float, b: float) -> str:
+    """The change from ``a`` to ``b`` in percent of ``a`` ("+12%"), "n/a" if undefined."""
     if not (np.isfinite(a) and np.isfinite(b)) or a <= 0:
         return "n/a"
     return f"{100 * (b - a) / a:+.0f}%"
@@ -579,7 +583,7 @@ def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
              f"likelihood-ratio p = {best.lr_p:.2g}, dBIC = {best.dbic:.1f}; held-out fixes "
              f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); held-out "
              f"dead-reckoning error {base.rmse:.2f} -> {r.rmse:.2f} m "
-             f"({_pct(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
+             f"({percent_change(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
              f"included: {base.rmse_raw:.2f} -> {r.rmse_raw:.2f} m).")
         if cons is not None and cons.passed:
             v += (" The model was already consistent with the held-out fixes; the effect "

@@ -360,7 +360,7 @@ class UpdateErrorEstimator:
             X_filt[F[n - 1]:F[n] + 1] = out.X
             X_corr[F[n - 1]:F[n] + 1] = out.X
             nodes.store(out)
-            self._store_anchors(h, out, F[n - 1], rej)
+            self.store_anchors(h, out, F[n - 1], rej)
             x, P, rej = out.x, out.P, out.rejects
             if window is not None:
                 t_lo = h.knots[F[n]] - window
@@ -409,7 +409,7 @@ class UpdateErrorEstimator:
                              rejects=a.rejects)
             if correct != "none":
                 X_corr[k_from:F[n] + 1] = out.X
-            self._store_anchors(h, out, k_from, a.rejects)
+            self.store_anchors(h, out, k_from, a.rejects)
             x, P, rej = out.x, out.P, out.rejects
             self._log(f"{h.mission.name} t={h.knots[F[n]]:.1f}: "
                       + ", ".join(f"{e.name}={v:.4g}" for e, v in zip(entries, theta))
@@ -430,7 +430,7 @@ class UpdateErrorEstimator:
                 "last": unc}
 
     @staticmethod
-    def _store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
+    def store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
         """Anchor states after every absolute fix of a recorded pass from knot ``k0``
         (state and covariance after the last node of that knot, and the USBL rejection
         counter, given ``rejects`` at ``k0``)."""

@@ -310,12 +310,12 @@ class BatchSmoother:
 
         ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
         out = levenberg_marquardt(bg, values, ordering, s, self.progress)
-        verdicts = self._plausibility(bg, out.values)
+        verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
         for label, alt in self._alternatives(bg, verdicts):
             o = levenberg_marquardt(bg, alt, ordering, s, None)
-            v = self._plausibility(bg, o.values)
+            v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
                     (all(x.plausible for x in v) == all(x.plausible for x in verdicts)
@@ -342,7 +342,7 @@ class BatchSmoother:
         cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                                 cov_sw[1] if cov_sw else None)
         t_end = time.perf_counter()
-        res = self._result(layout, values, parts, node_list, cov)
+        res = self.make_result(layout, values, parts, node_list, cov)
         res.timings = {"batch": [t_end - t_start], "build": [t_built - t_start],
                        "iteration": it_times, "covariance": [t_end - t_cov]}
         res.info["sigma_model"] = {n: float(v) for n, v in
@@ -378,7 +378,7 @@ class BatchSmoother:
         return res
 
     # ---------------------------------------------------------------- basins
-    def _plausibility(self, bg: BuiltGraph, values: gtsam.Values) -> list[Plausibility]:
+    def check_plausibility(self, bg: BuiltGraph, values: gtsam.Values) -> list[Plausibility]:
         """Physical plausibility of every mission's part of a solution."""
         out = []
         for part in bg.parts:
@@ -435,7 +435,10 @@ class BatchSmoother:
             yield f"alternative heading start {np.degrees(theta_e):.0f} deg", vals
 
     # ---------------------------------------------------------------- result
-    def _result(self, layout, values, parts, node_list, cov) -> Result:
+    def make_result(self, layout: fc.ParamLayout, values: gtsam.Values, parts: list[MissionPart],
+                    node_list: list[ParamNode], cov: dict[int, np.ndarray]) -> Result:
+        """The :class:`Result` of a solution ``values`` of the graph of ``parts``, with the
+        parameter nodes' covariances ``cov`` ({key: covariance}, the parameters' units)."""
         s = self.settings
         model0 = parts[0].model
         val_of = {k: values.atVector(k) for _, k, _ in node_list}
@@ -479,8 +482,8 @@ class BatchSmoother:
         # are in info["per_mission"] and in each MissionResult.p)
         values_d = dict(zip(model0.all_names, map(float, mres[0].p)))
         sigma_d = {}
-        for g, k, mi in node_list:
-            if mi not in (None, 0):
+        for g, k, node_mission in node_list:
+            if node_mission not in (None, 0):
                 continue
             if g == "variable" and k != fc.node_key("variable", 0, len(parts[0].seg_starts) - 1):
                 continue

@@ -37,7 +37,7 @@ class FGSettings:
         sigma honest when the model is wrong (:mod:`aqfg.fg.covariance`; 0 = Hessian only).
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
-        (at least 1, at most ``adapt_max``), see FixedLagSmoother._adapt.
+        (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
     online_init_after: s of fixes after which the fixed-lag smoother checks its heading
         against the closed-form fit of the fixes so far and restarts from it when they
         disagree (0 disables).

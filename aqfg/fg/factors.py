@@ -41,7 +41,7 @@ from aqfg.model.reference import Steps, wrap_angle
 from aqfg.model.vehicle import Model
 
 GROUPS = ("fixed", "variable", "sensor")
-_GROUP_CHAR = {"fixed": "f", "variable": "v", "sensor": "s"}
+GROUP_CHAR = {"fixed": "f", "variable": "v", "sensor": "s"}
 _I6 = np.eye(6)
 MISSION_STRIDE = 1 << 32    # state / node key index = mission * MISSION_STRIDE + i
 
@@ -56,7 +56,7 @@ def node_key(group: str, mission: int = 0, segment: int = 0) -> int:
     segment) or sensor (per mission)."""
     if group == "fixed":
         return gtsam.symbol("f", 0)
-    return gtsam.symbol(_GROUP_CHAR[group], mission * MISSION_STRIDE + segment)
+    return gtsam.symbol(GROUP_CHAR[group], mission * MISSION_STRIDE + segment)
 
 
 # ---------------------------------------------------------------- noise models
@@ -270,13 +270,15 @@ def propagator(model: Model, steps: Steps) -> Callable:
     if not model.uses_cpp:
         return lambda x0, p: model.propagate(x0, p, steps)
     from aqfg.model.params import N_DYN
-    from aqfg.model.vehicle import _cpp
+    from aqfg.model.vehicle import compiled_kernel
+    cpp = compiled_kernel()
+    assert cpp is not None              # model.uses_cpp
     g = model.geometry
     args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
             np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
             np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(g.dirs, float),
             np.ascontiguousarray(g.side, float), bool(g.planar))
-    kernel = _cpp.propagate
+    kernel = cpp.propagate
     return lambda x0, p: kernel(x0, p[:N_DYN], *args)
 
 

@@ -126,7 +126,7 @@ class FixedLagSmoother:
         thr = gtsam.ISAM2ThresholdMap()
         thr.insert(("x", np.repeat([s.relin_pos, s.relin_vel], 3)))
         for g in self.layout.groups:
-            thr.insert((fc._GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
+            thr.insert((fc.GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
         prm.setRelinearizeThreshold(thr)
         self._isam_params = prm
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.window, prm)

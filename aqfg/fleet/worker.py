@@ -92,6 +92,11 @@ def diagnose_op(spec: MissionSpec) -> dict:
             "best": None if best is None else best.effect}
 
 
+def n_sessions() -> int:
+    """How many missions this worker holds (of every run)."""
+    return len(_SESSIONS)
+
+
 def release(run: str) -> int:
     """Drop the sessions of ``run`` from this worker; how many there were."""
     keys = [k for k in _SESSIONS if k[0] == run]

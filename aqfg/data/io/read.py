@@ -31,8 +31,8 @@ from aqfg.data.io.check import (
     MISSION_TOML,
     STREAM_FILES,
     MissionFormatError,
-    _check_rows,
     check_mission,
+    check_rows,
     check_truth,
 )
 from aqfg.data.io.plausibility import MissionWarning, plausibility_warnings
@@ -345,10 +345,10 @@ def load_mission(path: str | os.PathLike) -> Mission:
                                          "[origin]; expected [origin] lat, lon (degrees) to "
                                          "convert them to NED", row=1, column="lat")
             ll = _req(c, "lat", "lon")
-            _check_rows(files["gnss"], ll[:, :1], ("lat",), lo=-90.0, hi=90.0,
-                        what="latitude in degrees")                  # before conversion
-            _check_rows(files["gnss"], ll[:, 1:], ("lon",), lo=-180.0, hi=360.0,
-                        what="longitude in degrees")
+            check_rows(files["gnss"], ll[:, :1], ("lat",), lo=-90.0, hi=90.0,
+                       what="latitude in degrees")                  # before conversion
+            check_rows(files["gnss"], ll[:, 1:], ("lon",), lo=-180.0, hi=360.0,
+                       what="longitude in degrees")
             gnss = Gnss(c["t"], latlon_to_ne(ll[:, 0], ll[:, 1], fields["origin"]),
                         c.get("sigma"), latlon=ll)
         else:
