@@ -1,4 +1,4 @@
-"""Compare the model with the measurements (issue 5, step 1).
+"""Compare the model with the measurements.
 
 * per sensor: the measured value beside the model's prediction and the normalised residual
   over time (read from a fit's :class:`~aqfg.result.Residuals`, or computed for any track

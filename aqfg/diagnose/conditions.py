@@ -1,4 +1,4 @@
-"""Where does the model fail? Relate residual size to what the vehicle was doing (issue 5, step 2).
+"""Where does the model fail? Relate residual size to what the vehicle was doing.
 
 Conditions (sampled on a regular grid, then averaged over the ``memory`` seconds before
 each residual, because a missing force shows in the position only after it has acted):

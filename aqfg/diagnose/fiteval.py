@@ -233,8 +233,7 @@ def blas_threads(n: int = 1):
     """A context limiting the BLAS thread pool to ``n`` threads (threadpoolctl, when
     installed; else nothing). The diagnosis' matrices are small (a few thousand rows, tens
     of columns) and it parallelises over processes itself: multi-threaded BLAS only adds
-    contention, measured 160x slower least squares (290 ms vs 1.8 ms, 2200 x 34) on a
-    2-core machine under load."""
+    contention (measured in docs/diagnosis.md)."""
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:          # optional: aqfg[speed]

@@ -79,8 +79,7 @@ class Projected:
 
 def factorise(N: sp.spmatrix):
     """Sparse LU of a symmetric positive definite normal matrix (no pivoting, symmetric
-    mode: fill stays near Cholesky's; measured 60x faster solves than the default on a
-    600-knot mission)."""
+    mode: fill stays near Cholesky's; faster than the default, docs/diagnosis.md)."""
     return spla.splu(sp.csc_matrix(N), permc_spec="COLAMD", diag_pivot_thresh=0.0,
                      options=dict(SymmetricMode=True))
 

@@ -61,9 +61,8 @@ Choices the paper leaves open (details in the modules named):
   determine has no sigma (absent from ``Result.sigma``) and a reason in
   ``info["sigma_notes"]``; ``info["observability"]``, ``info["converged"]`` and
   ``info["warnings"]`` say what was (not) determined and whether the optimiser converged.
-* Speed: one 24 s window costs ~0.1 ms in C++ (``cpp_factors/ekf.cpp``) against ~100 ms
-  for the numpy reference; a 15-minute online run with an optimisation after every fix
-  (GNSS every 8 s) takes ~1.5 s.
+* Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
+  (:func:`aqfg.ekf.window.window_ref`) only checks it; measured in docs/update-error.md.
 """
 from __future__ import annotations
 

@@ -31,8 +31,8 @@ with one of three optimisers ("trf", "ceres", "gradient"):
     Levenberg-Marquardt with a bounds projection, and ``max_nfev`` counts function
     evaluations rather than iterations (Ceres' failed steps are iterations too). With a
     single residual the Gauss-Newton model always predicts ``E = 0``, so steps keep being
-    shortened: measured ~700 evaluations per online optimisation of three parameters
-    (the paper reports 30-50) against ~55 for "physical", for similar estimates.
+    shortened: many more evaluations than "physical" for similar estimates (measured in
+    docs/update-error.md).
 
 Metrics. ``metric="update"`` (default) is the paper's Eq. 14, the squared Kalman update
 errors of every measurement node. The public code's cost is the sum of innovation *norms*

@@ -18,8 +18,8 @@ returns, per estimated parameter, a finite 1-sigma or "not determined" with the 
   public code's scalar metric): the Gauss-Newton approximation on the whitened
   innovations (the maximum-likelihood Cramer-Rao approximation), inflated by the measured
   consistency ``c = sum nu_w^2 / (n - p)`` when ``c > 1``. It describes the efficient
-  (ML) estimator, not the update-error one: measured on simulated batch fits it is about
-  right for the heading offset and the current but 5-6x too small for k and k_x.
+  (ML) estimator, not the update-error one, and is too small for the weakly observed
+  constants (measured in docs/update-error.md).
 
 Observability: directions of the parameter space along which the metric does not change
 (eigenvalues of ``A`` below ``RCOND`` times the largest, in scaled units) carry no

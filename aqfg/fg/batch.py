@@ -10,21 +10,11 @@ with Levenberg-Marquardt driven from Python:
   (mission, parameter segment) (``Model.propagate_many``); the dynamics factors read those
   results (:func:`aqfg.fg.factors.cached_dynamics_factor`, same maths as the stand-alone factor);
 * a METIS ordering is computed once; the parameter marginal covariances come from the Bayes
-  tree of the final elimination.
+  tree of the final elimination;
+* Marquardt's diagonal damping (lambda diag(J^T J)), not lambda I, and a closed-form initial
+  heading/current (:func:`initial_guess`).
 
-Measured here (2-core shared machine, C++ kernel, 15-min ASV mission, GNSS every 8 s,
-1 s knots = 901 states / 1917 factors, all six parameters from the paper's old values;
-experiments/bench_fg.py):
-
-* this loop: 6 LM iterations of ~0.06 s, 0.5-0.6 s in all (target <= 3 s); one batched
-  ``propagate_many`` costs ~2.3 us per 1-s factor, a cached factor's ``linearize`` ~9 us;
-* GTSAM's ``LevenbergMarquardtOptimizer`` on the same graph with stand-alone dynamics
-  factors: 0.25 s per iteration (Values copied into every callback), growing as N^2;
-* parameter marginals from the final Bayes tree: 6-10 ms (``gtsam.Marginals``: 37 ms);
-* Marquardt's diagonal damping (lambda diag(J^T J)) instead of lambda I: with lambda I the
-  steps of the weakly observed k, k_x were damped to a crawl (45 iterations on a 5-min
-  mission); a closed-form initial heading/current (:func:`initial_guess`) brought typical
-  runs from 10-40 iterations to 5-8 and removed a wrong-basin solution.
+What each of these buys, measured: docs/architecture.md, "Measurements (design decisions)".
 """
 from __future__ import annotations
 

@@ -45,16 +45,12 @@ class FGSettings:
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
-        fix. Measured (ASV, 15 min, GNSS 8 s, 24 s window): thresholds 0.01 / 0.01 and two
-        iterations cost 2.0 ms per update, 1.0 / 0.05 and one iteration 0.5 ms, with the
-        final parameters within 0.2 batch-sigma of the batch answer either way (positions
-        enter the dynamics linearly, so their linearisation point matters little).
+        fix (coarse thresholds and one iteration: positions enter the dynamics linearly, so
+        their linearisation point matters little; measured in docs/architecture.md).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
-        near converged parameters (0 disables). Measured on ASV seed 0, 600 s, GNSS every
-        8 s: without warm-up the 24 s window linearised its marginals at a heading 0.3-0.6
-        rad off and ended at theta_e = 0.91 +- 0.004 rad against the batch 0.54 +- 0.012.
+        near converged parameters (0 disables; why: docs/architecture.md).
     """
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0

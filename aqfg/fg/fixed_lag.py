@@ -65,7 +65,7 @@ class UpdateInfo:
 def _window_steps(model: Model, mission: Mission, knots: np.ndarray):
     """``model.steps(mission, knots)`` over a view of the mission cut to the knots' span
     (plus the thrust-lag look-back): build_steps sorts every input time of the mission it is
-    given, which cost 0.3-0.7 ms per update on a 15-min mission, growing with its length."""
+    given, a cost per update that grows with the mission's length (docs/architecture.md)."""
     import copy
     t_lo = knots[0] - model.lookback - 1.0
     t_hi = knots[-1] + 1.0
@@ -196,7 +196,7 @@ class FixedLagSmoother:
 
     def _make_plan(self) -> None:
         """Knots of the whole recorded mission (the same rule as :meth:`update`) and their
-        kernel steps in one build_steps call, sliced per update (saves ~0.3 ms per update)."""
+        kernel steps in one build_steps call, sliced per update (docs/architecture.md)."""
         sp = self.settings.knot_spacing
         ks = [np.array([self.fix_t[0]])]
         t_last = float(self.fix_t[0])
