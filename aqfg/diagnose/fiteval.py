@@ -129,9 +129,9 @@ def fit_all(missions: list[Mission], model, effects, label: str, *, settings: FG
     sm = WarmBatchSmoother(model, effects=effects, settings=settings,
                            start=start.full if start is not None else None)
     full = sm.run(missions)
-    ev = FitEval(label, (), full, None, n_meas=_n_meas(full))
-    ev.effects = tuple(e.name for e in ev.model.effects)
-    return ev
+    assert full.model is not None, "the batch smoother records its model"
+    return FitEval(label, tuple(e.name for e in full.model.effects), full, None,
+                   n_meas=_n_meas(full))
 
 
 def add_heldout(ev: FitEval, splits: list[Split], model, effects, *, settings: FGSettings,
@@ -148,8 +148,9 @@ def add_heldout(ev: FitEval, splits: list[Split], model, effects, *, settings: F
     lin = linear_system([s.fit for s in splits], thin, [], settings=settings, built=th.built)
     for i, s in enumerate(splits):
         mdl = mission_model(thin.model, s.fit)
-        kw: dict[str, Any] = {"model": mdl, "fit": s.fit, "heldout": s.heldout, "mres": thin.missions[i],
-              "lin": lin, "mission_index": i, "estimated": thin.estimated, "settings": settings}
+        kw: dict[str, Any] = {"model": mdl, "fit": s.fit, "heldout": s.heldout,
+                              "mres": thin.missions[i], "lin": lin, "mission_index": i,
+                              "estimated": thin.estimated, "settings": settings}
         ev.next_fix.append(heldout_innovations(**kw))
         ev.long.append(heldout_innovations(**kw, horizon=horizon))
     t = np.concatenate([h.t[h.used] for h in ev.next_fix])

@@ -206,8 +206,8 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     pos_of = {a: i for i, a in enumerate(use)}
     X_fit = interp_states(mres.track, anchors)
     st = heldout.usbl_station if heldout.usbl_station is not None else fit.usbl_station
-    out: dict[str, list] = {k: [] for k in ("sensor", "t", "dt", "anchor", "nu", "S", "nis", "err", "noise",
-                           "outlier", "fix_ne")}
+    out: dict[str, list] = {k: [] for k in ("sensor", "t", "dt", "anchor", "nu", "S", "nis",
+                                            "err", "noise", "outlier", "fix_ne")}
     legs = []
     chains = {}
     for a in range(len(anchors)):
