@@ -177,8 +177,10 @@ def _absolute_fixes(mission: Mission, cfg: EkfConfig):
     from aqfg.model.retrace import usbl_positions
     g = np.zeros((0, 4))
     if mission.gnss is not None and len(mission.gnss.t):
-        s = (np.full(len(mission.gnss.t), cfg.sigma_gnss) if mission.gnss.sigma is None
-             else np.asarray(mission.gnss.sigma, float))
+        s = np.full(len(mission.gnss.t), cfg.sigma_gnss)
+        if mission.gnss.sigma is not None:            # optional per row: NaN -> the default
+            given = np.asarray(mission.gnss.sigma, float)
+            s = np.where(np.isfinite(given) & (given > 0), given, s)
         g = np.column_stack([mission.gnss.t, mission.gnss.ne, s])
     u = np.zeros((0, 4))
     if mission.usbl is not None and len(mission.usbl.t):

@@ -141,7 +141,12 @@ class BatchSmoother:
     """
 
     def __init__(self, model: Model | None = None, *, effects=(), estimate=None, init=None,
-                 settings: FGSettings | None = None, progress=None):
+                 settings: FGSettings | None = None, progress=None,
+                 also_start: dict[str, float] | None = None):
+        """``also_start``: estimated parameter values to solve from as well (states from
+        the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
+        as for the heading basins."""
+        self.also_start = dict(also_start) if also_start else None
         self.model = model
         self.effects = tuple(effects)
         self.estimate = None if estimate is None else tuple(estimate)
@@ -303,7 +308,7 @@ class BatchSmoother:
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
-        for label, alt in self._alternatives(bg, verdicts):
+        for label, alt in [*self._alternatives(bg, verdicts), *self._given_start(bg)]:
             o = levenberg_marquardt(bg, alt, ordering, s, None)
             v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
@@ -380,6 +385,23 @@ class BatchSmoother:
             out.append(plausibility.check(part.model, part.mission, part.knots, X, p,
                                           bg.layout.estimated))
         return out
+
+    def _given_start(self, bg: BuiltGraph):
+        """The ``also_start`` parameters with knot states from the fixes."""
+        if not self.also_start:
+            return
+        vals = gtsam.Values(bg.values)
+        for part in bg.parts:
+            for k, x in zip(part.keys, initial_states(part.mission, part.knots)):
+                vals.update(k, x)
+        for g, key, _ in bg.nodes:
+            names = bg.layout.names[g]
+            v = vals.atVector(key).copy()
+            for i, n in enumerate(names):
+                if n in self.also_start and np.isfinite(self.also_start[n]):
+                    v[i] = float(self.also_start[n])
+            vals.update(key, bg.layout.project(g, v))
+        yield "given start", vals
 
     def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility]):
         """Other starts worth solving from: other heading basins of the closed form, when

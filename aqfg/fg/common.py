@@ -38,9 +38,12 @@ class FGSettings:
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
         (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
-    online_init_after: s of fixes after which the fixed-lag smoother checks its heading
-        against the closed-form fit of the fixes so far and restarts from it when they
-        disagree (0 disables).
+    online_init_after, online_reinit_until: online without a given heading offset, the
+        estimated parameters are held at their start values until ``online_init_after`` s
+        of fixes are in; then a batch solve of the fixes so far (global heading start)
+        re-initialises the smoother, which releases them. The check is repeated each time
+        the elapsed time doubles, up to ``online_reinit_until`` s, and restarts from the
+        batch when the heading offsets disagree (0 disables all of this).
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
@@ -55,7 +58,8 @@ class FGSettings:
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0
     adapt_process: bool = True
-    online_init_after: float = 60.0
+    online_init_after: float = 20.0
+    online_reinit_until: float = 960.0
     adapt_window: int = 10
     adapt_max: float = 1e4
     process: fc.ProcessNoise = field(default_factory=fc.ProcessNoise)
@@ -323,7 +327,9 @@ class Measurements:
         if g is not None and len(g.t):
             sel = (g.t >= t_start - 1e-9) & (g.t <= t_end + 1e-9)
             gt, gz = g.t[sel], g.ne[sel]
-            gs = g.sigma[sel] if g.sigma is not None else np.full(len(gt), sn.gnss_sigma)
+            gs = (np.where(np.isfinite(g.sigma[sel]) & (g.sigma[sel] > 0), g.sigma[sel],
+                           sn.gnss_sigma)          # the column is optional per row (NaN)
+                  if g.sigma is not None else np.full(len(gt), sn.gnss_sigma))
         else:
             gt, gz, gs = np.zeros(0), z2, np.zeros(0)
         u = mission.usbl
