@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from aqfg.data.mission import with_gnss_every, without_gnss
-from aqfg.model.vehicle import Model
 from aqfg.model.params import N_DYN, OLD_PARAMS, vector
+from aqfg.model.vehicle import Model
 
 TARGETS = {"kernel_us": 5.0, "fl_update_ms": 5.0, "ratio": 20.0, "batch_s": 3.0}
 VARIABLE = ("theta_e", "s_x", "s_y")
@@ -106,6 +106,7 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
     for _ in range(repeat):
         r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)
         ups = np.asarray(r.timings["update"])
+        assert r.history is not None, "the fixed-lag smoother records its history"
         t_up = np.asarray(r.history.t)
         we = r.info.get("warmup_end", float("nan"))
         fl_all += list(ups[1:])                    # the first is the start (prior only)
@@ -126,8 +127,8 @@ def batch_times(repeat: int = 3, duration: float = 900.0, seed: int = 0,
     """Factor-graph batch over a ``duration`` s ASV mission (GNSS 1 Hz) estimating all six
     base parameters from the paper's old ones; optionally the update-error offline
     optimisation of the same mission (once: it takes much longer)."""
-    from aqfg.sim.simulator import simulate
     from aqfg.fg.fit import fit_fg
+    from aqfg.sim.simulator import simulate
     m, truth = simulate("asv", seed=seed, duration=duration, gnss_period=1.0)
     six = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
     fg = []

@@ -5,17 +5,17 @@ Times are seconds on the mission clock; states are ``[north, east, down, vn, ve,
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import gtsam
 import numpy as np
 
+from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.model import retrace as retrace
-from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model, attitude_at
 from aqfg.model.params import BASE_NAMES
+from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import Residuals, Track
 
 
@@ -37,7 +37,7 @@ class FGSettings:
         sigma honest when the model is wrong (:mod:`aqfg.fg.covariance`; 0 = Hessian only).
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
-        (at least 1, at most ``adapt_max``), see FixedLagSmoother._adapt.
+        (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -48,16 +48,12 @@ class FGSettings:
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
-        fix. Measured (ASV, 15 min, GNSS 8 s, 24 s window): thresholds 0.01 / 0.01 and two
-        iterations cost 2.0 ms per update, 1.0 / 0.05 and one iteration 0.5 ms, with the
-        final parameters within 0.2 batch-sigma of the batch answer either way (positions
-        enter the dynamics linearly, so their linearisation point matters little).
+        fix (coarse thresholds and one iteration: positions enter the dynamics linearly, so
+        their linearisation point matters little; measured in docs/architecture.md).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
-        near converged parameters (0 disables). Measured on ASV seed 0, 600 s, GNSS every
-        8 s: without warm-up the 24 s window linearised its marginals at a heading 0.3-0.6
-        rad off and ended at theta_e = 0.91 +- 0.004 rad against the batch 0.54 +- 0.012.
+        near converged parameters (0 disables; why: docs/architecture.md).
     """
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0
@@ -85,7 +81,7 @@ class FGSettings:
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 
-    def with_(self, **kw) -> "FGSettings":
+    def with_(self, **kw) -> FGSettings:
         return replace(self, **kw)
 
 
@@ -175,7 +171,7 @@ def robust_fixes(mission: Mission) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], p[keep]
 
 
-def robust_fix_table(mission: Mission, settings: "FGSettings"
+def robust_fix_table(mission: Mission, settings: FGSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fix times, horizontal NED positions (n, 2) and their per-axis variance (m^2) (GNSS
     sigma, or the USBL tangential sigma at the fix's range), for innovation statistics."""
@@ -324,7 +320,7 @@ class Measurements:
 
     @classmethod
     def of(cls, mission: Mission, settings: FGSettings, t_start: float = -np.inf,
-           t_end: float = np.inf) -> "Measurements":
+           t_end: float = np.inf) -> Measurements:
         sn = settings.sensors
         z2 = np.zeros((0, 2))
         g = mission.gnss
@@ -371,10 +367,10 @@ def depth_assignment(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.n
         return np.zeros(0, int), np.zeros(0, int)
     k = knot_index(knots, t)
     d = np.abs(knots[k] - t)
-    best = {}
+    best: dict[int, int] = {}
     for i in np.argsort(d, kind="stable"):
         best.setdefault(int(k[i]), int(i))
-    ki = np.array(sorted(best), dtype=int)
+    ki = np.array(sorted(best), dtype=np.int64)
     return np.array([best[j] for j in ki], dtype=int), ki
 
 
@@ -393,6 +389,7 @@ def measurement_factors(model: Model, layout: fc.ParamLayout, meas: Measurements
         out.append(fc.gnss_factor(model, layout, kx(k), node_keys("gnss", t), meas.gnss_z[i],
                                   meas.gnss_R[i], t, noise, base))
     for i in range(len(meas.usbl_t)):
+        assert meas.station is not None, "USBL fixes come with the station position"
         t = float(meas.usbl_t[i])
         k = int(knot_index(knots, np.array([t]))[0])
         noise = sn.wrap(gtsam.noiseModel.Diagonal.Sigmas(meas.usbl_sigma[i]), "usbl")

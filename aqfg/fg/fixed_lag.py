@@ -24,20 +24,29 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, replace
+from typing import Any
 
 import gtsam
 import numpy as np
 
-from aqfg.fg import factors as fc
-
 from aqfg.data.mission import Mission
+from aqfg.fg import factors as fc
+from aqfg.fg.common import (
+    FGSettings,
+    Measurements,
+    check_missions,
+    default_estimate,
+    first_knot_prior,
+    initial_states,
+    measurement_factors,
+    mission_model,
+    piecewise_inertial,
+    progress_fn,
+    residuals,
+    robust_fix_table,
+)
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
-from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
-                             robust_fix_table,
-                              first_knot_prior, initial_states, measurement_factors,
-                              mission_model, piecewise_inertial, progress_fn, residuals)
-
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +68,7 @@ class UpdateInfo:
 def _window_steps(model: Model, mission: Mission, knots: np.ndarray):
     """``model.steps(mission, knots)`` over a view of the mission cut to the knots' span
     (plus the thrust-lag look-back): build_steps sorts every input time of the mission it is
-    given, which cost 0.3-0.7 ms per update on a 15-min mission, growing with its length."""
+    given, a cost per update that grows with the mission's length (docs/architecture.md)."""
     import copy
     t_lo = knots[0] - model.lookback - 1.0
     t_hi = knots[-1] + 1.0
@@ -141,7 +150,7 @@ class FixedLagSmoother:
         thr = gtsam.ISAM2ThresholdMap()
         thr.insert(("x", np.repeat([s.relin_pos, s.relin_vel], 3)))
         for g in self.layout.groups:
-            thr.insert((fc._GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
+            thr.insert((fc.GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
         prm.setRelinearizeThreshold(thr)
         self._isam_params = prm
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.window, prm)
@@ -153,8 +162,10 @@ class FixedLagSmoother:
         self.seg = 0
         self.seg_starts = [float(self.fix_t[0])]
         self.v_by_seg: dict[int, np.ndarray] = {}
-        self.hist_t, self.hist_v, self.hist_s = [], [], []
-        self.timings = {"update": [], "update_total": [], "correction": []}
+        self.hist_t: list[float] = []
+        self.hist_v: list[np.ndarray] = []
+        self.hist_s: list[np.ndarray] = []
+        self.timings: dict[str, list[float]] = {"update": [], "update_total": [], "correction": []}
         self.n_fix = 0
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
@@ -171,7 +182,7 @@ class FixedLagSmoother:
         self._innov: list[float] = []              # normalised squared fix innovations
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
-        self._plan = None
+        self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
         if plan:
             self._make_plan()
         self.warmup_end = float("nan")
@@ -221,7 +232,7 @@ class FixedLagSmoother:
 
     def _make_plan(self) -> None:
         """Knots of the whole recorded mission (the same rule as :meth:`update`) and their
-        kernel steps in one build_steps call, sliced per update (saves ~0.3 ms per update)."""
+        kernel steps in one build_steps call, sliced per update (docs/architecture.md)."""
         sp = self.settings.knot_spacing
         ks = [np.array([self.fix_t[0]])]
         t_last = float(self.fix_t[0])
@@ -461,10 +472,10 @@ class FixedLagSmoother:
             self.init = saved
             self._replaying = False
         self.events = events + self.events
-        n = len(causal[3])
-        if len(self.filtered) >= n and self.hist_t[:len(causal[0])] == causal[0]:
+        n_kept = len(causal[3])
+        if len(self.filtered) >= n_kept and self.hist_t[:len(causal[0])] == causal[0]:
             self.hist_t, self.hist_v, self.hist_s = causal[0], causal[1], causal[2]
-            self.filtered[:n] = causal[3]
+            self.filtered[:n_kept] = causal[3]
             self.pred_t, self.pred_x = causal[4], causal[5]
         self._release(t_fix)
         # per-update timings stay aligned with the (replayed) history; the updates before
@@ -627,7 +638,8 @@ class FixedLagSmoother:
         s = self.settings
         last = self.keys[self._n_committed - 1]     # the newest knot the smoother holds
         keys = [last] + [self._node(g) for g in self.layout.groups]
-        est, cov = {}, {}
+        est: dict[int, np.ndarray | None] = {}
+        cov: dict[int, np.ndarray | None] = {}
         for k in keys:
             est[k] = cov[k] = None
             if hard:
@@ -645,20 +657,22 @@ class FixedLagSmoother:
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag, self._isam_params)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        stamps = {}
+        stamps: dict[Any, float] = {}
         for k in keys:
+            e = est[k]
             if k == last:
-                x = est[k] if est[k] is not None else self._last_finite_state()
+                x = e if e is not None else self._last_finite_state()
                 broad = np.array([10.0, 10.0, 1.0, 2.0, 2.0, 0.5])
             else:
                 g = next(g for g in self.layout.groups if self._node(g) == k)
-                x = self.layout.project(g, est[k]) if est[k] is not None else \
+                x = self.layout.project(g, e) if e is not None else \
                     self.layout.initial(g) if hard else \
                     self.layout.project(g, np.asarray(self._last_params.get(g, self.layout.initial(g))))
                 broad = np.array([s.prior_scale * self.model.spec(n).scale
                                   for n in self.layout.names[g]])
                 graph.add(fc.bound_factor(self.layout, g, k))
             C = cov[k]
+            noise: gtsam.noiseModel.Base
             if C is None or not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
                 noise = gtsam.noiseModel.Diagonal.Sigmas(broad)
             else:
@@ -806,16 +820,16 @@ def _mission_until(mission: Mission, t: float) -> Mission:
         g = copy.copy(mission.gnss)
         k = mission.gnss.t <= t + 1e-9
         g.t, g.ne = mission.gnss.t[k], mission.gnss.ne[k]
-        if g.sigma is not None:
+        if mission.gnss.sigma is not None:
             g.sigma = mission.gnss.sigma[k]
-        if g.latlon is not None:
+        if mission.gnss.latlon is not None:
             g.latlon = mission.gnss.latlon[k]
         view.gnss = g
     if mission.usbl is not None:
         u = copy.copy(mission.usbl)
         k = mission.usbl.t <= t + 1e-9
         u.t, u.range, u.bearing = mission.usbl.t[k], mission.usbl.range[k], mission.usbl.bearing[k]
-        if u.elevation is not None:
+        if mission.usbl.elevation is not None:
             u.elevation = mission.usbl.elevation[k]
         view.usbl = u
     return view

@@ -103,8 +103,12 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     return theta, sol[c:c + 2].copy(), rho, sol[:2].copy(), misfit
 
 
+# the misfit grid's scales of the nominal k, k_x, k_yz (see candidate_starts)
+_SCALES = np.logspace(-2.0, 1.0, 10)
+
+
 def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.ndarray,
-                     scales=np.logspace(-2.0, 1.0, 10), ratios=(0.1, 1.0, 10.0),
+                     scales=_SCALES, ratios=(0.1, 1.0, 10.0),
                      search: bool = True) -> list[Start]:
     """Candidate starts, best (lowest misfit) first.
 
