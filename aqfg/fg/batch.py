@@ -50,7 +50,6 @@ from aqfg.fg.plausibility import Plausibility
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
-
 log = logging.getLogger(__name__)
 
 @dataclass
