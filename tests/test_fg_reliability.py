@@ -53,3 +53,18 @@ def test_iteration_limit_is_flagged(asv):
     res = fit_fg([asv[0]], settings=FGSettings(max_iterations=2, rel_tol=0.0, abs_tol=0.0))
     assert res.info["hit_iteration_limit"]
     assert any("iteration limit" in w for w in res.info["warnings"])
+
+
+def test_sandwich_raises_a_variance_only_where_the_ratio_is_significant():
+    """The sandwich is an estimate with dof degrees of freedom: a ratio a correct model
+    reaches by chance keeps the Hessian variance, a significant one replaces it."""
+    from aqfg.fg.covariance import honest_covariance, significant_ratio
+    C = {1: np.diag([1.0, 4.0])}
+    dof = 20
+    thr = significant_ratio(dof)
+    assert 1.3 < thr < 1.8                               # chi2(0.95, 20) / 20 = 1.57
+    S = {1: np.diag([0.9 * thr, 4.0 * 3.0 * thr])}       # first not significant, second is
+    out = honest_covariance(C, S, dof)[1]
+    assert out[0, 0] == pytest.approx(1.0)
+    assert out[1, 1] == pytest.approx(4.0 * 3.0 * thr)
+    assert honest_covariance(C, S)[1][0, 0] == pytest.approx(0.9 * thr)   # no dof: max

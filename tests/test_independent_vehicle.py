@@ -139,3 +139,40 @@ def test_process_noise_adapts_only_when_the_model_is_wrong():
     bad = FixedLagSmoother(init={"k": 40.0, "k_x": 0.5, "k_yz": 0.3}).run(m)
     assert good.info["process_noise_scale"] <= 2.0
     assert bad.info["process_noise_scale"] >= 4.0 * good.info["process_noise_scale"]
+
+
+@pytest.mark.slow
+def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data():
+    """Constants of a batch fit of another mission (calm-b) on calm-a at 8-s fixes: single
+    incremental steps on the heading offset used to run off (178 deg off at the end). The
+    parameters are held at their start values until the batch re-initialisation, then
+    released, and the offset ends within 5 deg; the history before the restart is what
+    was reported then (the start values), not the replay's."""
+    other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
+    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
+    m, truth = mission("otter-dev-calm-a", 8.0)
+    res = FixedLagSmoother(init=init).run(m)
+    ev = [e["event"] for e in res.info["events"]]
+    assert "parameters released" in ev
+    t_rel = min(e["t"] for e in res.info["events"] if e["event"] == "parameters released")
+    h = res.history
+    i = list(h.names).index("theta_e")
+    before = h.values[h.t < t_rel, i]
+    assert len(before) >= 3 and np.allclose(before, 0.0, atol=1e-3)     # held at the start
+    assert np.ptp(h.values[h.t > t_rel, i]) > 1 * DEG                   # then it moves
+    assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
+
+
+def test_online_without_the_vehicles_constants_estimates_them_and_says_so(caplog):
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=4, duration=90.0, gnss_period=4.0)
+    with caplog.at_level("WARNING"):
+        res = FixedLagSmoother().run(m)
+    assert {"k", "k_x", "k_yz"} <= set(res.estimated)
+    assert any("estimates them too" in w for w in res.info["warnings"])
+    assert "--params-from" in caplog.text
+    held = FixedLagSmoother(estimate=("theta_e", "s_x", "s_y")).run(m)
+    assert "k" not in held.estimated
+    assert any("another vehicle" in w for w in held.info["warnings"])
+    given = FixedLagSmoother(init={"k": 9.0, "k_x": 1.8, "k_yz": 0.15}).run(m)
+    assert "k" not in given.estimated and not given.info["warnings"]
