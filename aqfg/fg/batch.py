@@ -41,6 +41,7 @@ from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 from aqfg.fg.covariance import block_sandwich, honest_covariance
 from aqfg.fg import observability, plausibility
+from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
 from aqfg.fg.plausibility import Plausibility
 from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
@@ -293,13 +294,15 @@ class BatchSmoother:
         t_built = time.perf_counter()
         all_keys = bg.key_dims()
 
-        ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-        out = levenberg_marquardt(bg, values, ordering, s, self.progress)
+        fs = FastSystem.build(bg, s) if s.fast_lm else None
+        ordering = None if fs is not None else \
+            gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
+        out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
         verdicts = self._plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
         for label, alt in self._alternatives(bg, verdicts):
-            o = levenberg_marquardt(bg, alt, ordering, s, None)
+            o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
             v = self._plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
@@ -310,20 +313,23 @@ class BatchSmoother:
         n_it, n_trials, converged, it_times = out.iterations, out.trials, out.converged, out.it_times
         # marginal covariances of the parameter nodes from the undamped Bayes tree
         t_cov = time.perf_counter()
-        try:
-            bt = gfg.eliminateMultifrontal(ordering)
-            cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
-        except RuntimeError:
-            # the undamped system is singular: no parameter is determined by the Hessian
-            cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
         # each mission's blocks are its own: its times shifted past the previous missions'
         key_time, shift = {}, 0.0
         for part in parts:
             t_first = float(part.knots[0])
             key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
             shift += float(part.knots[-1]) - t_first + 2.0 * (s.sandwich_block or 1.0)
-        cov_sw = block_sandwich(gfg, all_keys, key_time, [n.key for n in node_list],
-                                s.sandwich_block) if s.sandwich_block else None
+        if out.fast is not None:
+            cov_model, cov_sw = _fast_covariance(fs, out.fast, node_list, layout, key_time, s)
+        else:
+            try:
+                bt = gfg.eliminateMultifrontal(ordering)
+                cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
+            except RuntimeError:
+                # the undamped system is singular: no parameter is determined by the Hessian
+                cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
+            cov_sw = block_sandwich(gfg, all_keys, key_time, [n.key for n in node_list],
+                                    s.sandwich_block) if s.sandwich_block else None
         cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                                 cov_sw[1] if cov_sw else None)
         t_end = time.perf_counter()
@@ -485,19 +491,46 @@ class LMOutcome:
     """Result of one Levenberg-Marquardt solve of a built graph."""
     values: gtsam.Values
     cost: float
-    gfg: gtsam.GaussianFactorGraph        # linearised at ``values``
+    gfg: gtsam.GaussianFactorGraph | None   # linearised at ``values`` (GTSAM path)
     iterations: int
     trials: int
     converged: bool
     it_times: list[float]
+    fast: dict | None = None               # numpy path: its evaluation at ``values``
 
 
-def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering,
-                        s: FGSettings, progress=None) -> LMOutcome:
+def _fast_covariance(fs: FastSystem, ev: dict, node_list, layout, key_time, s: FGSettings):
+    """Hessian and sandwich covariances of the parameter nodes from the numpy system
+    (the same quantities as the Bayes tree's marginals and :func:`block_sandwich`)."""
+    D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+    try:
+        fac = fs.factor(D, E, Hsp, Hpp)
+        C = fs.param_covariance(fac)
+    except np.linalg.LinAlgError:
+        cov = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
+        return cov, None
+    cov = {}
+    for _, k, _ in node_list:
+        o, d = fs.node_off[k]
+        cov[k] = C[o:o + d, o:o + d].copy()
+    sw = fs.sandwich(ev, fac, key_time, s.sandwich_block) if s.sandwich_block else None
+    return cov, sw
+
+
+def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,
+                        s: FGSettings, progress=None, fs: FastSystem | None = None) -> LMOutcome:
     """LM driven from Python (GTSAM's optimizers copy all Values into every CustomFactor
     call): Marquardt's diagonal damping, an active set for the parameter bounds, and the
     stopping rule of :class:`FGSettings` (an accepted step lowering the cost by less than
-    ``max(rel_tol x cost, abs_tol)``)."""
+    ``max(rel_tol x cost, abs_tol)``). With ``fs`` the same algorithm runs on the numpy
+    form of the graph (:mod:`aqfg.fg.fastlm`); ``gfg`` is then None."""
+    if fs is not None:
+        X, th, cost, ev, n_it, n_trials, conv, it_times = levenberg_marquardt_fast(
+            fs, values, s, progress)
+        return LMOutcome(fs.to_values(X, th, values), cost, None, n_it, n_trials, conv,
+                         it_times, ev)
+    if ordering is None:
+        ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
     layout, node_list, all_keys = bg.layout, bg.nodes, bg.key_dims()
 
     def project(vals):

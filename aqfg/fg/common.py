@@ -43,6 +43,8 @@ class FGSettings:
         disagree (0 disables).
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
+    fast_lm: batch LM on the numpy form of the graph (:mod:`aqfg.fg.fastlm`) where the
+        graph has its shape (else, or when False, on GTSAM's linearisation; same algorithm).
     relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
         fix. Measured (ASV, 15 min, GNSS 8 s, 24 s window): thresholds 0.01 / 0.01 and two
@@ -72,6 +74,7 @@ class FGSettings:
     init_vel_sigma: float = 1.0
     init_pos_sigma: float = 20.0
     max_iterations: int = 60
+    fast_lm: bool = True
     rel_tol: float = 1e-6
     abs_tol: float = 1e-3
     relin_pos: float = 1.0
