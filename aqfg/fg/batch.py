@@ -44,6 +44,7 @@ from aqfg.fg import observability, plausibility
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
 from aqfg.fg.plausibility import Plausibility
+from aqfg.threads import blas_threads
 from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
                               first_knot_prior, initial_states, knot_times, outliers, measurement_factors,
                               mission_model, piecewise_inertial, progress_fn, residuals)
@@ -285,6 +286,12 @@ class BatchSmoother:
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:
+        """The batch fit of ``missions`` (single-threaded BLAS: the matrices are small and
+        a thread pool on a loaded machine made the closed-form start 20-60x slower)."""
+        with blas_threads(1):
+            return self._run(missions)
+
+    def _run(self, missions) -> Result:
         missions = check_missions(missions)
         s = self.settings
         t_start = time.perf_counter()

@@ -163,14 +163,26 @@ def robust_fixes(mission: Mission) -> tuple[np.ndarray, np.ndarray]:
     t, p = retrace.fixes(mission)
     if len(t) < 5:
         return t, p
-    keep = np.ones(len(t), bool)
-    for i in range(len(t)):
-        lo, hi = max(0, i - 3), min(len(t), i + 4)
+    n = len(t)
+    keep = np.ones(n, bool)
+
+    def judge(i: np.ndarray, nb: np.ndarray) -> np.ndarray:
+        # fixes i (m,) against their neighbours nb (m, j): within 6 median spreads (+1 m)
+        # of the neighbours' median, plus 1.5 m per second of the neighbourhood
+        q = p[nb, :2]                                        # (m, j, 2)
+        med = np.median(q, axis=1)
+        spread = np.median(np.abs(q - med[:, None, :]).reshape(len(i), -1), axis=1) + 1.0
+        dt = np.max(np.abs(t[nb] - t[i][:, None]), axis=1)
+        return np.linalg.norm(p[i, :2] - med, axis=1) < 6 * spread + 1.5 * dt
+
+    inner = np.arange(3, n - 3)               # six neighbours each: vectorised
+    if len(inner):
+        off = np.array([-3, -2, -1, 1, 2, 3])
+        keep[inner] = judge(inner, inner[:, None] + off)
+    for i in sorted(set(range(min(3, n))) | set(range(max(n - 3, 0), n))):
+        lo, hi = max(0, i - 3), min(n, i + 4)
         nb = np.delete(np.arange(lo, hi), i - lo)
-        med = np.median(p[nb, :2], axis=0)
-        spread = np.median(np.abs(p[nb, :2] - med)) + 1.0
-        dt = np.max(np.abs(t[nb] - t[i]))
-        keep[i] = np.linalg.norm(p[i, :2] - med) < 6 * spread + 1.5 * dt
+        keep[i] = judge(np.array([i]), nb[None, :])[0]
     return t[keep], p[keep]
 
 

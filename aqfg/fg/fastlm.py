@@ -226,6 +226,8 @@ class FastSystem:
             nxt = ok & (I == J + 1) & (J < self.N - 1)
             src[d, nxt] = (nD + J * 36 + a * 6 + bb)[nxt]
         self._band_src = src
+        self._kernels = [[_propagator(part.model, sl) if sl is not None else None
+                          for sl in part.seg_slices] for part in bg.parts]
         self.lo = np.concatenate([bg.layout.bounds(n.group)[0] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
@@ -256,7 +258,7 @@ class FastSystem:
         return {k: th[o:o + d] for k, (o, d) in self.node_off.items()}
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, X: np.ndarray, th: np.ndarray, jac: bool = True) -> dict:
+    def evaluate(self, X: np.ndarray, th: np.ndarray) -> dict:
         """Whitened residuals (and Jacobian blocks) of every factor at ``(X, th)``; the
         dynamics from one kernel call per mission and parameter segment."""
         bg, lay = self.bg, self.layout
@@ -273,35 +275,21 @@ class FastSystem:
             for j, sl in enumerate(part.seg_slices):
                 if sl is None:
                     continue
-                a, b, steps, offs = sl
+                a, b = sl[0], sl[1]
                 if "variable" in lay.names:
                     nd["variable"] = nv[fc.node_key("variable", part.index, j)]
-                pred, Jx, Jp = part.model.propagate_many(Xp[a:b], lay.full(nd), steps, offs)
+                pred, Jx, Jp = self._kernels[pi][j](Xp[a:b], lay.full(nd))
                 preds.append(pred)
                 Jxs.append(Jx)
                 Jps.append(Jp)
         pred = np.concatenate(preds) if preds else np.zeros((0, 6))
         out = {}
         d0 = self.d0
-        rd = np.einsum("kij,kj->ki", self.W, X[d0 + 1] - pred)
+        rd = np.matmul(self.W, (X[d0 + 1] - pred)[:, :, None])[:, :, 0]
         out["dyn_r"] = rd
         cost = 0.5 * float(np.sum(rd * rd))
-        if jac:
-            Jx = np.concatenate(Jxs)
-            Jp = np.concatenate(Jps)
-            out["A0"] = -np.einsum("kij,kjl->kil", self.W, Jx)
-            Ap = np.zeros((len(d0), 6, self.P))
-            for g, gc in self.gcols.items():
-                pos = lay.dyn_pos[g]
-                blk = np.zeros((len(d0), 6, len(pos)))
-                ok = pos >= 0
-                blk[..., ok] = Jp[..., pos[ok]]
-                WJ = -np.einsum("kij,kjl->kil", self.W, blk)
-                kk = np.repeat(np.arange(len(d0)), gc.shape[1])
-                cc = gc.ravel()
-                np.add.at(Ap, (kk, slice(None), cc),
-                          WJ.transpose(0, 2, 1).reshape(-1, 6))
-            out["Ap"] = Ap
+        out["Jx"] = np.concatenate(Jxs) if Jxs else np.zeros((0, 6, 6))
+        out["Jp"] = np.concatenate(Jps) if Jps else np.zeros((0, 6, self.ncols))
         # measurements
         mres = []
         for m in self.meas:
@@ -352,28 +340,59 @@ class FastSystem:
         out["cost"] = cost
         return out
 
+    def _dyn_jacobians(self, ev: dict) -> None:
+        """Whitened dynamics Jacobian blocks of an evaluation (once, when needed)."""
+        if "A0" in ev:
+            return
+        lay, K = self.layout, len(self.d0)
+        ev["A0"] = -np.matmul(self.W, ev["Jx"])
+        Ap = np.zeros((K, 6, self.P))
+        for g, gc in self.gcols.items():
+            pos = lay.dyn_pos[g]
+            blk = np.zeros((K, 6, len(pos)))
+            ok = pos >= 0
+            blk[..., ok] = ev["Jp"][..., pos[ok]]
+            WJ = -np.matmul(self.W, blk)
+            if self._unique_cols(g):
+                Ap[:, :, gc[0]] += WJ
+            else:
+                kk = np.repeat(np.arange(K), gc.shape[1])
+                np.add.at(Ap, (kk, slice(None), gc.ravel()),
+                          WJ.transpose(0, 2, 1).reshape(-1, 6))
+        ev["Ap"] = Ap
+
+    def _unique_cols(self, g: str) -> bool:
+        gc = self.gcols[g]
+        return bool(len(gc)) and bool(np.all(gc == gc[0]))
+
     def normal(self, ev: dict):
         """Gauss-Newton normal equations ``H``, gradient ``g = A^T r`` at an evaluation:
         state blocks ``D`` (N,6,6), ``E`` (N-1,6,6) (block (i, i+1)), ``Hsp`` (N,6,P),
         ``Hpp`` (P,P), ``gs`` (N,6), ``gp`` (P,)."""
+        self._dyn_jacobians(ev)
         N, P, d0 = self.N, self.P, self.d0
         D = self.D_const.copy()
         E = np.zeros((max(N - 1, 0), 6, 6))
         Hsp = np.zeros((N, 6, P))
         gs = np.zeros((N, 6))
         A0, Ap, rd, W = ev["A0"], ev["Ap"], ev["dyn_r"], self.W
-        np.add.at(D, d0, np.einsum("kji,kjl->kil", A0, A0))
-        np.add.at(D, d0 + 1, self.WtW)
-        E[d0] += np.einsum("kji,kjl->kil", A0, W)
-        Hsp[d0] += np.einsum("kji,kjl->kil", A0, Ap)
-        Hsp[d0 + 1] += np.einsum("kji,kjl->kil", W, Ap)
-        Hpp = self.Hpp_const + np.einsum("kji,kjl->il", Ap, Ap)
-        np.add.at(gs, d0, np.einsum("kji,kj->ki", A0, rd))
-        np.add.at(gs, d0 + 1, np.einsum("kji,kj->ki", W, rd))
-        gp = np.einsum("kji,kj->i", Ap, rd) + self.lin_pA.T @ ev["lin_p"]
+        A0t = A0.transpose(0, 2, 1)
+        Wt = W.transpose(0, 2, 1)
+        # the dynamics intervals are consecutive knots: d0 has no repeats
+        D[d0] += np.matmul(A0t, A0)
+        D[d0 + 1] += self.WtW
+        E[d0] += np.matmul(A0t, W)
+        Hsp[d0] += np.matmul(A0t, Ap)
+        Hsp[d0 + 1] += np.matmul(Wt, Ap)
+        Apf = Ap.reshape(-1, P)
+        Hpp = self.Hpp_const + Apf.T @ Apf
+        gs[d0] += np.matmul(A0t, rd[:, :, None])[:, :, 0]
+        gs[d0 + 1] += np.matmul(Wt, rd[:, :, None])[:, :, 0]
+        gp = Apf.T @ rd.ravel() + self.lin_pA.T @ ev["lin_p"]
         for m, (r, J, w) in zip(self.meas, ev["meas"]):
-            np.add.at(D, m.idx, w[:, None, None] * np.einsum("nji,njl->nil", J, J))
-            np.add.at(gs, m.idx, w[:, None] * np.einsum("nji,nj->ni", J, r))
+            Jt = J.transpose(0, 2, 1)
+            np.add.at(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
+            np.add.at(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
         for mm, (si, A, b) in self.lin_s.items():
             np.add.at(gs, si, np.einsum("nji,nj->ni", A, ev["lin_s"][mm]))
         return D, E, Hsp, Hpp, gs, gp
@@ -427,8 +446,8 @@ class FastSystem:
             t_state[o:o + len(p.keys)] = [key_time[k] for k in p.keys]
         t0 = float(t_state.min())
         blk_state = ((t_state - t0) // block).astype(np.int64)
+        self._dyn_jacobians(ev)
         d0 = self.d0
-        ids = set()
         rows_s, rows_b, vals_s = [], [], []     # state gradient contributions
         pg_b, pg_v = [], []                     # parameter gradient contributions
         A0, Ap, rd, W = ev["A0"], ev["Ap"], ev["dyn_r"], self.W
@@ -473,6 +492,25 @@ class FastSystem:
             zk = zk - zk.mean(axis=1, keepdims=True)
             out[k] = scale * zk @ zk.T
         return out, nb - n_p
+
+
+def _propagator(model, sl):
+    """``f(X0, p) -> (X1, J_x0, J_p)`` of one parameter segment's intervals, with the
+    kernel's step arguments converted once (:meth:`Model.propagate_many`)."""
+    a, b, steps, offs = sl
+    if not model.uses_cpp:
+        return lambda X0, p: model.propagate_many(X0, p, steps, offs)
+    from aqfg.model.params import N_DYN
+    from aqfg.model.vehicle import _cpp
+    g = model.geometry
+    args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+            np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+            np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(offs, np.int64),
+            np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
+            bool(g.planar))
+    kernel = _cpp.propagate_many
+    return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
+                                np.ascontiguousarray(p[:N_DYN], float), *args)
 
 
 def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values, s, progress=None):

@@ -51,29 +51,29 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
     1800 x 34 ``lstsq`` took 2 s, 25 s on a loaded machine). Returns the coefficients
     ``c``, the offsets (nw, 2) and the robust RMS misfit.
     """
-    n = y.shape[1]
+    n, m = y.shape[1], C.shape[2]
     wf = np.ones(n)
-    c = np.zeros(C.shape[2])
+    c = np.zeros(m)
     off = np.zeros((nw, 2))
     res = np.zeros(n)
-
-    def wmean(v, wsum):                     # weighted mean of v (n, ...) per window
-        flat = v.reshape(n, -1)
-        out = np.stack([np.bincount(win, wf * flat[:, j], nw) for j in range(flat.shape[1])], 1)
-        return (out / wsum[:, None]).reshape((nw,) + v.shape[1:])
-
+    onehot = np.zeros((nw, n))
+    onehot[win, np.arange(n)] = 1.0
+    V = np.column_stack([y[0], y[1], C[0], C[1]])          # (n, 2 + 2m)
     for _ in range(iters):
-        wsum = np.maximum(np.bincount(win, wf, nw), 1e-300)
-        yc = np.stack([y[a] - wmean(y[a], wsum)[win] for a in range(2)])
-        Cc = np.stack([C[a] - wmean(C[a], wsum)[win] for a in range(2)])
+        wsum = np.maximum(onehot @ wf, 1e-300)
+        Vc = V - ((onehot @ (wf[:, None] * V)) / wsum[:, None])[win]
+        yc = np.stack([Vc[:, 0], Vc[:, 1]])
+        Cc = np.stack([Vc[:, 2:2 + m], Vc[:, 2 + m:]])
         sw = np.sqrt(wf)
         A = (Cc * sw[None, :, None]).reshape(2 * n, -1)
         c = np.linalg.lstsq(A, (yc * sw).reshape(-1), rcond=None)[0]
-        off = np.stack([wmean(y[a] - C[a] @ c, wsum) for a in range(2)], 1)
         r = yc - Cc @ c
         res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
-        wf = np.minimum(1.0, 2.0 * scale / np.maximum(res, 1e-12))
+        wf_next = np.minimum(1.0, 2.0 * scale / np.maximum(res, 1e-12))
+        # offsets of this step's solution (weighted means of what c leaves per window)
+        off = np.stack([onehot @ (wf * (y[a] - C[a] @ c)) / wsum for a in range(2)], 1)
+        wf = wf_next
     k = 2.0 * (1.4826 * np.median(res) + 1e-3)
     huber = np.where(res <= k, 0.5 * res ** 2, k * (res - 0.5 * k))
     return c, off, float(np.sqrt(2.0 * np.mean(huber)))
