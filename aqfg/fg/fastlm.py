@@ -112,11 +112,11 @@ class FastSystem:
         for pi, part in enumerate(bg.parts):
             K = len(part.knots) - 1
             for i in range(K):
-                dt = round(float(part.knots[i + 1] - part.knots[i]), 9)
-                key = (dt, part.mission.planar)
-                if key not in wcache:
-                    Q = settings.process.cov(dt, part.mission.planar)
-                    wcache[key] = np.linalg.inv(np.linalg.cholesky(Q))
+                dt = float(part.knots[i + 1] - part.knots[i])
+                key = (round(dt, 9), part.mission.planar)
+                if key not in wcache:       # the graph's own whitening (R^T R = Q^-1), the
+                    # noise model of the first interval of that length, as the graph's
+                    wcache[key] = settings.process.noise_model(dt, part.mission.planar).R()
                 W.append(wcache[key])
                 idx0.append(self.part_off[pi] + i)
                 for g in dyn_groups:
@@ -157,7 +157,7 @@ class FastSystem:
         # ---- linear factors read from GTSAM; count the factors this form accounts for
         n_custom = 0
         lin_s = []            # (state index, A (m,6), b (m,))
-        lin_p_A, lin_p_b = [], []
+        lin_p_A, lin_p_f = [], []
         for i in range(bg.graph.size()):
             f = bg.graph.at(i)
             if f is None:
@@ -195,7 +195,7 @@ class FastSystem:
                     Af[:, o:o + d] += A[:, c:c + d]
                     c += d
                 lin_p_A.append(Af)
-                lin_p_b.append(b)
+                lin_p_f.append((f, keys))
             else:
                 return None
         if n_custom != len(self.d0) + n_meas:
@@ -206,7 +206,9 @@ class FastSystem:
         self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
                           np.array([x[2] for x in v])) for m, v in self.lin_s.items()}
         self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
-        self.lin_pb = np.concatenate(lin_p_b) if lin_p_b else np.zeros(0)
+        # their residuals come from GTSAM itself (a random walk held by sigma ~1e-8 needs
+        # the difference of the values before the whitening, as the factor computes it)
+        self.lin_pf = lin_p_f
         # constant parts of the state Hessian: linear unary factors
         self.D_const = np.zeros((self.N, 6, 6))
         for m, (si, A, b) in self.lin_s.items():
@@ -334,11 +336,20 @@ class FastSystem:
             cost += 0.5 * float(np.sum(r * r))
             lres[mm] = r
         out["lin_s"] = lres
-        rp = self.lin_pA @ th - self.lin_pb
+        rp = self._param_residuals(nv)
         cost += 0.5 * float(rp @ rp)
         out["lin_p"] = rp
         out["cost"] = cost
         return out
+
+    def _param_residuals(self, nv: dict) -> np.ndarray:
+        """Whitened residuals of the linear factors on parameter nodes (priors, walks)."""
+        if not self.lin_pf:
+            return np.zeros(0)
+        vals = gtsam.Values()
+        for k, v in nv.items():
+            vals.insert(k, v)
+        return np.concatenate([f.whitenedError(vals) for f, _ in self.lin_pf])
 
     def _dyn_jacobians(self, ev: dict) -> None:
         """Whitened dynamics Jacobian blocks of an evaluation (once, when needed)."""
