@@ -220,12 +220,22 @@ class ParamLayout:
         return tuple(g for g in self.groups if np.any(self.dyn_pos[g] >= 0))
 
     def bounds(self, group: str) -> tuple[np.ndarray, np.ndarray]:
-        specs = [self.model.spec(n) for n in self.names[group]]
-        return np.array([s.lower for s in specs]), np.array([s.upper for s in specs])
+        """Lower and upper physical bounds of a node's parameters (copies)."""
+        lo, hi = self._bounds(group)
+        return lo.copy(), hi.copy()
+
+    def _bounds(self, group: str) -> tuple[np.ndarray, np.ndarray]:
+        # cached: the dynamics factor's callback projects on every call (the spec look-ups
+        # were half of a fixed-lag update's Python time, docs/speed.md)
+        cache = self.__dict__.setdefault("_bounds_cache", {})
+        if group not in cache:
+            specs = [self.model.spec(n) for n in self.names[group]]
+            cache[group] = (np.array([s.lower for s in specs]), np.array([s.upper for s in specs]))
+        return cache[group]
 
     def project(self, group: str, v: np.ndarray) -> np.ndarray:
         """Projection of a node value onto the physical bounds."""
-        lo, hi = self.bounds(group)
+        lo, hi = self._bounds(group)
         return np.clip(v, lo, hi)
 
     def meas_groups(self, stream: str) -> tuple[str, ...]:
