@@ -190,7 +190,8 @@ class BatchSmoother:
                 a, b = int(ii[0]), int(ii[-1]) + 1
                 slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
             keys = [fc.state_key(mi, i) for i in range(len(knots))]
-            starts = candidate_starts(model, m, knots, layout.base, search=grid)
+            starts = candidate_starts(model, m, knots, layout.base, search=grid,
+                                      steps=(steps, off))
             if starts:
                 guess = starts[0]
                 X0 = start_states(guess, m, knots)
@@ -274,11 +275,15 @@ class BatchSmoother:
             meas = Measurements.of(part.mission, s, part.knots[0], part.knots[-1])
 
             def seg_at(t, part=part):
+                if len(part.seg_starts) == 1:
+                    return 0
                 return int(np.clip(np.searchsorted(part.seg_starts, t, side="right") - 1, 0,
                                    len(part.seg_starts) - 1))
 
-            def mkeys(stream, t, part=part, mi=mi):
-                return nkeys(layout.meas_groups(stream), seg_at(t))
+            groups_of = {st: layout.meas_groups(st) for st in ("gnss", "usbl", "depth")}
+
+            def mkeys(stream, t, part=part, mi=mi, groups_of=groups_of):
+                return nkeys(groups_of[stream], seg_at(t))
             for f in measurement_factors(part.model, layout, meas, part.knots,
                                          lambda i, part=part: part.keys[i], mkeys, s):
                 graph.add(f)

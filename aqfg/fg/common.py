@@ -395,15 +395,17 @@ def measurement_factors(model: Model, layout: fc.ParamLayout, meas: Measurements
     ``node_keys(stream, t)`` = ((group, key), ...) of the nodes a measurement reads."""
     sn = settings.sensors
     out = []
+    kg = knot_index(knots, meas.gnss_t)
+    ku = knot_index(knots, meas.usbl_t)
     for i in range(len(meas.gnss_t)):
         t = float(meas.gnss_t[i])
-        k = int(knot_index(knots, np.array([t]))[0])
+        k = int(kg[i])
         noise = sn.wrap(gtsam.noiseModel.Isotropic.Sigma(2, float(meas.gnss_sigma[i])), "gnss")
         out.append(fc.gnss_factor(model, layout, kx(k), node_keys("gnss", t), meas.gnss_z[i],
                                   meas.gnss_R[i], t, noise, base))
     for i in range(len(meas.usbl_t)):
         t = float(meas.usbl_t[i])
-        k = int(knot_index(knots, np.array([t]))[0])
+        k = int(ku[i])
         noise = sn.wrap(gtsam.noiseModel.Diagonal.Sigmas(meas.usbl_sigma[i]), "usbl")
         out.append(fc.usbl_factor(model, layout, kx(k), node_keys("usbl", t), meas.usbl_z[i],
                                   meas.usbl_R[i], t, meas.station, noise, base))
@@ -430,8 +432,13 @@ def residuals(model: Model, mission: Mission, track: Track, p_at: Callable[[floa
     out = {}
     if len(meas.gnss_t):
         X = interp_states(track, meas.gnss_t)
-        pred = np.array([model.h_gnss(X[i, :3], meas.gnss_R[i], t, p_at(t))[0]
-                         for i, t in enumerate(meas.gnss_t)])
+        ps = [p_at(t) for t in (meas.gnss_t[0], meas.gnss_t[-1])]
+        if all(np.array_equal(model.h_gnss(np.zeros(3), np.eye(3), 0.0, q)[0], np.zeros(2))
+               for q in ps) and np.array_equal(ps[0], ps[-1]):
+            pred = X[:, :2].copy()            # no sensor offset: the fix is the position
+        else:
+            pred = np.array([model.h_gnss(X[i, :3], meas.gnss_R[i], t, p_at(t))[0]
+                             for i, t in enumerate(meas.gnss_t)])
         raw = meas.gnss_z - pred
         out["gnss"] = Residuals(meas.gnss_t, raw, raw / meas.gnss_sigma[:, None], meas.gnss_z, pred)
     if len(meas.usbl_t):

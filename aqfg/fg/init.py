@@ -120,12 +120,13 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
 
 def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.ndarray,
                      scales=np.logspace(-2.0, 1.0, 10), ratios=(0.1, 1.0, 10.0),
-                     search: bool = True) -> list[Start]:
+                     search: bool = True, steps=None) -> list[Start]:
     """Candidate starts, best (lowest misfit) first.
 
     ``p`` is the full parameter vector whose k, k_x, k_yz define the grid centre (the
     nominal values, or the user's); with ``search=False`` only that point is used (the
-    user fixed the constants).
+    user fixed the constants). ``steps``: the kernel steps of ``knots`` (``model.steps``),
+    when the caller has them.
     """
     tf, pf = retrace.fixes(mission)
     t_a = float(knots[0])
@@ -133,7 +134,7 @@ def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.nd
     q = p.copy()
     q[model.index("theta_e")] = 0.0
     q[model.index("s_x")] = q[model.index("s_y")] = 0.0
-    steps, off = model.steps(mission, knots)
+    steps, off = model.steps(mission, knots) if steps is None else steps
     dtf = np.diff(np.unique(tf))
     window = max(60.0, 6.0 * float(np.median(dtf))) if len(dtf) else None
     grid = [(1.0, None)] if not search else [(sc, r) for sc in scales for r in ratios]
