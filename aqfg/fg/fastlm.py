@@ -402,10 +402,11 @@ class FastSystem:
         gp = Apf.T @ rd.ravel() + self.lin_pA.T @ ev["lin_p"]
         for m, (r, J, w) in zip(self.meas, ev["meas"]):
             Jt = J.transpose(0, 2, 1)
-            np.add.at(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
-            np.add.at(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
+            _scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
+            _scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
         for mm, (si, A, b) in self.lin_s.items():
-            np.add.at(gs, si, np.einsum("nji,nj->ni", A, ev["lin_s"][mm]))
+            _scatter_add(gs, si,
+                         np.matmul(A.transpose(0, 2, 1), ev["lin_s"][mm][:, :, None])[:, :, 0])
         return D, E, Hsp, Hpp, gs, gp
 
     # ------------------------------------------------------------------ solve
@@ -418,16 +419,16 @@ class FastSystem:
         ``np.linalg.LinAlgError`` when the system is not positive definite."""
         cb = sla.cholesky_banded(self._band(D, E), lower=True, check_finite=False)
         Hsp2 = Hsp.reshape(6 * self.N, self.P)
-        Y = sla.cho_solve_banded((cb, True), Hsp2, check_finite=False) if self.P else Hsp2
-        S = Hpp - Hsp2.T @ Y
-        return cb, Hsp2, Y, S
+        Z = _tri(cb, Hsp2) if self.P else Hsp2            # L^-1 H_sp
+        S = Hpp - Z.T @ Z
+        return cb, Hsp2, Z, S
 
     def solve(self, fac, gs, gp, fix: dict[int, float] | None = None):
         """Step ``delta`` minimising the quadratic model with the parameter components in
         ``fix`` held at the given values. Returns (dX (N,6), dth (P,))."""
-        cb, Hsp2, Y, S = fac
-        ys = sla.cho_solve_banded((cb, True), -gs.ravel(), check_finite=False)
-        rhs = -gp - Hsp2.T @ ys
+        cb, Hsp2, Z, S = fac
+        u = _tri(cb, -gs.reshape(-1, 1))                     # L^-1 (-g_s)
+        rhs = -gp - Z.T @ u[:, 0]
         dth = np.zeros(self.P)
         free = np.ones(self.P, bool)
         if fix:
@@ -439,7 +440,7 @@ class FastSystem:
             rf = rhs[free] - S[np.ix_(free, ~free)] @ dth[~free]
             c = sla.cho_factor(Sf, check_finite=False)
             dth[free] = sla.cho_solve(c, rf, check_finite=False)
-        dX = ys - Y @ dth if self.P else ys
+        dX = _tri(cb, u - (Z @ dth)[:, None], trans=True)  # L^-T (u - Z dth)
         return dX.reshape(self.N, 6), dth
 
     def param_covariance(self, fac) -> np.ndarray:
@@ -492,7 +493,7 @@ class FastSystem:
         Gp = np.zeros((self.P, nb))
         for rb, v in zip(pg_b, pg_v):
             np.add.at(Gp, (slice(None), lut[rb]), v.T)
-        cb, Hsp2, Y, S = fac
+        cb, Hsp2, _, S = fac
         Gs2 = Gs.reshape(6 * self.N, nb)
         ys = sla.cho_solve_banded((cb, True), Gs2, check_finite=False)
         Zp = np.linalg.solve(S, Gp - Hsp2.T @ ys)
@@ -503,6 +504,23 @@ class FastSystem:
             zk = zk - zk.mean(axis=1, keepdims=True)
             out[k] = scale * zk @ zk.T
         return out, nb - n_p
+
+
+def _scatter_add(out: np.ndarray, idx: np.ndarray, v: np.ndarray) -> None:
+    """``out[idx] += v`` with repeated indices summed (``np.add.at``, which is slow, only
+    when ``idx`` repeats)."""
+    if len(idx) < 2 or np.all(np.diff(idx) > 0):
+        out[idx] += v
+    else:
+        np.add.at(out, idx, v)
+
+
+def _tri(cb: np.ndarray, B: np.ndarray, trans: bool = False) -> np.ndarray:
+    """``L^-1 B`` (or ``L^-T B``) for the lower banded Cholesky factor ``cb``."""
+    x, info = sla.lapack.dtbtrs(cb, B, uplo="L", trans="T" if trans else "N")
+    if info != 0:
+        raise np.linalg.LinAlgError(f"banded triangular solve failed (info {info})")
+    return x
 
 
 def _propagator(model, sl):
