@@ -309,9 +309,11 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
         rows.append(("batch of an Otter mission", "not run (no tests/data at hand)", ""))
     st = figs.get("stream")
     if st:
+        after = (f"after the warm-up (first {st['warmup_s']:.0f} s)" if st["warmup_s"] > 0
+                 else "(stream too short to leave the warm-up out)")
         rows.append((f"{st['duration'] / 3600:.2g}-h stream (GNSS 8 s, {st['updates']} updates): "
                      f"per-update median, last {st['edge'] / 60:.0f} min / first "
-                     f"{st['edge'] / 60:.0f} min after the warm-up (first {st['warmup_s']:.0f} s)",
+                     f"{st['edge'] / 60:.0f} min {after}",
                      f"{h['stream_growth']:.2f} ({1e3 * _med(st['last']):.2f} / "
                      f"{1e3 * _med(st['first']):.2f} ms)", ok(h["stream_growth"], "stream_growth")))
         rows.append((f"RSS, same two periods of the stream",
