@@ -260,8 +260,12 @@ class BatchSmoother:
         for part in parts:
             mi = part.index
 
-            def nkeys(groups, seg, mi=mi):
-                return tuple((g, fc.node_key(g, mi, seg)) for g in groups)
+            key_memo: dict = {}
+
+            def nkeys(groups, seg, mi=mi, memo=key_memo):
+                if (groups, seg) not in memo:
+                    memo[groups, seg] = tuple((g, fc.node_key(g, mi, seg)) for g in groups)
+                return memo[groups, seg]
 
             for i in range(len(part.knots) - 1):
                 dt = float(part.knots[i + 1] - part.knots[i])
@@ -687,11 +691,10 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
         a, b, steps, off = sl
         pred = part.model.propagate_many(X[a:b], p_segments[j], steps, off)[0]
         raw[a:b] = X[a + 1:b + 1] - pred
-    norm = np.zeros_like(raw)
-    for i in range(len(raw)):
-        dt = part.knots[i + 1] - part.knots[i]
-        L = np.linalg.cholesky(s.process.cov(dt, part.mission.planar))
-        norm[i] = np.linalg.solve(L, raw[i])
+    dts = np.diff(part.knots)
+    uniq, inv = np.unique(dts, return_inverse=True)
+    Ls = np.array([np.linalg.cholesky(s.process.cov(dt, part.mission.planar)) for dt in uniq])
+    norm = np.linalg.solve(Ls[inv], raw[:, :, None])[:, :, 0] if len(raw) else raw.copy()
     return Residuals(part.knots[1:].copy(), raw, norm)
 
 
