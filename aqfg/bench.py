@@ -113,13 +113,14 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
     from aqfg.ekf.estimator import UpdateErrorEstimator
     from aqfg.fg.fit import FixedLagSmoother
     m, _, init = online_mission(sc, seed)
-    fl_all, fl_after, opt, evals, n_eval = [], [], [], [], []
+    fl_all, fl_after, opt, evals, n_eval, fl_total = [], [], [], [], [], []
     for _ in range(repeat):
         r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)
         ups = np.asarray(r.timings["update"])
         t_up = np.asarray(r.history.t)
         we = r.info.get("warmup_end", float("nan"))
         fl_all += list(ups[1:])                    # the first is the start (prior only)
+        fl_total += list(np.asarray(r.timings["update_total"])[1:])   # + building the factors
         after = t_up > we if np.isfinite(we) else np.zeros(len(ups), bool)
         fl_after += list(ups[after])
         u = UpdateErrorEstimator(None, m, init=init).run_online(
@@ -127,7 +128,8 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0) -> dict:
         opt += list(u.timings["optimisation"])
         evals += list(u.timings["evaluation"])
         n_eval += list(u.info["evaluations_per_optimisation"])
-    return {"fl_update_all": fl_all, "fl_update": fl_after, "ue_opt": opt, "ue_eval": evals,
+    return {"fl_update_all": fl_all, "fl_update_total": fl_total, "fl_update": fl_after,
+            "ue_opt": opt, "ue_eval": evals,
             "ue_nevals": n_eval, "window_s": sc.window_s, "period": sc.period,
             "warmup_updates": len(fl_all) // max(repeat, 1) - len(fl_after) // max(repeat, 1)}
 
@@ -270,9 +272,10 @@ def headline(figs: dict) -> dict[str, float]:
            "eval15_ms": 1e3 * _med(figs["usbl"]["ue_eval"]),
            "nevals15": _med(figs["usbl"]["ue_nevals"])}
     if "fl_update_all" in g:
-        fa = _med(g["fl_update_all"])
+        full = g.get("fl_update_total") or g["fl_update_all"]   # with building the factors
+        fa = _med(full)
         out["ratio_all"] = ue / fa if fa > 0 else float("nan")
-        out["fl_p90_ms"] = 1e3 * _pct(g["fl_update_all"], 90)
+        out["fl_p90_ms"] = 1e3 * _pct(full, 90)
     o = figs.get("otter") or {}
     if o:
         out["otter_s"] = _med(o["wall"])
@@ -290,13 +293,14 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
     g = figs["gnss8"]
     rows = []
     if "ratio_all" in h:
+        full = g.get("fl_update_total") or g["fl_update_all"]
         rows.append(("ratio update-error optimisation / fixed-lag update, ALL updates "
-                     "(warm-up included), gnss8, same run",
+                     "(warm-up included, building the new factors included), gnss8, same run",
                      f"{h['ratio_all']:.1f}x ({1e3 * _med(g['ue_opt']):.2f} / "
-                     f"{1e3 * _med(g['fl_update_all']):.2f} ms)",
+                     f"{1e3 * _med(full):.2f} ms)",
                      ok(h["ratio_all"], "ratio_all", above=True)))
-        rows.append(("p90 fixed-lag update, all updates, gnss8", f"{h['fl_p90_ms']:.2f} ms",
-                     ok(h["fl_p90_ms"], "fl_p90_ms")))
+        rows.append(("p90 fixed-lag update, all updates, building the factors included, gnss8",
+                     f"{h['fl_p90_ms']:.2f} ms", ok(h["fl_p90_ms"], "fl_p90_ms")))
     o = figs.get("otter") or {}
     if o:
         rows.append((f"batch of {o['name']} ({o['duration'] / 60:.0f} min, 1-Hz GNSS, six "
