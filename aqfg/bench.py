@@ -307,7 +307,7 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
                      f"parameters, global initialisation), median of {len(o['wall'])}",
                      f"{h['otter_s']:.2f} s (CPU {h['otter_cpu_s']:.2f} s, "
                      f"{_med(o['iterations']):.0f} LM iterations)", ok(h["otter_s"], "otter_s")))
-        rows.append((f"theta_e error of that batch vs the mission's truth (worst run)",
+        rows.append(("theta_e error of that batch vs the mission's truth (worst run)",
                      f"{h['otter_theta_deg']:.2f} deg", ok(h["otter_theta_deg"], "otter_theta_deg")))
     else:
         rows.append(("batch of an Otter mission", "not run (no tests/data at hand)", ""))
@@ -320,7 +320,7 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
                      f"{st['edge'] / 60:.0f} min {after}",
                      f"{h['stream_growth']:.2f} ({1e3 * _med(st['last']):.2f} / "
                      f"{1e3 * _med(st['first']):.2f} ms)", ok(h["stream_growth"], "stream_growth")))
-        rows.append((f"RSS, same two periods of the stream",
+        rows.append(("RSS, same two periods of the stream",
                      f"{st['rss_first']:.0f} / {st['rss_last']:.0f} MB", ""))
     else:
         rows.append(("long online stream", "not run", ""))

@@ -50,7 +50,7 @@ class _Meas:
 def _plain_sensors(p: np.ndarray) -> bool:
     """True when the measurement effects at ``p`` are null (no lever arm, no USBL
     distortion), so a fix measures the knot position itself."""
-    from aqfg.model.measurements import OFFSET_TERMS, USBL_TERMS, sensor_position
+    from aqfg.model.measurements import USBL_TERMS, sensor_position
     ps = sensor_position(np.zeros(3), np.eye(3), 0.0, p)[0]
     if np.any(ps != 0.0):
         return False
@@ -87,7 +87,7 @@ class FastSystem:
 
     # ------------------------------------------------------------------ build
     @classmethod
-    def build(cls, bg, settings) -> "FastSystem | None":
+    def build(cls, bg, settings) -> FastSystem | None:
         """The numpy form of ``bg``, or None when the graph is not of the supported shape."""
         from aqfg.fg.common import Measurements, depth_assignment, knot_index
         lay = bg.layout
@@ -103,7 +103,7 @@ class FastSystem:
             return None
         self = cls(bg, settings)
         # ---- dynamics: whitening and parameter columns per interval
-        W, idx0, cols = [], [], []
+        W, idx0 = [], []
         dyn_groups = lay.dyn_groups()
         ncols = bg.cache.Jp.shape[2]
         self.dyn_map = []     # per group: (global param col array (K,dim), dyn positions)
@@ -211,7 +211,7 @@ class FastSystem:
         self.lin_pf = lin_p_f
         # constant parts of the state Hessian: linear unary factors
         self.D_const = np.zeros((self.N, 6, 6))
-        for m, (si, A, b) in self.lin_s.items():
+        for si, A, _ in self.lin_s.values():
             np.add.at(self.D_const, si, np.einsum("nji,njl->nil", A, A))
         self.Hpp_const = self.lin_pA.T @ self.lin_pA
         # band layout of the block-tridiagonal state matrix (LAPACK lower storage)
@@ -262,7 +262,12 @@ class FastSystem:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, X: np.ndarray, th: np.ndarray) -> dict:
         """Whitened residuals (and Jacobian blocks) of every factor at ``(X, th)``; the
-        dynamics from one kernel call per mission and parameter segment."""
+        dynamics from one kernel call per mission and parameter segment. A diverging model
+        gives an infinite cost (LM rejects the step) without an overflow warning."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._evaluate(X, th)
+
+    def _evaluate(self, X: np.ndarray, th: np.ndarray) -> dict:
         bg, lay = self.bg, self.layout
         nv = self.node_values(th)
         preds, Jxs, Jps = [], [], []
@@ -379,7 +384,15 @@ class FastSystem:
     def normal(self, ev: dict):
         """Gauss-Newton normal equations ``H``, gradient ``g = A^T r`` at an evaluation:
         state blocks ``D`` (N,6,6), ``E`` (N-1,6,6) (block (i, i+1)), ``Hsp`` (N,6,P),
-        ``Hpp`` (P,P), ``gs`` (N,6), ``gp`` (P,)."""
+        ``Hpp`` (P,P), ``gs`` (N,6), ``gp`` (P,).
+
+        A diverging model (a degenerate start) can overflow them: the factorisation then
+        fails or the step's cost is not finite, and LM raises its damping, as on the GTSAM
+        path; the overflow itself is not reported."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._normal(ev)
+
+    def _normal(self, ev: dict):
         self._dyn_jacobians(ev)
         N, P, d0 = self.N, self.P, self.d0
         D = self.D_const.copy()
@@ -404,7 +417,7 @@ class FastSystem:
             Jt = J.transpose(0, 2, 1)
             _scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
             _scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
-        for mm, (si, A, b) in self.lin_s.items():
+        for mm, (si, A, _) in self.lin_s.items():
             _scatter_add(gs, si,
                          np.matmul(A.transpose(0, 2, 1), ev["lin_s"][mm][:, :, None])[:, :, 0])
         return D, E, Hsp, Hpp, gs, gp
@@ -473,7 +486,7 @@ class FastSystem:
             rows_s.append(m.idx)
             rows_b.append(blk_state[m.idx])
             vals_s.append(w[:, None] * np.einsum("nji,nj->ni", J, r))
-        for mm, (si, A, b) in self.lin_s.items():
+        for mm, (si, A, _) in self.lin_s.items():
             rows_s.append(si)
             rows_b.append(blk_state[si])
             vals_s.append(np.einsum("nji,nj->ni", A, ev["lin_s"][mm]))
@@ -554,7 +567,6 @@ def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values, s, progress=N
     err = ev["cost"]
     lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
     converged = False
-    N, P = fs.N, fs.P
     key_slices = [(o, d) for o, d in fs.node_off.values()]
     for it in range(s.max_iterations):
         t_it = time.perf_counter()
