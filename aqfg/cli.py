@@ -181,11 +181,12 @@ def _by_interrupt(e: BaseException) -> bool:
     """An exception raised because of Ctrl-C (a native module's import fails with
     ImportError when interrupted during its initialisation)."""
     seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
             return True
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
     return False
 
 

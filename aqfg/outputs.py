@@ -102,10 +102,10 @@ def _interrupts_held() -> Iterator[None]:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        for s in dict.fromkeys(got):
-            if s == signal.SIGINT and old[s] is signal.default_int_handler:
+        for sn in dict.fromkeys(got):
+            if sn == signal.SIGINT and old[signal.SIGINT] is signal.default_int_handler:
                 raise KeyboardInterrupt
-            signal.raise_signal(s)
+            signal.raise_signal(sn)
 
 
 class OutputSet:

@@ -5,8 +5,8 @@ Axes: east (m) horizontal, north (m) vertical, equal scale, like a map.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -40,7 +40,8 @@ def plot_map(result: Result, missions: Sequence[Mission], path: str | Path) -> P
             up = usbl_positions(m)
             ax.plot(up[:, 1], up[:, 0], "x", color="tab:purple", ms=4, label="USBL fixes")
             st = m.usbl_station
-            ax.plot(st[1], st[0], "k^", ms=8, label="USBL station")
+            if st is not None:
+                ax.plot(st[1], st[0], "k^", ms=8, label="USBL station")
         ax.plot(mr.inertial.pos[:, 1], mr.inertial.pos[:, 0], "-", color="tab:red", lw=1,
                 label="inertial (model only)")
         if mr.filtered is not None:

@@ -8,8 +8,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
+    from aqfg.model.vehicle import Model
 
 
 @dataclass
@@ -78,7 +82,7 @@ class Result:
     history: ParamHistory | None = None
     info: dict = field(default_factory=dict)
     effects: tuple[str, ...] = ()
-    model: object | None = None        # the aqfg.model.vehicle.Model used
+    model: Model | None = None         # the model used
 
     # ---- typed views of the estimator-specific facts (stored in ``info``)
     @property
@@ -246,7 +250,7 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
         if tum and m is not None:
             (d / "trajectory.tum").write_text(export.tum_text(result, mr, m))
             written.append(d / "trajectory.tum")
-        if origin is not None:
+        if origin is not None and m is not None:
             written.append(write_json(d / "track.geojson",
                                       export.geojson_track(result, mr, m, provenance)))
     return written

@@ -16,7 +16,7 @@ window (the paper's setting: 10 ms per 15 s evaluation on a Raspberry Pi Zero, 3
 evaluations per optimisation). Medians over repeated runs; the machine may be shared with
 other work, so read medians and p90 together.
 
-Also issue 14's done-when figures (:func:`aqfg.bench.done_rows`): the ratio and p90 over
+Also the speed targets' figures (:func:`aqfg.bench.done_rows`): the ratio and p90 over
 all fixed-lag updates, the batch of an Otter mission of ``tests/data`` with its theta_e
 error, and a 2-hour online stream (``--quick``: 20 minutes), first vs last 10 minutes.
 

@@ -105,7 +105,7 @@ def truth_anchored(m, init: dict):
     h = est.histories[0]
     a = h.anchors[h.k_start]
     out = run_window(h, est.p0[0], a.x, a.P, h.k_start, len(h.knots) - 1, record=True)
-    est._store_anchors(h, out, h.k_start, a.rejects)
+    est.store_anchors(h, out, h.k_start, a.rejects)
     return est, h
 
 

@@ -46,13 +46,13 @@ def test_lockstep_equals_the_reference(mission, user):
     rng = np.random.default_rng(0)
     X0 = rng.normal(size=(len(knots) - 1, 6))
     X0[:, 2] = X0[:, 5] = 0.0
-    got = batched.propagate_many(X0, p, steps, off, model.geometry, model._user_layout())
+    got = batched.propagate_many(X0, p, steps, off, model.geometry, model.user_layout())
     if user is PER_SAMPLE:
-        want = ref.propagate_many(X0, p, steps, off, model.geometry, model._user_layout())
+        want = ref.propagate_many(X0, p, steps, off, model.geometry, model.user_layout())
     else:       # the reference calls one sample at a time: through sample_accel
         want = ref.propagate_many(X0, p, steps, off, model.geometry,
                                   Model.for_mission(mission, ("thrust_lag", "reverse_thrust",
-                                                              PER_SAMPLE))._user_layout())
+                                                              PER_SAMPLE)).user_layout())
     for a, b in zip(got, want):
         assert np.allclose(a, b, rtol=1e-8, atol=1e-8)
     # Model.propagate_many takes this road when a user effect is on

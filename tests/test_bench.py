@@ -12,7 +12,7 @@ def test_bench_command_prints_the_figures(capsys, tmp_path):
                   "update-error optimisation of the same 24 s window",
                   "ratio update-error / fixed-lag", "batch, 15-min mission",
                   "evaluations per optimisation", "gnss8:", "usbl:",
-                  # issue 14's done-when figures, in the same run
+                  # the speed targets' figures, in the same run
                   "ALL updates", "p90 fixed-lag update", "batch of otter-", "theta_e error",
                   "per-update median, last 10 min", "RSS"):
         assert label in out, label

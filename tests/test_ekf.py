@@ -9,7 +9,7 @@ from aqfg.ekf.estimator import UpdateErrorEstimator, fit_update_error
 from aqfg.ekf.history import (DEPTH, GNSS, IMU_ACC, MOTOR, USBL, EkfConfig, build_history,
                               usbl_prefilter)
 from aqfg.ekf.optim import Entry, Objective, Window, bounds, gradient_descent, minimise
-from aqfg.ekf.window import (ACCEPTED, NOOP, REJECTED, _HAVE_CPP_EKF, run_window,
+from aqfg.ekf.window import (ACCEPTED, NOOP, REJECTED, HAVE_CPP_EKF, run_window,
                              usbl_to_position, window_ref)
 from aqfg.data.mission import without_gnss
 from aqfg.model.vehicle import Model, euler_to_quat
@@ -33,7 +33,7 @@ def _full_pass(h, p, record=True, use_cpp=None):
 @pytest.mark.parametrize("vehicle", ["asv", "auv"])
 @pytest.mark.parametrize("cov_model", ["kinematic", "full"])
 def test_cpp_window_equals_numpy(vehicle, cov_model):
-    assert _HAVE_CPP_EKF, "aqfg._kernel.ekf_window is not built (pip install -e . rebuilds it)"
+    assert HAVE_CPP_EKF, "aqfg._kernel.ekf_window is not built (pip install -e . rebuilds it)"
     eff = ("thrust_lag", "lever_arm", "usbl_range_scale", "usbl_bearing_bias")
     h, p, _ = _history(vehicle, eff, EkfConfig(cov_model=cov_model), imu_acc=True, usbl=True,
                        duration=40.0)
@@ -104,7 +104,7 @@ def test_state_recomputed_from_an_anchor_matches_the_forward_pass():
     h = est.histories[0]
     p = est.p0[0]
     out = _full_pass(h, p)
-    est._store_anchors(h, out, h.k_start, 0)
+    est.store_anchors(h, out, h.k_start, 0)
     fk = h.fix_knots()
     assert set(fk[1:].tolist()) <= set(h.anchors)          # an anchor after every fix
     k = int(fk[5]) + 7                                      # between two fixes

@@ -181,7 +181,7 @@ def test_worker_killed_mid_run_is_retried(tmp_path, cluster):
 
     def holds_missions():
         from aqfg.fleet import worker
-        return len(worker._SESSIONS)
+        return worker.n_sessions()
 
     def progress(frac, msg):
         if not killed and msg.startswith("round 6:") and "missions done" in msg:

@@ -392,3 +392,36 @@ def test_missing_extra_names_the_pip_command(sim, tmp_path, monkeypatch, capsys)
                  "--map", str(tmp_path / "map.toml")]) == 2
     err = capsys.readouterr().err
     assert "rosbags" in err and 'pip install "aqfg[ros]"' in err and "Traceback" not in err
+
+
+def test_import_replaces_a_mission_whole_or_not_at_all(tmp_path, monkeypatch):
+    """``aqfg import --force`` over an existing mission: a failure while writing leaves the
+    old mission exactly as it was (no mix of old and new stream files)."""
+    from aqfg.data.io import load_mission, save_mission
+    from aqfg.data.io import write as io_write
+    from aqfg.sim import simulate
+    old, _ = simulate("asv", seed=1, duration=30.0)
+    out = tmp_path / "m"
+    save_mission(old, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    new, _ = simulate("asv", seed=2, duration=40.0)
+    src = tmp_path / "src"
+    save_mission(new, src)
+
+    class Boom(RuntimeError):
+        pass
+    real = io_write._write_atomic
+    calls = {"n": 0}
+
+    def failing(path, text):
+        calls["n"] += 1
+        if calls["n"] == 3:                 # after two stream files of the new mission
+            raise Boom("disk full")
+        return real(path, text)
+    monkeypatch.setattr(io_write, "_write_atomic", failing)
+    from aqfg.commands import import_ as imp
+    monkeypatch.setattr(imp, "import_log", lambda fmt, source, imap, base=None: type(
+        "R", (), {"mission": load_mission(src), "summary": lambda self: ""})())
+    assert main(["import", "ros2", str(src), "--out", str(out), "--force"]) == 1
+    assert calls["n"] == 3
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

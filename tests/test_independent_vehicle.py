@@ -125,7 +125,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     while fl.pending():
         fl.update()
     res = fl.result()
-    assert res.info["events"] and res.info["events"][0]["event"].startswith("restarted")
+    assert any(e["event"].startswith("restarted") for e in res.info["events"])
     assert np.all(np.isfinite(res.missions[0].track.pos))
 
 

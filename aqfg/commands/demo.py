@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 DEMO_SEED = 11
-DEMO_EFFECT = {"reverse_thrust": 0.6}   # propellers 40 % weaker backwards (aqfg.sim.cases)
+# propellers 40 % weaker backwards (aqfg.sim.cases)
+DEMO_EFFECT: dict[str, float | dict[str, float]] = {"reverse_thrust": 0.6}
 GNSS_EVERY = 8.0
 DEMO_OUTPUTS = ("mission", "fit-fg", "fit-update-error", "diagnosis", "diagnosis-with-*",
                 "fit-fg-with-*")
@@ -71,8 +72,11 @@ def _demo(out: Path, stage: Path) -> None:
          "hidden effect the base model lacks ...")
     mission, truth = simulate("asv", seed=DEMO_SEED, duration=600.0, effects=DEMO_EFFECT)
     save_mission(mission, stage / "mission", truth=truth)
-    truth = load_truth(stage / "mission")   # evaluation only: estimators never see it
+    loaded = load_truth(stage / "mission")   # evaluation only: estimators never see it
+    assert loaded is not None, "the mission was saved with its truth"
+    truth = loaded
     thin = with_gnss_every(mission, GNSS_EVERY)
+    assert thin.gnss is not None and mission.gnss is not None      # the ASV has GNSS
     _say(f"    wrote {out / 'mission'}; the fits use one GNSS fix every {GNSS_EVERY:.0f} s "
          f"({len(thin.gnss.t)} of {len(mission.gnss.t)})")
 
@@ -86,7 +90,9 @@ def _demo(out: Path, stage: Path) -> None:
     model = Model.for_mission(mission)
     p_old = model.nominal(OLD_PARAMS)
     p_true = model.nominal({k: v for k, v in truth.params.items() if k in model.all_names})
-    rows = [("paper's old parameters", inertial_rmse(model, mission, p_old, truth), None, "")]
+    # (parameters, RMSE m, their values, time taken)
+    rows: list[tuple[str, float, dict[str, float] | None, str]] = [
+        ("paper's old parameters", inertial_rmse(model, mission, p_old, truth), None, "")]
     for label, (res, dt) in fits.items():
         p = res.missions[0].p
         rows.append((f"{label} estimate", inertial_rmse(res.model or model, mission, p, truth),
@@ -96,11 +102,11 @@ def _demo(out: Path, stage: Path) -> None:
     _say("    dead-reckoning from the first fix, RMSE vs the simulated truth:")
     _say(f"    {'parameters':<30} {'RMSE (m)':>9}  {'k':>6} {'k_x':>6} {'k_yz':>6} "
          f"{'theta_e':>8}  time")
-    for name, e, vals, dt in rows:
+    for name, e, vals, took in rows:
         v = vals or {}
         cols = " ".join(f"{v[n]:6.3g}" if n in v else f"{'':>6}" for n in ("k", "k_x", "k_yz"))
         th = f"{v['theta_e']:8.3f}" if "theta_e" in v else f"{'':>8}"
-        _say(f"    {name:<30} {e:9.2f}  {cols} {th}  {dt}")
+        _say(f"    {name:<30} {e:9.2f}  {cols} {th}  {took}")
     _say(f"    (truth: k={truth.params['k']:.3g}, k_x={truth.params['k_x']:.3g}, "
          f"k_yz={truth.params['k_yz']:.3g}, theta_e={truth.params['theta_e']:.3f})")
 
@@ -120,7 +126,7 @@ def _demo(out: Path, stage: Path) -> None:
         _say(f"    held-out dead-reckoning error {b.rmse:.2f} m -> {a.rmse:.2f} m; "
              f"consistency test {'passed' if b.consistency and b.consistency.passed else 'failed'}"
              f" -> {'passed' if a.consistency and a.consistency.passed else 'failed'}")
-        for n, v in a.values(tuple(p for e in a.full.model.effects if e.name == eff
+        for n, v in a.values(tuple(p for e in a.model.effects if e.name == eff
                                    for p in e.params)).items():
             true = truth.params.get(n, np.nan)
             _say(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}   (true: {true:.4g})")

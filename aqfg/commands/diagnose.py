@@ -66,10 +66,10 @@ def run(args) -> int:
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ, got {names}")
-    for e in effects:
-        eff = resolve(e)
+    for name in effects:
+        eff = resolve(name)
         if not any(eff.applicable(m) for m in missions):
-            raise UsageError(f"--effect {e}: not applicable to {', '.join(names)} "
+            raise UsageError(f"--effect {name}: not applicable to {', '.join(names)} "
                              f"(vehicles {sorted({m.vehicle for m in missions})})")
     log.info("%d mission(s)%s%s", len(missions),
              f", model + {', '.join(effects)}" if effects else "",

@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 from aqfg.data.importers import MissingExtraError, import_log, load_map
-from aqfg.data.io import load_mission, load_truth, save_mission
+from aqfg.data.io import MISSION_FILES, load_mission, load_truth, save_mission
+from aqfg.outputs import OutputSet
 
 EXIT_MISSING_EXTRA = 2
 
@@ -32,13 +33,17 @@ def run(args: argparse.Namespace) -> int:
                 raise FileExistsError(f"{out} already has GNSS fixes (gnss.csv); pass --force "
                                       "to replace them with the NMEA log's")
             result = import_log("nmea", args.source, imap, base=base)
-            save_mission(result.mission, out, truth, overwrite=True)
+            with OutputSet(out, MISSION_FILES, force=True) as stage:   # whole set, or none
+                save_mission(result.mission, stage, truth)
         else:
             if (out / "mission.toml").exists() and not args.force:
                 raise FileExistsError(f"{out} already holds a mission; pass --force to "
                                       "overwrite it")
+            outs = OutputSet(out, MISSION_FILES, force=args.force)
+            outs.check()
             result = import_log(args.format, args.source, imap)
-            save_mission(result.mission, out, overwrite=args.force)
+            with outs as stage:               # the mission appears whole, or not at all
+                save_mission(result.mission, stage)
     except MissingExtraError as e:
         print(f"aqfg import: error: {e}", file=sys.stderr)
         return EXIT_MISSING_EXTRA

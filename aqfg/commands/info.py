@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -77,8 +78,8 @@ def describe(m: Mission, truth_parts: list[str] | None = None) -> str:
         thr.append(f"  u{k + 1}: axis {_vec(m.thruster_dir[k])}{where}")
     out.append(f"thrusters  {m.n_thrusters}")
     out += thr
-    streams = [("imu", m.imu), ("motors", m.motors), ("gnss", m.gnss), ("usbl", m.usbl),
-               ("depth", m.depth)]
+    streams: list[tuple[str, Any]] = [("imu", m.imu), ("motors", m.motors), ("gnss", m.gnss),
+                                      ("usbl", m.usbl), ("depth", m.depth)]
     ts = [s.t for _, s in streams if s is not None and len(s.t)]
     t0, t1 = min(float(t[0]) for t in ts), max(float(t[-1]) for t in ts)
     out.append(f"duration   {t1 - t0:.3f} s  (t {t0:.3f} .. {t1:.3f} s, all streams)")

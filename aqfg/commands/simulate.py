@@ -94,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
     print(_line("motors", mission.motors.t, f"{mission.n_thrusters} thrusters, commands in "
                 f"[{mission.motors.u.min():.2f}, {mission.motors.u.max():.2f}]"))
     if mission.gnss is not None:
-        print(_line("gnss", mission.gnss.t, f"sigma {mission.gnss.sigma[0]:g} m"))
+        sig = mission.gnss.sigma
+        print(_line("gnss", mission.gnss.t, f"sigma {sig[0]:g} m" if sig is not None else "sigma unknown"))
     if mission.usbl is not None:
         r = mission.usbl.range
         print(_line("usbl", mission.usbl.t,

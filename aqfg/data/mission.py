@@ -130,11 +130,11 @@ def with_gnss_every(mission: Mission, period: float) -> Mission:
     if mission.gnss is None or period <= 0:
         return mission
     t = mission.gnss.t
-    keep, last = [], -np.inf
+    idx, last = [], -np.inf
     for i, ti in enumerate(t):
         if ti >= last + period - 1e-6:
-            keep.append(i); last = ti
-    keep = np.asarray(keep, dtype=int)
+            idx.append(i); last = ti
+    keep = np.asarray(idx, dtype=int)
     g = mission.gnss
     out = copy.copy(mission)
     out.gnss = Gnss(g.t[keep], g.ne[keep], None if g.sigma is None else g.sigma[keep])

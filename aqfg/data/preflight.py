@@ -74,10 +74,11 @@ def prepare(mission: Mission) -> tuple[Mission, list[str]]:
     if g is not None and g.sigma is not None and len(g.t):
         sig = np.asarray(g.sigma, dtype=float)
         unknown = ~np.isfinite(sig)
+        new: np.ndarray | None = sig
         if unknown.all():
             notes.append(f"{mission.name}: GNSS sigma unknown in every row: the estimator's "
                          "default is used")
-            sig = None
+            new = None
         else:
             if unknown.any():
                 typical = float(np.median(sig[~unknown]))
@@ -89,8 +90,9 @@ def prepare(mission: Mission) -> tuple[Mission, list[str]]:
                 notes.append(f"{mission.name}: GNSS sigma below {GNSS_SIGMA_FLOOR} m in "
                              f"{int(low.sum())} rows raised to {GNSS_SIGMA_FLOOR} m")
                 sig = np.maximum(sig, GNSS_SIGMA_FLOOR)
-        if sig is None or not np.array_equal(sig, g.sigma, equal_nan=True):
-            m.gnss = Gnss(g.t, g.ne, sig, g.latlon)
+            new = sig
+        if new is None or not np.array_equal(new, g.sigma, equal_nan=True):
+            m.gnss = Gnss(g.t, g.ne, new, g.latlon)
     for n in notes:
         log.debug(n)
     return m, notes

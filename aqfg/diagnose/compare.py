@@ -1,4 +1,4 @@
-"""Compare the model with the measurements (issue 5, step 1).
+"""Compare the model with the measurements.
 
 * per sensor: the measured value beside the model's prediction and the normalised residual
   over time (read from a fit's :class:`~aqfg.result.Residuals`, or computed for any track
@@ -15,14 +15,14 @@ directly by the depth sensor and an ASV does not move vertically.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from aqfg.data.mission import Gnss, Mission, Usbl
+from aqfg.model.retrace import rollout, usbl_positions
 from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import MissionResult, Residuals, Track
-from aqfg.model.retrace import rollout, usbl_positions
 
 DEFAULT_GNSS_SIGMA = 1.0        # m, when gnss.csv has no sigma column and no fit says otherwise
 
@@ -85,7 +85,8 @@ def sensor_series(mres: MissionResult) -> list[SensorSeries]:
                          for j in range(d)])
         if not keep.any():
             continue
-        sel = lambda a: None if a is None else a[:, keep]
+        def sel(a: np.ndarray | None, keep: np.ndarray = keep) -> np.ndarray | None:
+            return None if a is None else a[:, keep]
         out.append(SensorSeries(name, np.asarray(r.t, float), sel(meas), sel(pred), raw[:, keep],
                                 nrm[:, keep], tuple(np.array(labels)[keep]),
                                 tuple(np.array(units)[keep])))
@@ -143,7 +144,7 @@ class Fixes:
     def __len__(self) -> int:
         return len(self.t)
 
-    def select(self, mask: np.ndarray) -> "Fixes":
+    def select(self, mask: np.ndarray) -> Fixes:
         return Fixes(self.t[mask], self.ne[mask], self.cov[mask], self.source[mask])
 
 
@@ -185,7 +186,7 @@ def fixes_of(mission: Mission, gnss_sigma: float = DEFAULT_GNSS_SIGMA,
 def sensor_sigmas(series: list[SensorSeries]) -> dict:
     """Noise sigmas a fit used, read back from its residuals: ``{"gnss": m,
     "usbl": (range m, bearing rad)}`` (entries only for sensors present)."""
-    out = {}
+    out: dict[str, float | tuple[float, float]] = {}
     for s in series:
         sig = s.sigma()
         if s.sensor == "gnss" and np.all(np.isfinite(sig)):
@@ -221,14 +222,16 @@ def split_fixes(mission: Mission, gnss_period: float = 8.0) -> Split:
                 last = ti
         if keep.sum() > 0.5 * len(keep) + 1:     # GNSS already sparse: alternate
             keep = np.arange(len(g.t)) % 2 == 0
-        sel = lambda m: Gnss(g.t[m], g.ne[m], None if g.sigma is None else g.sigma[m])
-        fit.gnss, held.gnss = sel(keep), sel(~keep)
+        def sel_gnss(m: np.ndarray) -> Gnss:
+            return Gnss(g.t[m], g.ne[m], None if g.sigma is None else g.sigma[m])
+        fit.gnss, held.gnss = sel_gnss(keep), sel_gnss(~keep)
     if mission.usbl is not None and len(mission.usbl.t):
         u = mission.usbl
         keep = np.arange(len(u.t)) % 2 == 0
-        sel = lambda m: Usbl(u.t[m], u.range[m], u.bearing[m],
-                             None if u.elevation is None else u.elevation[m])
-        fit.usbl, held.usbl = sel(keep), sel(~keep)
+        def sel_usbl(m: np.ndarray) -> Usbl:
+            return Usbl(u.t[m], u.range[m], u.bearing[m],
+                        None if u.elevation is None else u.elevation[m])
+        fit.usbl, held.usbl = sel_usbl(keep), sel_usbl(~keep)
     return Split(fit, held, gnss_period)
 
 
@@ -313,7 +316,8 @@ def dead_reckon(model: Model, mission: Mission, track: Track, p: np.ndarray,
     if rows:
         t, dt, err, cov, anc = (np.array([r[j] for r in rows]) for j in range(5))
     else:
-        t, dt, err, cov, anc = np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, int)
+        t, dt, err, cov, anc = (np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)),
+                                np.zeros(0, int))
     return DeadReckoning(anchor_t, tracks, t, dt, err, cov, anc.astype(int), horizon)
 
 

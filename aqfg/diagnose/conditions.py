@@ -1,4 +1,4 @@
-"""Where does the model fail? Relate residual size to what the vehicle was doing (issue 5, step 2).
+"""Where does the model fail? Relate residual size to what the vehicle was doing.
 
 Conditions (sampled on a regular grid, then averaged over the ``memory`` seconds before
 each residual, because a missing force shows in the position only after it has acted):
@@ -260,7 +260,7 @@ def relate(series: str, t: np.ndarray, nis_per_dof: np.ndarray, signals: Conditi
     out: list[ConditionEffect] = []
     if len(t) < min_n:
         return out
-    for name, vals in signals.values.items():
+    for name in signals.values:
         x = signals.mean_before(name, t, memory)
         good = np.isfinite(x)
         if good.sum() < min_n:

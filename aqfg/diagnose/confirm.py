@@ -74,26 +74,26 @@ def heldout_gain(base_next_fix, other_next_fix, window: float = 60.0) -> Heldout
                 dd.append(float(ll - kb[k]))
         if not tt:
             continue
-        tt = np.asarray(tt)
-        b = np.floor((tt - tt.min()) / window).astype(int)
+        ta = np.asarray(tt)
+        b = np.floor((ta - ta.min()) / window).astype(int)
         d.append(np.asarray(dd))
         blk.append(b + nb)
         nb += int(b.max()) + 1
     if not d:
         return HeldoutGain(float("nan"), 0, 0, float("nan"), float("nan"))
-    d, blk = np.concatenate(d), np.concatenate(blk)
-    sums = np.bincount(blk, d)
-    sums = sums[np.bincount(blk) > 0]
+    da, blka = np.concatenate(d), np.concatenate(blk)
+    sums = np.bincount(blka, da)
+    sums = sums[np.bincount(blka) > 0]
     B = len(sums)
-    total = float(d.sum())
+    total = float(da.sum())
     if B < 3:
-        return HeldoutGain(total, len(d), B, float("nan"), float("nan"))
+        return HeldoutGain(total, len(da), B, float("nan"), float("nan"))
     sd = float(np.std(sums, ddof=1))
     if sd <= 0:
         t = np.inf if total > 0 else (-np.inf if total < 0 else 0.0)
     else:
         t = float(np.mean(sums) / (sd / np.sqrt(B)))
-    return HeldoutGain(total, len(d), B, t, float(stats.t.sf(t, B - 1)))
+    return HeldoutGain(total, len(da), B, t, float(stats.t.sf(t, B - 1)))
 
 
 def direction_agrees(gradient: np.ndarray | None, delta: np.ndarray) -> bool:

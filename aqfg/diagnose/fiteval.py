@@ -11,6 +11,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from aqfg.diagnose.heldout import HeldOut, heldout_innovations
 from aqfg.diagnose.linearise import linear_system
 from aqfg.diagnose.refit import WarmBatchSmoother
 from aqfg.fg.common import FGSettings, mission_model
+from aqfg.model.vehicle import Model
 from aqfg.result import Result
 from aqfg.threads import blas_threads  # noqa: F401  (re-exported for the diagnosis)
 
@@ -39,6 +41,12 @@ class FitEval:
     long: list[HeldOut] = field(default_factory=list)
     consistency: ConsistencyTest | None = None
     n_meas: int = 0
+
+    @property
+    def model(self) -> Model:
+        """The fitted model (base + effects), as recorded by the full fit."""
+        assert self.full.model is not None, "every estimator records its model"
+        return self.full.model
 
     @property
     def has_heldout(self) -> bool:
@@ -122,6 +130,7 @@ def fit_all(missions: list[Mission], model, effects, label: str, *, settings: FG
     sm = WarmBatchSmoother(model, effects=effects, settings=settings,
                            start=start.full if start is not None else None)
     full = sm.run(missions)
+    assert full.model is not None, "the batch smoother records its model"
     return FitEval(label, tuple(e.name for e in full.model.effects), full, None,
                    n_meas=_n_meas(full))
 
@@ -140,8 +149,9 @@ def add_heldout(ev: FitEval, splits: list[Split], model, effects, *, settings: F
     lin = linear_system([s.fit for s in splits], thin, [], settings=settings, built=th.built)
     for i, s in enumerate(splits):
         mdl = mission_model(thin.model, s.fit)
-        kw = {"model": mdl, "fit": s.fit, "heldout": s.heldout, "mres": thin.missions[i],
-              "lin": lin, "mission_index": i, "estimated": thin.estimated, "settings": settings}
+        kw: dict[str, Any] = {"model": mdl, "fit": s.fit, "heldout": s.heldout,
+                              "mres": thin.missions[i], "lin": lin, "mission_index": i,
+                              "estimated": thin.estimated, "settings": settings}
         ev.next_fix.append(heldout_innovations(**kw))
         ev.long.append(heldout_innovations(**kw, horizon=horizon))
     t = np.concatenate([h.t[h.used] for h in ev.next_fix])

@@ -182,6 +182,8 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     if len(anchors) < 2 or not rows:
         raise ValueError(f"mission {fit.name!r}: not enough fixes to hold some out "
                          f"({len(anchors)} fit fixes, {len(rows)} held out)")
+    assert lin.knots is not None and lin.param_cols is not None, \
+        "a LinearSystem from aqfg.diagnose.linearise"
     knots = lin.knots[mission_index]
     p = mres.p
     dyn_cols = list(model.dyn_columns())
@@ -204,8 +206,8 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     pos_of = {a: i for i, a in enumerate(use)}
     X_fit = interp_states(mres.track, anchors)
     st = heldout.usbl_station if heldout.usbl_station is not None else fit.usbl_station
-    out = {k: [] for k in ("sensor", "t", "dt", "anchor", "nu", "S", "nis", "err", "noise",
-                           "outlier", "fix_ne")}
+    out: dict[str, list] = {k: [] for k in ("sensor", "t", "dt", "anchor", "nu", "S", "nis",
+                                            "err", "noise", "outlier", "fix_ne")}
     legs = []
     chains = {}
     for a in range(len(anchors)):
@@ -242,6 +244,7 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
                 nu = z - h
                 fix_ne = z
             else:
+                assert st is not None, "USBL fixes need the station position"
                 h, Hp, Hth = model.h_usbl(xj[:3], Rt[q], tj, p, st)
                 nu = z - h
                 nu[1] = float(wrap_angle(nu[1]))
@@ -262,6 +265,7 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
                 noise = float(np.trace(R))
                 outlier = False
             else:
+                assert st is not None
                 rh = float(np.hypot(*(xj[:2] - np.asarray(st[:2], float))))
                 err = float(np.hypot(nu[0], rh * nu[1]))
                 noise = float(R[0, 0] + rh ** 2 * R[1, 1])

@@ -36,7 +36,9 @@ def linear_system(missions: list[Mission], result: Result, candidates, *,
     if settings.walk_sigma:
         raise ValueError("the score test needs constant variable parameters (walk_sigma=None)")
     base_model = result.model
-    cand = [c for c in candidates if c not in (base_model.effects if base_model else ())]
+    if base_model is None:
+        raise ValueError("the score test needs the model of the fit (result.model)")
+    cand = [c for c in candidates if c not in base_model.effects]
     model = base_model.with_effects(*cand)
     cand_effects = [e for e in model.effects if e.name not in {b.name for b in base_model.effects}]
     cand_names = tuple(n for e in cand_effects for n in e.params)
@@ -68,23 +70,23 @@ def linear_system(missions: list[Mission], result: Result, candidates, *,
 
     # columns: every state and node entry; candidate entries go to C
     col_of: dict[int, np.ndarray] = {}
-    is_cand: list[bool] = []
+    cand_flags: list[bool] = []
     names_c: list[str] = []
     n = 0
     for part in parts:
         for k in part.keys:
             col_of[k] = np.arange(n, n + 6)
-            is_cand += [False] * 6
+            cand_flags += [False] * 6
             n += 6
     for g, k, _ in node_list:
         d = layout.dim(g)
         col_of[k] = np.arange(n, n + d)
         for nm in layout.names[g]:
-            is_cand.append(nm in cand_names)
+            cand_flags.append(nm in cand_names)
             if nm in cand_names:
                 names_c.append(nm)
         n += d
-    is_cand = np.array(is_cand)
+    is_cand = np.array(cand_flags, bool)
     # candidate columns may repeat (one sensor node per mission): sum them per name
     cand_name_of_col = {}
     for g, k, _ in node_list:

@@ -70,6 +70,7 @@ def anchor_covariances(lin: LinearSystem, mission_index: int, knots: np.ndarray,
     (the fit's own marginal covariance at its optimum, same ridge as
     :func:`aqfg.diagnose.score.covariance`, to which it falls back when the states are not
     a chain)."""
+    assert lin.knot_cols is not None, "a LinearSystem from aqfg.diagnose.linearise"
     A = sp.csc_matrix(lin.A)
     kc_all = np.asarray(lin.knot_cols[mission_index], int)
     knots = np.asarray(knots, int)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aqfg.data.mission import Mission
 from aqfg.fg.batch import BatchSmoother, BuiltGraph
 from aqfg.fg.common import interp_states
 from aqfg.result import Result
@@ -49,8 +50,8 @@ class WarmBatchSmoother(BatchSmoother):
         self.start = start
         self.built: BuiltGraph | None = None
 
-    def build(self, missions) -> BuiltGraph:
-        bg = super().build(missions)
+    def build(self, missions: list[Mission], *, fixed_prior: bool = True) -> BuiltGraph:
+        bg = super().build(missions, fixed_prior=fixed_prior)
         if self.start is not None:
             apply_start(bg, self.start)
             # the start's basin was chosen by its own fit: no other heading starts

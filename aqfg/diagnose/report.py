@@ -159,7 +159,8 @@ def fig_growth(diag, evs=None):
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(np.bincount(j, e ** 2, minlength=10) / n)
         ax.plot(0.5 * (bins[:-1] + bins[1:]), rms, "o-", label=f"{ev.label} (DR error {ev.rmse:.2f} m)")
-    noise = np.concatenate([h.noise[h.used] for h in diag.base.long]) if diag.base.long else []
+    noise = (np.concatenate([h.noise[h.used] for h in diag.base.long]) if diag.base.long
+             else np.zeros(0))
     if len(noise):
         ax.axhline(math.sqrt(float(np.mean(noise))), color="0.5", ls="--", lw=1,
                    label="fix noise alone")
@@ -274,8 +275,10 @@ def fig_ranking(diag):
 
 # ---------------------------------------------------------------- HTML
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
-table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
-th{background:#eee}td.l{text-align:left}.verdict{font-size:17px;padding:10px;background:#f4f4e8;border-left:5px solid #aa5}
+table{border-collapse:collapse;font-size:13px}
+td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
+th{background:#eee}td.l{text-align:left}
+.verdict{font-size:17px;padding:10px;background:#f4f4e8;border-left:5px solid #aa5}
 pre{background:#f6f6f6;padding:8px;font-size:12px;overflow-x:auto}img{max-width:100%}"""
 
 
@@ -293,7 +296,8 @@ def _fmt(x, f=".3g") -> str:
 
 def ranking_table(diag) -> str:
     rows = ["<tr><th>rank</th><th>effect</th><th>score (LM)</th><th>p (Holm)</th>"
-            "<th>robust p</th><th>dBIC</th><th>held-out dLL</th><th>bootstrap first</th><th>DR error before → after (m)</th>"
+            "<th>robust p</th><th>dBIC</th><th>held-out dLL</th><th>bootstrap first</th>"
+            "<th>DR error before → after (m)</th>"
             "<th>consistent after</th><th>estimate ± sigma</th><th>status</th></tr>"]
     best = diag.best.effect if diag.best is not None else None
     for i, c in enumerate(diag.ranking, 1):
@@ -359,8 +363,10 @@ def render(diag, plots: bool = True) -> str:
         H.append(f"<h2>Added effect(s): {html.escape(', '.join(diag.added))}</h2>")
         H.append("<table><tr><th></th><th>before</th><th>after</th></tr>"
                  f"<tr><td class=l>held-out DR error (m)</td><td>{b.rmse:.3f}</td><td>{a.rmse:.3f}</td></tr>"
-                 f"<tr><td class=l>raw RMS vs held-out fixes (m)</td><td>{b.rmse_raw:.3f}</td><td>{a.rmse_raw:.3f}</td></tr>"
-                 f"<tr><td class=l>held-out NIS / expected</td><td>{b.consistency.ratio:.2f}</td><td>{a.consistency.ratio:.2f}</td></tr>"
+                 f"<tr><td class=l>raw RMS vs held-out fixes (m)</td><td>{b.rmse_raw:.3f}</td>"
+                 f"<td>{a.rmse_raw:.3f}</td></tr>"
+                 f"<tr><td class=l>held-out NIS / expected</td><td>{b.consistency.ratio:.2f}</td>"
+                 f"<td>{a.consistency.ratio:.2f}</td></tr>"
                  f"<tr><td class=l>consistency test</td><td>{'pass' if b.consistency.passed else 'FAIL'}</td>"
                  f"<td>{'pass' if a.consistency.passed else 'FAIL'}</td></tr>"
                  f"<tr><td class=l>BIC</td><td>{b.bic:.1f}</td><td>{a.bic:.1f}</td></tr></table>")

@@ -79,8 +79,7 @@ class Projected:
 
 def factorise(N: sp.spmatrix):
     """Sparse LU of a symmetric positive definite normal matrix (no pivoting, symmetric
-    mode: fill stays near Cholesky's; measured 60x faster solves than the default on a
-    600-knot mission)."""
+    mode: fill stays near Cholesky's; faster than the default, docs/diagnosis.md)."""
     return spla.splu(sp.csc_matrix(N), permc_spec="COLAMD", diag_pivot_thresh=0.0,
                      options=dict(SymmetricMode=True))
 
@@ -301,7 +300,7 @@ def bootstrap_ranking(proj: Projected, effects: dict[str, tuple[str, ...]], n_bo
     G = g0 + W @ Gb                                     # (n_boot, c)
     S = S0 + np.tensordot(W, Sb, axes=1)                # (n_boot, c, c)
     lp = np.empty((n_boot, len(info)))
-    for j, (eff, cols, flo, fhi, one) in enumerate(info):
+    for j, (_eff, cols, flo, fhi, one) in enumerate(info):
         lm = np.array([_lm(G[r, cols], S[r][np.ix_(cols, cols)], flo, fhi)[1]
                        for r in range(n_boot)])
         lp[:, j] = _log10_p(lm, len(cols), one)

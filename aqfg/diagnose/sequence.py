@@ -36,11 +36,11 @@ from aqfg.data.mission import Mission
 from aqfg.diagnose.fiteval import FitEval, blas_threads
 from aqfg.diagnose.workflow import (
     Diagnosis,
-    _clean,
-    _num,
-    _pct,
     candidate_effects,
     diagnose,
+    json_num,
+    json_ready,
+    percent_change,
 )
 from aqfg.fg.common import check_missions, progress_fn
 from aqfg.model.effects import resolve
@@ -67,7 +67,7 @@ class Step:
     consistent_before: bool = False
 
     def to_json(self) -> dict:
-        return _clean({"effect": self.effect, "estimate": self.estimate,
+        return json_ready({"effect": self.effect, "estimate": self.estimate,
                        "consistent_before": bool(self.consistent_before),
                        "rmse_before": self.rmse_before, "rmse_after": self.rmse_after,
                        "rmse_raw_before": self.rmse_raw_before,
@@ -111,7 +111,7 @@ class DiagnosisSequence:
         """The model after each step: bare, + first effect, ..., final."""
         evs = [self.bare]
         for d in self.diagnoses:
-            if d.best is not None:
+            if d.best is not None and d.best.refit is not None:
                 evs.append(d.best.refit)
         return evs
 
@@ -135,8 +135,8 @@ class DiagnosisSequence:
         """The final model as a :class:`~aqfg.model.modelfile.ModelFile`."""
         from aqfg.model.modelfile import ModelFile
         src = {"made_by": "aqfg diagnose --auto", "missions": [m.name for m in self.missions],
-               "heldout_rmse_bare": _num(self.bare.rmse),
-               "heldout_rmse": _num(self.final.rmse)}
+               "heldout_rmse_bare": json_num(self.bare.rmse),
+               "heldout_rmse": json_num(self.final.rmse)}
         src.update(source or {})
         return ModelFile.from_result(self.final.full, source=src)
 
@@ -146,7 +146,7 @@ class DiagnosisSequence:
             return "Nothing added: " + self.diagnoses[0].verdict
         b, f = self.bare, self.final
         return (f"Added {', '.join(self.added)}: held-out dead-reckoning error "
-                f"{b.rmse:.2f} -> {f.rmse:.2f} m ({_pct(b.rmse, f.rmse)}; RMS distance to "
+                f"{b.rmse:.2f} -> {f.rmse:.2f} m ({percent_change(b.rmse, f.rmse)}; RMS distance to "
                 f"the held-out fixes {b.rmse_raw:.2f} -> {f.rmse_raw:.2f} m); held-out fixes "
                 f"{'consistent' if _passed(f) else 'NOT consistent'} with the final model. "
                 f"Stopped: {self.stopped}.")
@@ -165,7 +165,7 @@ class DiagnosisSequence:
             if s.independent:
                 extra += f"; still evidence for: {', '.join(s.independent)}"
             L.append(f"+ {s.effect:<32} held-out DR error {s.rmse_after:6.2f} m  "
-                     f"({_pct(s.rmse_before, s.rmse_after)}), {_cons(ev)}, dBIC "
+                     f"({percent_change(s.rmse_before, s.rmse_after)}), {_cons(ev)}, dBIC "
                      f"{s.bic_change:.1f}  [{est}]{extra}")
         L.append(f"stopped: {self.stopped}")
         L.append(self.verdict())
@@ -185,11 +185,11 @@ class DiagnosisSequence:
         out["stopped"] = self.stopped
         out["steps"] = [d.to_json() for d in self.diagnoses]
         out["timings"] = self.timings
-        return _clean(out)
+        return json_ready(out)
 
 
-def _passed(ev: FitEval) -> bool:
-    return bool(ev.consistency is not None and ev.consistency.passed)
+def _passed(ev: FitEval | None) -> bool:
+    return bool(ev is not None and ev.consistency is not None and ev.consistency.passed)
 
 
 def _cons(ev: FitEval) -> str:
@@ -201,6 +201,7 @@ def _cons(ev: FitEval) -> str:
 
 def _step(d: Diagnosis) -> Step:
     c = d.best
+    assert c is not None and c.refit is not None and c.gain is not None, "a confirmed effect"
     r = c.refit
     return Step(c.effect, c.estimate(), d.base.rmse, r.rmse, d.base.rmse_raw, r.rmse_raw,
                 _passed(r), c.dbic, c.p_adjusted, c.lr_p, c.gain.p,

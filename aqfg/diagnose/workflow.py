@@ -56,6 +56,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, SupportsFloat
 
 import numpy as np
 from scipy import stats
@@ -89,7 +90,7 @@ from aqfg.diagnose.score import (
     shared_information,
 )
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
-from aqfg.model.effects import BUILTIN, resolve
+from aqfg.model.effects import BUILTIN, Effect, resolve
 
 __all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
            "evaluate", "save_diagnosis"]
@@ -237,30 +238,31 @@ class Diagnosis:
         rank = []
         for c in self.ranking:
             g = c.gain
+            rh = c.refit if _ho(c) else None
             rank.append({
                 "effect": c.effect, "status": c.status, "status_text": c.status_text(best),
-                "score": _num(c.score.statistic),
-                "p_value": _num(c.score.p_value), "p_adjusted": _num(c.p_adjusted),
-                "log10_p": _num(c.score.log10_p),
-                "estimate": {k: {"value": _num(v["value"]), "sigma": _num(v["sigma"])}
+                "score": json_num(c.score.statistic),
+                "p_value": json_num(c.score.p_value), "p_adjusted": json_num(c.p_adjusted),
+                "log10_p": json_num(c.score.log10_p),
+                "estimate": {k: {"value": json_num(v["value"]), "sigma": json_num(v["sigma"])}
                              for k, v in c.estimate().items()},
-                "rmse_before": _num(rb), "rmse_after": _num(c.refit.rmse) if _ho(c) else None,
-                "rmse_raw_before": _num(self.base.rmse_raw),
-                "rmse_raw_after": _num(c.refit.rmse_raw) if _ho(c) else None,
-                "score_robust": _num(c.score.statistic_robust),
-                "p_value_robust": _num(c.score.p_value_robust),
-                "lr": _num(c.lr), "lr_p_value": _num(c.lr_p), "delta_bic": _num(c.dbic),
-                "wald": _num(c.wald), "wald_p_value": _num(c.wald_p),
+                "rmse_before": json_num(rb), "rmse_after": json_num(rh.rmse) if rh is not None else None,
+                "rmse_raw_before": json_num(self.base.rmse_raw),
+                "rmse_raw_after": json_num(rh.rmse_raw) if rh is not None else None,
+                "score_robust": json_num(c.score.statistic_robust),
+                "p_value_robust": json_num(c.score.p_value_robust),
+                "lr": json_num(c.lr), "lr_p_value": json_num(c.lr_p), "delta_bic": json_num(c.dbic),
+                "wald": json_num(c.wald), "wald_p_value": json_num(c.wald_p),
                 "refit_start": c.refit.full.info.get("start") if c.refit else None,
-                "delta_heldout_loglik": _num(c.dll),
-                "heldout_p_value": _num(g.p) if g is not None else None,
+                "delta_heldout_loglik": json_num(c.dll),
+                "heldout_p_value": json_num(g.p) if g is not None else None,
                 "consistent_after": (bool(c.refit.consistency.passed)
                                      if c.refit and c.refit.consistency else None),
                 "failed": c.evidence.failed() if c.evidence is not None else None,
-                "p_conditional": _num(c.p_conditional),
-                "shared_with_missing": _num(c.shared),
+                "p_conditional": json_num(c.p_conditional),
+                "shared_with_missing": json_num(c.shared),
                 "significant": bool(c.significant), "confirmed": bool(c.confirmed),
-                "bootstrap_first": _num(c.bootstrap_first)})
+                "bootstrap_first": json_num(c.bootstrap_first)})
         out = {"missing": bool(self.missing), "ranking": rank,
                "missing_effect": best,
                "unexplained": bool(self.unexplained), "verdict": self.verdict,
@@ -276,7 +278,7 @@ class Diagnosis:
         if self.before is not None:
             out["before"] = self.before.to_json()
             out["added"] = list(self.added)
-        return _clean(out)
+        return json_ready(out)
 
     def summary(self) -> str:
         """The ranked summary printed by ``aqfg diagnose``."""
@@ -284,10 +286,10 @@ class Diagnosis:
         if self.confidence_text():
             L.append(self.confidence_text())
         L.append("")
-        c = self.base.consistency
-        if c is not None:
+        cons = self.base.consistency
+        if cons is not None:
             L.append(f"Held-out fixes vs the model ({'+'.join(self.base.effects) or 'base model'}): "
-                     + c.summary())
+                     + cons.summary())
         L.append(f"Held-out dead-reckoning error: {self.base.rmse:.2f} m (the fixes' own noise "
                  f"removed; RMS distance to the fixes {self.base.rmse_raw:.2f} m)")
         L.append(self.conditions_text)
@@ -295,10 +297,10 @@ class Diagnosis:
             b, a = self.before, self.base
             L.append("")
             L.append(f"Added {', '.join(self.added)}: held-out dead-reckoning error "
-                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({_pct(b.rmse, a.rmse)}; raw "
+                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({percent_change(b.rmse, a.rmse)}; raw "
                      f"{b.rmse_raw:.2f} -> {a.rmse_raw:.2f} m), consistency "
                      f"{_ok(b.consistency)} -> {_ok(a.consistency)}, BIC {a.bic - b.bic:+.1f}")
-            for e in a.full.model.effects:
+            for e in a.model.effects:
                 if e.name in self.added:
                     for n, v in a.values(e.params).items():
                         L.append(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}")
@@ -309,8 +311,9 @@ class Diagnosis:
         for i, c in enumerate(self.ranking, 1):
             est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
                             for n, v in c.estimate().items())
-            dr = (f"{self.base.rmse:.2f} -> {c.refit.rmse:.2f} ({self.base.rmse_raw:.2f} -> "
-                  f"{c.refit.rmse_raw:.2f})" if _ho(c) else "")
+            rh = c.refit if _ho(c) else None
+            dr = (f"{self.base.rmse:.2f} -> {rh.rmse:.2f} ({self.base.rmse_raw:.2f} -> "
+                  f"{rh.rmse_raw:.2f})" if rh is not None else "")
             flag = "*" if c.status == "missing" else " "
             L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
                      f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>32}  {est}; {c.status_text(best)}")
@@ -326,20 +329,23 @@ def _ho(c: Candidate) -> bool:
     return c.refit is not None and c.refit.has_heldout
 
 
-def _num(x):
+def json_num(x: SupportsFloat | None) -> float | None:
+    """``x`` as a JSON number: a float, or None (null) for None, NaN and infinities."""
     if x is None:
         return None
     x = float(x)
     return x if math.isfinite(x) else None
 
 
-def _clean(o):
+def json_ready(o: Any) -> Any:
+    """``o`` with numpy scalars as Python numbers and non-finite floats as None, nested
+    dicts/lists/tuples included (tuples become lists), ready for ``json.dumps``."""
     if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
+        return {k: json_ready(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
+        return [json_ready(v) for v in o]
     if isinstance(o, (np.floating, float)):
-        return _num(o)
+        return json_num(o)
     if isinstance(o, np.integer):
         return int(o)
     if isinstance(o, np.bool_):
@@ -347,7 +353,8 @@ def _clean(o):
     return o
 
 
-def _pct(a: float, b: float) -> str:
+def percent_change(a: float, b: float) -> str:
+    """The change from ``a`` to ``b`` in percent of ``a`` ("+12%"), "n/a" if undefined."""
     if not (np.isfinite(a) and np.isfinite(b)) or a <= 0:
         return "n/a"
     return f"{100 * (b - a) / a:+.0f}%"
@@ -364,7 +371,7 @@ def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
     :class:`~aqfg.model.effects.UserEffect` objects), without duplicates, without those already
     in the model, and only those applicable to at least one mission."""
     have = {resolve(e).name for e in model_effects}
-    out = []
+    out: list[Effect] = []
     for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
         e = resolve(c)
         if e.name in have or any(e.name == o.name for o in out):
@@ -389,12 +396,13 @@ def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
 def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float) -> None:
     """Likelihood ratio, BIC, direction and held-out tests of a refitted candidate."""
     r = c.refit
+    assert r is not None, "judged after its refit"
     c.lr = max(2.0 * (base.cost - r.cost), 0.0)
     # Bonferroni over every candidate: valid although the refitted ones were chosen by
     # their scores
     c.lr_p = float(min(1.0, n_cands * stats.chi2.sf(c.lr, len(c.params))))
     c.dbic = r.bic - base.bic
-    delta = np.array([r.full.values[n] - r.full.model.spec(n).null for n in c.params])
+    delta = np.array([r.full.values[n] - r.model.spec(n).null for n in c.params])
     c.wald = wald_statistic(delta, effect_covariance(r.full, c.params))
     c.wald_p = float(min(1.0, n_cands * stats.chi2.sf(c.wald, len(c.params))))
     c.gain = heldout_gain(base.next_fix, r.next_fix, window)
@@ -461,7 +469,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     timings: dict = {}
     t0 = time.perf_counter()
     splits = [split_fixes(m, gnss_every) for m in missions]
-    ev_kw = {"settings": settings, "horizon": horizon, "window": window}
+    ev_kw: dict[str, Any] = {"settings": settings, "horizon": horizon, "window": window}
     names = tuple(e.name for e in effects)
 
     prog(0.02, "fitting the model")
@@ -477,7 +485,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     # score tests on the full fit's linearised graph
     prog(0.2, "score tests")
     t1 = time.perf_counter()
-    cands = candidate_effects(missions, base.full.model.effects, extra_candidates, candidates)
+    cands = candidate_effects(missions, base.model.effects, extra_candidates, candidates)
     cand_of = {c.name: c for c in cands}
     if (base_screen is not None and base_screen.fit is base.full
             and [t.effect for t in base_screen.tests] == [c.name for c in cands]):
@@ -487,6 +495,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     ranking: list[Candidate] = []
     if scr.tests:
         eff_params = {c.name: tuple(c.params) for c in cands}
+        assert scr.proj is not None, "a screen with tests has its projected system"
         boot = (bootstrap_ranking(scr.proj, eff_params, n_boot=n_boot, n_blocks=n_blocks)
                 if n_boot else {})
         for t, a in zip(scr.tests, scr.adjusted):
@@ -519,6 +528,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
         prog(0.85, f"testing the others with {best.effect} added")
         best.status = "missing"
         others = [c for c in cands if c.name != best.effect]
+        assert best.refit is not None and scr.proj is not None
         next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
         cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
         for c in ranking:
@@ -567,12 +577,13 @@ def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
     if best is not None:
         r = best.refit
         g = best.gain
+        assert r is not None and g is not None, "a confirmed effect was refitted"
         v = (f"Missing: {best.effect} ({cand_of[best.effect].description}): "
              f"{best.estimate_text()}. Score test p = {best.p_adjusted:.2g} (Holm); refit: "
              f"likelihood-ratio p = {best.lr_p:.2g}, dBIC = {best.dbic:.1f}; held-out fixes "
              f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); held-out "
              f"dead-reckoning error {base.rmse:.2f} -> {r.rmse:.2f} m "
-             f"({_pct(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
+             f"({percent_change(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
              f"included: {base.rmse_raw:.2f} -> {r.rmse_raw:.2f} m).")
         if cons is not None and cons.passed:
             v += (" The model was already consistent with the held-out fixes; the effect "

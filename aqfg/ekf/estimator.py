@@ -61,28 +61,26 @@ Choices the paper leaves open (details in the modules named):
   determine has no sigma (absent from ``Result.sigma``) and a reason in
   ``info["sigma_notes"]``; ``info["observability"]``, ``info["converged"]`` and
   ``info["warnings"]`` say what was (not) determined and whether the optimiser converged.
-* Speed: one 24 s window costs ~0.1 ms in C++ (``cpp_factors/ekf.cpp``) against ~100 ms
-  for the numpy reference; a 15-minute online run with an optimisation after every fix
-  (GNSS every 8 s) takes ~1.5 s.
+* Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
+  (:func:`aqfg.ekf.window.window_ref`) only checks it; measured in docs/update-error.md.
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from aqfg.ekf.history import (DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History,
-                          build_history)
-from aqfg.ekf.optim import (Counter, Entry, Objective, Solution, Window, bounds,
-                            default_optimiser, minimise)
+from aqfg.data.mission import Mission
+from aqfg.ekf.history import DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History, build_history
+from aqfg.ekf.optim import Counter, Entry, Objective, Solution, Window, bounds, default_optimiser, minimise
 from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
-from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
+from aqfg.model.vehicle import Model
+from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +234,7 @@ class UpdateErrorEstimator:
                                                           for h, w in zip(hs, wins)))
         ps = obj.params(sol.theta)
         outs = obj.run(sol.theta, record=True)
-        mres = [self._mission_result(h, p, o.X[:, :], None, o) for h, p, o in zip(hs, ps, outs)]
+        mres = [self._mission_result(h, p, o.recorded()[0], None, o) for h, p, o in zip(hs, ps, outs)]
         per_mission = {}
         for wi, m in enumerate(self.missions):
             per_mission[m.name] = {
@@ -249,7 +247,7 @@ class UpdateErrorEstimator:
         names = [entries[i].name for i in first]
         sigma_d = ({n: float(unc.sigma[i]) for n, i in zip(names, first)
                     if np.isfinite(unc.sigma[i])} if unc else {})
-        info = {"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
+        info: dict[str, Any] = {"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
                 "message": sol.message, "preset": self.preset, "metric": self.metric,
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
@@ -361,7 +359,7 @@ class UpdateErrorEstimator:
             X_filt[F[n - 1]:F[n] + 1] = out.X
             X_corr[F[n - 1]:F[n] + 1] = out.X
             nodes.store(out)
-            self._store_anchors(h, out, F[n - 1], rej)
+            self.store_anchors(h, out, F[n - 1], rej)
             x, P, rej = out.x, out.P, out.rejects
             if window is not None:
                 t_lo = h.knots[F[n]] - window
@@ -410,7 +408,7 @@ class UpdateErrorEstimator:
                              rejects=a.rejects)
             if correct != "none":
                 X_corr[k_from:F[n] + 1] = out.X
-            self._store_anchors(h, out, k_from, a.rejects)
+            self.store_anchors(h, out, k_from, a.rejects)
             x, P, rej = out.x, out.P, out.rejects
             self._log(f"{h.mission.name} t={h.knots[F[n]]:.1f}: "
                       + ", ".join(f"{e.name}={v:.4g}" for e, v in zip(entries, theta))
@@ -431,12 +429,13 @@ class UpdateErrorEstimator:
                 "last": unc}
 
     @staticmethod
-    def _store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
+    def store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
         """Anchor states after every absolute fix of a recorded pass from knot ``k0``
         (state and covariance after the last node of that knot, and the USBL rejection
         counter, given ``rejects`` at ``k0``)."""
         kinds = h.node_kind[out.node_lo:out.node_hi]
         knots = h.node_knot[out.node_lo:out.node_hi]
+        X, Pn = out.recorded()
         for r in np.nonzero((kinds == GNSS) | (kinds == USBL))[0]:
             if kinds[r] == USBL:
                 rejects = rejects + 1 if out.status[r] == REJECTED else 0
@@ -444,7 +443,7 @@ class UpdateErrorEstimator:
             last = r + int(np.searchsorted(knots[r:], k, side="right")) - 1
             if kinds[last] in (GNSS, USBL) and last != r:
                 continue          # the anchor goes after the last fix of this knot
-            h.set_anchor(k, out.X[k - k0], out.Pn[last], rejects)
+            h.set_anchor(k, X[k - k0], Pn[last], rejects)
 
     # ------------------------------------------------------------------ result
     def _mission_result(self, h: History, p: np.ndarray, X: np.ndarray, X_filt, out, nodes=None
@@ -514,11 +513,11 @@ def _verdict_info(unc: Uncertainty | None, names: list[str], cols: list[int], so
                   sigma: bool) -> dict:
     """``info`` entries of a batch fit: the sigma method, per-parameter observability
     verdicts and notes, the measured consistency, convergence, and plain-text warnings."""
-    warn = []
+    warn: list[str] = []
     if not sol.converged:
         warn.append(f"the optimiser stopped without converging ({sol.message}): the "
                     "estimates are where it stopped, not an optimum")
-    out = {"converged": bool(sol.converged)}
+    out: dict[str, Any] = {"converged": bool(sol.converged)}
     if unc is None:
         out.update({"sigma_method": "none", "warnings": warn})
         return out
@@ -544,7 +543,7 @@ def _online_verdicts(unc: Uncertainty | None, names: list[str], nonconv: np.ndar
     paper's non-convergence measure (§III-F) turned into a per-parameter flag."""
     out: dict = {"sigma_method": ("gauss-newton on whitened innovations x consistency, per "
                                   "window" if sigma else "none")}
-    warn = []
+    warn: list[str] = []
     if unc is None:
         out.update({"converged": {}, "warnings": warn})
         return out

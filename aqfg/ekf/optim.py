@@ -19,7 +19,8 @@ with one of three optimisers ("trf", "ceres", "gradient"):
     from the previous estimate hardly moves (docs/update-error.md).
 
 ``"paper"``
-    Optimiser "ceres", which behaves like the authors' public C++ (github aqurai/auv-state-estimation, read for facts):
+    Optimiser "ceres", which behaves like the authors' public C++ (github
+    aqurai/auv-state-estimation, read for facts):
     Ceres with ONE scalar residual (the window's error sum), forward numeric derivatives, at
     most 200 iterations, bounds heading offset +-190 deg, thrust constant [2, 14], drag
     constants [0.4, 1.9] x their value before the optimisation (clamped to [0.1, 5] for
@@ -30,8 +31,8 @@ with one of three optimisers ("trf", "ceres", "gradient"):
     Levenberg-Marquardt with a bounds projection, and ``max_nfev`` counts function
     evaluations rather than iterations (Ceres' failed steps are iterations too). With a
     single residual the Gauss-Newton model always predicts ``E = 0``, so steps keep being
-    shortened: measured ~700 evaluations per online optimisation of three parameters
-    (the paper reports 30-50) against ~55 for "physical", for similar estimates.
+    shortened: many more evaluations than "physical" for similar estimates (measured in
+    docs/update-error.md).
 
 Metrics. ``metric="update"`` (default) is the paper's Eq. 14, the squared Kalman update
 errors of every measurement node. The public code's cost is the sum of innovation *norms*
@@ -178,7 +179,8 @@ class Objective:
             tm.append(w.hist.node_tm[o.node_lo:o.node_hi][sel])
             kind.append(kinds[sel])
             win.append(np.full(int(sel.sum()), wi))
-        cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
+        def cat(a: list[np.ndarray], shape: int | tuple[int, ...]) -> np.ndarray:
+            return np.concatenate(a) if a else np.zeros(shape)
         return NodeTerms(cat(rows, (0, 9)), cat(nuw, (0, 3)), cat(status, 0).astype(np.int8),
                          cat(tm, 0), cat(kind, 0).astype(np.int32), cat(win, 0).astype(int))
 

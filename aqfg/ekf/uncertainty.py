@@ -18,8 +18,8 @@ returns, per estimated parameter, a finite 1-sigma or "not determined" with the 
   public code's scalar metric): the Gauss-Newton approximation on the whitened
   innovations (the maximum-likelihood Cramer-Rao approximation), inflated by the measured
   consistency ``c = sum nu_w^2 / (n - p)`` when ``c > 1``. It describes the efficient
-  (ML) estimator, not the update-error one: measured on simulated batch fits it is about
-  right for the heading offset and the current but 5-6x too small for k and k_x.
+  (ML) estimator, not the update-error one, and is too small for the weakly observed
+  constants (measured in docs/update-error.md).
 
 Observability: directions of the parameter space along which the metric does not change
 (eigenvalues of ``A`` below ``RCOND`` times the largest, in scaled units) carry no
@@ -173,7 +173,8 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
 
     sig_s = np.sqrt(np.clip(np.diag(cov_s), 0.0, None))
     sigma = sig_s * scales
-    verdict, note = [], []
+    verdict: list[str] = []
+    note: list[str | None] = []
     for i, spec in enumerate(specs):
         at_lo = lo is not None and abs(theta[i] - lo[i]) <= 1e-4 * scales[i]
         at_hi = hi is not None and abs(theta[i] - hi[i]) <= 1e-4 * scales[i]
@@ -183,7 +184,9 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
             note.append("a gated fix changes its accept/reject decision at the estimate: "
                         "no derivative")
         elif at_lo or at_hi:
-            b = lo[i] if at_lo else hi[i]
+            bound = lo if at_lo else hi
+            assert bound is not None
+            b = bound[i]
             verdict.append("at bound")
             note.append(f"at its {'lower' if at_lo else 'upper'} bound {b:.6g}: the fit "
                         "pushes it beyond, no interior value is supported")

@@ -10,24 +10,15 @@ with Levenberg-Marquardt driven from Python:
   (mission, parameter segment) (``Model.propagate_many``); the dynamics factors read those
   results (:func:`aqfg.fg.factors.cached_dynamics_factor`, same maths as the stand-alone factor);
 * a METIS ordering is computed once; the parameter marginal covariances come from the Bayes
-  tree of the final elimination.
+  tree of the final elimination;
+* Marquardt's diagonal damping (lambda diag(J^T J)), not lambda I, and a closed-form initial
+  heading/current (:func:`initial_guess`).
 
-Measured here (2-core shared machine, C++ kernel, 15-min ASV mission, GNSS every 8 s,
-1 s knots = 901 states / 1917 factors, all six parameters from the paper's old values;
-experiments/bench_fg.py):
-
-* this loop: 6 LM iterations of ~0.06 s, 0.5-0.6 s in all (target <= 3 s); one batched
-  ``propagate_many`` costs ~2.3 us per 1-s factor, a cached factor's ``linearize`` ~9 us;
-* GTSAM's ``LevenbergMarquardtOptimizer`` on the same graph with stand-alone dynamics
-  factors: 0.25 s per iteration (Values copied into every callback), growing as N^2;
-* parameter marginals from the final Bayes tree: 6-10 ms (``gtsam.Marginals``: 37 ms);
-* Marquardt's diagonal damping (lambda diag(J^T J)) instead of lambda I: with lambda I the
-  steps of the weakly observed k, k_x were damped to a crawl (45 iterations on a 5-min
-  mission); a closed-form initial heading/current (:func:`initial_guess`) brought typical
-  runs from 10-40 iterations to 5-8 and removed a wrong-basin solution.
+What each of these buys, measured: docs/architecture.md, "Measurements (design decisions)".
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -35,19 +26,33 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from aqfg.fg import factors as fc
 from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, Track
-from aqfg.fg.covariance import block_sandwich, honest_covariance
+from aqfg.fg import factors as fc
 from aqfg.fg import observability, plausibility
+from aqfg.fg.common import (
+    FGSettings,
+    Measurements,
+    check_missions,
+    default_estimate,
+    first_knot_prior,
+    initial_states,
+    knot_times,
+    measurement_factors,
+    mission_model,
+    outliers,
+    piecewise_inertial,
+    progress_fn,
+    residuals,
+)
+from aqfg.fg.covariance import block_sandwich, honest_covariance
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
 from aqfg.fg.plausibility import Plausibility
+from aqfg.model.vehicle import Model
+from aqfg.result import MissionResult, ParamHistory, Result, Track
 from aqfg.threads import blas_threads
-from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
-                              first_knot_prior, initial_states, knot_times, outliers, measurement_factors,
-                              mission_model, piecewise_inertial, progress_fn, residuals)
+
+log = logging.getLogger(__name__)
 
 @dataclass
 class MissionPart:
@@ -140,7 +145,13 @@ class BatchSmoother:
     """
 
     def __init__(self, model: Model | None = None, *, effects=(), estimate=None, init=None,
-                 settings: FGSettings | None = None, progress=None):
+                 settings: FGSettings | None = None, progress=None,
+                 also_start: dict[str, float] | None = None):
+        """``also_start``: estimated parameter values to solve from as well (states from
+        the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
+        as for the heading basins."""
+        self.also_start = dict(also_start) if also_start else None
+        self.log_warnings = True           # info["warnings"] also to the log (WARNING)
         self.model = model
         self.effects = tuple(effects)
         self.estimate = None if estimate is None else tuple(estimate)
@@ -181,7 +192,7 @@ class BatchSmoother:
                 seg_of = np.zeros(K, int)
             nseg = int(seg_of.max()) + 1 if K else 1
             seg_starts = knots[0] + s.walk_segment * np.arange(nseg) if walk else knots[:1]
-            slices = []
+            slices: list[tuple | None] = []
             for j in range(nseg):
                 ii = np.nonzero(seg_of == j)[0]
                 if not len(ii):
@@ -288,8 +299,10 @@ class BatchSmoother:
 
             def mkeys(stream, t, part=part, mi=mi, groups_of=groups_of):
                 return nkeys(groups_of[stream], seg_at(t))
-            for f in measurement_factors(part.model, layout, meas, part.knots,
-                                         lambda i, part=part: part.keys[i], mkeys, s):
+
+            def knot_key(i, part=part):
+                return part.keys[i]
+            for f in measurement_factors(part.model, layout, meas, part.knots, knot_key, mkeys, s):
                 graph.add(f)
         return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts)
 
@@ -314,12 +327,12 @@ class BatchSmoother:
         ordering = None if fs is not None else \
             gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
         out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
-        verdicts = self._plausibility(bg, out.values)
+        verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
-        for label, alt in self._alternatives(bg, verdicts):
+        for label, alt in [*self._alternatives(bg, verdicts), *self._given_start(bg)]:
             o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
-            v = self._plausibility(bg, o.values)
+            v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
                     (all(x.plausible for x in v) == all(x.plausible for x in verdicts)
@@ -349,7 +362,7 @@ class BatchSmoother:
         cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                                 cov_sw[1] if cov_sw else None)
         t_end = time.perf_counter()
-        res = self._result(layout, values, parts, node_list, cov)
+        res = self.make_result(layout, values, parts, node_list, cov)
         res.timings = {"batch": [t_end - t_start], "build": [t_built - t_start],
                        "iteration": it_times, "covariance": [t_end - t_cov]}
         res.info["sigma_model"] = {n: float(v) for n, v in
@@ -377,6 +390,9 @@ class BatchSmoother:
         if n_out:
             res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
                                         "down-weighted as outliers (listed in info['outliers'])")
+        if self.log_warnings:
+            for w in res.info["warnings"]:
+                log.warning("fg: %s", w)
         res.info.update({"iterations": n_it, "trials": n_trials, "converged": converged,
                          "cost": float(err), "n_states": sum(len(p.keys) for p in parts),
                          "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp
@@ -385,19 +401,35 @@ class BatchSmoother:
         return res
 
     # ---------------------------------------------------------------- basins
-    def _plausibility(self, bg: BuiltGraph, values: gtsam.Values) -> list[Plausibility]:
+    def check_plausibility(self, bg: BuiltGraph, values: gtsam.Values) -> list[Plausibility]:
         """Physical plausibility of every mission's part of a solution."""
         out = []
         for part in bg.parts:
             X = np.array([values.atVector(k) for k in part.keys])
             nd = {}
             for g in bg.layout.groups:
-                mi = None if g == "fixed" else part.index
-                nd[g] = values.atVector(fc.node_key(g, mi, 0) if g != "fixed" else fc.node_key(g))
+                nd[g] = values.atVector(fc.node_key(g) if g == "fixed" else fc.node_key(g, part.index, 0))
             p = bg.layout.full(nd)
             out.append(plausibility.check(part.model, part.mission, part.knots, X, p,
                                           bg.layout.estimated))
         return out
+
+    def _given_start(self, bg: BuiltGraph):
+        """The ``also_start`` parameters with knot states from the fixes."""
+        if not self.also_start:
+            return
+        vals = gtsam.Values(bg.values)
+        for part in bg.parts:
+            for k, x in zip(part.keys, initial_states(part.mission, part.knots)):
+                vals.update(k, x)
+        for g, key, _ in bg.nodes:
+            names = bg.layout.names[g]
+            v = vals.atVector(key).copy()
+            for i, n in enumerate(names):
+                if n in self.also_start and np.isfinite(self.also_start[n]):
+                    v[i] = float(self.also_start[n])
+            vals.update(key, bg.layout.project(g, v))
+        yield "given start", vals
 
     def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility]):
         """Other starts worth solving from: other heading basins of the closed form, when
@@ -439,10 +471,14 @@ class BatchSmoother:
                     if n in names and (implausible or n not in self.init):
                         f[names.index(n)] = st0.fixed[n]
                 vals.update(key, bg.layout.project("fixed", f))
-            yield f"alternative heading start {np.degrees(heads[0][min(j, len(heads[0]) - 1)].theta_e):.0f} deg", vals
+            theta_e = heads[0][min(j, len(heads[0]) - 1)].theta_e
+            yield f"alternative heading start {np.degrees(theta_e):.0f} deg", vals
 
     # ---------------------------------------------------------------- result
-    def _result(self, layout, values, parts, node_list, cov) -> Result:
+    def make_result(self, layout: fc.ParamLayout, values: gtsam.Values, parts: list[MissionPart],
+                    node_list: list[ParamNode], cov: dict[int, np.ndarray]) -> Result:
+        """The :class:`Result` of a solution ``values`` of the graph of ``parts``, with the
+        parameter nodes' covariances ``cov`` ({key: covariance}, the parameters' units)."""
         s = self.settings
         model0 = parts[0].model
         val_of = {k: values.atVector(k) for _, k, _ in node_list}
@@ -460,7 +496,7 @@ class BatchSmoother:
             nseg = len(part.seg_starts)
             p_segments = [p_seg(j) for j in range(nseg)]
 
-            def p_at(t, part=part, p_segments=p_segments):
+            def p_at(t, part=part, p_segments=p_segments, nseg=nseg):
                 j = int(np.clip(np.searchsorted(part.seg_starts, t, side="right") - 1, 0, nseg - 1))
                 return p_segments[j]
             X = np.array([values.atVector(k) for k in part.keys])
@@ -486,8 +522,8 @@ class BatchSmoother:
         # are in info["per_mission"] and in each MissionResult.p)
         values_d = dict(zip(model0.all_names, map(float, mres[0].p)))
         sigma_d = {}
-        for g, k, mi in node_list:
-            if mi not in (None, 0):
+        for g, k, node_mission in node_list:
+            if node_mission not in (None, 0):
                 continue
             if g == "variable" and k != fc.node_key("variable", 0, len(parts[0].seg_starts) - 1):
                 continue
@@ -602,11 +638,11 @@ def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Or
 
 def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
     """Summary of one solve for ``Result.info["basins"]``."""
-    th = {}
+    th: dict[str, float] = {}
     if "variable" in bg.layout.names and "theta_e" in bg.layout.names["variable"]:
         i = bg.layout.names["variable"].index("theta_e")
         for n in bg.nodes:
-            if n.group == "variable":
+            if n.group == "variable" and n.mission is not None:
                 th.setdefault(bg.parts[n.mission].mission.name, float(out.values.atVector(n.key)[i]))
     return {"start": label, "cost": out.cost, "theta_e": th, "converged": out.converged,
             "iterations": out.iterations,
@@ -700,7 +736,7 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
 
 def _sigma_by_name(layout, node_list, cov) -> dict:
     """1-sigma of the first mission's nodes by parameter name (as Result.sigma)."""
-    out = {}
+    out: dict[str, float] = {}
     for g, k, mi in node_list:
         if mi not in (None, 0) or k not in cov:
             continue
@@ -737,7 +773,7 @@ def _warnings(info: dict, n_it: int) -> list[str]:
     infl = info.get("sigma_inflation", {})
     big = {n: f for n, f in infl.items() if f > 3.0}
     if big:
-        worst = max(big, key=big.get)
+        worst = max(big, key=lambda n: big[n])
         out.append(f"the model does not explain the fixes as its noise model says: sigma "
                    f"inflated up to {big[worst]:.1f}x ({worst}) to stay honest; run "
                    "`aqfg diagnose` to find the missing physics")

@@ -5,17 +5,17 @@ Times are seconds on the mission clock; states are ``[north, east, down, vn, ve,
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import gtsam
 import numpy as np
 
+from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.model import retrace as retrace
-from aqfg.data.mission import Mission
-from aqfg.model.vehicle import Model, attitude_at
 from aqfg.model.params import BASE_NAMES
+from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import Residuals, Track
 
 
@@ -37,31 +37,31 @@ class FGSettings:
         sigma honest when the model is wrong (:mod:`aqfg.fg.covariance`; 0 = Hessian only).
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
-        (at least 1, at most ``adapt_max``), see FixedLagSmoother._adapt.
-    online_init_after: s of fixes after which the fixed-lag smoother checks its heading
-        against the closed-form fit of the fixes so far and restarts from it when they
-        disagree (0 disables).
+        (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
+    online_init_after, online_reinit_until: online without a given heading offset, the
+        estimated parameters are held at their start values until ``online_init_after`` s
+        of fixes are in; then a batch solve of the fixes so far (global heading start)
+        re-initialises the smoother, which releases them. The check is repeated each time
+        the elapsed time doubles, up to ``online_reinit_until`` s, and restarts from the
+        batch when the heading offsets disagree (0 disables all of this).
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     fast_lm: batch LM on the numpy form of the graph (:mod:`aqfg.fg.fastlm`) where the
         graph has its shape (else, or when False, on GTSAM's linearisation; same algorithm).
     relin_pos, relin_vel, relin_param, iterations_per_update: fixed-lag ISAM2 relinearisation
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
-        fix. Measured (ASV, 15 min, GNSS 8 s, 24 s window): thresholds 0.01 / 0.01 and two
-        iterations cost 2.0 ms per update, 1.0 / 0.05 and one iteration 0.5 ms, with the
-        final parameters within 0.2 batch-sigma of the batch answer either way (positions
-        enter the dynamics linearly, so their linearisation point matters little).
+        fix (coarse thresholds and one iteration: positions enter the dynamics linearly, so
+        their linearisation point matters little; measured in docs/architecture.md).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
-        near converged parameters (0 disables). Measured on ASV seed 0, 600 s, GNSS every
-        8 s: without warm-up the 24 s window linearised its marginals at a heading 0.3-0.6
-        rad off and ended at theta_e = 0.91 +- 0.004 rad against the batch 0.54 +- 0.012.
+        near converged parameters (0 disables; why: docs/architecture.md).
     """
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0
     adapt_process: bool = True
-    online_init_after: float = 60.0
+    online_init_after: float = 20.0
+    online_reinit_until: float = 960.0
     adapt_window: int = 10
     adapt_max: float = 1e4
     process: fc.ProcessNoise = field(default_factory=fc.ProcessNoise)
@@ -84,7 +84,7 @@ class FGSettings:
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 
-    def with_(self, **kw) -> "FGSettings":
+    def with_(self, **kw) -> FGSettings:
         return replace(self, **kw)
 
 
@@ -186,7 +186,7 @@ def robust_fixes(mission: Mission) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], p[keep]
 
 
-def robust_fix_table(mission: Mission, settings: "FGSettings"
+def robust_fix_table(mission: Mission, settings: FGSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fix times, horizontal NED positions (n, 2) and their per-axis variance (m^2) (GNSS
     sigma, or the USBL tangential sigma at the fix's range), for innovation statistics."""
@@ -335,14 +335,16 @@ class Measurements:
 
     @classmethod
     def of(cls, mission: Mission, settings: FGSettings, t_start: float = -np.inf,
-           t_end: float = np.inf) -> "Measurements":
+           t_end: float = np.inf) -> Measurements:
         sn = settings.sensors
         z2 = np.zeros((0, 2))
         g = mission.gnss
         if g is not None and len(g.t):
             sel = (g.t >= t_start - 1e-9) & (g.t <= t_end + 1e-9)
             gt, gz = g.t[sel], g.ne[sel]
-            gs = g.sigma[sel] if g.sigma is not None else np.full(len(gt), sn.gnss_sigma)
+            gs = (np.where(np.isfinite(g.sigma[sel]) & (g.sigma[sel] > 0), g.sigma[sel],
+                           sn.gnss_sigma)          # the column is optional per row (NaN)
+                  if g.sigma is not None else np.full(len(gt), sn.gnss_sigma))
         else:
             gt, gz, gs = np.zeros(0), z2, np.zeros(0)
         u = mission.usbl
@@ -380,10 +382,10 @@ def depth_assignment(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.n
         return np.zeros(0, int), np.zeros(0, int)
     k = knot_index(knots, t)
     d = np.abs(knots[k] - t)
-    best = {}
+    best: dict[int, int] = {}
     for i in np.argsort(d, kind="stable"):
         best.setdefault(int(k[i]), int(i))
-    ki = np.array(sorted(best), dtype=int)
+    ki = np.array(sorted(best), dtype=np.int64)
     return np.array([best[j] for j in ki], dtype=int), ki
 
 
@@ -404,6 +406,7 @@ def measurement_factors(model: Model, layout: fc.ParamLayout, meas: Measurements
         out.append(fc.gnss_factor(model, layout, kx(k), node_keys("gnss", t), meas.gnss_z[i],
                                   meas.gnss_R[i], t, noise, base))
     for i in range(len(meas.usbl_t)):
+        assert meas.station is not None, "USBL fixes come with the station position"
         t = float(meas.usbl_t[i])
         k = int(ku[i])
         noise = sn.wrap(gtsam.noiseModel.Diagonal.Sigmas(meas.usbl_sigma[i]), "usbl")

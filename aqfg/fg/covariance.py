@@ -60,6 +60,7 @@ def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int
         f = gfg.at(i)
         if f is None:
             continue
+        assert isinstance(f, (gtsam.JacobianFactor, gtsam.HessianFactor))
         nr = f.rows()
         ts = [key_time[k] for k in f.keys() if k in key_time]
         if ts:

@@ -28,20 +28,20 @@ Jacobians with the same :func:`dynamics_blocks`.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping
 
 import gtsam
 import numpy as np
 
 from aqfg.model.effects import SensorOffsetTerm
 from aqfg.model.frames import HEADING_PARAMS
+from aqfg.model.params import N_PARAMS
 from aqfg.model.reference import Steps, wrap_angle
 from aqfg.model.vehicle import Model
-from aqfg.model.params import N_PARAMS
 
 GROUPS = ("fixed", "variable", "sensor")
-_GROUP_CHAR = {"fixed": "f", "variable": "v", "sensor": "s"}
+GROUP_CHAR = {"fixed": "f", "variable": "v", "sensor": "s"}
 _I6 = np.eye(6)
 MISSION_STRIDE = 1 << 32    # state / node key index = mission * MISSION_STRIDE + i
 
@@ -56,7 +56,7 @@ def node_key(group: str, mission: int = 0, segment: int = 0) -> int:
     segment) or sensor (per mission)."""
     if group == "fixed":
         return gtsam.symbol("f", 0)
-    return gtsam.symbol(_GROUP_CHAR[group], mission * MISSION_STRIDE + segment)
+    return gtsam.symbol(GROUP_CHAR[group], mission * MISSION_STRIDE + segment)
 
 
 # ---------------------------------------------------------------- noise models
@@ -152,7 +152,7 @@ class ParamLayout:
 
     @classmethod
     def build(cls, model: Model, estimate: Iterable[str], init: Mapping[str, float] | None = None
-              ) -> "ParamLayout":
+              ) -> ParamLayout:
         estimate = tuple(dict.fromkeys(estimate))
         active = set(model.active_names)
         for n in estimate:
@@ -225,8 +225,7 @@ class ParamLayout:
         return lo.copy(), hi.copy()
 
     def _bounds(self, group: str) -> tuple[np.ndarray, np.ndarray]:
-        # cached: the dynamics factor's callback projects on every call (the spec look-ups
-        # were half of a fixed-lag update's Python time, docs/speed.md)
+        # cached: the dynamics factor's callback projects on every call (docs/speed.md)
         cache = self.__dict__.setdefault("_bounds_cache", {})
         if group not in cache:
             specs = [self.model.spec(n) for n in self.names[group]]
@@ -279,14 +278,16 @@ def propagator(model: Model, steps: Steps) -> Callable:
     integration itself, see docs/architecture.md)."""
     if not model.uses_cpp:
         return lambda x0, p: model.propagate(x0, p, steps)
-    from aqfg.model.vehicle import _cpp
     from aqfg.model.params import N_DYN
+    from aqfg.model.vehicle import compiled_kernel
+    cpp = compiled_kernel()
+    assert cpp is not None              # model.uses_cpp
     g = model.geometry
     args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
             np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
             np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(g.dirs, float),
             np.ascontiguousarray(g.side, float), bool(g.planar))
-    kernel = _cpp.propagate
+    kernel = cpp.propagate
     return lambda x0, p: kernel(x0, p[:N_DYN], *args)
 
 
@@ -299,7 +300,7 @@ def dynamics_factor(model: Model, layout: ParamLayout, steps: Steps, k0: int, k1
     propagate = propagator(model, steps)
     p0 = (layout.base if base is None else base).copy()
     # per node: key, full-vector indices, bounds, J_p columns (all looked up once: the
-    # callback runs at every relinearisation, its Python overhead was ~3x the kernel's)
+    # callback runs at every relinearisation; docs/speed.md)
     nodes = []
     for g, k in node_keys:
         lo, hi = layout._bounds(g)

@@ -2,9 +2,8 @@
 Levenberg-Marquardt step without a Python callback per factor.
 
 :class:`aqfg.fg.batch.BuiltGraph` holds a GTSAM graph of ``CustomFactor`` s; linearising it
-costs one Python callback per factor (~3,000 on a 15-minute mission with 1-Hz GNSS, most of
-an LM iteration's time, docs/speed.md). The same problem has a fixed shape that numpy can
-evaluate in a few array operations:
+costs one Python callback per factor, which dominated an LM iteration (docs/speed.md). The
+same problem has a fixed shape that numpy can evaluate in a few array operations:
 
 * dynamics factors between consecutive knots (one batched kernel call per mission and
   parameter segment, as :meth:`BuiltGraph.fill`), whitened by ``W`` with ``W^T W = Q^-1``;

@@ -13,15 +13,15 @@ shared model, GNSS/USBL/depth factors, and parameter nodes (fixed / variable / s
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.result import Result
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
+from aqfg.result import Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
 

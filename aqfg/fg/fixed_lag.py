@@ -21,22 +21,34 @@ or simply ``FixedLagSmoother(...).run(mission) -> Result``.
 """
 from __future__ import annotations
 
+import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import gtsam
 import numpy as np
 
-from aqfg.fg import factors as fc
-
 from aqfg.data.mission import Mission
+from aqfg.fg import factors as fc
+from aqfg.fg.common import (
+    FGSettings,
+    Measurements,
+    check_missions,
+    default_estimate,
+    first_knot_prior,
+    initial_states,
+    measurement_factors,
+    mission_model,
+    piecewise_inertial,
+    progress_fn,
+    residuals,
+    robust_fix_table,
+)
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
-from aqfg.fg.common import (FGSettings, Measurements, check_missions, default_estimate,
-                             robust_fix_table,
-                              first_knot_prior, initial_states, measurement_factors,
-                              mission_model, piecewise_inertial, progress_fn, residuals)
 
+log = logging.getLogger(__name__)
 
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
 # system, a key missing from the Bayes tree after marginalisation, ...)
@@ -56,7 +68,7 @@ class UpdateInfo:
 def _window_steps(model: Model, mission: Mission, knots: np.ndarray):
     """``model.steps(mission, knots)`` over a view of the mission cut to the knots' span
     (plus the thrust-lag look-back): build_steps sorts every input time of the mission it is
-    given, which cost 0.3-0.7 ms per update on a 15-min mission, growing with its length."""
+    given, a cost per update that grows with the mission's length (docs/architecture.md)."""
     import copy
     t_lo = knots[0] - model.lookback - 1.0
     t_hi = knots[-1] + 1.0
@@ -107,6 +119,27 @@ class FixedLagSmoother:
         self.mission = mission
         self.model = mission_model(self.base_model, mission, self.effects)
         est = self.estimate if self.estimate is not None else default_estimate(self.model, "online")
+        vehicle = ("k", "k_x", "k_yz")
+        if not getattr(self, "_replaying", False):
+            self.warnings = []
+            given = [n for n in vehicle if n in self.init]
+            self._estimate_vehicle = self.estimate is None and not given
+            if self._estimate_vehicle:
+                # no constants of this vehicle: the paper's values are another vehicle's;
+                # estimate them too (held until the first batch re-initialisation)
+                self.warnings.append(
+                    "no thrust/drag constants of this vehicle were given: the online fit "
+                    "estimates them too; for the paper's protocol pass --params-from a batch "
+                    "fit's parameters.json")
+            elif not given and not any(n in est for n in vehicle):
+                self.warnings.append(
+                    "the thrust/drag constants are held at the paper's values for another "
+                    "vehicle (none given): pass --params-from a batch fit's parameters.json or "
+                    "estimate them too")
+            for w in self.warnings:
+                log.warning("fg online: %s", w)
+        if self._estimate_vehicle:
+            est = tuple(dict.fromkeys((*est, *vehicle)))
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
@@ -117,7 +150,7 @@ class FixedLagSmoother:
         thr = gtsam.ISAM2ThresholdMap()
         thr.insert(("x", np.repeat([s.relin_pos, s.relin_vel], 3)))
         for g in self.layout.groups:
-            thr.insert((fc._GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
+            thr.insert((fc.GROUP_CHAR[g], np.full(self.layout.dim(g), s.relin_param)))
         prm.setRelinearizeThreshold(thr)
         self._isam_params = prm
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.window, prm)
@@ -129,21 +162,27 @@ class FixedLagSmoother:
         self.seg = 0
         self.seg_starts = [float(self.fix_t[0])]
         self.v_by_seg: dict[int, np.ndarray] = {}
-        self.hist_t, self.hist_v, self.hist_s = [], [], []
-        self.timings = {"update": [], "update_total": [], "correction": []}
+        self.hist_t: list[float] = []
+        self.hist_v: list[np.ndarray] = []
+        self.hist_s: list[np.ndarray] = []
+        self.timings: dict[str, list[float]] = {"update": [], "update_total": [], "correction": []}
         self.n_fix = 0
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
         self._noise: dict = {}
         self.events: list[dict] = []               # recoveries and other notable events
         self._n_committed = 0                      # knots the smoother holds (keys[:n])
-        self._reinit_done = getattr(self, "_replaying", False)
+        replaying = getattr(self, "_replaying", False)
+        if not replaying:
+            self._next_reinit = s.online_init_after    # s after the start (see _reinit_due)
+        self._hold_idx: list[int] = []             # factor indices of the hold priors
+        self._last_new_idx: list[int] = []
         self._last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
         self.q_scale = 1.0                         # process-noise variance factor (adaptive)
         self._innov: list[float] = []              # normalised squared fix innovations
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
-        self._plan = None
+        self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
         if plan:
             self._make_plan()
         self.warmup_end = float("nan")
@@ -160,18 +199,23 @@ class FixedLagSmoother:
         graph.add(first_knot_prior(mission, k0, x0, s))
         if mission.planar:
             graph.add(fc.surface_factor(k0, *s.surface_sigma))
+        hold = replaying or self._reinit_scheduled()
+        hold_pos = []
         for g in self.layout.groups:
             k = self._node(g)
             vals.insert(k, self.layout.initial(g))
             sig = dict(s.prior_sigma)
-            sig.update(getattr(self, "_prior_override", {}) if self._reinit_done else {})
-            if g == "fixed" and self._hold_fixed():
-                # until the closed-form start (online_init_after), the thrust and drag
-                # constants are held at their start values: from rest, the first fixes
-                # cannot tell them apart and single incremental steps run off
-                sig.update({n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]})
+            sig.update(getattr(self, "_prior_override", {}) if replaying else {})
             graph.add(fc.param_prior(self.layout, g, k, s.prior_scale, sigma=sig))
             graph.add(fc.bound_factor(self.layout, g, k))
+            if hold:
+                # held at their start values (or at the batch's, replaying) until the batch
+                # re-initialisation releases them: from rest, the first fixes barely
+                # determine the heading offset and the constants, and single incremental
+                # Gauss-Newton steps on them run off (by 100 deg and more)
+                hold_pos.append(graph.size())
+                graph.add(fc.param_prior(self.layout, g, k, 1.0, sigma={
+                    n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]}))
         self.knots.append(t0)
         self.keys.append(k0)
         self.filtered.append(x0.copy())
@@ -181,11 +225,14 @@ class FixedLagSmoother:
                                      lambda stream, t: self._node_keys(self.layout.meas_groups(stream)),
                                      s):
             graph.add(f)
-        return self._update(graph, vals, {k0: t0}, t0, 1)
+        info = self._update(graph, vals, {k0: t0}, t0, 1)
+        if hold_pos and len(self._last_new_idx) == graph.size():
+            self._hold_idx = [int(self._last_new_idx[i]) for i in hold_pos]
+        return info
 
     def _make_plan(self) -> None:
         """Knots of the whole recorded mission (the same rule as :meth:`update`) and their
-        kernel steps in one build_steps call, sliced per update (saves ~0.3 ms per update)."""
+        kernel steps in one build_steps call, sliced per update (docs/architecture.md)."""
         sp = self.settings.knot_spacing
         ks = [np.array([self.fix_t[0]])]
         t_last = float(self.fix_t[0])
@@ -327,45 +374,74 @@ class FixedLagSmoother:
         return info
 
     # ---------------------------------------------------------------- causal initialisation
-    def _hold_fixed(self) -> bool:
-        """Hold the fixed parameters until the closed-form start (see start())."""
-        return (self.settings.online_init_after > 0 and not self._reinit_done
-                and "theta_e" in self.layout.estimated and "theta_e" not in self.init
-                and all(n in self.layout.estimated and n not in self.init
-                        for n in ("k", "k_x", "k_yz")))
+    def _reinit_scheduled(self) -> bool:
+        """Online without a given heading offset: batch re-initialisations are scheduled
+        (the parameters are held until the first)."""
+        s = self.settings
+        return (s.online_init_after > 0 and "theta_e" in self.layout.estimated
+                and "theta_e" not in self.init)
 
     def _reinit_due(self, t_fix: float) -> bool:
         s = self.settings
-        return (s.online_init_after > 0 and not self._reinit_done
-                and "theta_e" in self.layout.estimated and "theta_e" not in self.init
-                and t_fix - self.knots[0] >= s.online_init_after and self.n_fix >= 6)
+        el = t_fix - self.knots[0]
+        return (self._reinit_scheduled() and el >= self._next_reinit
+                and (el <= s.online_reinit_until or bool(self._hold_idx))
+                and self.n_fix >= 6)
+
+    def _release(self, t_fix: float) -> None:
+        """Remove the hold priors: the parameters follow the data from here."""
+        idx, self._hold_idx = self._hold_idx, []
+        if not idx:
+            return
+        try:
+            self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, idx)
+            for _ in range(2):
+                self.smoother.update()
+            self.events.append({"t": float(t_fix), "event": "parameters released"})
+        except GTSAM_ERRORS as exc:
+            self.events.append({"t": float(t_fix), "event": "release failed; restarted",
+                                "error": (str(exc).strip().splitlines() or [""])[0]})
+            self._restart(t_fix)
 
     def _reinitialise(self, t_fix: float) -> UpdateInfo | None:
-        """Once ``online_init_after`` s of fixes are in, solve them as a batch (global
-        heading start, :mod:`aqfg.fg.batch`) and, if the heading offset disagrees by more
-        than 10 deg or the fixed parameters are being estimated, restart from the batch
-        solution and replay the fixes so far, with the batch marginals (inflated x4 in
-        variance) as priors. An incremental solver cannot leave a wrong heading basin by
-        itself, and single incremental steps on thrust and drag constants that the first
-        fixes barely determine run off; the batch of a minute of data does neither."""
+        """Solve the fixes so far as a batch (global heading start, :mod:`aqfg.fg.batch`).
+        If its heading offset disagrees with the smoother's by more than 10 deg (1 deg while
+        the parameters are still held at their start values), restart from the batch
+        solution: replay the fixes so far with the parameters held at the batch's values
+        and their batch marginals (x4 in variance) as priors, then release them. Otherwise
+        release them where they are. An incremental solver cannot leave a wrong heading
+        basin by itself; the batch of the data so far does not start in one."""
         from aqfg.fg.batch import BatchSmoother
         t_re = time.perf_counter()
-        self._reinit_done = True
+        el = t_fix - self.knots[0]
+        self._next_reinit = 2.0 * el
         view = _mission_until(self.mission, t_fix)
-        if len(np.unique(view.fix_times())) < 4:
-            return None
         p = self.params()
-        fixed_free = [n for n in ("k", "k_x", "k_yz") if n in self.layout.estimated
-                      and n not in self.init]
         try:
-            bres = BatchSmoother(self.base_model, effects=self.effects,
-                                 estimate=self.layout.estimated, init=self.init,
-                                 settings=self.settings).run([view])
-        except (ValueError, *GTSAM_ERRORS):
+            if len(np.unique(view.fix_times())) < 4:
+                raise ValueError("too few fixes")
+            # solved from the closed-form start and from the smoother's own estimate (once
+            # released): the lower cost wins, so a batch of part of the data that lands in
+            # a wrong basin cannot pull a good online estimate into it
+            own = (None if self._hold_idx else
+                   {n: float(p[self.model.index(n)]) for n in self.layout.estimated})
+            bs = BatchSmoother(self.base_model, effects=self.effects,
+                               estimate=self.layout.estimated, init=self.init,
+                               settings=replace(self.settings, online_init_after=0.0),
+                               also_start=own)
+            bs.log_warnings = False
+            bres = bs.run([view])
+        except (ValueError, *GTSAM_ERRORS) as exc:
+            self.events.append({"t": float(t_fix), "event": "batch re-initialisation failed",
+                                "error": (str(exc).strip().splitlines() or [""])[0]})
+            if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
+                self._release(t_fix)
             return None
         th_b = bres.values["theta_e"]
         gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
-        if gap < np.radians(10.0) and not fixed_free:
+        held = bool(self._hold_idx)
+        if gap < np.radians(1.0 if held else 10.0):
+            self._release(t_fix)
             return None
         new_init = dict(self.init)
         prior = {}
@@ -380,13 +456,15 @@ class FixedLagSmoother:
             "t": float(t_fix), "event": "re-initialised from a batch solve of the fixes so far",
             "theta_e_before": float(p[self.model.index("theta_e")]), "theta_e_after": float(th_b)}]
         timings = {k: list(v) for k, v in self.timings.items()}
+        # what was reported causally before the restart stays as it was reported
+        causal = (list(self.hist_t), list(self.hist_v), list(self.hist_s),
+                  list(self.filtered), list(self.pred_t), list(self.pred_x))
         saved = self.init
         self.init = new_init
         self._prior_override = prior
         try:
             self._replaying = True
             self.start(self.mission, plan=self._plan is not None)
-            self._reinit_done = True
             info = None
             while self.pending() and self.fix_t[self.n_fix] <= t_fix + 1e-9:
                 info = self.update()
@@ -394,10 +472,16 @@ class FixedLagSmoother:
             self.init = saved
             self._replaying = False
         self.events = events + self.events
+        n_kept = len(causal[3])
+        if len(self.filtered) >= n_kept and self.hist_t[:len(causal[0])] == causal[0]:
+            self.hist_t, self.hist_v, self.hist_s = causal[0], causal[1], causal[2]
+            self.filtered[:n_kept] = causal[3]
+            self.pred_t, self.pred_x = causal[4], causal[5]
+        self._release(t_fix)
         # per-update timings stay aligned with the (replayed) history; the updates before
         # the restart and the restart itself (batch + replay) are kept apart
-        self.timings["before_reinit"] = timings.get("update", [])
-        self.timings["reinit"] = [time.perf_counter() - t_re]
+        self.timings["before_reinit"] = timings.get("before_reinit", []) + timings.get("update", [])
+        self.timings["reinit"] = timings.get("reinit", []) + [time.perf_counter() - t_re]
         return info
 
     def _update(self, graph, vals, stamps, t_fix: float, n_new: int) -> UpdateInfo:
@@ -427,7 +511,8 @@ class FixedLagSmoother:
             nv.append(v); ns.append(sg)
         if self.warming:
             sc = np.array([self.model.spec(n).scale for n in lay.estimated])
-            done = np.all(np.concatenate(ns) < self.settings.warmup_tol * sc) if ns else True
+            done = (np.all(np.concatenate(ns) < self.settings.warmup_tol * sc) if ns else True
+                    ) and not self._hold_idx
             if done or t_fix - self.knots[0] >= self.settings.warmup_max:
                 self.warming = False
                 self.warmup_end = float(t_fix)
@@ -496,6 +581,7 @@ class FixedLagSmoother:
         def attempt() -> str:
             try:
                 self.smoother.update(graph, vals, stamps)
+                self._last_new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
                 for _ in range(self.settings.iterations_per_update - 1):
                     self.smoother.update()
                 for k in check:                   # failures can surface only here
@@ -552,7 +638,8 @@ class FixedLagSmoother:
         s = self.settings
         last = self.keys[self._n_committed - 1]     # the newest knot the smoother holds
         keys = [last] + [self._node(g) for g in self.layout.groups]
-        est, cov = {}, {}
+        est: dict[int, np.ndarray | None] = {}
+        cov: dict[int, np.ndarray | None] = {}
         for k in keys:
             est[k] = cov[k] = None
             if hard:
@@ -570,20 +657,22 @@ class FixedLagSmoother:
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag, self._isam_params)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        stamps = {}
+        stamps: dict[Any, float] = {}
         for k in keys:
+            e = est[k]
             if k == last:
-                x = est[k] if est[k] is not None else self._last_finite_state()
+                x = e if e is not None else self._last_finite_state()
                 broad = np.array([10.0, 10.0, 1.0, 2.0, 2.0, 0.5])
             else:
                 g = next(g for g in self.layout.groups if self._node(g) == k)
-                x = self.layout.project(g, est[k]) if est[k] is not None else \
+                x = self.layout.project(g, e) if e is not None else \
                     self.layout.initial(g) if hard else \
                     self.layout.project(g, np.asarray(self._last_params.get(g, self.layout.initial(g))))
                 broad = np.array([s.prior_scale * self.model.spec(n).scale
                                   for n in self.layout.names[g]])
                 graph.add(fc.bound_factor(self.layout, g, k))
             C = cov[k]
+            noise: gtsam.noiseModel.Base
             if C is None or not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
                 noise = gtsam.noiseModel.Diagonal.Sigmas(broad)
             else:
@@ -705,6 +794,7 @@ class FixedLagSmoother:
                                                  np.array(self.pred_x).reshape(-1, 6)),
                             "update_median_s": float(np.median(ups)) if ups else float("nan"),
                             "events": list(self.events),
+                            "warnings": list(getattr(self, "warnings", [])),
                             "process_noise_scale": float(self.q_scale),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
                             "settings": self.settings},
@@ -712,23 +802,34 @@ class FixedLagSmoother:
 
 
 def _mission_until(mission: Mission, t: float) -> Mission:
-    """A shallow view of ``mission`` without the fixes after ``t``."""
+    """A shallow view of ``mission`` without the fixes and inputs after ``t`` (what was
+    known at ``t``)."""
     import copy
     view = copy.copy(mission)
+    a = int(np.searchsorted(mission.imu.t, t + 1e-9, side="right"))
+    b = int(np.searchsorted(mission.motors.t, t + 1e-9, side="right"))
+    if a >= 2 and b >= 1:
+        view.imu = copy.copy(mission.imu)
+        for f in ("t", "q", "acc", "gyro"):
+            x = getattr(mission.imu, f, None)
+            if isinstance(x, np.ndarray) and len(x) == len(mission.imu.t):
+                setattr(view.imu, f, x[:a])
+        view.motors = copy.copy(mission.motors)
+        view.motors.t, view.motors.u = mission.motors.t[:b], mission.motors.u[:b]
     if mission.gnss is not None:
         g = copy.copy(mission.gnss)
         k = mission.gnss.t <= t + 1e-9
         g.t, g.ne = mission.gnss.t[k], mission.gnss.ne[k]
-        if g.sigma is not None:
+        if mission.gnss.sigma is not None:
             g.sigma = mission.gnss.sigma[k]
-        if g.latlon is not None:
+        if mission.gnss.latlon is not None:
             g.latlon = mission.gnss.latlon[k]
         view.gnss = g
     if mission.usbl is not None:
         u = copy.copy(mission.usbl)
         k = mission.usbl.t <= t + 1e-9
         u.t, u.range, u.bearing = mission.usbl.t[k], mission.usbl.range[k], mission.usbl.bearing[k]
-        if u.elevation is not None:
+        if mission.usbl.elevation is not None:
             u.elevation = mission.usbl.elevation[k]
         view.usbl = u
     return view

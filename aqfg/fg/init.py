@@ -47,8 +47,7 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
 
     ``C`` is (2, n, m), ``y`` (2, n). The offsets are eliminated in closed form (weighted
     means within each window), so each IRLS step solves an m-unknown problem instead of a
-    (2 nw + m)-unknown one (the same solution; 30 grid points x 8 steps of a dense
-    1800 x 34 ``lstsq`` took 2 s, 25 s on a loaded machine). Returns the coefficients
+    (2 nw + m)-unknown one (the same solution, docs/speed.md). Returns the coefficients
     ``c``, the offsets (nw, 2) and the robust RMS misfit.
     """
     n, m = y.shape[1], C.shape[2]
@@ -118,8 +117,12 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     return theta, c[:2].copy(), rho, off[0].copy(), misfit
 
 
+# the misfit grid's scales of the nominal k, k_x, k_yz (see candidate_starts)
+_SCALES = np.logspace(-2.0, 1.0, 10)
+
+
 def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.ndarray,
-                     scales=np.logspace(-2.0, 1.0, 10), ratios=(0.1, 1.0, 10.0),
+                     scales=_SCALES, ratios=(0.1, 1.0, 10.0),
                      search: bool = True, steps=None) -> list[Start]:
     """Candidate starts, best (lowest misfit) first.
 

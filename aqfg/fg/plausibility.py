@@ -73,7 +73,7 @@ def check(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.nd
     if slip is not None and slip > max_slip:
         reasons.append(f"the vehicle moves {slip:.0f} deg off its thrust axis through the water "
                        f"(a hull is pushed along it; above {max_slip:.0f} deg is not a vessel)")
-    pinned = []
+    pinned: list[str] = []
     for n in ("k", "k_x", "k_yz"):
         if n in estimated:
             spec = model.spec(n)

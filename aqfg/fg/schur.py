@@ -262,6 +262,7 @@ class MissionProblem:
             f = gfg.at(i)
             if f is None:
                 continue
+            assert isinstance(f, (gtsam.JacobianFactor, gtsam.HessianFactor))
             nr = f.rows()
             ts = [key_time[k] for k in f.keys() if k in key_time]
             if ts:
@@ -292,7 +293,7 @@ class MissionProblem:
         """Sandwich covariances of this mission's parameter nodes given the joint ``Z_f``
         (d x all blocks), the joint's ``scale`` and where this mission's blocks start among
         the joint's (see :meth:`sandwich_part`)."""
-        sw = self._sw
+        sw: dict[str, Any] = self._sw
         out = {}
         for k, Yk in sw["Y"].items():
             z = -sw["K"][k] @ zf if self.dim else np.zeros((len(Yk), zf.shape[1]))
@@ -318,12 +319,12 @@ class MissionProblem:
                                          int(sandwich.get("offset", 0)))
             cov_sw[FIXED] = sandwich["cov_f"]
         cov = honest_covariance(cov_model, cov_sw, sandwich["dof"] if sandwich else None)
-        res = self.smoother._result(self.layout, values, self.bg.parts, self.bg.nodes, cov)
+        res = self.smoother.make_result(self.layout, values, self.bg.parts, self.bg.nodes, cov)
         res.info["sigma_model"] = {n: float(np.sqrt(max(C[i, i], 0.0)))
                                    for g, k, _ in self.bg.nodes if g != "fixed"
                                    for C in [cov_model[k]]
                                    for i, n in enumerate(self.layout.names[g])}
-        verdicts = self.smoother._plausibility(self.bg, values)
+        verdicts = self.smoother.check_plausibility(self.bg, values)
         res.info["plausibility"] = {self.name: verdicts[0].as_dict()}
         res.info["plausible"] = all(v.plausible for v in verdicts)
         return res
@@ -342,12 +343,13 @@ class MissionSession:
         self.p = problem
         self.values = problem.initial_values()
         self.cost: float | None = None
-        self.lin = None                     # (gfg, hdiag, hdiag_f) at self.values
-        self.trial = None                   # id of the prepared trial
-        self.bn = None
+        # (gfg, hdiag, hdiag_f) at self.values
+        self.lin: tuple[gtsam.GaussianFactorGraph, dict, np.ndarray] | None = None
+        self.trial: int | None = None       # id of the prepared trial
+        self.bn: gtsam.GaussianBayesNet | None = None
         self._lam = 0.0
         self.system: ReducedSystem | None = None
-        self.cand = None                    # (trial, values, cost)
+        self.cand: tuple[int, gtsam.Values, float] | None = None    # (trial, values, cost)
         self.compute = 0.0                  # s spent in handle()
 
     def handle(self, op: str, args: dict) -> dict:
@@ -381,6 +383,7 @@ class MissionSession:
             if self.cost is None or not filled:
                 self.cost = p.bg.error(self.values)
             self.lin = p.linearize(self.values, filled=True)
+        assert self.cost is not None
         gfg, hdiag, hdiag_f = self.lin
         self.bn, self.system = p.reduce(gfg, hdiag, lam, self.cost, hdiag_f)
         self.trial, self._lam = trial, lam
@@ -399,6 +402,7 @@ class MissionSession:
         if mode != "final":
             clamps = p.local_clamps(self.values, delta)
             if clamps:
+                assert self.lin is not None and self.cost is not None   # set with self.bn
                 gfg, hdiag, hdiag_f = self.lin
                 self.bn, self.system = p.reduce(gfg, hdiag, self._lam, self.cost, hdiag_f, clamps)
                 return {"clamped": self.system}
@@ -553,6 +557,7 @@ def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | Non
         iterations += 1
         if not accepted:
             break
+        assert cost is not None               # set by the trial that was accepted
         gain = cost - cost_c
         f, cost, commit = f_new, cost_c, trial
         lam = max(lam / 10.0, 1e-9)
@@ -619,7 +624,8 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None)
 
 
-def drive(gen: Generator, serve: Callable[[list[Request]], list[dict]]):
+def drive(gen: Generator[list[Request], list[dict], Solution],
+          serve: Callable[[list[Request]], list[dict]]) -> Solution:
     """Run a :func:`joint_lm` generator, serving each round with ``serve``; its result."""
     reqs = next(gen)
     while True:

@@ -16,7 +16,7 @@ from pathlib import Path
 try:
     import tomllib
 except ModuleNotFoundError:          # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+    import tomli as tomllib
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _VEHICLE_KEYS = ("name", "missions")
@@ -69,7 +69,9 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
     if not isinstance(vs, list) or not vs:
         raise ManifestError(f"{p}: no [[vehicle]] table (each needs name and missions)")
     root = Path(os.path.abspath(p)).parent
-    vehicles, seen_v, seen_m = [], {}, {}
+    vehicles: list[Vehicle] = []
+    seen_v: dict[str, int] = {}
+    seen_m: dict[Path, str] = {}
     for i, v in enumerate(vs, start=1):
         where = f"{p}: [[vehicle]] #{i}"
         if not isinstance(v, dict):
@@ -89,7 +91,8 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
         ms = v.get("missions")
         if not isinstance(ms, list) or not ms or not all(isinstance(m, str) for m in ms):
             raise ManifestError(f"{where}: missions must be a non-empty list of paths")
-        missions, names = [], {}
+        missions: list[FleetMission] = []
+        names: dict[str, str] = {}
         for entry in ms:
             mp = _mission_path(root, entry, f"{where}: mission {entry!r}")
             if mp in seen_m:     # the same directory twice (lexically)

@@ -13,6 +13,7 @@ import time
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -105,7 +106,7 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     sols: dict[str, Solution] = {}
     where: dict[tuple, str] = {}               # mission key -> worker address
     # by_op: {op: [missions served, compute seconds, reply bytes]}
-    stats = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
+    stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
              "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
     n_total = manifest.n_missions
     built_once: set = set()

@@ -56,7 +56,7 @@ def mission_op(spec: MissionSpec, op: str, args: dict) -> dict:
     t0 = time.perf_counter()
     sess = _SESSIONS.get(spec.key)
     built = sess is None
-    if built:
+    if sess is None:
         sess = MissionSession(MissionProblem(smoother(spec), load(spec),
                                              fixed_prior=spec.fixed_prior))
         _SESSIONS[spec.key] = sess
@@ -90,6 +90,11 @@ def diagnose_op(spec: MissionSpec) -> dict:
     best = d.best
     return {"verdict": d.verdict, "missing": bool(d.missing),
             "best": None if best is None else best.effect}
+
+
+def n_sessions() -> int:
+    """How many missions this worker holds (of every run)."""
+    return len(_SESSIONS)
 
 
 def release(run: str) -> int:

@@ -60,7 +60,9 @@ class ModelFile:
         if user:
             raise ValueError(f"a model file holds built-in effects only; {', '.join(user)} "
                              "is a user effect (pass it from Python)")
-        vehicle = result.model.vehicle if result.model is not None else None
+        if result.model is None:
+            raise ValueError("a model file needs the fit's model (Result.model)")
+        vehicle = result.model.vehicle
         est = set(result.estimated)
         params = {}
         names = list(FIXED_BASE) + [p for e in result.effects for p in BUILTIN[e].params]

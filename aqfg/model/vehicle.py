@@ -15,12 +15,12 @@ The inputs between two times are turned into kernel steps by :func:`build_steps`
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from types import ModuleType
 
 import numpy as np
 
-from aqfg.model import batched
-from aqfg.model.effects import UserEffect
 from aqfg.data.mission import Mission
+from aqfg.model import batched
 from aqfg.model import measurements as meas
 from aqfg.model import reference as ref
 from aqfg.model.effects import BUILTIN, DemandLagTerm, Effect, GroundForceTerm, resolve
@@ -28,9 +28,14 @@ from aqfg.model.params import BASE_NAMES, INDEX, N_DYN, N_PARAMS, ParamSpec
 from aqfg.model.reference import Geometry, Steps
 
 try:  # the compiled kernel; the numpy mirror serves when it is missing
-    from aqfg import _kernel as _cpp  # type: ignore[attr-defined]
+    from aqfg import _kernel as _cpp
 except ImportError:  # pragma: no cover - exercised only without a build
     _cpp = None
+
+
+def compiled_kernel() -> ModuleType | None:
+    """The compiled kernel module (``aqfg._kernel``), or None when it is not built."""
+    return _cpp
 
 LAG_LOOKBACK = 5.0  # s of commands before a segment used to warm the thrust-lag filter
 MAX_STEP = 0.05     # s, longest integration step (inputs are sub-divided beyond it)
@@ -231,7 +236,9 @@ class Model:
             p[self.index(k)] = float(v)
         return p
 
-    def _user_layout(self) -> tuple[tuple[Effect, int], ...]:
+    def user_layout(self) -> tuple[tuple[Effect, int], ...]:
+        """Each user (Python) effect with the index of its first parameter in ``p``, as
+        the numpy propagation takes them."""
         i = N_PARAMS
         out = []
         for e in self.user_effects:
@@ -264,8 +271,8 @@ class Model:
                                   steps.h, steps.warm.astype(np.uint8), steps.R, steps.dem,
                                   steps.tm, g.dirs, g.side, g.planar)
         if self.user_effects:
-            return batched.propagate(x0, p, steps, self.geometry, self._user_layout())
-        return ref.propagate(x0, p, steps, self.geometry, self._user_layout())
+            return batched.propagate(x0, p, steps, self.geometry, self.user_layout())
+        return ref.propagate(x0, p, steps, self.geometry, self.user_layout())
 
     def rollout(self, x0: np.ndarray, p: np.ndarray, steps: Steps) -> np.ndarray | None:
         """States [pos, vel] (NED) after every step (n, 6) in one kernel call, no Jacobians
@@ -289,7 +296,7 @@ class Model:
         parameter vector (numpy reference, :func:`aqfg.model.reference.accel`).
         """
         a, A, Jp = ref.accel(v, R_raw, d, dd_tau, tm, p, self.geometry)
-        user = self._user_layout()
+        user = self.user_layout()
         if user:
             a, A, Jp = ref.add_user(a, A, Jp, user, v, R_raw, d, tm, p, self.geometry)
         return a, A, Jp
@@ -298,7 +305,7 @@ class Model:
                          offsets: np.ndarray) -> np.ndarray:
         """States (K + 1, 6) at the boundaries of K consecutive segments integrated from
         ``x0`` (segment i: steps ``offsets[i]:offsets[i+1]``), model only, no Jacobians."""
-        user = self._user_layout()
+        user = self.user_layout()
         x0 = np.asarray(x0, float)
         if user and any(np.any(p[i0:i0 + len(e.params)]
                                != np.array([sp.null for sp in e.specs()], float))
@@ -332,8 +339,8 @@ class Model:
                                        g.planar)
         if self.user_effects:
             return batched.propagate_many(X0, p, steps, offsets, self.geometry,
-                                          self._user_layout())
-        return ref.propagate_many(X0, p, steps, offsets, self.geometry, self._user_layout())
+                                          self.user_layout())
+        return ref.propagate_many(X0, p, steps, offsets, self.geometry, self.user_layout())
 
     # ---- measurements (Jacobians w.r.t. the built-in parameter table, N_PARAMS columns)
     def h_gnss(self, pos, R_raw, t, p):

@@ -23,7 +23,7 @@ import numpy as np
 try:                                     # Python >= 3.11
     import tomllib
 except ModuleNotFoundError:              # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+    import tomli as tomllib
 
 import tomli_w
 

@@ -79,7 +79,7 @@ def read_ros(source: str | Path, imap: ImportMap, version: str = "ros2") -> Impo
     try:
         with reader:
             return _read(reader, src, imap, version)
-    except (*errors, UnicodeDecodeError, struct.error, EOFError) as e:
+    except errors + (UnicodeDecodeError, struct.error, EOFError) as e:
         raise LogFormatError(src, f"cannot read the bag: {e}") from None
 
 

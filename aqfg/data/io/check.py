@@ -47,9 +47,9 @@ class MissionFormatError(ValueError):
 
 # ------------------------------------------------------------------------------ validation
 
-def _check_rows(f, arr: np.ndarray | None, cols: tuple[str, ...], required: bool = True,
-                lo: float | None = None, hi: float | None = None, what: str = "",
-                lo_open: bool = False) -> None:
+def check_rows(f, arr: np.ndarray | None, cols: tuple[str, ...], required: bool = True,
+               lo: float | None = None, hi: float | None = None, what: str = "",
+               lo_open: bool = False) -> None:
     """Value checks on one column group; errors name the file row (index + 2) and column.
 
     Required columns must be finite; optional ones may hold NaN (unknown) but not +-inf.
@@ -87,7 +87,7 @@ def _check_time(f, t: np.ndarray, n_min: int = 0) -> None:
     if len(t) < n_min:
         raise MissionFormatError(f, "no data rows; expected at least one row after the header",
                                  row=2)
-    _check_rows(f, t, ("t",))
+    check_rows(f, t, ("t",))
     dec = np.flatnonzero(np.diff(t) < 0)
     if len(dec):
         i = int(dec[0]) + 1
@@ -154,7 +154,7 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     _check_shape(f, i.q, n, 4, "qw")
     _check_shape(f, i.acc, n, 3, "ax")
     _check_shape(f, i.gyro, n, 3, "wx")
-    _check_rows(f, i.q, ("qw", "qx", "qy", "qz"))
+    check_rows(f, i.q, ("qw", "qx", "qy", "qz"))
     norm = np.linalg.norm(i.q, axis=1)
     badq = np.flatnonzero(np.abs(norm - 1.0) > QUAT_TOL)
     if len(badq):
@@ -162,8 +162,8 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         raise MissionFormatError(f, f"quaternion norm {norm[r]:.6g}; expected a unit quaternion "
                                     f"(qw, qx, qy, qz), |norm - 1| <= {QUAT_TOL}",
                                  row=r + 2, column="qw")
-    _check_rows(f, i.acc, ("ax", "ay", "az"), required=False)
-    _check_rows(f, i.gyro, ("wx", "wy", "wz"), required=False)
+    check_rows(f, i.acc, ("ax", "ay", "az"), required=False)
+    check_rows(f, i.gyro, ("wx", "wy", "wz"), required=False)
 
     f = p(STREAM_FILES["motors"])
     mo = m.motors
@@ -173,8 +173,8 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
                                     f"columns; expected one per thruster ({n_thr}: u1..u{n_thr})",
                                  row=1)
     _check_shape(f, mo.u, len(mo.t), n_thr, "u1")
-    _check_rows(f, mo.u, tuple(f"u{k + 1}" for k in range(n_thr)), lo=-1.0, hi=1.0,
-                what="a normalised command in [-1, 1]")
+    check_rows(f, mo.u, tuple(f"u{k + 1}" for k in range(n_thr)), lo=-1.0, hi=1.0,
+               what="a normalised command in [-1, 1]")
 
     if m.gnss is not None:
         f = p(STREAM_FILES["gnss"])
@@ -183,9 +183,9 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         cols = ("lat", "lon") if m.gnss_latlon else ("north", "east")
         _check_shape(f, g.ne, len(g.t), 2, cols[0])
         _check_shape(f, g.sigma, len(g.t), None, "sigma")
-        _check_rows(f, g.ne, cols)
-        _check_rows(f, g.sigma, ("sigma",), required=False, lo=0.0, lo_open=True,
-                    what="a positive 1-sigma error in metres")
+        check_rows(f, g.ne, cols)
+        check_rows(f, g.sigma, ("sigma",), required=False, lo=0.0, lo_open=True,
+                   what="a positive 1-sigma error in metres")
         if getattr(g, "latlon", None) is not None:
             _check_shape(f, g.latlon, len(g.t), 2, "lat")
         if m.gnss_latlon and m.origin is None:
@@ -201,14 +201,14 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         _check_time(f, u.t)
         for arr, col in ((u.range, "range"), (u.bearing, "bearing"), (u.elevation, "elevation")):
             _check_shape(f, arr, len(u.t), None, col)
-        _check_rows(f, u.range, ("range",), lo=0.0, what="a slant range >= 0 m")
-        _check_rows(f, u.bearing, ("bearing",))
-        _check_rows(f, u.elevation, ("elevation",), required=False)
+        check_rows(f, u.range, ("range",), lo=0.0, what="a slant range >= 0 m")
+        check_rows(f, u.bearing, ("bearing",))
+        check_rows(f, u.elevation, ("elevation",), required=False)
     if m.depth is not None:
         f = p(STREAM_FILES["depth"])
         _check_time(f, m.depth.t)
         _check_shape(f, m.depth.depth, len(m.depth.t), None, "depth")
-        _check_rows(f, m.depth.depth, ("depth",))
+        check_rows(f, m.depth.depth, ("depth",))
 
 
 def check_truth(truth: Truth, file: str | os.PathLike = STREAM_FILES["truth"]) -> None:
@@ -218,6 +218,6 @@ def check_truth(truth: Truth, file: str | os.PathLike = STREAM_FILES["truth"]) -
     _check_shape(file, truth.pos, n, 3, "north")
     _check_shape(file, truth.vel, n, 3, "vn")
     _check_shape(file, truth.yaw, n, None, "yaw")
-    _check_rows(file, truth.pos, ("north", "east", "down"))
-    _check_rows(file, truth.vel, ("vn", "ve", "vd"), required=False)
-    _check_rows(file, truth.yaw, ("yaw",), required=False)
+    check_rows(file, truth.pos, ("north", "east", "down"))
+    check_rows(file, truth.vel, ("vn", "ve", "vd"), required=False)
+    check_rows(file, truth.yaw, ("yaw",), required=False)

@@ -154,7 +154,9 @@ def _outside_inputs(m: Mission, f) -> list[MissionWarning]:
 
 def _duplicates(m: Mission, f) -> list[MissionWarning]:
     out = []
-    streams = [("imu", m.imu.t, [m.imu.q, m.imu.acc, m.imu.gyro], "attitude/rates", 1.0),
+    # (stream, times, its arrays, what they hold, unit)
+    streams: list[tuple[str, np.ndarray, list[np.ndarray | None], str, float | str]] = [
+        ("imu", m.imu.t, [m.imu.q, m.imu.acc, m.imu.gyro], "attitude/rates", 1.0),
                ("motors", m.motors.t, [m.motors.u], "commands", 1.0)]
     if m.gnss is not None:
         streams.append(("gnss", m.gnss.t, [m.gnss.ne], "positions", "m"))

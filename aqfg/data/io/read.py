@@ -31,8 +31,8 @@ from aqfg.data.io.check import (
     MISSION_TOML,
     STREAM_FILES,
     MissionFormatError,
-    _check_rows,
     check_mission,
+    check_rows,
     check_truth,
 )
 from aqfg.data.io.plausibility import MissionWarning, plausibility_warnings
@@ -328,12 +328,12 @@ def load_mission(path: str | os.PathLike) -> Mission:
     notes: list[MissionWarning] = []
     c = _read_csv(files["imu"], ("t", "qw", "qx", "qy", "qz"),
                   (("ax", "ay", "az"), ("wx", "wy", "wz")), notes=notes)
-    imu = Imu(c["t"], _cols(c, "qw", "qx", "qy", "qz"), _cols(c, "ax", "ay", "az"),
+    imu = Imu(c["t"], _req(c, "qw", "qx", "qy", "qz"), _cols(c, "ax", "ay", "az"),
               _cols(c, "wx", "wy", "wz"))
     n = len(fields["thruster_dir"])
     ucols = tuple(f"u{i + 1}" for i in range(n))
     c = _read_csv(files["motors"], ("t", *ucols), header_check=_motor_header(n), notes=notes)
-    motors = Motors(c["t"], _cols(c, *ucols))
+    motors = Motors(c["t"], _req(c, *ucols))
     gnss, latlon = None, False
     if files["gnss"].exists():
         c = _read_csv(files["gnss"], ("t",), (("sigma",),),
@@ -344,15 +344,15 @@ def load_mission(path: str | os.PathLike) -> Mission:
                 raise MissionFormatError(files["gnss"], "lat/lon fixes but mission.toml has no "
                                          "[origin]; expected [origin] lat, lon (degrees) to "
                                          "convert them to NED", row=1, column="lat")
-            ll = _cols(c, "lat", "lon")
-            _check_rows(files["gnss"], ll[:, :1], ("lat",), lo=-90.0, hi=90.0,
-                        what="latitude in degrees")                  # before conversion
-            _check_rows(files["gnss"], ll[:, 1:], ("lon",), lo=-180.0, hi=360.0,
-                        what="longitude in degrees")
+            ll = _req(c, "lat", "lon")
+            check_rows(files["gnss"], ll[:, :1], ("lat",), lo=-90.0, hi=90.0,
+                       what="latitude in degrees")                  # before conversion
+            check_rows(files["gnss"], ll[:, 1:], ("lon",), lo=-180.0, hi=360.0,
+                       what="longitude in degrees")
             gnss = Gnss(c["t"], latlon_to_ne(ll[:, 0], ll[:, 1], fields["origin"]),
                         c.get("sigma"), latlon=ll)
         else:
-            gnss = Gnss(c["t"], _cols(c, "north", "east"), c.get("sigma"))
+            gnss = Gnss(c["t"], _req(c, "north", "east"), c.get("sigma"))
     usbl = None
     if files["usbl"].exists():
         if fields["usbl_station"] is None:
@@ -377,6 +377,13 @@ def _cols(c: dict[str, np.ndarray], *names: str) -> np.ndarray | None:
     if names[0] not in c:
         return None
     return np.column_stack([c[k] for k in names]) if c[names[0]].size else np.zeros((0, len(names)))
+
+
+def _req(c: dict[str, np.ndarray], *names: str) -> np.ndarray:
+    """Columns :func:`_read_csv` guarantees (required, or checked present)."""
+    out = _cols(c, *names)
+    assert out is not None, names
+    return out
 
 
 def _motor_header(n: int) -> Callable[[str, list[str]], None]:
@@ -408,7 +415,7 @@ def load_truth(path: str | os.PathLike) -> Truth | None:
             return None
         return Truth(np.zeros(0), np.zeros((0, 3)), params=params)
     c = _read_csv(fcsv, ("t", "north", "east", "down"), (("vn", "ve", "vd"), ("yaw",)))
-    tr = Truth(c["t"], _cols(c, "north", "east", "down"), _cols(c, "vn", "ve", "vd"),
+    tr = Truth(c["t"], _req(c, "north", "east", "down"), _cols(c, "vn", "ve", "vd"),
                c.get("yaw"), params=params or {})
     check_truth(tr, fcsv)
     return tr

@@ -131,6 +131,7 @@ def _stream_texts(m: Mission, truth: Truth | None) -> dict[str, str]:
     if m.gnss is not None:
         g = m.gnss
         if m.gnss_latlon:
+            assert m.origin is not None, "lat/lon fixes need the mission's origin"
             ll = getattr(g, "latlon", None)
             if ll is None or np.shape(ll) != np.shape(g.ne) or not np.array_equal(
                     latlon_to_ne(ll[:, 0], ll[:, 1], m.origin), g.ne):
