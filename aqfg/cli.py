@@ -170,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("bench", help="quick benchmarks (medians of repeated runs)",
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
     s.add_argument("--repeat", type=int, default=5)
+    s.add_argument("--quick", action="store_true",
+                   help="a 20-minute online stream instead of 2 hours (the other figures alike)")
     s.add_argument("--out", default=None, metavar="DIR", help="also write bench.md here")
     s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")
     return ap

@@ -16,7 +16,11 @@ window (the paper's setting: 10 ms per 15 s evaluation on a Raspberry Pi Zero, 3
 evaluations per optimisation). Medians over repeated runs; the machine may be shared with
 other work, so read medians and p90 together.
 
-Single process (timings). Full run: 7 repeats, about 3 min; ``--quick``: 2 repeats.
+Also the speed targets' figures (:func:`aqfg.bench.done_rows`): the ratio and p90 over
+all fixed-lag updates, the batch of an Otter mission of ``tests/data`` with its theta_e
+error, and a 2-hour online stream (``--quick``: 20 minutes), first vs last 10 minutes.
+
+Single process (timings). Full run: 7 repeats, about 4 min; ``--quick``: 2 repeats.
 Run: ``python experiments/compute_cost.py [--quick] [--repeat N]``.
 """
 from __future__ import annotations
@@ -47,6 +51,11 @@ def main(argv=None) -> int:
         figs[name] = bench.online_times(sc, repeat=rep)
     say("batch (factor graph x repeat, update-error once)")
     figs["batch"] = bench.batch_times(repeat=rep, update_error=True)
+    say(f"batch of {bench.OTTER_MISSION} x {max(3, rep)}")
+    figs["otter"] = bench.otter_batch_times(max(3, rep))
+    stream = bench.QUICK_STREAM if args.quick else bench.STREAM
+    say(f"online stream of {stream:.0f} s")
+    figs["stream"] = bench.stream_times(stream, edge=min(600.0, stream / 2))
     text = bench.report(figs)
     g = figs["gnss8"]
     body = f"""

@@ -6,12 +6,15 @@ from aqfg.cli import main
 
 
 def test_bench_command_prints_the_figures(capsys, tmp_path):
-    assert main(["bench", "--repeat", "1", "--out", str(tmp_path)]) == 0
+    assert main(["bench", "--repeat", "1", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     for label in ("C++ dynamics factor", "fixed-lag update, 24 s window",
                   "update-error optimisation of the same 24 s window",
                   "ratio update-error / fixed-lag", "batch, 15-min mission",
-                  "evaluations per optimisation", "gnss8:", "usbl:"):
+                  "evaluations per optimisation", "gnss8:", "usbl:",
+                  # the speed targets' figures, in the same run
+                  "ALL updates", "p90 fixed-lag update", "batch of otter-", "theta_e error",
+                  "per-update median, last 10 min", "RSS"):
         assert label in out, label
     # every headline value is a finite number with its unit
     for unit in ("us", "ms", "x", "s"):
@@ -34,3 +37,16 @@ def test_headline_reads_the_figures():
     assert abs(h["kernel_us"] - 5.0) < 1e-9 and abs(h["fl_update_ms"] - 2.0) < 1e-9
     assert abs(h["ratio"] - 20.0) < 1e-9 and abs(h["batch_s"] - 1.5) < 1e-9
     assert abs(h["nevals15"] - 45.0) < 1e-9
+    assert "ratio_all" not in h and "otter_s" not in h      # not measured: not reported
+
+
+def test_headline_reads_the_done_when_figures():
+    figs = {"kernel": [5e-6], "gnss8": {"fl_update": [0.001], "fl_update_all": [0.001, 0.002, 0.003],
+                                        "ue_opt": [0.1]},
+            "usbl": {"ue_eval": [1e-4], "ue_nevals": [40]}, "batch": {"fg_batch": [1.0]},
+            "otter": {"name": "x", "duration": 840.0, "wall": [0.5, 0.7, 0.9], "cpu": [0.4],
+                      "iterations": [20], "theta_err_deg": [0.5, 0.7]},
+            "stream": {"first": [0.002], "last": [0.0022]}}
+    h = bench.headline(figs)
+    assert abs(h["ratio_all"] - 50.0) < 1e-9 and abs(h["otter_s"] - 0.7) < 1e-9
+    assert abs(h["otter_theta_deg"] - 0.7) < 1e-9 and abs(h["stream_growth"] - 1.1) < 1e-9

@@ -24,6 +24,7 @@ from aqfg.diagnose.refit import WarmBatchSmoother
 from aqfg.fg.common import FGSettings, mission_model
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
+from aqfg.threads import blas_threads  # noqa: F401  (re-exported for the diagnosis)
 
 
 # ---------------------------------------------------------------- one evaluated model
@@ -228,19 +229,6 @@ def _pool(args: dict, parts: tuple[str, ...]) -> list:
             return list(ex.map(_work, parts))
     finally:
         _JOBS.clear()
-
-
-def blas_threads(n: int = 1):
-    """A context limiting the BLAS thread pool to ``n`` threads (threadpoolctl, when
-    installed; else nothing). The diagnosis' matrices are small (a few thousand rows, tens
-    of columns) and it parallelises over processes itself: multi-threaded BLAS only adds
-    contention (measured in docs/diagnosis.md)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:          # optional: aqfg[speed]
-        from contextlib import nullcontext
-        return nullcontext()
-    return threadpool_limits(n, user_api="blas")
 
 
 def default_jobs() -> int:

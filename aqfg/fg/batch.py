@@ -45,10 +45,12 @@ from aqfg.fg.common import (
     residuals,
 )
 from aqfg.fg.covariance import block_sandwich, honest_covariance
+from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
 from aqfg.fg.plausibility import Plausibility
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
+from aqfg.threads import blas_threads
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +201,8 @@ class BatchSmoother:
                 a, b = int(ii[0]), int(ii[-1]) + 1
                 slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
             keys = [fc.state_key(mi, i) for i in range(len(knots))]
-            starts = candidate_starts(model, m, knots, layout.base, search=grid)
+            starts = candidate_starts(model, m, knots, layout.base, search=grid,
+                                      steps=(steps, off))
             if starts:
                 guess = starts[0]
                 X0 = start_states(guess, m, knots)
@@ -268,8 +271,12 @@ class BatchSmoother:
         for part in parts:
             mi = part.index
 
-            def nkeys(groups, seg, mi=mi):
-                return tuple((g, fc.node_key(g, mi, seg)) for g in groups)
+            key_memo: dict = {}
+
+            def nkeys(groups, seg, mi=mi, memo=key_memo):
+                if (groups, seg) not in memo:
+                    memo[groups, seg] = tuple((g, fc.node_key(g, mi, seg)) for g in groups)
+                return memo[groups, seg]
 
             for i in range(len(part.knots) - 1):
                 dt = float(part.knots[i + 1] - part.knots[i])
@@ -283,11 +290,15 @@ class BatchSmoother:
             meas = Measurements.of(part.mission, s, part.knots[0], part.knots[-1])
 
             def seg_at(t, part=part):
+                if len(part.seg_starts) == 1:
+                    return 0
                 return int(np.clip(np.searchsorted(part.seg_starts, t, side="right") - 1, 0,
                                    len(part.seg_starts) - 1))
 
-            def mkeys(stream, t, part=part, mi=mi):
-                return nkeys(layout.meas_groups(stream), seg_at(t))
+            groups_of = {st: layout.meas_groups(st) for st in ("gnss", "usbl", "depth")}
+
+            def mkeys(stream, t, part=part, mi=mi, groups_of=groups_of):
+                return nkeys(groups_of[stream], seg_at(t))
 
             def knot_key(i, part=part):
                 return part.keys[i]
@@ -297,6 +308,12 @@ class BatchSmoother:
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:
+        """The batch fit of ``missions`` (single-threaded BLAS: the matrices are small and
+        a thread pool on a loaded machine made the closed-form start 20-60x slower)."""
+        with blas_threads(1):
+            return self._run(missions)
+
+    def _run(self, missions) -> Result:
         missions = check_missions(missions)
         s = self.settings
         t_start = time.perf_counter()
@@ -306,13 +323,15 @@ class BatchSmoother:
         t_built = time.perf_counter()
         all_keys = bg.key_dims()
 
-        ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-        out = levenberg_marquardt(bg, values, ordering, s, self.progress)
+        fs = FastSystem.build(bg, s) if s.fast_lm else None
+        ordering = None if fs is not None else \
+            gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
+        out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
         for label, alt in [*self._alternatives(bg, verdicts), *self._given_start(bg)]:
-            o = levenberg_marquardt(bg, alt, ordering, s, None)
+            o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
             v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
@@ -323,20 +342,23 @@ class BatchSmoother:
         n_it, n_trials, converged, it_times = out.iterations, out.trials, out.converged, out.it_times
         # marginal covariances of the parameter nodes from the undamped Bayes tree
         t_cov = time.perf_counter()
-        try:
-            bt = gfg.eliminateMultifrontal(ordering)
-            cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
-        except RuntimeError:
-            # the undamped system is singular: no parameter is determined by the Hessian
-            cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
         # each mission's blocks are its own: its times shifted past the previous missions'
         key_time, shift = {}, 0.0
         for part in parts:
             t_first = float(part.knots[0])
             key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
             shift += float(part.knots[-1]) - t_first + 2.0 * (s.sandwich_block or 1.0)
-        cov_sw = block_sandwich(gfg, all_keys, key_time, [n.key for n in node_list],
-                                s.sandwich_block) if s.sandwich_block else None
+        if out.fast is not None:
+            cov_model, cov_sw = _fast_covariance(fs, out.fast, node_list, layout, key_time, s)
+        else:
+            try:
+                bt = gfg.eliminateMultifrontal(ordering)
+                cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
+            except RuntimeError:
+                # the undamped system is singular: no parameter is determined by the Hessian
+                cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
+            cov_sw = block_sandwich(gfg, all_keys, key_time, [n.key for n in node_list],
+                                    s.sandwich_block) if s.sandwich_block else None
         cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                                 cov_sw[1] if cov_sw else None)
         t_end = time.perf_counter()
@@ -521,19 +543,46 @@ class LMOutcome:
     """Result of one Levenberg-Marquardt solve of a built graph."""
     values: gtsam.Values
     cost: float
-    gfg: gtsam.GaussianFactorGraph        # linearised at ``values``
+    gfg: gtsam.GaussianFactorGraph | None   # linearised at ``values`` (GTSAM path)
     iterations: int
     trials: int
     converged: bool
     it_times: list[float]
+    fast: dict | None = None               # numpy path: its evaluation at ``values``
 
 
-def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering,
-                        s: FGSettings, progress=None) -> LMOutcome:
+def _fast_covariance(fs: FastSystem, ev: dict, node_list, layout, key_time, s: FGSettings):
+    """Hessian and sandwich covariances of the parameter nodes from the numpy system
+    (the same quantities as the Bayes tree's marginals and :func:`block_sandwich`)."""
+    D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+    try:
+        fac = fs.factor(D, E, Hsp, Hpp)
+        C = fs.param_covariance(fac)
+    except np.linalg.LinAlgError:
+        cov = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
+        return cov, None
+    cov = {}
+    for _, k, _ in node_list:
+        o, d = fs.node_off[k]
+        cov[k] = C[o:o + d, o:o + d].copy()
+    sw = fs.sandwich(ev, fac, key_time, s.sandwich_block) if s.sandwich_block else None
+    return cov, sw
+
+
+def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,
+                        s: FGSettings, progress=None, fs: FastSystem | None = None) -> LMOutcome:
     """LM driven from Python (GTSAM's optimizers copy all Values into every CustomFactor
     call): Marquardt's diagonal damping, an active set for the parameter bounds, and the
     stopping rule of :class:`FGSettings` (an accepted step lowering the cost by less than
-    ``max(rel_tol x cost, abs_tol)``)."""
+    ``max(rel_tol x cost, abs_tol)``). With ``fs`` the same algorithm runs on the numpy
+    form of the graph (:mod:`aqfg.fg.fastlm`); ``gfg`` is then None."""
+    if fs is not None:
+        X, th, cost, ev, n_it, n_trials, conv, it_times = levenberg_marquardt_fast(
+            fs, values, s, progress)
+        return LMOutcome(fs.to_values(X, th, values), cost, None, n_it, n_trials, conv,
+                         it_times, ev)
+    if ordering is None:
+        ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
     layout, node_list, all_keys = bg.layout, bg.nodes, bg.key_dims()
 
     def project(vals):
@@ -678,11 +727,10 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
         a, b, steps, off = sl
         pred = part.model.propagate_many(X[a:b], p_segments[j], steps, off)[0]
         raw[a:b] = X[a + 1:b + 1] - pred
-    norm = np.zeros_like(raw)
-    for i in range(len(raw)):
-        dt = part.knots[i + 1] - part.knots[i]
-        L = np.linalg.cholesky(s.process.cov(dt, part.mission.planar))
-        norm[i] = np.linalg.solve(L, raw[i])
+    dts = np.diff(part.knots)
+    uniq, inv = np.unique(dts, return_inverse=True)
+    Ls = np.array([np.linalg.cholesky(s.process.cov(dt, part.mission.planar)) for dt in uniq])
+    norm = np.linalg.solve(Ls[inv], raw[:, :, None])[:, :, 0] if len(raw) else raw.copy()
     return Residuals(part.knots[1:].copy(), raw, norm)
 
 

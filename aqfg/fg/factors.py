@@ -220,12 +220,21 @@ class ParamLayout:
         return tuple(g for g in self.groups if np.any(self.dyn_pos[g] >= 0))
 
     def bounds(self, group: str) -> tuple[np.ndarray, np.ndarray]:
-        specs = [self.model.spec(n) for n in self.names[group]]
-        return np.array([s.lower for s in specs]), np.array([s.upper for s in specs])
+        """Lower and upper physical bounds of a node's parameters (copies)."""
+        lo, hi = self._bounds(group)
+        return lo.copy(), hi.copy()
+
+    def _bounds(self, group: str) -> tuple[np.ndarray, np.ndarray]:
+        # cached: the dynamics factor's callback projects on every call (docs/speed.md)
+        cache = self.__dict__.setdefault("_bounds_cache", {})
+        if group not in cache:
+            specs = [self.model.spec(n) for n in self.names[group]]
+            cache[group] = (np.array([s.lower for s in specs]), np.array([s.upper for s in specs]))
+        return cache[group]
 
     def project(self, group: str, v: np.ndarray) -> np.ndarray:
         """Projection of a node value onto the physical bounds."""
-        lo, hi = self.bounds(group)
+        lo, hi = self._bounds(group)
         return np.clip(v, lo, hi)
 
     def meas_groups(self, stream: str) -> tuple[str, ...]:
@@ -288,8 +297,16 @@ def dynamics_factor(model: Model, layout: ParamLayout, steps: Steps, k0: int, k1
     """Dynamics factor between knots ``k0`` and ``k1`` integrating ``steps`` (all input samples
     between them) in its own callback. ``node_keys``: ``((group, key), ...)`` of the parameter
     nodes that enter the dynamics."""
-    groups = tuple(g for g, _ in node_keys)
     propagate = propagator(model, steps)
+    p0 = (layout.base if base is None else base).copy()
+    # per node: key, full-vector indices, bounds, J_p columns (all looked up once: the
+    # callback runs at every relinearisation; docs/speed.md)
+    nodes = []
+    for g, k in node_keys:
+        lo, hi = layout._bounds(g)
+        pos = layout.dyn_pos[g]
+        nodes.append((k, layout.idx[g], lo, hi, pos, bool(layout.dyn_direct[g]), pos >= 0))
+    eye6 = _I6
 
     def err(this, values, H):
         x0 = values.atVector(k0)
@@ -297,14 +314,21 @@ def dynamics_factor(model: Model, layout: ParamLayout, steps: Steps, k0: int, k1
         # the model is evaluated inside the physical bounds (an incremental solver's step
         # can overshoot them before the bound factor pulls it back; a negative drag would
         # make the integration diverge); the Jacobian is the one at the bound
-        nodes = {g: layout.project(g, v) for g, v in _nodes(values, node_keys).items()}
-        p = layout.full(nodes, base)
+        p = p0.copy()
+        for k, idx, lo, hi, _, _, _ in nodes:
+            p[idx] = np.minimum(np.maximum(values.atVector(k), lo), hi)
         pred, Jx, Jp = propagate(x0, p)
-        r, blocks = dynamics_blocks(x1, pred, Jx, Jp, layout, groups)
         if H is not None:
-            for i, b in enumerate(blocks):
-                H[i] = b
-        return r
+            H[0] = -Jx
+            H[1] = eye6
+            for j, (_, _, _, _, pos, direct, ok) in enumerate(nodes):
+                if direct:
+                    H[2 + j] = -Jp[:, pos]
+                else:
+                    b = np.zeros((Jp.shape[0], len(pos)))
+                    b[:, ok] = -Jp[:, pos[ok]]
+                    H[2 + j] = b
+        return x1 - pred
 
     return gtsam.CustomFactor(noise, [k0, k1] + [k for _, k in node_keys], err)
 

@@ -40,23 +40,42 @@ class Start:
     p0: np.ndarray             # (2,) fitted start position
 
 
-def _robust_fit(A: np.ndarray, y: np.ndarray, n: int, iters: int = 8
-                ) -> tuple[np.ndarray, float]:
-    """Huber-weighted (IRLS) least squares of 2-D residual pairs (rows i and n + i)."""
-    wts = np.ones(2 * n)
-    sol = np.zeros(A.shape[1])
+def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: int = 8
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Huber-weighted (IRLS) least squares of 2-D residual pairs with one free offset per
+    window: ``y[a] = off[win, a] + C[a] @ c`` for the north (a = 0) and east (a = 1) rows.
+
+    ``C`` is (2, n, m), ``y`` (2, n). The offsets are eliminated in closed form (weighted
+    means within each window), so each IRLS step solves an m-unknown problem instead of a
+    (2 nw + m)-unknown one (the same solution, docs/speed.md). Returns the coefficients
+    ``c``, the offsets (nw, 2) and the robust RMS misfit.
+    """
+    n, m = y.shape[1], C.shape[2]
+    wf = np.ones(n)
+    c = np.zeros(m)
+    off = np.zeros((nw, 2))
     res = np.zeros(n)
+    onehot = np.zeros((nw, n))
+    onehot[win, np.arange(n)] = 1.0
+    V = np.column_stack([y[0], y[1], C[0], C[1]])          # (n, 2 + 2m)
     for _ in range(iters):
-        sw = np.sqrt(wts)
-        sol = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
-        r = y - A @ sol
-        res = np.hypot(r[:n], r[n:])
+        wsum = np.maximum(onehot @ wf, 1e-300)
+        Vc = V - ((onehot @ (wf[:, None] * V)) / wsum[:, None])[win]
+        yc = np.stack([Vc[:, 0], Vc[:, 1]])
+        Cc = np.stack([Vc[:, 2:2 + m], Vc[:, 2 + m:]])
+        sw = np.sqrt(wf)
+        A = (Cc * sw[None, :, None]).reshape(2 * n, -1)
+        c = np.linalg.lstsq(A, (yc * sw).reshape(-1), rcond=None)[0]
+        r = yc - Cc @ c
+        res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
-        wf = np.minimum(1.0, 2.0 * scale / np.maximum(res, 1e-12))
-        wts = np.concatenate([wf, wf])
+        wf_next = np.minimum(1.0, 2.0 * scale / np.maximum(res, 1e-12))
+        # offsets of this step's solution (weighted means of what c leaves per window)
+        off = np.stack([onehot @ (wf * (y[a] - C[a] @ c)) / wsum for a in range(2)], 1)
+        wf = wf_next
     k = 2.0 * (1.4826 * np.median(res) + 1e-3)
     huber = np.where(res <= k, 0.5 * res ** 2, k * (res - 0.5 * k))
-    return sol, float(np.sqrt(2.0 * np.mean(huber)))
+    return c, off, float(np.sqrt(2.0 * np.mean(huber)))
 
 
 def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray,
@@ -86,21 +105,16 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
             win[win == j] = j - 1
     _, win = np.unique(win, return_inverse=True)
     nw = int(win.max()) + 1
-    A = np.zeros((2 * n, 2 * nw + 4))
-    A[np.arange(n), 2 * win] = 1
-    A[n + np.arange(n), 2 * win + 1] = 1
-    c = 2 * nw
-    A[:n, c] = dt
-    A[n:, c + 1] = dt
-    A[:n, c + 2], A[:n, c + 3] = Wf[:, 0], -Wf[:, 1]
-    A[n:, c + 2], A[n:, c + 3] = Wf[:, 1], Wf[:, 0]
-    y = np.concatenate([pf[:, 0], pf[:, 1]])
-    sol, misfit = _robust_fit(A, y, n)
-    if not np.all(np.isfinite(sol)):
+    # unknowns c = [s_n, s_e, rho cos theta, rho sin theta] besides the window offsets
+    z = np.zeros(n)
+    C = np.stack([np.column_stack([dt, z, Wf[:, 0], -Wf[:, 1]]),
+                  np.column_stack([z, dt, Wf[:, 1], Wf[:, 0]])])
+    c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw)
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(off))):
         return None
-    theta = float(np.arctan2(sol[c + 3], sol[c + 2]))
-    rho = float(np.hypot(sol[c + 2], sol[c + 3]))
-    return theta, sol[c:c + 2].copy(), rho, sol[:2].copy(), misfit
+    theta = float(np.arctan2(c[3], c[2]))
+    rho = float(np.hypot(c[2], c[3]))
+    return theta, c[:2].copy(), rho, off[0].copy(), misfit
 
 
 # the misfit grid's scales of the nominal k, k_x, k_yz (see candidate_starts)
@@ -109,12 +123,13 @@ _SCALES = np.logspace(-2.0, 1.0, 10)
 
 def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.ndarray,
                      scales=_SCALES, ratios=(0.1, 1.0, 10.0),
-                     search: bool = True) -> list[Start]:
+                     search: bool = True, steps=None) -> list[Start]:
     """Candidate starts, best (lowest misfit) first.
 
     ``p`` is the full parameter vector whose k, k_x, k_yz define the grid centre (the
     nominal values, or the user's); with ``search=False`` only that point is used (the
-    user fixed the constants).
+    user fixed the constants). ``steps``: the kernel steps of ``knots`` (``model.steps``),
+    when the caller has them.
     """
     tf, pf = retrace.fixes(mission)
     t_a = float(knots[0])
@@ -122,7 +137,7 @@ def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.nd
     q = p.copy()
     q[model.index("theta_e")] = 0.0
     q[model.index("s_x")] = q[model.index("s_y")] = 0.0
-    steps, off = model.steps(mission, knots)
+    steps, off = model.steps(mission, knots) if steps is None else steps
     dtf = np.diff(np.unique(tf))
     window = max(60.0, 6.0 * float(np.median(dtf))) if len(dtf) else None
     grid = [(1.0, None)] if not search else [(sc, r) for sc in scales for r in ratios]

@@ -1,0 +1,619 @@
+"""The batch graph's least-squares problem in numpy: residuals, normal equations and the
+Levenberg-Marquardt step without a Python callback per factor.
+
+:class:`aqfg.fg.batch.BuiltGraph` holds a GTSAM graph of ``CustomFactor`` s; linearising it
+costs one Python callback per factor, which dominated an LM iteration (docs/speed.md). The
+same problem has a fixed shape that numpy can evaluate in a few array operations:
+
+* dynamics factors between consecutive knots (one batched kernel call per mission and
+  parameter segment, as :meth:`BuiltGraph.fill`), whitened by ``W`` with ``W^T W = Q^-1``;
+* GNSS / USBL / depth factors on one knot, with GTSAM's Huber reweighting (``sqrt(w)`` of
+  the whitened residual norm on residual and Jacobian, loss ``k |d| - k^2 / 2`` beyond
+  ``k``);
+* the graph's linear factors (priors, surface constraint, random walk of parameters), whose
+  whitened ``A`` and ``b`` are read once from GTSAM.
+
+The state knots of a mission form a chain, so the normal equations are block-tridiagonal
+in the states plus dense parameter columns: a banded Cholesky (LAPACK ``pbtrf``) of the
+states and a Schur complement of the parameters solve them exactly (the same system
+GTSAM's elimination solves, in Cholesky form as GTSAM's default). The parameter marginal
+covariance is the inverse of that Schur complement.
+
+:meth:`FastSystem.build` returns None for graphs outside this shape (measurement effects
+such as a lever arm or USBL distortions, a Cauchy loss, factors between states of
+different knots): the caller then keeps the GTSAM path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import scipy.linalg as sla
+
+from aqfg.fg import factors as fc
+from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+
+
+@dataclass
+class _Meas:
+    """Measurement factors on one knot each, of one kind."""
+    kind: str             # "gnss", "usbl", "depth"
+    idx: np.ndarray       # (n,) global state index
+    z: np.ndarray         # (n, m)
+    sigma: np.ndarray     # (n, m)
+    k: float | None       # Huber threshold (None: plain Gaussian)
+    extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
+
+
+def _plain_sensors(p: np.ndarray) -> bool:
+    """True when the measurement effects at ``p`` are null (no lever arm, no USBL
+    distortion), so a fix measures the knot position itself."""
+    from aqfg.model.measurements import USBL_TERMS, sensor_position
+    ps = sensor_position(np.zeros(3), np.eye(3), 0.0, p)[0]
+    if np.any(ps != 0.0):
+        return False
+    z = np.array([10.0, 0.3])
+    return all(np.array_equal(e.distort(z, p[sl]), z) for e, sl in USBL_TERMS)
+
+
+class FastSystem:
+    """Residuals and normal equations of a :class:`~aqfg.fg.batch.BuiltGraph` in numpy.
+
+    Variables: ``X`` (N, 6) states of all missions stacked, ``th`` (P,) the parameter
+    nodes' values concatenated in ``bg.nodes`` order.
+    """
+
+    def __init__(self, bg, settings):
+        self.bg = bg
+        self.s = settings
+        self.layout = bg.layout
+        self.node_off: dict[int, tuple[int, int]] = {}
+        c = 0
+        for n in bg.nodes:
+            d = bg.layout.dim(n.group)
+            self.node_off[n.key] = (c, d)
+            c += d
+        self.P = c
+        self.part_off = []
+        c = 0
+        for part in bg.parts:
+            self.part_off.append(c)
+            c += len(part.keys)
+        self.N = c
+        self.state_index = {k: self.part_off[i] + j for i, part in enumerate(bg.parts)
+                            for j, k in enumerate(part.keys)}
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def build(cls, bg, settings) -> FastSystem | None:
+        """The numpy form of ``bg``, or None when the graph is not of the supported shape."""
+        from aqfg.fg.common import Measurements, depth_assignment, knot_index
+        lay = bg.layout
+        sn = settings.sensors
+        if sn.robust not in ("huber", "none"):
+            return None
+        for part in bg.parts:
+            if any(isinstance(e, (SensorOffsetTerm, UsblTerm)) for e in part.model.effects):
+                return None
+        if lay.meas_groups("gnss") or lay.meas_groups("usbl"):
+            return None
+        if not _plain_sensors(lay.base):
+            return None
+        self = cls(bg, settings)
+        # ---- dynamics: whitening and parameter columns per interval
+        W, idx0 = [], []
+        dyn_groups = lay.dyn_groups()
+        ncols = bg.cache.Jp.shape[2]
+        self.dyn_map = []     # per group: (global param col array (K,dim), dyn positions)
+        gmaps = {g: [] for g in dyn_groups}
+        wcache: dict = {}
+        for pi, part in enumerate(bg.parts):
+            K = len(part.knots) - 1
+            for i in range(K):
+                dt = float(part.knots[i + 1] - part.knots[i])
+                key = (round(dt, 9), part.mission.planar)
+                if key not in wcache:       # the graph's own whitening (R^T R = Q^-1), the
+                    # noise model of the first interval of that length, as the graph's
+                    wcache[key] = settings.process.noise_model(dt, part.mission.planar).R()
+                W.append(wcache[key])
+                idx0.append(self.part_off[pi] + i)
+                for g in dyn_groups:
+                    k = fc.node_key(g, part.index, int(part.seg_of[i])) if g != "fixed" \
+                        else fc.node_key("fixed")
+                    o, d = self.node_off[k]
+                    gmaps[g].append(np.arange(o, o + d))
+        self.W = np.array(W).reshape(-1, 6, 6)
+        self.WtW = np.einsum("kji,kjl->kil", self.W, self.W)
+        self.d0 = np.array(idx0, int)
+        self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
+        self.ncols = ncols
+        # ---- measurements
+        meas: list[_Meas] = []
+        for pi, part in enumerate(bg.parts):
+            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
+            off = self.part_off[pi]
+
+            def k_of(stream):
+                if sn.robust == "none" or stream not in sn.robust_on:
+                    return None
+                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
+            if len(m.gnss_t):
+                ki = off + knot_index(part.knots, m.gnss_t)
+                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
+                                  k_of("gnss")))
+            if len(m.usbl_t):
+                ki = off + knot_index(part.knots, m.usbl_t)
+                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
+                                  np.asarray(m.station, float)))
+            ri, ki = depth_assignment(part.knots, m.depth_t)
+            if len(ri):
+                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
+                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
+                                  m.depth_t[ri] - part.knots[ki]))
+        self.meas = meas
+        n_meas = sum(len(x.idx) for x in meas)
+        # ---- linear factors read from GTSAM; count the factors this form accounts for
+        n_custom = 0
+        lin_s = []            # (state index, A (m,6), b (m,))
+        lin_p_A, lin_p_f = [], []
+        for i in range(bg.graph.size()):
+            f = bg.graph.at(i)
+            if f is None:
+                continue
+            if isinstance(f, gtsam.CustomFactor):
+                n_custom += 1
+                continue
+            try:
+                nm = f.noiseModel()
+                if isinstance(nm, gtsam.noiseModel.Robust):
+                    return None
+            except AttributeError:
+                pass
+            keys = list(f.keys())
+            v0 = gtsam.Values()
+            dims = []
+            for k in keys:
+                if k in self.state_index:
+                    d = 6
+                elif k in self.node_off:
+                    d = self.node_off[k][1]
+                else:
+                    return None
+                dims.append(d)
+                v0.insert(k, np.zeros(d))
+            jf = f.linearize(v0)
+            A, b = jf.jacobian()
+            if all(k in self.state_index for k in keys) and len(keys) == 1:
+                lin_s.append((self.state_index[keys[0]], A, b))
+            elif all(k in self.node_off for k in keys):
+                Af = np.zeros((A.shape[0], self.P))
+                c = 0
+                for k, d in zip(keys, dims):
+                    o, _ = self.node_off[k]
+                    Af[:, o:o + d] += A[:, c:c + d]
+                    c += d
+                lin_p_A.append(Af)
+                lin_p_f.append((f, keys))
+            else:
+                return None
+        if n_custom != len(self.d0) + n_meas:
+            return None              # a custom factor this form does not know
+        self.lin_s = {}
+        for si, A, b in lin_s:
+            self.lin_s.setdefault(A.shape[0], []).append((si, A, b))
+        self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
+                          np.array([x[2] for x in v])) for m, v in self.lin_s.items()}
+        self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
+        # their residuals come from GTSAM itself (a random walk held by sigma ~1e-8 needs
+        # the difference of the values before the whitening, as the factor computes it)
+        self.lin_pf = lin_p_f
+        # constant parts of the state Hessian: linear unary factors
+        self.D_const = np.zeros((self.N, 6, 6))
+        for si, A, _ in self.lin_s.values():
+            np.add.at(self.D_const, si, np.einsum("nji,njl->nil", A, A))
+        self.Hpp_const = self.lin_pA.T @ self.lin_pA
+        # band layout of the block-tridiagonal state matrix (LAPACK lower storage)
+        n = 6 * self.N
+        jj = np.arange(n)
+        src = np.full((12, n), -1, np.int64)
+        nD = self.N * 36
+        for d in range(12):
+            i = jj + d
+            ok = i < n
+            I, a, J, bb = i // 6, jj % 6, jj // 6, i % 6
+            same = ok & (I == J)
+            src[d, same] = (J * 36 + bb * 6 + a)[same]
+            nxt = ok & (I == J + 1) & (J < self.N - 1)
+            src[d, nxt] = (nD + J * 36 + a * 6 + bb)[nxt]
+        self._band_src = src
+        self._kernels = [[_propagator(part.model, sl) if sl is not None else None
+                          for sl in part.seg_slices] for part in bg.parts]
+        self.lo = np.concatenate([bg.layout.bounds(n.group)[0] for n in bg.nodes]) \
+            if bg.nodes else np.zeros(0)
+        self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
+            if bg.nodes else np.zeros(0)
+        return self
+
+    # ------------------------------------------------------------------ values
+    def from_values(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        X = np.array([values.atVector(k) for p in self.bg.parts for k in p.keys]).reshape(-1, 6)
+        th = np.concatenate([values.atVector(n.key) for n in self.bg.nodes]) \
+            if self.bg.nodes else np.zeros(0)
+        return X, th
+
+    def to_values(self, X: np.ndarray, th: np.ndarray, like: gtsam.Values) -> gtsam.Values:
+        out = gtsam.Values(like)
+        for p, o in zip(self.bg.parts, self.part_off):
+            for j, k in enumerate(p.keys):
+                out.update(k, X[o + j])
+        for n in self.bg.nodes:
+            o, d = self.node_off[n.key]
+            out.update(n.key, th[o:o + d])
+        return out
+
+    def project(self, th: np.ndarray) -> np.ndarray:
+        return np.clip(th, self.lo, self.hi)
+
+    def node_values(self, th: np.ndarray) -> dict[int, np.ndarray]:
+        return {k: th[o:o + d] for k, (o, d) in self.node_off.items()}
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, X: np.ndarray, th: np.ndarray) -> dict:
+        """Whitened residuals (and Jacobian blocks) of every factor at ``(X, th)``; the
+        dynamics from one kernel call per mission and parameter segment. A diverging model
+        gives an infinite cost (LM rejects the step) without an overflow warning."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._evaluate(X, th)
+
+    def _evaluate(self, X: np.ndarray, th: np.ndarray) -> dict:
+        bg, lay = self.bg, self.layout
+        nv = self.node_values(th)
+        preds, Jxs, Jps = [], [], []
+        for pi, part in enumerate(bg.parts):
+            off = self.part_off[pi]
+            Xp = X[off:off + len(part.keys)]
+            nd = {}
+            if "fixed" in lay.names:
+                nd["fixed"] = nv[fc.node_key("fixed")]
+            if "sensor" in lay.names:
+                nd["sensor"] = nv[fc.node_key("sensor", part.index)]
+            for j, sl in enumerate(part.seg_slices):
+                if sl is None:
+                    continue
+                a, b = sl[0], sl[1]
+                if "variable" in lay.names:
+                    nd["variable"] = nv[fc.node_key("variable", part.index, j)]
+                pred, Jx, Jp = self._kernels[pi][j](Xp[a:b], lay.full(nd))
+                preds.append(pred)
+                Jxs.append(Jx)
+                Jps.append(Jp)
+        pred = np.concatenate(preds) if preds else np.zeros((0, 6))
+        out = {}
+        d0 = self.d0
+        rd = np.matmul(self.W, (X[d0 + 1] - pred)[:, :, None])[:, :, 0]
+        out["dyn_r"] = rd
+        cost = 0.5 * float(np.sum(rd * rd))
+        out["Jx"] = np.concatenate(Jxs) if Jxs else np.zeros((0, 6, 6))
+        out["Jp"] = np.concatenate(Jps) if Jps else np.zeros((0, 6, self.ncols))
+        # measurements
+        mres = []
+        for m in self.meas:
+            x = X[m.idx]
+            if m.kind == "gnss":
+                r = (x[:, :2] - m.z) / m.sigma
+                J = np.zeros((len(r), 2, 6))
+                J[:, 0, 0] = 1.0 / m.sigma[:, 0]
+                J[:, 1, 1] = 1.0 / m.sigma[:, 1]
+            elif m.kind == "usbl":
+                d = x[:, :3] - m.extra
+                rng = np.linalg.norm(d, axis=1)
+                rh2 = d[:, 0] ** 2 + d[:, 1] ** 2
+                h = np.column_stack([rng, np.arctan2(d[:, 1], d[:, 0])])
+                raw = h - m.z
+                raw[:, 1] = fc.wrap_angle(raw[:, 1])
+                r = raw / m.sigma
+                J = np.zeros((len(r), 2, 6))
+                J[:, 0, :3] = d / np.maximum(rng, 1e-9)[:, None]
+                J[:, 1, 0] = -d[:, 1] / np.maximum(rh2, 1e-12)
+                J[:, 1, 1] = d[:, 0] / np.maximum(rh2, 1e-12)
+                J /= m.sigma[:, :, None]
+            else:
+                r = ((x[:, 2] + x[:, 5] * m.extra)[:, None] - m.z) / m.sigma
+                J = np.zeros((len(r), 1, 6))
+                J[:, 0, 2] = 1.0 / m.sigma[:, 0]
+                J[:, 0, 5] = m.extra / m.sigma[:, 0]
+            dist = np.sqrt(np.sum(r * r, axis=1))
+            if m.k is None:
+                w = np.ones(len(r))
+                cost += 0.5 * float(np.sum(dist ** 2))
+            else:
+                big = dist > m.k
+                w = np.where(big, m.k / np.maximum(dist, 1e-300), 1.0)
+                cost += float(np.sum(np.where(big, m.k * (dist - 0.5 * m.k), 0.5 * dist ** 2)))
+            mres.append((r, J, w))
+        out["meas"] = mres
+        # linear factors
+        lres = {}
+        for mm, (si, A, b) in self.lin_s.items():
+            r = np.einsum("nij,nj->ni", A, X[si]) - b
+            cost += 0.5 * float(np.sum(r * r))
+            lres[mm] = r
+        out["lin_s"] = lres
+        rp = self._param_residuals(nv)
+        cost += 0.5 * float(rp @ rp)
+        out["lin_p"] = rp
+        out["cost"] = cost
+        return out
+
+    def _param_residuals(self, nv: dict) -> np.ndarray:
+        """Whitened residuals of the linear factors on parameter nodes (priors, walks)."""
+        if not self.lin_pf:
+            return np.zeros(0)
+        vals = gtsam.Values()
+        for k, v in nv.items():
+            vals.insert(k, v)
+        return np.concatenate([f.whitenedError(vals) for f, _ in self.lin_pf])
+
+    def _dyn_jacobians(self, ev: dict) -> None:
+        """Whitened dynamics Jacobian blocks of an evaluation (once, when needed)."""
+        if "A0" in ev:
+            return
+        lay, K = self.layout, len(self.d0)
+        ev["A0"] = -np.matmul(self.W, ev["Jx"])
+        Ap = np.zeros((K, 6, self.P))
+        for g, gc in self.gcols.items():
+            pos = lay.dyn_pos[g]
+            blk = np.zeros((K, 6, len(pos)))
+            ok = pos >= 0
+            blk[..., ok] = ev["Jp"][..., pos[ok]]
+            WJ = -np.matmul(self.W, blk)
+            if self._unique_cols(g):
+                Ap[:, :, gc[0]] += WJ
+            else:
+                kk = np.repeat(np.arange(K), gc.shape[1])
+                np.add.at(Ap, (kk, slice(None), gc.ravel()),
+                          WJ.transpose(0, 2, 1).reshape(-1, 6))
+        ev["Ap"] = Ap
+
+    def _unique_cols(self, g: str) -> bool:
+        gc = self.gcols[g]
+        return bool(len(gc)) and bool(np.all(gc == gc[0]))
+
+    def normal(self, ev: dict):
+        """Gauss-Newton normal equations ``H``, gradient ``g = A^T r`` at an evaluation:
+        state blocks ``D`` (N,6,6), ``E`` (N-1,6,6) (block (i, i+1)), ``Hsp`` (N,6,P),
+        ``Hpp`` (P,P), ``gs`` (N,6), ``gp`` (P,).
+
+        A diverging model (a degenerate start) can overflow them: the factorisation then
+        fails or the step's cost is not finite, and LM raises its damping, as on the GTSAM
+        path; the overflow itself is not reported."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._normal(ev)
+
+    def _normal(self, ev: dict):
+        self._dyn_jacobians(ev)
+        N, P, d0 = self.N, self.P, self.d0
+        D = self.D_const.copy()
+        E = np.zeros((max(N - 1, 0), 6, 6))
+        Hsp = np.zeros((N, 6, P))
+        gs = np.zeros((N, 6))
+        A0, Ap, rd, W = ev["A0"], ev["Ap"], ev["dyn_r"], self.W
+        A0t = A0.transpose(0, 2, 1)
+        Wt = W.transpose(0, 2, 1)
+        # the dynamics intervals are consecutive knots: d0 has no repeats
+        D[d0] += np.matmul(A0t, A0)
+        D[d0 + 1] += self.WtW
+        E[d0] += np.matmul(A0t, W)
+        Hsp[d0] += np.matmul(A0t, Ap)
+        Hsp[d0 + 1] += np.matmul(Wt, Ap)
+        Apf = Ap.reshape(-1, P)
+        Hpp = self.Hpp_const + Apf.T @ Apf
+        gs[d0] += np.matmul(A0t, rd[:, :, None])[:, :, 0]
+        gs[d0 + 1] += np.matmul(Wt, rd[:, :, None])[:, :, 0]
+        gp = Apf.T @ rd.ravel() + self.lin_pA.T @ ev["lin_p"]
+        for m, (r, J, w) in zip(self.meas, ev["meas"]):
+            Jt = J.transpose(0, 2, 1)
+            _scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
+            _scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
+        for mm, (si, A, _) in self.lin_s.items():
+            _scatter_add(gs, si,
+                         np.matmul(A.transpose(0, 2, 1), ev["lin_s"][mm][:, :, None])[:, :, 0])
+        return D, E, Hsp, Hpp, gs, gp
+
+    # ------------------------------------------------------------------ solve
+    def _band(self, D: np.ndarray, E: np.ndarray) -> np.ndarray:
+        flat = np.concatenate([D.ravel(), E.ravel(), [0.0]])
+        return flat[self._band_src]           # -1 -> the trailing 0
+
+    def factor(self, D, E, Hsp, Hpp):
+        """Cholesky of the states' band and the parameters' Schur complement. Raises
+        ``np.linalg.LinAlgError`` when the system is not positive definite."""
+        cb = sla.cholesky_banded(self._band(D, E), lower=True, check_finite=False)
+        Hsp2 = Hsp.reshape(6 * self.N, self.P)
+        Z = _tri(cb, Hsp2) if self.P else Hsp2            # L^-1 H_sp
+        S = Hpp - Z.T @ Z
+        return cb, Hsp2, Z, S
+
+    def solve(self, fac, gs, gp, fix: dict[int, float] | None = None):
+        """Step ``delta`` minimising the quadratic model with the parameter components in
+        ``fix`` held at the given values. Returns (dX (N,6), dth (P,))."""
+        cb, Hsp2, Z, S = fac
+        u = _tri(cb, -gs.reshape(-1, 1))                     # L^-1 (-g_s)
+        rhs = -gp - Z.T @ u[:, 0]
+        dth = np.zeros(self.P)
+        free = np.ones(self.P, bool)
+        if fix:
+            for j, v in fix.items():
+                dth[j] = v
+                free[j] = False
+        if free.any():
+            Sf = S[np.ix_(free, free)]
+            rf = rhs[free] - S[np.ix_(free, ~free)] @ dth[~free]
+            c = sla.cho_factor(Sf, check_finite=False)
+            dth[free] = sla.cho_solve(c, rf, check_finite=False)
+        dX = _tri(cb, u - (Z @ dth)[:, None], trans=True)  # L^-T (u - Z dth)
+        return dX.reshape(self.N, 6), dth
+
+    def param_covariance(self, fac) -> np.ndarray:
+        """Marginal covariance (P, P) of the parameters: the Schur complement's inverse."""
+        S = fac[3]
+        return np.linalg.inv(S)
+
+    # ------------------------------------------------------------------ sandwich
+    def sandwich(self, ev: dict, fac, key_time: dict, block: float):
+        """:func:`aqfg.fg.covariance.block_sandwich` from this system: per-block score
+        ``g_b`` (factors assigned to the block of their latest knot, parameter-only factors
+        left out), ``Z = H^-1 G``. Returns ({node key: cov}, dof) or None."""
+        t_state = np.empty(self.N)
+        for p, o in zip(self.bg.parts, self.part_off):
+            t_state[o:o + len(p.keys)] = [key_time[k] for k in p.keys]
+        t0 = float(t_state.min())
+        blk_state = ((t_state - t0) // block).astype(np.int64)
+        self._dyn_jacobians(ev)
+        d0 = self.d0
+        rows_s, rows_b, vals_s = [], [], []     # state gradient contributions
+        pg_b, pg_v = [], []                     # parameter gradient contributions
+        A0, Ap, rd, W = ev["A0"], ev["Ap"], ev["dyn_r"], self.W
+        bd = blk_state[d0 + 1]
+        rows_s += [d0, d0 + 1]
+        rows_b += [bd, bd]
+        vals_s += [np.einsum("kji,kj->ki", A0, rd), np.einsum("kji,kj->ki", W, rd)]
+        pg_b.append(bd)
+        pg_v.append(np.einsum("kji,kj->ki", Ap, rd))
+        for m, (r, J, w) in zip(self.meas, ev["meas"]):
+            rows_s.append(m.idx)
+            rows_b.append(blk_state[m.idx])
+            vals_s.append(w[:, None] * np.einsum("nji,nj->ni", J, r))
+        for mm, (si, A, _) in self.lin_s.items():
+            rows_s.append(si)
+            rows_b.append(blk_state[si])
+            vals_s.append(np.einsum("nji,nj->ni", A, ev["lin_s"][mm]))
+        allb = np.concatenate(rows_b)
+        ids = np.unique(allb)
+        nb = len(ids)
+        n_p = self.P
+        if nb < n_p + 2:
+            return None
+        loc = {int(b): i for i, b in enumerate(ids)}
+        lut = np.zeros(int(ids.max()) + 1, np.int64)
+        for b, i in loc.items():
+            lut[b] = i
+        Gs = np.zeros((self.N, 6, nb))
+        for ri, rb, v in zip(rows_s, rows_b, vals_s):
+            np.add.at(Gs, (ri, slice(None), lut[rb]), v)
+        Gp = np.zeros((self.P, nb))
+        for rb, v in zip(pg_b, pg_v):
+            np.add.at(Gp, (slice(None), lut[rb]), v.T)
+        cb, Hsp2, _, S = fac
+        Gs2 = Gs.reshape(6 * self.N, nb)
+        ys = sla.cho_solve_banded((cb, True), Gs2, check_finite=False)
+        Zp = np.linalg.solve(S, Gp - Hsp2.T @ ys)
+        scale = nb / max(nb - n_p, 1)
+        out = {}
+        for k, (o, d) in self.node_off.items():
+            zk = Zp[o:o + d]
+            zk = zk - zk.mean(axis=1, keepdims=True)
+            out[k] = scale * zk @ zk.T
+        return out, nb - n_p
+
+
+def _scatter_add(out: np.ndarray, idx: np.ndarray, v: np.ndarray) -> None:
+    """``out[idx] += v`` with repeated indices summed (``np.add.at``, which is slow, only
+    when ``idx`` repeats)."""
+    if len(idx) < 2 or np.all(np.diff(idx) > 0):
+        out[idx] += v
+    else:
+        np.add.at(out, idx, v)
+
+
+def _tri(cb: np.ndarray, B: np.ndarray, trans: bool = False) -> np.ndarray:
+    """``L^-1 B`` (or ``L^-T B``) for the lower banded Cholesky factor ``cb``."""
+    x, info = sla.lapack.dtbtrs(cb, B, uplo="L", trans="T" if trans else "N")
+    if info != 0:
+        raise np.linalg.LinAlgError(f"banded triangular solve failed (info {info})")
+    return x
+
+
+def _propagator(model, sl):
+    """``f(X0, p) -> (X1, J_x0, J_p)`` of one parameter segment's intervals, with the
+    kernel's step arguments converted once (:meth:`Model.propagate_many`)."""
+    a, b, steps, offs = sl
+    if not model.uses_cpp:
+        return lambda X0, p: model.propagate_many(X0, p, steps, offs)
+    from aqfg.model.params import N_DYN
+    from aqfg.model.vehicle import _cpp
+    g = model.geometry
+    args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+            np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+            np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(offs, np.int64),
+            np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
+            bool(g.planar))
+    kernel = _cpp.propagate_many
+    return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
+                                np.ascontiguousarray(p[:N_DYN], float), *args)
+
+
+def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values, s, progress=None):
+    """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
+    (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
+    accepted step and x10 after a rejected one, the active set of the parameter bounds, the
+    same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
+    iteration times)."""
+    import time
+    X, th = fs.from_values(values)
+    ev = fs.evaluate(X, th)
+    err = ev["cost"]
+    lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
+    converged = False
+    key_slices = [(o, d) for o, d in fs.node_off.values()]
+    for it in range(s.max_iterations):
+        t_it = time.perf_counter()
+        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+        hs = np.einsum("nii->ni", D)
+        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
+        hp = np.diag(Hpp).copy()
+        for o, d in key_slices:
+            v = hp[o:o + d]
+            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
+        accepted = False
+        idx6 = np.arange(6)
+        while lam < 1e10:
+            n_trials += 1
+            Dd = D.copy()
+            Dd[:, idx6, idx6] += lam * hs
+            Hppd = Hpp + np.diag(lam * hp)
+            try:
+                fac = fs.factor(Dd, E, Hsp, Hppd)
+                dX, dth = fs.solve(fac, gs, gp)
+                new = th + dth
+                hit = (new < fs.lo) | (new > fs.hi)
+                if np.any(hit):
+                    fix = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
+                           for j in np.flatnonzero(hit)}
+                    dX, dth = fs.solve(fac, gs, gp, fix)
+            except (np.linalg.LinAlgError, ValueError):
+                lam *= 10.0
+                continue
+            Xc, thc = X + dX, fs.project(th + dth)
+            evc = fs.evaluate(Xc, thc)
+            err_c = evc["cost"]
+            if np.isfinite(err_c) and err_c <= err:
+                accepted = True
+                break
+            lam *= 10.0
+        n_it += 1
+        if not accepted:
+            converged = True
+            break
+        gain = err - err_c
+        X, th, err, ev = Xc, thc, err_c, evc
+        lam = max(lam / 10.0, 1e-9)
+        it_times.append(time.perf_counter() - t_it)
+        if progress is not None:
+            progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
+                     f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
+        if gain < max(s.rel_tol * err, s.abs_tol):
+            converged = True
+            break
+    return X, th, float(err), ev, n_it, n_trials, converged, it_times

@@ -1,0 +1,102 @@
+"""The numpy form of the batch graph (aqfg.fg.fastlm) is the GTSAM graph's problem: the same
+cost, gradient and Gauss-Newton Hessian at any values, and the same fit (values and sigmas)
+as the LM driven on GTSAM's linearisation."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from aqfg.data.mission import with_gnss_every
+from aqfg.fg.batch import BatchSmoother
+from aqfg.fg.common import FGSettings
+from aqfg.fg.fastlm import FastSystem
+from aqfg.fg.fit import fit_fg
+from aqfg.sim.simulator import simulate
+
+
+def gtsam_normal(bg, values, fs):
+    """H = A^T A and g = A^T r of GTSAM's linearisation, in the numpy system's order."""
+    gfg = bg.linearize(values)
+    r, c, v = gfg.sparseJacobian_()
+    r, c = r.astype(int) - 1, c.astype(int) - 1
+    keys = sorted(bg.key_dims())
+    col0, n = {}, 0
+    for k, d in keys:
+        col0[k] = n
+        n += d
+    isb = c == n
+    b = np.zeros(r.max() + 1)
+    b[r[isb]] = v[isb]
+    A = sp.csr_matrix((v[~isb], (r[~isb], c[~isb])), shape=(len(b), n))
+    perm = [col0[k] + j for p in bg.parts for k in p.keys for j in range(6)]
+    perm += [col0[nd.key] + j for nd in bg.nodes for j in range(fs.node_off[nd.key][1])]
+    perm = np.array(perm)
+    H = (A.T @ A).toarray()[np.ix_(perm, perm)]
+    return H, -(A.T @ b)[perm]
+
+
+def dense(fs, D, E, Hsp, Hpp):
+    Ns = 6 * fs.N
+    H = np.zeros((Ns + fs.P, Ns + fs.P))
+    for i in range(fs.N):
+        H[6 * i:6 * i + 6, 6 * i:6 * i + 6] = D[i]
+        if i < fs.N - 1:
+            H[6 * i:6 * i + 6, 6 * i + 6:6 * i + 12] = E[i]
+            H[6 * i + 6:6 * i + 12, 6 * i:6 * i + 6] = E[i].T
+    H[:Ns, Ns:] = Hsp.reshape(Ns, -1)
+    H[Ns:, :Ns] = Hsp.reshape(Ns, -1).T
+    H[Ns:, Ns:] = Hpp
+    return H
+
+
+@pytest.fixture(scope="module")
+def missions():
+    out = []
+    for seed in (2, 3):
+        m, _ = simulate("asv", seed=seed, duration=150.0, usbl=True)
+        out.append(with_gnss_every(m, 4.0))
+    return out
+
+
+@pytest.mark.parametrize("walk", [False, True])
+def test_same_cost_gradient_hessian(missions, walk):
+    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=60.0) if walk else FGSettings()
+    bg = BatchSmoother(settings=st).build(missions)
+    fs = FastSystem.build(bg, st)
+    assert fs is not None
+    values = bg.values
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        X, th = fs.from_values(values)
+        ev = fs.evaluate(X, th)
+        assert ev["cost"] == pytest.approx(bg.error(values), rel=1e-12)
+        H, g = gtsam_normal(bg, values, fs)
+        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+        assert np.allclose(dense(fs, D, E, Hsp, Hpp), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
+        assert np.allclose(np.concatenate([gs.ravel(), gp]), g, rtol=1e-10,
+                           atol=1e-10 * np.abs(g).max())
+        # far from the start: robust losses beyond their thresholds
+        values = gtsam.Values(values)
+        for p in bg.parts:
+            for k in p.keys:
+                values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
+
+
+def test_same_fit_as_gtsam_path(missions):
+    a = fit_fg(missions)
+    b = fit_fg(missions, settings=FGSettings(fast_lm=False))
+    assert a.info["iterations"] == b.info["iterations"]
+    assert a.info["cost"] == pytest.approx(b.info["cost"], rel=1e-9)
+    for n in a.estimated:
+        assert a.values[n] == pytest.approx(b.values[n], rel=1e-7, abs=1e-9), n
+        assert a.sigma[n] == pytest.approx(b.sigma[n], rel=1e-6), n
+        assert a.info["sigma_model"][n] == pytest.approx(b.info["sigma_model"][n], rel=1e-6), n
+
+
+def test_measurement_effects_keep_the_gtsam_path(missions):
+    sm = BatchSmoother(effects=("lever_arm",),
+                       estimate=("theta_e", "s_x", "s_y", "lever_arm.x", "lever_arm.y"))
+    bg = sm.build(missions[:1])
+    assert FastSystem.build(bg, sm.settings) is None
