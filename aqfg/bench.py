@@ -219,15 +219,16 @@ def stream_times(duration: float = 7200.0, period: float = 8.0, seed: int = 0,
     fl = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=3 * period)
     fl.start(m, plan=True)
     t0 = float(fl.knots[0])
-    ts, rss = [], []
+    t_list: list[float] = []
+    rss_list: list[float] = []
     while fl.pending():
         fl.update()
-        ts.append(float(fl.knots[-1]) - t0)
-        rss.append(_rss_mb())
-    ts = np.asarray(ts)
+        t_list.append(float(fl.knots[-1]) - t0)
+        rss_list.append(_rss_mb())
+    ts = np.asarray(t_list)
     ups = np.asarray(fl.timings["update"][1:])      # the first is the start
     n = min(len(ups), len(ts))
-    ups, ts, rss = ups[-n:], ts[-n:], np.asarray(rss)[-n:]
+    ups, ts, rss = ups[-n:], ts[-n:], np.asarray(rss_list)[-n:]
     # "first": the first ``edge`` s after the warm-up (whose window grows to everything
     # since the start, by design), so that the comparison shows growth, not the warm-up
     we = fl.warmup_end - t0 if np.isfinite(fl.warmup_end) else 0.0

@@ -349,8 +349,10 @@ class BatchSmoother:
             key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
             shift += float(part.knots[-1]) - t_first + 2.0 * (s.sandwich_block or 1.0)
         if out.fast is not None:
+            assert fs is not None           # the numpy path ran: its system was built
             cov_model, cov_sw = _fast_covariance(fs, out.fast, node_list, layout, key_time, s)
         else:
+            assert gfg is not None          # the GTSAM path ran: its linearisation
             try:
                 bt = gfg.eliminateMultifrontal(ordering)
                 cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}

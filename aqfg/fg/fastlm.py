@@ -25,7 +25,9 @@ different knots): the caller then keeps the GTSAM path.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -63,6 +65,24 @@ class FastSystem:
     Variables: ``X`` (N, 6) states of all missions stacked, ``th`` (P,) the parameter
     nodes' values concatenated in ``bg.nodes`` order.
     """
+
+    # set by :meth:`build`
+    dyn_map: list
+    W: np.ndarray                 # (K, 6, 6) dynamics whitening per interval
+    WtW: np.ndarray               # (K, 6, 6) ``W^T W``
+    d0: np.ndarray                # (K,) state index of each interval's first knot
+    gcols: dict[str, np.ndarray]  # per dynamics group: (K, dim) parameter columns
+    ncols: int
+    meas: list[_Meas]
+    lin_s: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]   # rows -> (idx, A, b)
+    lin_pA: np.ndarray
+    lin_pf: list[tuple[Any, list[int]]]
+    D_const: np.ndarray
+    Hpp_const: np.ndarray
+    _band_src: np.ndarray
+    _kernels: list[list[Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]] | None]]
+    lo: np.ndarray
+    hi: np.ndarray
 
     def __init__(self, bg, settings):
         self.bg = bg
@@ -106,7 +126,7 @@ class FastSystem:
         dyn_groups = lay.dyn_groups()
         ncols = bg.cache.Jp.shape[2]
         self.dyn_map = []     # per group: (global param col array (K,dim), dyn positions)
-        gmaps = {g: [] for g in dyn_groups}
+        gmaps: dict[str, list[np.ndarray]] = {g: [] for g in dyn_groups}
         wcache: dict = {}
         for pi, part in enumerate(bg.parts):
             K = len(part.knots) - 1
@@ -155,7 +175,7 @@ class FastSystem:
         n_meas = sum(len(x.idx) for x in meas)
         # ---- linear factors read from GTSAM; count the factors this form accounts for
         n_custom = 0
-        lin_s = []            # (state index, A (m,6), b (m,))
+        lin_s: list[tuple[int, np.ndarray, np.ndarray]] = []   # (state index, A (m,6), b (m,))
         lin_p_A, lin_p_f = [], []
         for i in range(bg.graph.size()):
             f = bg.graph.at(i)
@@ -199,19 +219,19 @@ class FastSystem:
                 return None
         if n_custom != len(self.d0) + n_meas:
             return None              # a custom factor this form does not know
-        self.lin_s = {}
+        lin_s_rows: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
         for si, A, b in lin_s:
-            self.lin_s.setdefault(A.shape[0], []).append((si, A, b))
+            lin_s_rows.setdefault(A.shape[0], []).append((si, A, b))
         self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
-                          np.array([x[2] for x in v])) for m, v in self.lin_s.items()}
+                          np.array([x[2] for x in v])) for m, v in lin_s_rows.items()}
         self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
         # their residuals come from GTSAM itself (a random walk held by sigma ~1e-8 needs
         # the difference of the values before the whitening, as the factor computes it)
         self.lin_pf = lin_p_f
         # constant parts of the state Hessian: linear unary factors
         self.D_const = np.zeros((self.N, 6, 6))
-        for si, A, _ in self.lin_s.values():
-            np.add.at(self.D_const, si, np.einsum("nji,njl->nil", A, A))
+        for s_idx, A, _ in self.lin_s.values():
+            np.add.at(self.D_const, s_idx, np.einsum("nji,njl->nil", A, A))
         self.Hpp_const = self.lin_pA.T @ self.lin_pA
         # band layout of the block-tridiagonal state matrix (LAPACK lower storage)
         n = 6 * self.N
@@ -219,9 +239,9 @@ class FastSystem:
         src = np.full((12, n), -1, np.int64)
         nD = self.N * 36
         for d in range(12):
-            i = jj + d
-            ok = i < n
-            I, a, J, bb = i // 6, jj % 6, jj // 6, i % 6
+            row = jj + d
+            ok = row < n
+            I, a, J, bb = row // 6, jj % 6, jj // 6, row % 6
             same = ok & (I == J)
             src[d, same] = (J * 36 + bb * 6 + a)[same]
             nxt = ok & (I == J + 1) & (J < self.N - 1)
@@ -284,7 +304,9 @@ class FastSystem:
                 a, b = sl[0], sl[1]
                 if "variable" in lay.names:
                     nd["variable"] = nv[fc.node_key("variable", part.index, j)]
-                pred, Jx, Jp = self._kernels[pi][j](Xp[a:b], lay.full(nd))
+                kernel = self._kernels[pi][j]
+                assert kernel is not None       # a kernel for every segment with a slice
+                pred, Jx, Jp = kernel(Xp[a:b], lay.full(nd))
                 preds.append(pred)
                 Jxs.append(Jx)
                 Jps.append(Jp)
@@ -372,7 +394,7 @@ class FastSystem:
                 Ap[:, :, gc[0]] += WJ
             else:
                 kk = np.repeat(np.arange(K), gc.shape[1])
-                np.add.at(Ap, (kk, slice(None), gc.ravel()),
+                np.add.at(Ap, (kk[:, None], np.arange(6), gc.ravel()[:, None]),
                           WJ.transpose(0, 2, 1).reshape(-1, 6))
         ev["Ap"] = Ap
 
@@ -501,10 +523,10 @@ class FastSystem:
             lut[b] = i
         Gs = np.zeros((self.N, 6, nb))
         for ri, rb, v in zip(rows_s, rows_b, vals_s):
-            np.add.at(Gs, (ri, slice(None), lut[rb]), v)
+            np.add.at(Gs, (ri[:, None], np.arange(6), lut[rb][:, None]), v)
         Gp = np.zeros((self.P, nb))
         for rb, v in zip(pg_b, pg_v):
-            np.add.at(Gp, (slice(None), lut[rb]), v.T)
+            np.add.at(Gp, (np.arange(self.P)[:, None], lut[rb]), v.T)
         cb, Hsp2, _, S = fac
         Gs2 = Gs.reshape(6 * self.N, nb)
         ys = sla.cho_solve_banded((cb, True), Gs2, check_finite=False)
