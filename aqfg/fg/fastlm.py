@@ -564,14 +564,16 @@ def _propagator(model, sl):
     if not model.uses_cpp:
         return lambda X0, p: model.propagate_many(X0, p, steps, offs)
     from aqfg.model.params import N_DYN
-    from aqfg.model.vehicle import _cpp
+    from aqfg.model.vehicle import compiled_kernel
+    cpp = compiled_kernel()
+    assert cpp is not None                      # model.uses_cpp
     g = model.geometry
     args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
             np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
             np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(offs, np.int64),
             np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
             bool(g.planar))
-    kernel = _cpp.propagate_many
+    kernel = cpp.propagate_many
     return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
                                 np.ascontiguousarray(p[:N_DYN], float), *args)
 
