@@ -44,10 +44,13 @@ def _value(result: Result, mr: MissionResult, name: str, default: float = 0.0) -
 
 
 def heading_offset(result: Result, mr: MissionResult, t: np.ndarray, t0: float) -> np.ndarray:
-    """theta_e (+ heading_drift.rate x (t - t0)) of one mission, rad, at times ``t``."""
-    th = _value(result, mr, "theta_e")
-    rate = _value(result, mr, "heading_drift.rate")
-    return th + rate * (np.asarray(t, dtype=float) - t0)
+    """The heading offset (theta_e and the heading effects) of one mission, rad, at times
+    ``t`` (:func:`aqfg.model.frames.heading`)."""
+    from aqfg.model.frames import heading
+    tt = np.asarray(t, dtype=float)
+    if result.model is None:          # no model: theta_e and a drift rate from the values
+        return _value(result, mr, "theta_e") + _value(result, mr, "heading_drift.rate") * (tt - t0)
+    return np.broadcast_to(heading(np.asarray(mr.p, float), tt - t0), tt.shape).astype(float)
 
 
 def orientation(result: Result, mr: MissionResult, mission: Mission, t: np.ndarray

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aqfg.model.frames import heading
 from aqfg.model.params import N_DYN
 from aqfg.model.reference import (
     I_ASYM,
@@ -112,7 +113,7 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
     dd_tau (K, N), tm (K,). Returns a (K, 3), A (K, 3, 3), Jp (K, 3, N_DYN) and the
     heading-corrected attitude R (K, 3, 3); with ``jac=False`` only a and R."""
     K = len(v)
-    th = p[I_TH] + p[I_HDR] * tm
+    th = heading(p, tm)
     R = _rot_z(th) @ R_raw
     s = np.zeros((K, 3))
     s[:, 0] = p[I_SX] + p[I_DSX] * tm
@@ -345,7 +346,7 @@ def rollout(x0: np.ndarray, p: np.ndarray, steps: Steps, offsets: np.ndarray,
         warm_f = True
     del warm_f
     tm = steps.tm.astype(float)
-    th = p[I_TH] + p[I_HDR] * tm
+    th = heading(p, tm)
     R = _rot_z(th) @ steps.R.reshape(-1, 3, 3)
     Rt = np.transpose(R, (0, 2, 1))
     s = np.zeros((n, 3))
