@@ -35,6 +35,7 @@ import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+from aqfg.model.measurements import range_bearing
 
 
 @dataclass
@@ -328,17 +329,12 @@ class FastSystem:
                 J[:, 0, 0] = 1.0 / m.sigma[:, 0]
                 J[:, 1, 1] = 1.0 / m.sigma[:, 1]
             elif m.kind == "usbl":
-                d = x[:, :3] - m.extra
-                rng = np.linalg.norm(d, axis=1)
-                rh2 = d[:, 0] ** 2 + d[:, 1] ** 2
-                h = np.column_stack([rng, np.arctan2(d[:, 1], d[:, 0])])
+                h, Hd = range_bearing(x[:, :3] - m.extra)    # the USBL model's geometry
                 raw = h - m.z
                 raw[:, 1] = fc.wrap_angle(raw[:, 1])
                 r = raw / m.sigma
                 J = np.zeros((len(r), 2, 6))
-                J[:, 0, :3] = d / np.maximum(rng, 1e-9)[:, None]
-                J[:, 1, 0] = -d[:, 1] / np.maximum(rh2, 1e-12)
-                J[:, 1, 1] = d[:, 0] / np.maximum(rh2, 1e-12)
+                J[:, :, :3] = Hd
                 J /= m.sigma[:, :, None]
             else:
                 r = ((x[:, 2] + x[:, 5] * m.extra)[:, None] - m.z) / m.sigma

@@ -28,7 +28,6 @@ from aqfg.model.frames import heading
 from aqfg.model.reference import rot_z
 from aqfg.model.vehicle import Model, attitude_at, demand
 
-
 STRAIGHT_S = 10.0       # s of held course before a sample is judged
 STRAIGHT_DEG = 10.0     # deg, largest heading change over that time
 

@@ -62,6 +62,21 @@ def h_depth(pos: np.ndarray):
     return np.array([pos[2]]), np.array([[0.0, 0.0, 1.0]])
 
 
+def range_bearing(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slant range (m) and bearing (rad, from north, clockwise) of relative positions
+    ``d`` (n, 3) NED, and their derivatives d/dd (n, 2, 3): the geometry of :func:`h_usbl`
+    (vectorised for the batch solver)."""
+    d = np.asarray(d, dtype=float)
+    r = np.linalg.norm(d, axis=1)
+    rh2 = d[:, 0] ** 2 + d[:, 1] ** 2
+    z = np.column_stack([r, np.arctan2(d[:, 1], d[:, 0])])
+    H = np.zeros((len(d), 2, 3))
+    H[:, 0, :] = d / np.maximum(r, 1e-9)[:, None]
+    H[:, 1, 0] = -d[:, 1] / np.maximum(rh2, 1e-12)
+    H[:, 1, 1] = d[:, 0] / np.maximum(rh2, 1e-12)
+    return z, H
+
+
 def h_usbl(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray, station: np.ndarray):
     """USBL model: slant range (m) and bearing (rad, from north, clockwise) of the
     transponder seen from ``station`` (NED), distorted by the USBL terms (range scale,
@@ -70,11 +85,8 @@ def h_usbl(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray, station
     Returns z (2,), d/dpos (2x3), d/dp (2 x N_PARAMS).
     """
     ps, Jx, Jp = sensor_position(pos, R_raw, tm, p)
-    d = ps - np.asarray(station, dtype=float)
-    r = float(np.linalg.norm(d))
-    rh2 = d[0] ** 2 + d[1] ** 2
-    z = np.array([r, np.arctan2(d[1], d[0])])
-    Hd = np.vstack([d / max(r, 1e-9), np.array([-d[1], d[0], 0.0]) / max(rh2, 1e-12)])
+    zz, HH = range_bearing(ps[None, :] - np.asarray(station, dtype=float))
+    z, Hd = zz[0], HH[0]
     Jpos = Hd @ Jx
     Jpp = Hd @ Jp
     for e, sl in USBL_TERMS:
