@@ -92,9 +92,9 @@ def diagnose_op(spec: MissionSpec) -> dict:
             "best": None if best is None else best.effect}
 
 
-def n_sessions() -> int:
-    """How many missions this worker holds (of every run)."""
-    return len(_SESSIONS)
+def n_sessions(vehicle: str | None = None) -> int:
+    """How many missions this worker holds (of every run; of ``vehicle`` only if given)."""
+    return sum(1 for k in _SESSIONS if vehicle is None or k[1] == vehicle)
 
 
 def release(run: str) -> int:
