@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
-import threading
+import time
 
 import numpy as np
 import pytest
@@ -126,13 +126,13 @@ def _assert_joint(fr_res, batch, tol=0.05):
     for n in batch.estimated:
         assert abs(fr_res.values[n] - batch.values[n]) < tol * sm[n], \
             (n, fr_res.values[n], batch.values[n], sm[n])
-        assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
-        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=0.02), n
+        assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=1e-6), n
+        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=1e-6), n
     for m, pm in batch.info["per_mission"].items():
         for n, e in pm.items():
             got = fr_res.info["per_mission"][m][n]
             assert abs(got["value"] - e["value"]) < tol * sm[n]
-            assert got["sigma"] == pytest.approx(e["sigma"], rel=0.02), (m, n)
+            assert got["sigma"] == pytest.approx(e["sigma"], rel=1e-6), (m, n)
 
 
 @pytest.mark.slow
@@ -172,9 +172,9 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
 
 @pytest.mark.slow
 def test_worker_killed_mid_run_is_retried(tmp_path, cluster):
-    """SIGKILL one of the two worker processes during a round: Dask re-runs its tasks, the
-    missions are rebuilt from their paths on the surviving or restarted worker, and the
-    result still equals the joint fit."""
+    """SIGKILL the worker process holding most of this run's missions between two rounds:
+    its missions are served by the surviving or restarted worker (rebuilt from their paths
+    or from a session it holds), and the result still equals the joint fit."""
     paths = _sim_vehicle(tmp_path, (31, 32, 33), 0.9)
     p = write_manifest(tmp_path / "fleet.toml", {"asv-killed": [x.name for x in paths]})
     killed = []
@@ -184,21 +184,33 @@ def test_worker_killed_mid_run_is_retried(tmp_path, cluster):
         return worker.n_sessions("asv-killed")     # not stale ones of other tests
 
     def progress(frac, msg):
-        if not killed and msg.startswith("round ") and "missions done" in msg \
-                and int(msg.split()[1].rstrip(":")) >= 6:
-            held = cluster.run(holds_missions)
-            if not any(held.values()):
-                return                                   # between runs' sessions: later
-            pids = cluster.run(os.getpid)
-            pid = pids[max(held, key=held.get)]          # a worker that holds missions
-            killed.append(pid)
-            threading.Timer(0.05, os.kill, (pid, signal.SIGKILL)).start()
+        # at the end of round 6 or later (every mission's session built and in use), the
+        # worker holding the most missions is killed before the next round is sent
+        if killed or not msg.startswith("round ") or "missions done" not in msg:
+            return
+        words = msg.split()
+        done, total = words[2].split("/")
+        if int(words[1].rstrip(":")) < 6 or done != total:
+            return
+        held = cluster.run(holds_missions)
+        if not any(held.values()):
+            return
+        pids = cluster.run(os.getpid)
+        addr = max(held, key=held.get)
+        killed.append((pids[addr], held[addr], dict(held)))
+        os.kill(pids[addr], signal.SIGKILL)
+        t_end = time.monotonic() + 30.0
+        while (pids[addr] in cluster.run(os.getpid, on_error="ignore").values()
+               and time.monotonic() < t_end):
+            time.sleep(0.1)
     # after a rebuild the iterates leave the batch's path, so both are run to tight
     # tolerances (the default stopping rule leaves up to ~0.1 sigma between two paths)
     tight = FGSettings(rel_tol=1e-12, abs_tol=1e-9)
     fr = fit_fleet(load_manifest(p), cluster, settings=tight, progress=progress, timeout=120)
-    assert killed and killed[0] not in cluster.run(os.getpid).values()
-    assert fr.stats["rebuilt"] >= 1, fr.stats
+    assert killed and killed[0][1] >= 1, killed           # it held missions of this run
+    assert killed[0][0] not in cluster.run(os.getpid).values()
+    # (stats["rebuilt"] is not asserted: a mission may be served by a worker that still
+    # holds an older session of it, which re-solves from the current fixed parameters)
     batch = BatchSmoother(settings=tight).run([load_mission(x) for x in paths])
     _assert_joint(fr.results["asv-killed"], batch)
 

@@ -347,7 +347,10 @@ class BatchSmoother:
         for part in parts:
             t_first = float(part.knots[0])
             key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
-            shift += float(part.knots[-1]) - t_first + 2.0 * (s.sandwich_block or 1.0)
+            # next mission from a block boundary: its blocks start at its own start, as in
+            # the fleet's per-mission solve (aqfg.fg.schur)
+            b = s.sandwich_block or 1.0
+            shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
         if out.fast is not None:
             assert fs is not None           # the numpy path ran: its system was built
             cov_model, cov_sw = _fast_covariance(fs, out.fast, node_list, layout, key_time, s)
