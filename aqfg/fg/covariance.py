@@ -18,6 +18,8 @@ the sandwich's, instead of every fit drawing a random inflation.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 import scipy.sparse as sp
@@ -27,19 +29,24 @@ from scipy.stats import chi2
 SANDWICH_ALPHA = 0.05
 
 
-def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int]],
-                   key_time: dict[int, float], param_keys: list[int], block: float
-                   ) -> tuple[dict[int, np.ndarray], int] | None:
-    """Sandwich covariance of the ``param_keys`` blocks of a linearised graph.
+@dataclass
+class BlockGradients:
+    """The whitened linear system ``A x = b`` of a linearised graph (columns in sorted key
+    order, ``col0[key]`` the first of each key), and the gradient of the cost contributed
+    by each time block ``G[:, j] = A_j^T b_j`` (n x len(ids)) over the rows of factors
+    touching a state; ``ids``: the block numbers that hold rows, counted from ``t0``."""
+    A: sp.csr_matrix
+    col0: dict[int, int]
+    G: np.ndarray
+    ids: np.ndarray
 
-    ``key_dims``: (key, dim) of every variable; ``key_time``: time (s) of the state keys;
-    factors touching no state key (priors on parameters) are left out of the meat;
-    ``block``: length (s) of the time blocks. Returns the covariances and the degrees of
-    freedom ``B - n_p`` of the estimate; None when there are too few blocks.
-    """
-    order = sorted(key_dims)
+
+def block_gradients(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int]],
+                    key_time: dict[int, float], t0: float, block: float) -> BlockGradients:
+    """Per-block score gradients of a linearised graph (the sandwich's meat, before any
+    solve): a factor's rows belong to the block of the newest state it touches."""
     col0, c = {}, 0
-    for k, d in order:
+    for k, d in sorted(key_dims):
         col0[k] = c
         c += d
     n = c
@@ -52,8 +59,6 @@ def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int
     b = np.zeros(m)
     b[rows[is_b]] = vals[is_b]
     A = sp.csr_matrix((vals[~is_b], (rows[~is_b], cols[~is_b])), shape=(m, n))
-    # block of every row, from the factor it belongs to
-    t0 = min(key_time.values())
     row_block = np.full(m, -1, np.int64)
     r = 0
     for i in range(gfg.size()):
@@ -68,27 +73,38 @@ def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int
         r += nr
     keep = row_block >= 0
     ids, local = np.unique(row_block[keep], return_inverse=True)   # blocks holding rows
-    row_block[keep] = local
-    nb = len(ids)
+    nk = int(keep.sum())
+    Ab = A.multiply(b[:, None]).tocsr()[keep]
+    onehot = sp.csr_matrix((np.ones(nk), (np.arange(nk), local)), shape=(nk, len(ids)))
+    return BlockGradients(A, col0, (Ab.T @ onehot).toarray(), ids)
+
+
+def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int]],
+                   key_time: dict[int, float], param_keys: list[int], block: float
+                   ) -> tuple[dict[int, np.ndarray], int] | None:
+    """Sandwich covariance of the ``param_keys`` blocks of a linearised graph.
+
+    ``key_dims``: (key, dim) of every variable; ``key_time``: time (s) of the state keys;
+    factors touching no state key (priors on parameters) are left out of the meat;
+    ``block``: length (s) of the time blocks. Returns the covariances and the degrees of
+    freedom ``B - n_p`` of the estimate; None when there are too few blocks.
+    """
+    bg = block_gradients(gfg, key_dims, key_time, min(key_time.values()), block)
+    nb = len(bg.ids)
     n_p = sum(d for k, d in key_dims if k in set(param_keys))
     if nb < n_p + 2:
         return None
-    # per-block gradient g_b = A_b^T b_b (n x nb)
-    Ab = A.multiply(b[:, None]).tocsr()[keep]
-    onehot = sp.csr_matrix((np.ones(int(keep.sum())), (np.arange(int(keep.sum())), row_block[keep])),
-                           shape=(int(keep.sum()), nb))
-    G = (Ab.T @ onehot).toarray()
-    H = (A.T @ A).tocsc()
+    H = (bg.A.T @ bg.A).tocsc()
     try:
         lu = spla.splu(H, permc_spec="COLAMD")
-        Z = lu.solve(G)
+        Z = lu.solve(bg.G)
     except RuntimeError:
         return None
     scale = nb / max(nb - n_p, 1)
     out = {}
+    dims = dict(key_dims)
     for k in param_keys:
-        d = dict(key_dims)[k]
-        zk = Z[col0[k]:col0[k] + d]
+        zk = Z[bg.col0[k]:bg.col0[k] + dims[k]]
         zk = zk - zk.mean(axis=1, keepdims=True)
         out[k] = scale * zk @ zk.T
     return out, nb - n_p

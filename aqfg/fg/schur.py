@@ -240,40 +240,13 @@ class MissionProblem:
         :meth:`result`, the rows of ``H_ll^-1 g_l`` and ``H_ll^-1 H_lf`` of its parameter
         nodes. With ``Z_f = S^-1 sum gt`` (all missions), ``Z = H^-1 G`` of the joint
         system is ``Z_f`` on the fixed node and ``H_ll^-1 (g_l - H_lf Z_f)`` here."""
-        import scipy.sparse as sp
         import scipy.sparse.linalg as spla
-        order = sorted(self.key_dims)
-        col0, c = {}, 0
-        for k, d in order:
-            col0[k] = c
-            c += d
-        n = c
-        ij = gfg.sparseJacobian_()
-        rows, cols, vals = ij[0].astype(np.int64) - 1, ij[1].astype(np.int64) - 1, ij[2]
-        is_b = cols == n
-        m = int(rows.max()) + 1
-        b = np.zeros(m)
-        b[rows[is_b]] = vals[is_b]
-        A = sp.csr_matrix((vals[~is_b], (rows[~is_b], cols[~is_b])), shape=(m, n))
+
+        from aqfg.fg.covariance import block_gradients
         key_time = {k: float(t) for k, t in zip(self.bg.parts[0].keys, self.bg.parts[0].knots)}
-        row_block = np.full(m, -1, np.int64)
-        r = 0
-        for i in range(gfg.size()):
-            f = gfg.at(i)
-            if f is None:
-                continue
-            assert isinstance(f, (gtsam.JacobianFactor, gtsam.HessianFactor))
-            nr = f.rows()
-            ts = [key_time[k] for k in f.keys() if k in key_time]
-            if ts:
-                row_block[r:r + nr] = int((max(ts) - t0) // block)
-            r += nr
-        keep = row_block >= 0
-        ids, local = np.unique(row_block[keep], return_inverse=True)
-        Ab = A.multiply(b[:, None]).tocsr()[keep]
-        onehot = sp.csr_matrix((np.ones(int(keep.sum())), (np.arange(int(keep.sum())), local)),
-                               shape=(int(keep.sum()), len(ids)))
-        G = (Ab.T @ onehot).toarray()                      # n x blocks
+        bgr = block_gradients(gfg, self.key_dims, key_time, t0, block)
+        A, col0, G, ids = bgr.A, bgr.col0, bgr.G, bgr.ids
+        n = A.shape[1]
         H = (A.T @ A).tocsc()
         fc_ = np.arange(col0[FIXED], col0[FIXED] + self.dim) if self.dim else np.zeros(0, int)
         lc = np.setdiff1d(np.arange(n), fc_)
