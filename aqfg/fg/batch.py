@@ -12,7 +12,7 @@ with Levenberg-Marquardt driven from Python:
 * a METIS ordering is computed once; the parameter marginal covariances come from the Bayes
   tree of the final elimination;
 * Marquardt's diagonal damping (lambda diag(J^T J)), not lambda I, and a closed-form initial
-  heading/current (:func:`initial_guess`).
+  heading/current searched over the thrust/drag scale (:func:`aqfg.fg.init.candidate_starts`).
 
 What each of these buys, measured: docs/architecture.md, "Measurements (design decisions)".
 """
