@@ -174,6 +174,15 @@ class GroundForceTerm(Effect):
         """d a/d v (3x3), d a/d q (3, nq) and d a/d theta (3,) (a turn of ``R`` about down)."""
         from aqfg.model.frames import rot_z
         f = self.ground_accel
+        Jv, Jq = self.central_differences(v, R, d, tm, q, eps)
+        Jth = (f(v, rot_z(eps) @ R, d, tm, q) - f(v, rot_z(-eps) @ R, d, tm, q)) / (2 * eps)
+        return Jv, Jq, Jth
+
+    def central_differences(self, v: np.ndarray, R: np.ndarray, d: np.ndarray, tm: float,
+                            q: np.ndarray, eps: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+        """d a/d v (3x3) and d a/d q (3, nq) of :meth:`ground_accel` by central differences
+        (steps ``eps``, relative to ``|q_i|`` above 1)."""
+        f = self.ground_accel
         Jv = np.zeros((3, 3))
         for i in range(3):
             e = np.zeros(3); e[i] = eps
@@ -183,8 +192,7 @@ class GroundForceTerm(Effect):
         for i in range(len(q)):
             e = np.zeros(len(q)); e[i] = eps * max(1.0, abs(q[i]))
             Jq[:, i] = (f(v, R, d, tm, q + e) - f(v, R, d, tm, q - e)) / (2 * e[i])
-        Jth = (f(v, rot_z(eps) @ R, d, tm, q) - f(v, rot_z(-eps) @ R, d, tm, q)) / (2 * eps)
-        return Jv, Jq, Jth
+        return Jv, Jq
 
 
 class SensorOffsetTerm(Effect):
@@ -460,17 +468,7 @@ class UserEffect(GroundForceTerm):
                                   np.asarray(d, float)[None], np.array([tm], float), q)
                 return np.asarray(Jv)[0], np.asarray(Jq)[0]
             return self.jac(v, R, d, tm, q)
-        f = self.sample_accel
-        Jv = np.zeros((3, 3))
-        for i in range(3):
-            e = np.zeros(3); e[i] = eps
-            Jv[:, i] = (f(v + e, R, d, tm, q) - f(v - e, R, d, tm, q)) / (2 * eps)
-        q = np.asarray(q, dtype=float)
-        Jq = np.zeros((3, len(q)))
-        for i in range(len(q)):
-            e = np.zeros(len(q)); e[i] = eps * max(1.0, abs(q[i]))
-            Jq[:, i] = (f(v, R, d, tm, q + e) - f(v, R, d, tm, q - e)) / (2 * e[i])
-        return Jv, Jq
+        return self.central_differences(v, R, d, tm, q, eps)   # ground_accel = sample_accel
 
 
 def resolve(effect: str | Effect) -> Effect:
