@@ -84,6 +84,29 @@ def test_same_cost_gradient_hessian(missions, walk):
                 values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
 
 
+def test_process_scale_and_evidence(missions):
+    """The process-noise factor scales the horizontal axes' noise of a planar vehicle
+    (W^T W = (D Q D)^-1) and the log evidence is -cost - n/2 log q - 1/2 log det H of the
+    dense Gauss-Newton Hessian."""
+    st = FGSettings()
+    bg = BatchSmoother(settings=st).build(missions[:1])
+    fs = FastSystem.build(bg, st)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    q = 4.0
+    fs.set_process_scale(q)
+    d = np.sqrt(np.array([q, q, 1.0, q, q, 1.0]))
+    dt = float(bg.parts[0].knots[1] - bg.parts[0].knots[0])
+    Q = st.process.cov(dt, True)
+    assert np.allclose(fs.WtW[0], np.linalg.inv(d[:, None] * Q * d[None, :]), rtol=1e-9)
+    ev = fs.evaluate(X, th)
+    D, E, Hsp, Hpp, _, _ = fs.normal(ev)
+    ld = np.linalg.slogdet(dense(fs, D, E, Hsp, Hpp))[1]
+    n_q = 4 * len(fs.d0)
+    assert fs.log_evidence(ev) == pytest.approx(-ev["cost"] - 0.5 * n_q * np.log(q) - 0.5 * ld,
+                                                rel=1e-9)
+
+
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
     b = fit_fg(missions, settings=FGSettings(fast_lm=False))

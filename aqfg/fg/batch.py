@@ -28,7 +28,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
-from aqfg.fg import observability, plausibility
+from aqfg.fg import noise, observability, plausibility
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -327,6 +327,14 @@ class BatchSmoother:
         ordering = None if fs is not None else \
             gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
         out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
+        q_scale, q_tried = 1.0, dict[float, float]()
+        if s.adapt_batch and fs is not None and out.fast is not None:
+            # how much process noise the model needs (aqfg.fg.noise): a model that is not
+            # the vehicle's bends the parameters under the nominal noise
+            X0, th0 = fs.from_values(out.values)
+            q_scale, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
+            if q_scale != 1.0:
+                out = _finish_fast(fs, out, Xq, thq, s)
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
@@ -398,6 +406,8 @@ class BatchSmoother:
         if self.log_warnings:
             for w in res.info["warnings"]:
                 log.warning("fg: %s", w)
+        res.info["process_noise_scale"] = q_scale
+        res.info["process_noise_evidence"] = q_tried
         res.info.update({"iterations": n_it, "trials": n_trials, "converged": converged,
                          "cost": float(err), "n_states": sum(len(p.keys) for p in parts),
                          "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp
@@ -572,6 +582,16 @@ def _fast_covariance(fs: FastSystem, ev: dict, node_list, layout, key_time, s: F
         cov[k] = C[o:o + d, o:o + d].copy()
     sw = fs.sandwich(ev, fac, key_time, s.sandwich_block) if s.sandwich_block else None
     return cov, sw
+
+
+def _finish_fast(fs: FastSystem, prev: LMOutcome, X: np.ndarray, th: np.ndarray,
+                 s: FGSettings) -> LMOutcome:
+    """LM on the numpy system from ``(X, th)`` to convergence (after the process-noise
+    factor changed); iteration counts and times add to ``prev``'s."""
+    X, th, cost, ev, n_it, n_trials, conv, it_times = levenberg_marquardt_fast(
+        fs, None, s, start=(X, th))
+    return LMOutcome(fs.to_values(X, th, prev.values), cost, None, prev.iterations + n_it,
+                     prev.trials + n_trials, conv, prev.it_times + it_times, ev)
 
 
 def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,

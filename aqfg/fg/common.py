@@ -38,6 +38,12 @@ class FGSettings:
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
         (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
+    adapt_batch: the batch chooses the process-noise variance factor by its evidence
+        (:func:`aqfg.fg.noise.evidence_search`). Off by default: over a whole mission the
+        nominal noise gave the better estimates and a larger one freed degenerate solutions;
+        on for the online re-initialisations, which solve a short stretch of data where the
+        tight noise turned the model's error into a confident heading error
+        (docs/independent-vehicle.md).
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -60,6 +66,7 @@ class FGSettings:
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0
     adapt_process: bool = True
+    adapt_batch: bool = False
     online_init_after: float = 20.0
     online_reinit_until: float = 960.0
     adapt_window: int = 10

@@ -88,6 +88,11 @@ class ProcessNoise:
         Q[3:, 3:] = (s2 * dt + dt * self.vel_rate ** 2) * I3
         return Q
 
+    def scaled(self, factor: float) -> ProcessNoise:
+        """The same noise with every variance times ``factor``."""
+        r = float(np.sqrt(factor))
+        return ProcessNoise(self.sigma_a * r, self.pos_rate * r, self.vel_rate * r)
+
     def noise_model(self, dt: float, planar: bool = False, scale: float = 1.0
                     ) -> gtsam.noiseModel.Base:
         """Gaussian noise model of :meth:`cov` times ``scale`` (a variance factor)."""

@@ -68,8 +68,10 @@ class FastSystem:
     """
 
     # set by :meth:`build`
-    dyn_map: list
-    W: np.ndarray                 # (K, 6, 6) dynamics whitening per interval
+    W0: np.ndarray                # (K, 6, 6) nominal dynamics whitening per interval
+    W: np.ndarray                 # (K, 6, 6) the same, process-noise factor q applied
+    q: float
+    q_axes: np.ndarray            # (K, 6) 1 where q scales the noise
     WtW: np.ndarray               # (K, 6, 6) ``W^T W``
     d0: np.ndarray                # (K,) state index of each interval's first knot
     gcols: dict[str, np.ndarray]  # per dynamics group: (K, dim) parameter columns
@@ -123,10 +125,9 @@ class FastSystem:
             return None
         self = cls(bg, settings)
         # ---- dynamics: whitening and parameter columns per interval
-        W, idx0 = [], []
+        W, idx0, hz = [], [], []
         dyn_groups = lay.dyn_groups()
         ncols = bg.cache.Jp.shape[2]
-        self.dyn_map = []     # per group: (global param col array (K,dim), dyn positions)
         gmaps: dict[str, list[np.ndarray]] = {g: [] for g in dyn_groups}
         wcache: dict = {}
         for pi, part in enumerate(bg.parts):
@@ -138,14 +139,19 @@ class FastSystem:
                     # noise model of the first interval of that length, as the graph's
                     wcache[key] = settings.process.noise_model(dt, part.mission.planar).R()
                 W.append(wcache[key])
+                hz.append(part.mission.planar)
                 idx0.append(self.part_off[pi] + i)
                 for g in dyn_groups:
                     k = fc.node_key(g, part.index, int(part.seg_of[i])) if g != "fixed" \
                         else fc.node_key("fixed")
                     o, d = self.node_off[k]
                     gmaps[g].append(np.arange(o, o + d))
-        self.W = np.array(W).reshape(-1, 6, 6)
-        self.WtW = np.einsum("kji,kjl->kil", self.W, self.W)
+        self.W0 = np.array(W).reshape(-1, 6, 6)
+        # axes the process-noise factor scales: the horizontal ones of a planar vehicle
+        # (its vertical axis is held by the surface constraint), all of others
+        self.q_axes = np.ones((len(idx0), 6))
+        self.q_axes[np.array(hz, bool)[:, None] & (np.arange(6) % 3 == 2)[None, :]] = 0.0
+        self.set_process_scale(1.0)
         self.d0 = np.array(idx0, int)
         self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
         self.ncols = ncols
@@ -255,6 +261,30 @@ class FastSystem:
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         return self
+
+    def set_process_scale(self, q: float) -> None:
+        """Every dynamics factor's process-noise variance times ``q`` on the scaled axes
+        (:mod:`aqfg.fg.noise`): ``W = W0 D^-1`` with ``D = diag(sqrt q)`` there, so
+        ``W^T W = (D Q D)^-1``."""
+        self.q = float(q)
+        self.W = self.W0 * (self.q ** (-0.5 * self.q_axes))[:, None, :]
+        self.WtW = np.einsum("kji,kjl->kil", self.W, self.W)
+
+    def log_evidence(self, ev: dict) -> float:
+        """Laplace approximation of the log marginal likelihood of the measurements at the
+        solution ``ev`` (up to a constant independent of the process-noise factor):
+        ``-cost - 1/2 log det(q Q) - 1/2 log det H``, H the Gauss-Newton Hessian.
+        -inf when H is not positive definite."""
+        D, E, Hsp, Hpp, _, _ = self.normal(ev)
+        try:
+            cb, _, _, S = self.factor(D, E, Hsp, Hpp)
+            ld = 2.0 * float(np.sum(np.log(cb[0])))
+            if self.P:
+                ld += 2.0 * float(np.sum(np.log(np.diag(np.linalg.cholesky(S)))))
+        except (np.linalg.LinAlgError, ValueError):
+            return -np.inf
+        n_q = float(np.sum(self.q_axes))
+        return -ev["cost"] - 0.5 * n_q * np.log(self.q) - 0.5 * ld
 
     # ------------------------------------------------------------------ values
     def from_values(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
@@ -574,20 +604,27 @@ def _propagator(model, sl):
                                 np.ascontiguousarray(p[:N_DYN], float), *args)
 
 
-def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values, s, progress=None):
+def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, progress=None,
+                             start: tuple[np.ndarray, np.ndarray] | None = None,
+                             max_iterations: int | None = None):
     """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
     (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
     accepted step and x10 after a rejected one, the active set of the parameter bounds, the
     same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
-    iteration times)."""
+    iteration times). ``start``: (X, th) instead of ``values``; ``max_iterations``: instead
+    of the settings'."""
     import time
-    X, th = fs.from_values(values)
+    if start is not None:
+        X, th = start
+    else:
+        assert values is not None, "values or start"
+        X, th = fs.from_values(values)
     ev = fs.evaluate(X, th)
     err = ev["cost"]
     lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
     converged = False
     key_slices = [(o, d) for o, d in fs.node_off.values()]
-    for it in range(s.max_iterations):
+    for it in range(s.max_iterations if max_iterations is None else max_iterations):
         t_it = time.perf_counter()
         D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
         hs = np.einsum("nii->ni", D)

@@ -31,6 +31,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
+from aqfg.fg import noise
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -178,7 +179,9 @@ class FixedLagSmoother:
         self._hold_idx: list[int] = []             # factor indices of the hold priors
         self._last_new_idx: list[int] = []
         self._last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
-        self.q_scale = 1.0                         # process-noise variance factor (adaptive)
+        if not replaying:
+            self._q_floor = 1.0                    # the last re-initialisation batch's factor
+        self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
         self._innov: list[float] = []              # normalised squared fix innovations
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
@@ -427,7 +430,8 @@ class FixedLagSmoother:
                    {n: float(p[self.model.index(n)]) for n in self.layout.estimated})
             bs = BatchSmoother(self.base_model, effects=self.effects,
                                estimate=self.layout.estimated, init=self.init,
-                               settings=replace(self.settings, online_init_after=0.0),
+                               settings=replace(self.settings, online_init_after=0.0,
+                                                adapt_batch=True),
                                also_start=own)
             bs.log_warnings = False
             bres = bs.run([view])
@@ -437,6 +441,10 @@ class FixedLagSmoother:
             if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
                 self._release(t_fix)
             return None
+        # the process noise this model needs, measured on all the fixes so far, is the
+        # floor of the online factor from here (aqfg.fg.noise)
+        self._q_floor = float(bres.info.get("process_noise_scale", 1.0))
+        self.q_scale = max(self.q_scale, self._q_floor)
         th_b = bres.values["theta_e"]
         gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         held = bool(self._hold_idx)
@@ -543,15 +551,13 @@ class FixedLagSmoother:
 
     # ---------------------------------------------------------------- robustness
     def _adapt(self, t_fix: float, dt: float, x_pred: np.ndarray) -> None:
-        """Adapt the process-noise variance factor to how well the model predicts the fixes.
-
-        The innovation ``e`` of a fix against the model's prediction from the previous
-        fix has variance ``q_scale Q_pos(dt) + 2 R`` per horizontal axis (prediction,
-        previous fix's uncertainty ~ R, this fix's R). The factor is the median over the
-        last ``adapt_window`` fixes of ``(|e|^2 / 2 - 2 R) / Q_pos(dt)``, never below 1:
-        a model that explains the fixes keeps its nominal noise; one that does not lets the
-        fixes pull the track (a wrong model then costs accuracy gracefully, towards a
-        kinematic smoother, instead of dragging the track off the fixes)."""
+        """Adapt the process-noise variance factor to how well the model predicts the fixes:
+        :func:`aqfg.fg.noise.variance_factor` of the normalised excesses of the last
+        ``adapt_window`` fix innovations (the model's prediction from the previous fix),
+        never below the last re-initialisation batch's factor. A model that explains the
+        fixes keeps its nominal noise; one that does not lets the fixes pull the track (a
+        wrong model then costs accuracy gracefully, towards a kinematic smoother, instead
+        of dragging the track off the fixes)."""
         s = self.settings
         t, pos, var = self._fixes
         i = np.searchsorted(t, t_fix - 1e-6)
@@ -561,14 +567,9 @@ class FixedLagSmoother:
         q = float(s.process.cov(dt, self.mission.planar)[0, 0])
         if not (np.isfinite(e2) and np.isfinite(var[i]) and q > 0):
             return
-        self._innov.append(max(e2 / 2.0 - 2.0 * var[i], 0.0) / q)
-        recent = self._innov[-s.adapt_window:]
-        if len(recent) >= 3:
-            target = float(np.clip(np.median(recent), 1.0, s.adapt_max))
-            # quantised (factors of sqrt 2) so that noise models are shared
-            new = float(2.0 ** (np.round(2.0 * np.log2(target)) / 2.0))
-            if new != self.q_scale:
-                self.q_scale = new
+        self._innov.append(float(noise.excess(e2, var[i], q)))
+        self.q_scale = max(noise.variance_factor(self._innov[-s.adapt_window:], s),
+                           self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:
         """``smoother.update`` that survives GTSAM's failures (indeterminate systems after
