@@ -38,6 +38,11 @@ class FGSettings:
     adapt_process, adapt_window, adapt_max: online, the process-noise variance factor
         follows the median normalised fix innovation of the last ``adapt_window`` fixes
         (at least 1, at most ``adapt_max``; :class:`~aqfg.fg.fixed_lag.FixedLagSmoother`).
+        ``adapt_max`` bounds the unmodelled acceleration a vehicle can have: 256 x the
+        nominal variance is a white acceleration of 0.32 m/s^2/sqrt(Hz), the order of a
+        small vehicle's own acceleration; beyond it the noise stops describing the model's
+        error and makes the newest velocity follow the fixes' noise (a USBL fix 0.5 s
+        after a GNSS fix set velocities of 5 m/s; docs/independent-vehicle.md).
     adapt_batch: the batch chooses the process-noise variance factor by its evidence
         (:func:`aqfg.fg.noise.evidence_search`). Off by default: over a whole mission the
         nominal noise gave the better estimates and a larger one freed degenerate solutions;
@@ -70,7 +75,7 @@ class FGSettings:
     online_init_after: float = 20.0
     online_reinit_until: float = 960.0
     adapt_window: int = 10
-    adapt_max: float = 1e4
+    adapt_max: float = 256.0
     process: fc.ProcessNoise = field(default_factory=fc.ProcessNoise)
     sensors: fc.SensorNoise = field(default_factory=fc.SensorNoise)
     prior_scale: float = 3.0

@@ -182,7 +182,7 @@ class FixedLagSmoother:
         if not replaying:
             self._q_floor = 1.0                    # the last re-initialisation batch's factor
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
-        self._innov: list[float] = []              # normalised squared fix innovations
+        self._innov: list[tuple[float, float, float]] = []   # fix innovations (e2, R, Q_pos)
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
         self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
@@ -552,8 +552,8 @@ class FixedLagSmoother:
     # ---------------------------------------------------------------- robustness
     def _adapt(self, t_fix: float, dt: float, x_pred: np.ndarray) -> None:
         """Adapt the process-noise variance factor to how well the model predicts the fixes:
-        :func:`aqfg.fg.noise.variance_factor` of the normalised excesses of the last
-        ``adapt_window`` fix innovations (the model's prediction from the previous fix),
+        :func:`aqfg.fg.noise.variance_factor` of the last ``adapt_window`` fix
+        innovations (the model's prediction from the previous fix),
         never below the last re-initialisation batch's factor. A model that explains the
         fixes keeps its nominal noise; one that does not lets the fixes pull the track (a
         wrong model then costs accuracy gracefully, towards a kinematic smoother, instead
@@ -567,8 +567,9 @@ class FixedLagSmoother:
         q = float(s.process.cov(dt, self.mission.planar)[0, 0])
         if not (np.isfinite(e2) and np.isfinite(var[i]) and q > 0):
             return
-        self._innov.append(float(noise.excess(e2, var[i], q)))
-        self.q_scale = max(noise.variance_factor(self._innov[-s.adapt_window:], s),
+        self._innov.append((e2, float(var[i]), q))
+        recent = np.array(self._innov[-s.adapt_window:])
+        self.q_scale = max(noise.variance_factor(recent[:, 0], recent[:, 1], recent[:, 2], s),
                            self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:

@@ -20,30 +20,52 @@ import numpy.typing as npt
 from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 
+LR_CHI2_1 = 3.841           # chi-square(1) 95 % quantile
 
-def excess(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike) -> np.ndarray:
-    """Normalised excess of fix innovations: ``max(|e|^2 / 2 - 2 R, 0) / Q_pos(dt)``.
 
-    ``e2`` squared horizontal innovation (m^2) of a fix against the model's prediction
+def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
+                    settings: FGSettings, min_count: int = 3) -> float:
+    """The process-noise variance factor ``q`` that best explains fix innovations, by
+    maximum likelihood on a grid of powers of sqrt 2 in ``[1, settings.adapt_max]`` (so
+    that noise models can be shared).
+
+    ``e2`` squared horizontal innovation (m^2) of each fix against the model's prediction
     from the previous fix, ``var`` the fix's per-axis variance R (m^2), ``q_pos`` the
-    nominal process noise's per-axis position variance over the interval (m^2). The
-    innovation's per-axis variance is ``q Q_pos + 2 R`` (prediction, the previous fix's
-    uncertainty ~ R, this fix's R), so each value estimates the variance factor ``q``.
+    nominal process noise's per-axis position variance over the interval (m^2). Each axis
+    of an innovation has variance ``v = q Q_pos + 2 R`` (prediction, the previous fix's
+    uncertainty ~ R, this fix's R), so ``u = e2 / v`` is chi-square with 2 degrees of
+    freedom; the likelihood is pooled over the fixes (a short interval, whose innovation
+    is mostly the fixes' own noise, weighs little; a per-fix statistic such as a median of
+    ``(e2 / 2 - 2 R) / Q_pos`` was dominated by such intervals), with ``u`` Huberised
+    beyond its 99 % quantile. 1 with fewer than
+    ``min_count`` usable fixes, and 1 unless the best factor is significantly more likely.
     """
-    e2, var, q_pos = (np.asarray(a, float) for a in (e2, var, q_pos))
-    return np.maximum(e2 / 2.0 - 2.0 * var, 0.0) / np.maximum(q_pos, 1e-300)
-
-
-def variance_factor(values: npt.ArrayLike, settings: FGSettings, min_count: int = 3) -> float:
-    """The process-noise variance factor from normalised excesses (:func:`excess`): their
-    median, at least 1 and at most ``settings.adapt_max``, quantised to powers of sqrt 2
-    (so noise models can be shared); 1 with fewer than ``min_count`` finite values."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if len(v) < min_count:
+    ea, va, qa = (np.asarray(a, float).ravel() for a in (e2, var, q_pos))
+    ok = np.isfinite(ea) & np.isfinite(va) & np.isfinite(qa) & (qa > 0)
+    ea, va, qa = ea[ok], va[ok], qa[ok]
+    if len(ea) < min_count:
         return 1.0
-    target = float(np.clip(np.median(v), 1.0, settings.adapt_max))
-    return float(2.0 ** (np.round(2.0 * np.log2(target)) / 2.0))
+    n = int(np.floor(2.0 * np.log2(max(settings.adapt_max, 1.0)))) + 1
+    grid = 2.0 ** (np.arange(n) / 2.0)
+    v = grid[:, None] * qa[None, :] + 2.0 * va[None, :]
+    u = ea[None, :] / v
+    k = 9.21                                   # chi-square(2) 99 % quantile
+    # a fix that not even the largest factor explains is an outlier of the fix, not the
+    # model's error: left out (Huberised, a few outlying USBL fixes on a simulated AUV
+    # raised q to the bound; clipped, large model errors kept q at 1) -- when they are a
+    # minority: otherwise the model is what fails, and q is the bound
+    keep = u[-1] <= k
+    if keep.sum() < max(min_count, 0.5 * len(keep)):
+        return float(grid[-1])
+    u, v = u[:, keep], v[:, keep]
+    rho = np.where(u <= k, u, 2.0 * np.sqrt(k * u) - k)
+    nll = np.sum(0.5 * rho + np.log(v), axis=1)
+    j = int(np.argmin(nll))
+    # the nominal noise stays unless a larger one explains the innovations significantly
+    # better (likelihood ratio, chi-square(1) at 5 %): with the fixes' own noise much
+    # larger than the model's over an interval, ten innovations barely inform q, and the
+    # plain maximum drew factors of 30-90 on a model that is the vehicle
+    return float(grid[j]) if nll[0] - nll[j] > 0.5 * LR_CHI2_1 else 1.0
 
 
 def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
