@@ -181,6 +181,8 @@ class FixedLagSmoother:
         self._last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
         if not replaying:
             self._q_floor = 1.0                    # the last re-initialisation batch's factor
+            self._inflation: dict[str, float] = {}   # sigma reported / marginal, per name
+            self._raw_sigma: dict[str, float] = {}   # the latest marginal sigma per name
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
         self._innov: list[tuple[float, float, float]] = []   # fix innovations (e2, R, Q_pos)
         self._fixes = robust_fix_table(mission, s)
@@ -301,6 +303,7 @@ class FixedLagSmoother:
                 raise ValueError("no fix left to process")
             t_fix = float(self.fix_t[self.n_fix])
         self._t_call = time.perf_counter()
+        self._ev_mark = len(self.events)
         t_last = self.knots[-1]
         if t_fix <= t_last + 1e-9:
             raise ValueError(f"fix time {t_fix} s is not after the last processed time {t_last} s")
@@ -374,7 +377,20 @@ class FixedLagSmoother:
         info = self._update(graph, vals, stamps, t_fix, len(new_t))
         if self._reinit_due(t_fix):
             info = self._reinitialise(t_fix) or info
+        elif self._troubled(t_fix):
+            info = self._reinitialise(t_fix, force=True) or info
         return info
+
+    def _troubled(self, t_fix: float) -> bool:
+        """This update skipped its fix, saw the model's prediction diverge or needed a
+        restart with broad priors, and no
+        forced re-initialisation ran in the last 30 s: the smoother's own recoveries are not
+        enough (a track that ran to 1e7 m after a failed release), so the fixes so far are
+        solved as a batch and replayed."""
+        bad = any(e["event"] in ("fix skipped", "prediction diverged", "restarted (broad priors)")
+                  for e in self.events[self._ev_mark:])
+        return (bad and self.n_fix >= 6 and "theta_e" not in self.init
+                and t_fix - getattr(self, "_forced_at", -np.inf) >= 30.0)
 
     # ---------------------------------------------------------------- causal initialisation
     def _reinit_scheduled(self) -> bool:
@@ -406,10 +422,11 @@ class FixedLagSmoother:
                                 "error": (str(exc).strip().splitlines() or [""])[0]})
             self._restart(t_fix)
 
-    def _reinitialise(self, t_fix: float) -> UpdateInfo | None:
+    def _reinitialise(self, t_fix: float, force: bool = False) -> UpdateInfo | None:
         """Solve the fixes so far as a batch (global heading start, :mod:`aqfg.fg.batch`).
-        If its heading offset disagrees with the smoother's by more than 10 deg (1 deg while
-        the parameters are still held at their start values), restart from the batch
+        If its heading offset disagrees with the smoother's by more than 3 of the batch's
+        sigmas (within 1-10 deg; 1 deg while the parameters are still held at their start
+        values), or ``force`` (the smoother is in trouble), restart from the batch
         solution: replay the fixes so far with the parameters held at the batch's values
         and their batch marginals (x4 in variance) as priors, then release them. Otherwise
         release them where they are. An incremental solver cannot leave a wrong heading
@@ -417,7 +434,8 @@ class FixedLagSmoother:
         from aqfg.fg.batch import BatchSmoother
         t_re = time.perf_counter()
         el = t_fix - self.knots[0]
-        self._next_reinit = 2.0 * el
+        if not force:
+            self._next_reinit = 2.0 * el
         view = _mission_until(self.mission, t_fix)
         p = self.params()
         try:
@@ -444,11 +462,27 @@ class FixedLagSmoother:
         # the process noise this model needs, measured on all the fixes so far, is the
         # floor of the online factor from here (aqfg.fg.noise)
         self._q_floor = float(bres.info.get("process_noise_scale", 1.0))
+        # the online marginal's sigma against the batch's honest one, on the same data:
+        # the factor by which the online sigma is reported from here
+        self._inflation = {}
+        for n in (() if self._hold_idx else self.layout.estimated):   # held: no marginal
+            raw, ref = self._raw_sigma.get(n, np.nan), bres.sigma.get(n, np.nan)
+            if np.isfinite(raw) and np.isfinite(ref) and raw > 0 and ref > raw:
+                self._inflation[n] = float(ref / raw)
         self.q_scale = max(self.q_scale, self._q_floor)
         th_b = bres.values["theta_e"]
         gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         held = bool(self._hold_idx)
-        if gap < np.radians(1.0 if held else 10.0):
+        # released: restart when the online heading is outside the batch's 3 sigma (its
+        # honest sigma; at least 1 deg) -- the smoother's marginal priors, linearised when
+        # the heading was still uncertain, keep it biased by 3-5 deg on the Otter, where a
+        # batch of the same data is within 1 deg
+        sb = float(bres.sigma.get("theta_e", np.nan))
+        tol = np.radians(1.0) if held else float(np.clip(3.0 * sb if np.isfinite(sb) else np.inf,
+                                                          np.radians(1.0), np.radians(10.0)))
+        if force:
+            self._forced_at = float(t_fix)
+        elif gap < tol:
             self._release(t_fix)
             return None
         new_init = dict(self.init)
@@ -504,7 +538,7 @@ class FixedLagSmoother:
         self._guarded_update(graph, vals, stamps, t_fix)
         self._n_committed = len(self.keys)
         values, sigma = {}, {}
-        nv, ns = [], []
+        nv, ns, nh = [], [], []
         for g in lay.groups:
             k = self._node(g)
             try:
@@ -514,9 +548,14 @@ class FixedLagSmoother:
             sg = self._marginal_sigma(k, len(v))
             if np.all(np.isfinite(v)):
                 self._last_params[g] = lay.project(g, v)
-            for n, a, b in zip(lay.names[g], v, sg):
+            # reported sigma: the marginal scaled to the last re-initialisation batch's
+            # honest sigma of the same data (the marginal assumes the model is right and
+            # the window's noise; docs/independent-vehicle.md)
+            sh = sg * np.array([self._inflation.get(n, 1.0) for n in lay.names[g]])
+            for n, a, b in zip(lay.names[g], v, sh):
                 values[n], sigma[n] = float(a), float(b)
-            nv.append(v); ns.append(sg)
+            nv.append(v); ns.append(sg); nh.append(sh)
+            self._raw_sigma.update(zip(lay.names[g], map(float, sg)))
         if self.warming:
             sc = np.array([self.model.spec(n).scale for n in lay.estimated])
             done = (np.all(np.concatenate(ns) < self.settings.warmup_tol * sc) if ns else True
@@ -545,7 +584,7 @@ class FixedLagSmoother:
                 break
         self.hist_t.append(float(t_fix))
         self.hist_v.append(np.concatenate(nv) if nv else np.zeros(0))
-        self.hist_s.append(np.concatenate(ns) if ns else np.zeros(0))
+        self.hist_s.append(np.concatenate(nh) if nh else np.zeros(0))
         self.n_fix = int(np.searchsorted(self.fix_t, t_fix + 1e-9))
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
@@ -580,7 +619,7 @@ class FixedLagSmoother:
         factors are dropped. Every recovery is recorded in ``events``."""
         check = [self._node(g) for g in self.layout.groups] + [self.keys[-1]]
 
-        def attempt() -> str:
+        def attempt(graph=graph, vals=vals) -> str:
             try:
                 self.smoother.update(graph, vals, stamps)
                 self._last_new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
@@ -598,7 +637,7 @@ class FixedLagSmoother:
             return
         for hard in (False, True):
             self._restart(t_fix, hard=hard)
-            err2 = attempt()
+            err2 = attempt(*self._after_restart(graph, vals))
             if not err2:
                 self.events.append({"t": float(t_fix), "event": "restarted" + (
                     " (broad priors)" if hard else ""), "error": err})
@@ -606,7 +645,7 @@ class FixedLagSmoother:
         self._restart(t_fix, hard=True)
         keep = gtsam.Values()
         prior = gtsam.NonlinearFactorGraph()
-        for k in vals.keys():
+        for k in self._after_restart(gtsam.NonlinearFactorGraph(), vals)[1].keys():
             v = vals.atVector(k)
             if not np.all(np.isfinite(v)):
                 v = self._last_finite_state()
@@ -614,6 +653,24 @@ class FixedLagSmoother:
             prior.add(gtsam.PriorFactorVector(k, v, gtsam.noiseModel.Isotropic.Sigma(len(v), 10.0)))
         self.smoother.update(prior, keep, stamps)
         self.events.append({"t": float(t_fix), "event": "fix skipped", "error": err})
+
+    def _after_restart(self, graph, vals):
+        """The new factors and values of an update, fitted to a restarted smoother: the
+        values it already holds (the parameter node of a random-walk segment opened by
+        this update) are left out, and so are the factors on keys it no longer has (the
+        walk factor from the previous segment's node)."""
+        have = set(self.smoother.calculateEstimate().keys())
+        v2 = gtsam.Values()
+        for k in vals.keys():
+            if k not in have:
+                v2.insert(k, vals.atVector(k))
+        known = have | set(v2.keys())
+        g2 = gtsam.NonlinearFactorGraph()
+        for i in range(graph.size()):
+            f = graph.at(i)
+            if f is not None and all(k in known for k in f.keys()):
+                g2.add(f)
+        return g2, v2
 
     def _last_finite_state(self) -> np.ndarray:
         """The newest finite causal state (position held, velocity zero if none)."""
@@ -798,6 +855,7 @@ class FixedLagSmoother:
                             "events": list(self.events),
                             "warnings": list(getattr(self, "warnings", [])),
                             "process_noise_scale": float(self.q_scale),
+                            "sigma_inflation": dict(self._inflation),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
                             "settings": self.settings},
                       effects=tuple(e.name for e in self.model.effects), model=self.model)
