@@ -58,6 +58,9 @@ class FGSettings:
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
         fix (coarse thresholds and one iteration: positions enter the dynamics linearly, so
         their linearisation point matters little; measured in docs/architecture.md).
+    online_engine: the fixed-lag smoother's engine: "numpy" (:mod:`aqfg.fg.fastlag`, knots at
+        the fixes, no Python callback per factor) where the configuration allows it, else
+        "gtsam" (ISAM2 with CustomFactors on 1-s knots), which "gtsam" forces.
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
@@ -88,6 +91,7 @@ class FGSettings:
     relin_vel: float = 0.05
     relin_param: float = 0.001
     iterations_per_update: int = 1
+    online_engine: str = "numpy"
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 

@@ -32,6 +32,7 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg import noise
+from aqfg.fg.fastlag import LagWindow
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -195,6 +196,14 @@ class FixedLagSmoother:
         x0[3:] = 0.0
         if mission.planar:
             x0[2] = 0.0
+        hold = replaying or self._reinit_scheduled()
+        reason = ("online_engine = 'gtsam'" if s.online_engine == "gtsam" else
+                  LagWindow.unsupported(self.model, self.layout, mission, s))
+        self.engine = "gtsam" if reason else "numpy"
+        self.engine_note = reason
+        self._fast: LagWindow | None = None
+        if not reason:
+            return self._start_fast(mission, t0, x0, hold, replaying)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         k0 = fc.state_key(0, 0)
@@ -202,7 +211,6 @@ class FixedLagSmoother:
         graph.add(first_knot_prior(mission, k0, x0, s))
         if mission.planar:
             graph.add(fc.surface_factor(k0, *s.surface_sigma))
-        hold = replaying or self._reinit_scheduled()
         hold_pos = []
         for g in self.layout.groups:
             k = self._node(g)
@@ -231,6 +239,33 @@ class FixedLagSmoother:
         info = self._update(graph, vals, {k0: t0}, t0, 1)
         if hold_pos and len(self._last_new_idx) == graph.size():
             self._hold_idx = [int(self._last_new_idx[i]) for i in hold_pos]
+        return info
+
+    def _prior_sigmas(self, replaying: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Sigmas of the parameter priors (as :func:`fc.param_prior`) and of the hold
+        priors, in the layout's order."""
+        s = self.settings
+        sig = dict(s.prior_sigma)
+        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
+        names = self.layout.estimated
+        prior = np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale) for n in names])
+        hold = np.array([1e-3 * self.model.spec(n).scale for n in names])
+        return prior, hold
+
+    def _start_fast(self, mission: Mission, t0: float, x0: np.ndarray, hold: bool,
+                    replaying: bool) -> UpdateInfo:
+        """:meth:`start` on the numpy engine (:mod:`aqfg.fg.fastlag`)."""
+        s = self.settings
+        pf = first_knot_prior(mission, fc.state_key(0, 0), x0, s)
+        prior, hold_sig = self._prior_sigmas(replaying)
+        self._fast = LagWindow(self.model, self.layout, s, mission, self.window, prior,
+                               hold_sig if hold else None, x0, np.asarray(pf.prior()),
+                               np.asarray(pf.noiseModel().sigmas()), t0, 0)
+        self.knots.append(t0)
+        self.filtered.append(x0.copy())
+        info = self._update(None, None, {}, t0, 1)
+        if hold:
+            self._hold_idx = [-1]              # the engine's hold priors
         return info
 
     def _make_plan(self) -> None:
@@ -276,6 +311,8 @@ class FixedLagSmoother:
 
     def params(self) -> np.ndarray:
         """Current full parameter vector (inside the physical bounds)."""
+        if self._fast is not None:
+            return self._fast.full_params()
         nd = {}
         for g in self.layout.groups:
             try:
@@ -296,6 +333,8 @@ class FixedLagSmoother:
             self.fix_t = np.unique(mission.fix_times())
             self._plan = None                      # inputs may have changed: no plan
             self._fixes = robust_fix_table(mission, self.settings)
+            if self._fast is not None:
+                self._fast.set_mission(mission)
         if t_fix is None:
             if not self.pending():
                 raise ValueError("no fix left to process")
@@ -312,6 +351,11 @@ class FixedLagSmoother:
         new_t = np.concatenate([grid, [t_fix]])
         all_t = np.concatenate([[t_last], new_t])
         steps, off = self._steps(all_t)
+        if self._fast is not None:
+            info = self._update_fast(t_fix, t_last, new_t, steps, off)
+            if self._reinit_due(t_fix):
+                info = self._reinitialise(t_fix) or info
+            return info
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         stamps = {}
@@ -376,6 +420,58 @@ class FixedLagSmoother:
             info = self._reinitialise(t_fix) or info
         return info
 
+    def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, steps, off
+                     ) -> UpdateInfo:
+        """:meth:`update` on the numpy engine: one knot at the fix (its dynamics factor over
+        every input since the last one), the knots between on the causal track from the
+        model's prediction."""
+        eng = self._fast
+        assert eng is not None
+        s = self.settings
+        x = eng.X[-1].copy()
+        p = eng.full_params()
+        i0 = len(self.knots)
+        st = steps.slice(int(off[0]), int(off[-1])) if len(new_t) > 1 else steps
+        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, st, self.q_scale)
+        if len(new_t) > 1:
+            with np.errstate(all="ignore"):
+                Xi = self.model.rollout_segments(x, p, steps, off)[1:-1]
+            if not np.all(np.isfinite(Xi)):
+                Xi = np.where(np.isfinite(Xi), Xi, np.where(np.isfinite(x), x, 0.0))
+            self.filtered.extend(Xi)
+        if not np.all(np.isfinite(eng.PRED[-1])):
+            if not self.events or self.events[-1].get("event") != "prediction diverged":
+                self.events.append({"t": float(t_fix), "event": "prediction diverged"})
+        self.filtered.append(x_fix)
+        self.knots.extend(map(float, new_t))
+        self.pred_t.append(float(t_fix))
+        self.pred_x.append(x_fix.copy())
+        if s.adapt_process:
+            self._adapt(t_fix, float(t_fix - t_last), x_fix)
+        return self._update(None, None, {}, t_fix, len(new_t))
+
+    def _fast_step(self, t_fix: float) -> None:
+        """The numpy engine's Gauss-Newton step(s), surviving a system that is not positive
+        definite: the marginal is replaced by broad priors around the current estimate and
+        the step retried; if that fails too, the step is skipped (recorded in ``events``)."""
+        eng = self._fast
+        assert eng is not None
+        for it in range(max(self.settings.iterations_per_update, 1)):
+            try:
+                eng.step()
+            except np.linalg.LinAlgError as exc:
+                err = str(exc) or type(exc).__name__
+                eng.broaden(np.array([10.0, 10.0, 1.0, 2.0, 2.0, 0.5]),
+                            self.settings.prior_scale)
+                try:
+                    eng.step()
+                    self.events.append({"t": float(t_fix), "event": "restarted (broad priors)",
+                                        "error": err})
+                except np.linalg.LinAlgError:
+                    self.events.append({"t": float(t_fix), "event": "fix skipped",
+                                        "error": err})
+                return
+
     # ---------------------------------------------------------------- causal initialisation
     def _reinit_scheduled(self) -> bool:
         """Online without a given heading offset: batch re-initialisations are scheduled
@@ -395,6 +491,12 @@ class FixedLagSmoother:
         """Remove the hold priors: the parameters follow the data from here."""
         idx, self._hold_idx = self._hold_idx, []
         if not idx:
+            return
+        if self._fast is not None:
+            self._fast.release()
+            for _ in range(2):
+                self._fast_step(t_fix)
+            self.events.append({"t": float(t_fix), "event": "parameters released"})
             return
         try:
             self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, idx)
@@ -494,18 +596,34 @@ class FixedLagSmoother:
 
     def _update(self, graph, vals, stamps, t_fix: float, n_new: int) -> UpdateInfo:
         lay = self.layout
-        for g in lay.groups:                       # parameter nodes never leave the window
-            stamps[self._node(g)] = float(t_fix)
+        for g in (lay.groups if self._fast is None else ()):
+            stamps[self._node(g)] = float(t_fix)   # parameter nodes never leave the window
         t_a = time.perf_counter()
+        eng = self._fast
         if self.warming:
             # warm-up: keep everything since the start in the window until the parameters
             # are known well enough to linearise the marginal priors near the truth
-            self.smoother.setSmootherLag(max(self.window, t_fix - self.knots[0] + 1.0))
-        self._guarded_update(graph, vals, stamps, t_fix)
-        self._n_committed = len(self.keys)
+            lag = max(self.window, t_fix - self.knots[0] + 1.0)
+            if eng is not None:
+                eng.lag = lag
+            else:
+                self.smoother.setSmootherLag(lag)
         values, sigma = {}, {}
         nv, ns = [], []
-        for g in lay.groups:
+        if eng is not None:
+            self._fast_step(t_fix)
+            self._n_committed = len(self.knots)
+            sg_all = eng.sigma()
+            for g, v in eng.group_values().items():
+                sg = sg_all[eng.slices[g]]
+                self._last_params[g] = lay.project(g, v)
+                for n, a, b in zip(lay.names[g], v, sg):
+                    values[n], sigma[n] = float(a), float(b)
+                nv.append(v); ns.append(sg)
+        else:
+            self._guarded_update(graph, vals, stamps, t_fix)
+            self._n_committed = len(self.keys)
+        for g in (lay.groups if eng is None else ()):
             k = self._node(g)
             try:
                 v = self.smoother.calculateEstimateVector(k)
@@ -524,7 +642,10 @@ class FixedLagSmoother:
             if done or t_fix - self.knots[0] >= self.settings.warmup_max:
                 self.warming = False
                 self.warmup_end = float(t_fix)
-                self.smoother.setSmootherLag(self.window)
+                if eng is not None:
+                    eng.lag = self.window
+                else:
+                    self.smoother.setSmootherLag(self.window)
         t_b = time.perf_counter()
         dt = t_b - t_a
         self.timings["update"].append(dt)
@@ -532,6 +653,16 @@ class FixedLagSmoother:
         # the fix knot's estimate (causal), and the latest estimates of knots in the window
         i_fix = len(self.knots) - 1
         self.anchor_idx.append(i_fix)
+        if eng is not None:
+            self.filtered[i_fix] = eng.X[-1].copy()
+            for i in reversed(self.anchor_idx):
+                if self.knots[i] < t_fix - self.window + 1e-6:
+                    break
+                x = eng.state(i)
+                if x is None:
+                    break
+                self.latest[i] = x
+            return self._record(t_fix, dt, values, sigma, nv, ns, n_new)
         try:
             self.filtered[i_fix] = self.smoother.calculateEstimateVector(self.keys[i_fix])
         except GTSAM_ERRORS:
@@ -543,6 +674,9 @@ class FixedLagSmoother:
                 self.latest[i] = self.smoother.calculateEstimateVector(self.keys[i])
             except GTSAM_ERRORS:                  # left behind by a restart
                 break
+        return self._record(t_fix, dt, values, sigma, nv, ns, n_new)
+
+    def _record(self, t_fix, dt, values, sigma, nv, ns, n_new) -> UpdateInfo:
         self.hist_t.append(float(t_fix))
         self.hist_v.append(np.concatenate(nv) if nv else np.zeros(0))
         self.hist_s.append(np.concatenate(ns) if ns else np.zeros(0))
@@ -798,6 +932,8 @@ class FixedLagSmoother:
                             "warnings": list(getattr(self, "warnings", [])),
                             "process_noise_scale": float(self.q_scale),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
+                            "engine": getattr(self, "engine", "gtsam"),
+                            "engine_note": getattr(self, "engine_note", ""),
                             "settings": self.settings},
                       effects=tuple(e.name for e in self.model.effects), model=self.model)
 
