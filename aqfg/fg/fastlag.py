@@ -33,12 +33,22 @@ from __future__ import annotations
 import numpy as np
 
 from aqfg.fg import factors as fc
+from aqfg.fg.fastlm import _scatter_add
 from aqfg.model.measurements import range_bearing
 
 
 class LagWindow:
     """The window's factors and estimate (see the module docstring). Times in s, states
-    ``[n, e, d, vn, ve, vd]``."""
+    ``[n, e, d, vn, ve, vd]``.
+
+    The factors whose linearisation is held (dynamics at their linearisation point, the
+    surface constraint, the priors and the marginal) sum to one quadratic
+    ``1/2 z^T H z + b^T z`` in the window's variables ``z`` (absolute values), kept up to
+    date incrementally: a new knot extends it, a relinearised dynamics factor swaps its
+    contribution, a knot leaving the window is eliminated from it (Schur complement, with
+    the fixes on that knot linearised there). The fixes (Huber-weighted) and the hold
+    priors are added at each step.
+    """
 
     def __init__(self, model, layout: fc.ParamLayout, settings, mission, lag: float,
                  prior_sigma: np.ndarray, hold_sigma: np.ndarray | None,
@@ -49,9 +59,9 @@ class LagWindow:
         self.planar = bool(mission.planar)
         self.lag = float(lag)
         groups = layout.groups
-        self.th = np.concatenate([layout.initial(g) for g in groups]) if groups else np.zeros(0)
-        P = self.P = len(self.th)
-        self.th0 = self.th.copy()
+        th0 = np.concatenate([layout.initial(g) for g in groups]) if groups else np.zeros(0)
+        P = self.P = len(th0)
+        self.th0 = th0.copy()
         self.lo = np.concatenate([layout.bounds(g)[0] for g in groups]) if groups else np.zeros(0)
         self.hi = np.concatenate([layout.bounds(g)[1] for g in groups]) if groups else np.zeros(0)
         self.slices = {}
@@ -59,15 +69,13 @@ class LagWindow:
         for g in groups:
             self.slices[g] = slice(c, c + layout.dim(g))
             c += layout.dim(g)
-        # kernel J_p columns -> theta columns
         ncol = len(model.dyn_columns())
-        self.Jsel = np.zeros((ncol, P))
+        self.Jsel = np.zeros((ncol, P))          # kernel J_p columns -> theta
         for g in layout.dyn_groups():
             for j, pos in enumerate(layout.dyn_pos[g]):
                 if pos >= 0:
                     self.Jsel[pos, self.slices[g].start + j] = 1.0
         self.pidx = np.arange(P)
-        self.prior_w = 1.0 / np.asarray(prior_sigma, float) ** 2
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
         sn = s.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
@@ -77,24 +85,32 @@ class LagWindow:
         self.surf_w = 1.0 / np.asarray(s.surface_sigma, float) ** 2
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.set_mission(mission)
-        # window
+        self._wcache: dict = {}
+        self._idx: dict[int, np.ndarray] = {}
+        # the estimate and the held quadratic
+        self.z = np.concatenate([th0, np.asarray(x0, float)])
+        self.n = 1
         self.kt = [float(t0)]
         self.kid = [int(kid0)]
-        self.X = np.asarray(x0, float).reshape(1, 6).copy()
-        self.first: tuple[np.ndarray, np.ndarray] | None = (
-            np.asarray(first_mean, float).copy(), 1.0 / np.asarray(first_sigma, float) ** 2)
-        self.marg: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # H, g, z_lin
-        z6 = np.zeros((0, 6))
-        self.W = np.zeros((0, 6, 6))
-        self.X0L, self.PRED = z6, z6
+        N = P + 6
+        self.H = np.zeros((N, N))
+        self.b = np.zeros(N)
+        wp = 1.0 / np.asarray(prior_sigma, float) ** 2
+        self.H[self.pidx, self.pidx] += wp
+        self.b[:P] -= wp * th0
+        wf = 1.0 / np.asarray(first_sigma, float) ** 2
+        ii = P + np.arange(6)
+        self.H[ii, ii] += wf
+        self.b[ii] -= wf * np.asarray(first_mean, float)
+        self._surface(0)
+        # dynamics factors, one per interval: [steps, W, H_i, b_i]; their linearisation points
+        self.dyn: list[list] = []
+        self.X0L = np.zeros((0, 6))
         self.THL = np.zeros((0, P))
-        self.A0 = np.zeros((0, 6, 6))          # -W J_x (at the linearisation point)
-        self.AT = np.zeros((0, 6, P))          # -W J_theta
-        self.steps: list = []                  # kernel steps per interval
+        self.last_pred = np.asarray(x0, float)
         # fixes on the window's knots: (knot time, z, sigma) per stream
         self.g_t, self.g_z, self.g_s = np.zeros(0), np.zeros((0, 2)), np.zeros(0)
         self.u_t, self.u_z, self.u_s = np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
-        self._wcache: dict = {}
         self.cov = np.full((P, P), np.nan)
         self._take_fixes(float(t0) - 1e-6, float(t0))
 
@@ -144,10 +160,42 @@ class LagWindow:
             self.u_z = np.concatenate([self.u_z, uz[a:b]])
             self.u_s = np.concatenate([self.u_s, us[a:b]])
 
-    # ------------------------------------------------------------------ building
+    # ------------------------------------------------------------------ reading
+    @property
+    def X(self) -> np.ndarray:
+        """The window's knot estimates (n, 6) (a view)."""
+        return self.z[self.P:].reshape(-1, 6)
+
+    @property
+    def th(self) -> np.ndarray:
+        return self.z[:self.P]
+
     def full_params(self) -> np.ndarray:
-        th = np.clip(self.th, self.lo, self.hi)
+        th = np.clip(self.z[:self.P], self.lo, self.hi)
         return self.layout.full({g: th[sl] for g, sl in self.slices.items()})
+
+    def sigma(self) -> np.ndarray:
+        """1-sigma of the parameters (marginal of the last step's linearisation)."""
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+
+    def group_values(self) -> dict[str, np.ndarray]:
+        return {g: self.z[sl].copy() for g, sl in self.slices.items()}
+
+    def state(self, kid: int) -> np.ndarray | None:
+        """Estimate of the knot with orchestration index ``kid`` (None: not in the window)."""
+        try:
+            i = self.kid.index(kid)
+        except ValueError:
+            return None
+        o = self.P + 6 * i
+        return self.z[o:o + 6].copy()
+
+    # ------------------------------------------------------------------ building
+    def _surface(self, k: int) -> None:
+        if self.planar:
+            o = self.P + 6 * k
+            self.H[o + 2, o + 2] += self.surf_w[0]
+            self.H[o + 5, o + 5] += self.surf_w[1]
 
     def _whitening(self, dt: float, q: float) -> np.ndarray:
         key = (round(dt, 9), q)
@@ -157,160 +205,165 @@ class LagWindow:
             W = self._wcache[key] = np.linalg.inv(L)
         return W
 
+    def _cols(self, i: int) -> np.ndarray:
+        """Columns of ``z`` of dynamics factor ``i``: theta, knot i, knot i + 1."""
+        c = self._idx.get(i)
+        if c is None:
+            c = self._idx[i] = np.concatenate([self.pidx, self.P + 6 * i + np.arange(12)])
+        return c
+
+    def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
+        """Whitened linear model ``e = J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
+        linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``)."""
+        P = self.P
+        J = np.empty((6, P + 12))
+        J[:, :P] = -(W @ (Jp @ self.Jsel))
+        J[:, P:P + 6] = -(W @ Jx)
+        J[:, P + 6:] = W
+        c = -(W @ pred) - J[:, :P + 6] @ np.concatenate([th, x0])
+        return J, c
+
+    def _set_dyn(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp) -> None:
+        d = self.dyn[i]
+        J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, d[1])
+        Hi, bi = J.T @ J, J.T @ c
+        ix = np.ix_(self._cols(i), self._cols(i))
+        cols = self._cols(i)
+        if d[2] is not None:
+            self.H[ix] += Hi - d[2]
+            self.b[cols] += bi - d[3]
+        else:
+            self.H[ix] += Hi
+            self.b[cols] += bi
+        d[2], d[3] = Hi, bi
+        self.X0L[i] = x0
+        self.THL[i] = th
+
     def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
         """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
         ``steps`` linearised at the current estimate and the fixes in between; returns the
         model's prediction there (the knot's initial value)."""
+        P, n = self.P, self.n
         t_last = self.kt[-1]
-        x0 = self.X[-1]
-        th = self.th
+        x0 = self.z[-6:].copy()
+        th = self.z[:P].copy()
         pred, Jx, Jp = self.model.propagate(x0, self.full_params(), steps)
-        W = self._whitening(t - t_last, q_scale)
-        self.W = np.concatenate([self.W, W[None]])
-        self.X0L = np.concatenate([self.X0L, x0[None]])
-        self.THL = np.concatenate([self.THL, th[None]])
-        self.PRED = np.concatenate([self.PRED, pred[None]])
-        self.A0 = np.concatenate([self.A0, -(W @ Jx)[None]])
-        self.AT = np.concatenate([self.AT, -(W @ (Jp @ self.Jsel))[None]])
-        self.steps.append(steps)
-        x1 = pred if np.all(np.isfinite(pred)) else np.where(np.isfinite(x0), x0, 0.0) * \
-            np.array([1, 1, 1, 0, 0, 0.0])
-        self.X = np.concatenate([self.X, x1[None]])
+        self.last_pred = pred
+        N = P + 6 * n
+        H = np.zeros((N + 6, N + 6))
+        H[:N, :N] = self.H
+        self.H = H
+        ok = bool(np.all(np.isfinite(pred)))
+        x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
+        self.b = np.concatenate([self.b, np.zeros(6)])
+        self.z = np.concatenate([self.z, x1])
+        self.n = n + 1
         self.kt.append(float(t))
         self.kid.append(int(kid))
+        self._surface(n)
+        self.dyn.append([steps, self._whitening(t - t_last, q_scale), None, None])
+        self.X0L = np.concatenate([self.X0L, x0[None]])
+        self.THL = np.concatenate([self.THL, th[None]])
+        if ok:
+            self._set_dyn(n - 1, x0, th, pred, Jx, Jp)
+        else:                   # a diverged model: relinearised at the next step
+            self.dyn[-1][2:] = [np.zeros((P + 12, P + 12)), np.zeros(P + 12)]
+            self.X0L[-1] = np.inf
         self._take_fixes(t_last, float(t))
         return np.array(x1)
-
-    def broaden(self, state_sigma: np.ndarray, prior_scale: float) -> None:
-        """Recovery from a failed step: the marginal is replaced by broad priors around the
-        current estimate (``state_sigma`` on the oldest knot, ``prior_scale`` x the
-        parameters' scales), and every dynamics factor is relinearised at the estimate."""
-        P = self.P
-        sc = np.array([prior_scale * self.layout.model.spec(n).scale
-                       for n in self.layout.estimated])
-        w = np.concatenate([1.0 / sc ** 2, 1.0 / np.asarray(state_sigma, float) ** 2])
-        X0 = np.where(np.isfinite(self.X), self.X, 0.0)
-        self.X = X0
-        self.th = np.clip(np.where(np.isfinite(self.th), self.th, self.th0), self.lo, self.hi)
-        self.marg = (np.diag(w), np.zeros(P + 6), np.concatenate([self.th, self.X[0]]))
-        self.first = None
-        self.X0L = self.X0L + np.inf               # forces the relinearisation
 
     def release(self) -> None:
         """Remove the hold priors on the parameters."""
         self.hold_w = None
 
+    def broaden(self, state_sigma: np.ndarray, prior_scale: float) -> None:
+        """Recovery from a failed step: broad priors around the current estimate on every
+        knot (``state_sigma``) and the parameters (``prior_scale`` x their scales), and the
+        dynamics factors relinearised at the estimate."""
+        P = self.P
+        sc = np.array([prior_scale * self.layout.model.spec(n).scale
+                       for n in self.layout.estimated])
+        w = np.concatenate([1.0 / sc ** 2, np.tile(1.0 / np.asarray(state_sigma) ** 2, self.n)])
+        z = np.where(np.isfinite(self.z), self.z, 0.0)
+        z[:P] = np.clip(np.where(np.isfinite(self.z[:P]), z[:P], self.th0), self.lo, self.hi)
+        self.z = z
+        self.H = np.where(np.isfinite(self.H), self.H, 0.0)
+        self.b = np.where(np.isfinite(self.b), self.b, 0.0)
+        k = np.arange(len(z))
+        self.H[k, k] += w
+        self.b -= w * z
+        self.X0L = self.X0L + np.inf               # forces the relinearisation
+
     # ------------------------------------------------------------------ the system
     def _relinearise(self) -> None:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
         thresholds since their linearisation."""
-        m = len(self.steps)
-        if not m:
+        if not self.dyn:
             return
-        dx = np.abs(self.X[:-1] - self.X0L) > self.relin
-        dth = np.abs(self.th - self.THL) > self.s.relin_param
-        redo = np.flatnonzero(dx.any(axis=1) | dth.any(axis=1))
-        if not len(redo):
+        P = self.P
+        th = self.z[:P]
+        X = self.X
+        moved = (np.abs(X[:-1] - self.X0L) > self.relin).any(axis=1) | \
+            (np.abs(th - self.THL) > self.s.relin_param).any(axis=1)
+        if not moved.any():
             return
         p = self.full_params()
-        th = self.th
-        for i in redo:
-            x0 = self.X[i]
-            pred, Jx, Jp = self.model.propagate(x0, p, self.steps[i])
-            W = self.W[i]
-            self.X0L[i], self.THL[i], self.PRED[i] = x0, th, pred
-            self.A0[i] = -(W @ Jx)
-            self.AT[i] = -(W @ (Jp @ self.Jsel))
+        for i in np.flatnonzero(moved):
+            x0 = X[i].copy()
+            pred, Jx, Jp = self.model.propagate(x0, p, self.dyn[i][0])
+            if np.all(np.isfinite(pred)):
+                self._set_dyn(int(i), x0, th.copy(), pred, Jx, Jp)
 
-    def _system(self, X: np.ndarray, th: np.ndarray, lo: int, hi: int, unary: tuple[int, ...],
-                params: bool, marginal: bool):
-        """Gauss-Newton normal equations ``(H, g)`` over ``[theta, x_lo .. x_hi-1]`` at
-        ``(X, th)`` of the dynamics factors between those knots, the unary factors of the
-        knots ``unary`` (window indices), the parameter priors (``params``) and the
-        marginal (``marginal``; on knot 0)."""
+    def _fixes(self, H: np.ndarray, g: np.ndarray, z: np.ndarray, first_only: bool) -> None:
+        """Add the fixes' Gauss-Newton blocks (Huber-weighted, linearised at ``z``) to
+        ``H`` and the gradient ``g`` (all knots, or the oldest knot's only)."""
         P = self.P
-        n = hi - lo
-        m = n - 1
-        N = P + 6 * n
-        Xw = X[lo:hi]
-        if m > 0:
-            sl = slice(lo, hi - 1)
-            W = self.W[sl]
-            A0, AT = self.A0[sl], self.AT[sl]
-            e = (np.matmul(W, (Xw[1:] - self.PRED[sl])[:, :, None])
-                 + np.matmul(A0, (Xw[:-1] - self.X0L[sl])[:, :, None])
-                 + np.matmul(AT, (th - self.THL[sl])[:, :, None]))
-            J = np.zeros((m, 6, N))
-            J[:, :, :P] = AT
-            S = J[:, :, P:].reshape(m, 6, n, 6)
-            ar = np.arange(m)
-            S[ar, :, ar, :] = A0
-            S[ar, :, ar + 1, :] = W
-            J2 = J.reshape(6 * m, N)
-            H = J2.T @ J2
-            g = J2.T @ e.reshape(-1)
-        else:
-            H = np.zeros((N, N))
-            g = np.zeros(N)
-        D = np.zeros((n, 6, 6))
-        gs = np.zeros((n, 6))
-        cost_u = 0.0
-        kt = np.asarray(self.kt[lo:hi])
-        sel = np.asarray(unary, int) - lo
-        if self.planar:
-            w = self.surf_w
-            D[sel, 2, 2] += w[0]
-            D[sel, 5, 5] += w[1]
-            gs[sel, 2] += w[0] * Xw[sel, 2]
-            gs[sel, 5] += w[1] * Xw[sel, 5]
-        if self.first is not None and lo == 0 and 0 in unary:
-            mean, wf = self.first
-            D[0] += np.diag(wf)
-            gs[0] += wf * (Xw[0] - mean)
-        ut = set(float(kt[i]) for i in sel)
+        N = len(z)
+        X = z[P:].reshape(-1, 6)
+        kt = np.asarray(self.kt)
+        Hf = H.reshape(-1)
+        t_cut = kt[0] + 1e-9 if first_only else np.inf
         if len(self.g_t):
-            keep = np.array([t in ut for t in self.g_t])
-            if keep.any():
-                gi = np.searchsorted(kt, self.g_t[keep] - 1e-9)
-                sig = self.g_s[keep]
-                r = (Xw[gi, :2] - self.g_z[keep]) / sig[:, None]
+            sel = self.g_t <= t_cut
+            if sel.any():
+                gi = np.searchsorted(kt, self.g_t[sel] - 1e-9)
+                sig = self.g_s[sel]
+                r = (X[gi, :2] - self.g_z[sel]) / sig[:, None]
                 w = _huber(r, self.k_gnss) / sig ** 2
+                c = P + 6 * gi
                 for a in range(2):
-                    np.add.at(D[:, a, a], gi, w)
-                    np.add.at(gs[:, a], gi, w * r[:, a] * sig)
-                cost_u += 0.0
+                    _scatter_add(Hf, (c + a) * (N + 1), w)
+                    _scatter_add(g, c + a, w * r[:, a] * sig)
         if len(self.u_t):
-            keep = np.array([t in ut for t in self.u_t])
-            if keep.any():
-                ui = np.searchsorted(kt, self.u_t[keep] - 1e-9)
-                sig = self.u_s[keep]
-                h, Hd = range_bearing(Xw[ui, :3] - self.station)
-                raw = h - self.u_z[keep]
+            sel = self.u_t <= t_cut
+            if sel.any():
+                ui = np.searchsorted(kt, self.u_t[sel] - 1e-9)
+                sig = self.u_s[sel]
+                h, Hd = range_bearing(X[ui, :3] - self.station)
+                raw = h - self.u_z[sel]
                 raw[:, 1] = fc.wrap_angle(raw[:, 1])
                 r = raw / sig
                 Jm = Hd / sig[:, :, None]
                 w = _huber(r, self.k_usbl)
                 Jt = Jm.transpose(0, 2, 1)
-                np.add.at(D[:, :3, :3], ui, w[:, None, None] * np.matmul(Jt, Jm))
-                np.add.at(gs[:, :3], ui, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
-        Hs = H[P:, P:].reshape(n, 6, n, 6)
-        ar = np.arange(n)
-        Hs[ar, :, ar, :] += D
-        g[P:] += gs.reshape(-1)
-        if params and P:
-            wp = self.prior_w
-            gp = wp * (th - self.th0)
-            if self.hold_w is not None:
-                wp = wp + self.hold_w
-                gp = gp + self.hold_w * (th - self.th0)
-            H[self.pidx, self.pidx] += wp
-            g[:P] += gp
-        if marginal and self.marg is not None and lo == 0:
-            Hm, gm, zl = self.marg
-            k = P + 6
-            z = np.concatenate([th, Xw[0]])
-            H[:k, :k] += Hm
-            g[:k] += gm + Hm @ (z - zl)
+                c = P + 6 * ui
+                a3 = np.arange(3)
+                rows = c[:, None] + a3[None, :]                       # (k, 3)
+                flat = (rows[:, :, None] * N + rows[:, None, :]).reshape(-1)
+                _scatter_add(Hf, flat, (w[:, None, None] * np.matmul(Jt, Jm)).reshape(-1))
+                _scatter_add(g, rows.reshape(-1),
+                             (w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0]).reshape(-1))
+
+    def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton normal equations ``(H, g)`` of the window at ``z`` (default: the
+        estimate): held quadratic, fixes and hold priors."""
+        z = self.z if z is None else z
+        H = self.H.copy()
+        g = self.H @ z + self.b
+        self._fixes(H, g, z, False)
+        if self.hold_w is not None and self.P:
+            H[self.pidx, self.pidx] += self.hold_w
+            g[:self.P] += self.hold_w * (z[:self.P] - self.th0)
         return H, g
 
     def step(self) -> None:
@@ -318,41 +371,44 @@ class LagWindow:
         older than the lag are marginalised. Raises ``np.linalg.LinAlgError`` when the
         system is not positive definite (the estimate is left as it was)."""
         self._relinearise()
-        n = len(self.kt)
-        H, g = self._system(self.X, self.th, 0, n, tuple(range(n)), True, True)
+        H, g = self.system()
         with np.errstate(all="ignore"):
             np.linalg.cholesky(H)             # raises when not positive definite
             Hi = np.linalg.inv(H)
-            d = -(Hi @ g)
-        if not np.all(np.isfinite(d)):
+            z = self.z - Hi @ g
+        if not np.all(np.isfinite(z)):
             raise np.linalg.LinAlgError("non-finite step")
         P = self.P
-        self.th = np.clip(self.th + d[:P], self.lo, self.hi)
-        self.X = self.X + d[P:].reshape(n, 6)
+        z[:P] = np.clip(z[:P], self.lo, self.hi)
+        self.z = z
         self.cov = Hi[:P, :P]
         self._marginalise()
 
     def _marginalise(self) -> None:
-        """Fold the knots older than ``lag`` before the newest into the marginal prior on
-        ``[theta, new oldest knot]`` (a Schur complement at the current estimate)."""
+        """Eliminate the knots older than ``lag`` before the newest from the held quadratic
+        (Schur complement; the fixes on them linearised at the current estimate)."""
         P = self.P
-        while len(self.kt) > 2 and self.kt[0] < self.kt[-1] - self.lag - 1e-6:
-            H, g = self._system(self.X, self.th, 0, 2, (0,), False, True)
-            a = np.arange(P, P + 6)
-            b = np.concatenate([np.arange(P), np.arange(P + 6, P + 12)])
-            Haa = H[np.ix_(a, a)]
-            Hba = H[np.ix_(b, a)]
-            K = np.linalg.solve(Haa, Hba.T).T            # H_ba H_aa^-1
-            Hm = H[np.ix_(b, b)] - K @ Hba.T
-            gm = g[b] - K @ g[a]
-            self.marg = (0.5 * (Hm + Hm.T), gm, np.concatenate([self.th, self.X[1]]))
-            self.first = None
+        while self.n > 2 and self.kt[0] < self.kt[-1] - self.lag - 1e-6:
+            z = self.z
+            N = len(z)
+            Hc = np.zeros((N, N))
+            gc = np.zeros(N)
+            self._fixes(Hc, gc, z, True)
+            H = self.H + Hc
+            b = self.b + gc - Hc @ z
+            r = np.concatenate([self.pidx, np.arange(P + 6, N)])
+            a = slice(P, P + 6)
+            Hra = H[r, a]
+            K = np.linalg.solve(H[a, a], Hra.T).T          # H_ra H_aa^-1
+            Hn = H[np.ix_(r, r)] - K @ Hra.T
+            self.H = 0.5 * (Hn + Hn.T)
+            self.b = b[r] - K @ b[a]
+            self.z = z[r]
+            self.n -= 1
             t0 = self.kt.pop(0)
             self.kid.pop(0)
-            self.X = self.X[1:]
-            for name in ("W", "X0L", "THL", "PRED", "A0", "AT"):
-                setattr(self, name, getattr(self, name)[1:])
-            self.steps.pop(0)
+            self.dyn.pop(0)
+            self.X0L, self.THL = self.X0L[1:], self.THL[1:]
             for pre in ("g", "u"):
                 tt = getattr(self, pre + "_t")
                 if len(tt) and tt[0] <= t0 + 1e-9:
@@ -360,57 +416,25 @@ class LagWindow:
                     for f in ("_t", "_z", "_s"):
                         setattr(self, pre + f, getattr(self, pre + f)[k])
 
-    # ------------------------------------------------------------------ reading
-    def sigma(self) -> np.ndarray:
-        """1-sigma of the parameters (marginal of the last step's linearisation)."""
-        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
-
-    def group_values(self) -> dict[str, np.ndarray]:
-        return {g: self.th[sl].copy() for g, sl in self.slices.items()}
-
-    def state(self, kid: int) -> np.ndarray | None:
-        """Estimate of the knot with orchestration index ``kid`` (None: not in the window)."""
-        try:
-            return self.X[self.kid.index(kid)].copy()
-        except ValueError:
-            return None
-
     # ------------------------------------------------------------------ tests
-    def cost(self, X: np.ndarray, th: np.ndarray) -> float:
-        """The window's linearised cost (0.5 chi-square up to a constant) at ``(X, th)``,
-        dynamics at their cached linearisation, fixes exact (Huber), for derivative
-        checks: its gradient at ``(X, th)`` is ``g`` of the system there."""
+    def cost(self, z: np.ndarray) -> float:
+        """The window's cost (1/2 chi-square up to a constant) at ``z``: held quadratic,
+        fixes (Huber), hold priors; its gradient is :meth:`system`'s ``g``."""
         P = self.P
-        n = len(X)
-        c = 0.0
-        if n > 1:
-            e = (np.matmul(self.W, (X[1:] - self.PRED)[:, :, None])
-                 + np.matmul(self.A0, (X[:-1] - self.X0L)[:, :, None])
-                 + np.matmul(self.AT, (th - self.THL)[:, :, None]))
-            c += 0.5 * float(np.sum(e ** 2))
-        if self.planar:
-            c += 0.5 * float(np.sum(self.surf_w[0] * X[:, 2] ** 2 + self.surf_w[1] * X[:, 5] ** 2))
-        if self.first is not None:
-            mean, wf = self.first
-            c += 0.5 * float(np.sum(wf * (X[0] - mean) ** 2))
+        c = float(0.5 * z @ self.H @ z + self.b @ z)
+        X = z[P:].reshape(-1, 6)
         kt = np.asarray(self.kt)
         if len(self.g_t):
             gi = np.searchsorted(kt, self.g_t - 1e-9)
-            r = (X[gi, :2] - self.g_z) / self.g_s[:, None]
-            c += _huber_cost(r, self.k_gnss)
+            c += _huber_cost((X[gi, :2] - self.g_z) / self.g_s[:, None], self.k_gnss)
         if len(self.u_t):
             ui = np.searchsorted(kt, self.u_t - 1e-9)
             h, _ = range_bearing(X[ui, :3] - self.station)
             raw = h - self.u_z
             raw[:, 1] = fc.wrap_angle(raw[:, 1])
             c += _huber_cost(raw / self.u_s, self.k_usbl)
-        if P:
-            w = self.prior_w + (0.0 if self.hold_w is None else self.hold_w)
-            c += 0.5 * float(np.sum(w * (th - self.th0) ** 2))
-        if self.marg is not None:
-            Hm, gm, zl = self.marg
-            dz = np.concatenate([th, X[0]]) - zl
-            c += float(gm @ dz + 0.5 * dz @ Hm @ dz)
+        if self.hold_w is not None:
+            c += 0.5 * float(np.sum(self.hold_w * (z[:P] - self.th0) ** 2))
         return c
 
 

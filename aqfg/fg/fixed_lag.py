@@ -439,7 +439,7 @@ class FixedLagSmoother:
             if not np.all(np.isfinite(Xi)):
                 Xi = np.where(np.isfinite(Xi), Xi, np.where(np.isfinite(x), x, 0.0))
             self.filtered.extend(Xi)
-        if not np.all(np.isfinite(eng.PRED[-1])):
+        if not np.all(np.isfinite(eng.last_pred)):
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
         self.filtered.append(x_fix)
