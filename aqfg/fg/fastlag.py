@@ -30,6 +30,8 @@ parameters, a thrust lag, depth readings of a non-planar vehicle).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from aqfg.fg import factors as fc
@@ -76,6 +78,9 @@ class LagWindow:
                 if pos >= 0:
                     self.Jsel[pos, self.slices[g].start + j] = 1.0
         self.pidx = np.arange(P)
+        jc = [int(np.flatnonzero(self.Jsel[:, j])[0]) if self.Jsel[:, j].any() else -1
+              for j in range(P)]
+        self.jcols = np.array(jc, int) if all(c >= 0 for c in jc) else None
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
         sn = s.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
@@ -108,9 +113,10 @@ class LagWindow:
         self.X0L = np.zeros((0, 6))
         self.THL = np.zeros((0, P))
         self.last_pred = np.asarray(x0, float)
-        # fixes on the window's knots: (knot time, z, sigma) per stream
-        self.g_t, self.g_z, self.g_s = np.zeros(0), np.zeros((0, 2)), np.zeros(0)
-        self.u_t, self.u_z, self.u_s = np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
+        # fixes per window knot: [gnss z, sigma, usbl z, sigma, H_k, b_k] or None, and the
+        # position each knot's fixes are linearised at (NaN: no fix)
+        self.fx: list[list | None] = []
+        self.FXL = np.zeros((0, 3))
         self.cov = np.full((P, P), np.nan)
         self._take_fixes(float(t0) - 1e-6, float(t0))
 
@@ -145,20 +151,95 @@ class LagWindow:
         self.station = None if m.station is None else np.asarray(m.station, float)
 
     def _take_fixes(self, t_lo: float, t_hi: float) -> None:
-        """Fixes in (t_lo, t_hi] onto the newest knot."""
-        t = self.kt[-1]
+        """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate."""
         gt, gz, gs = self.tab_g
         a, b = np.searchsorted(gt, [t_lo + 1e-9, t_hi + 1e-9])
-        if b > a:
-            self.g_t = np.concatenate([self.g_t, np.full(b - a, t)])
-            self.g_z = np.concatenate([self.g_z, gz[a:b]])
-            self.g_s = np.concatenate([self.g_s, gs[a:b]])
         ut, uz, us = self.tab_u
-        a, b = np.searchsorted(ut, [t_lo + 1e-9, t_hi + 1e-9])
-        if b > a:
-            self.u_t = np.concatenate([self.u_t, np.full(b - a, t)])
-            self.u_z = np.concatenate([self.u_z, uz[a:b]])
-            self.u_s = np.concatenate([self.u_s, us[a:b]])
+        c, d = np.searchsorted(ut, [t_lo + 1e-9, t_hi + 1e-9])
+        if b <= a and d <= c:
+            self.fx.append(None)
+            self.FXL = np.concatenate([self.FXL, np.full((1, 3), np.nan)])
+            return
+        self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
+        self.FXL = np.concatenate([self.FXL, np.zeros((1, 3))])
+        self._set_fix(self.n - 1)
+
+    def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Cost (Huber), gradient (3,) and Gauss-Newton block (3, 3) of the fixes of window
+        knot ``i`` at position ``x`` (NED, m), Huber weights at ``x``."""
+        f = self.fx[i]
+        assert f is not None
+        gz, gs, uz, us = f[:4]
+        if len(gz) == 1 and not len(uz):
+            return self._gnss1(x, gz[0], float(gs[0]))
+        if len(uz) == 1 and not len(gz):
+            return self._usbl1(x, uz[0], us[0])
+        Hk = np.zeros((3, 3))
+        gk = np.zeros(3)
+        cost = 0.0
+        if len(gz):
+            r = (x[:2] - gz) / gs[:, None]
+            w = _huber(r, self.k_gnss)
+            cost += _huber_cost(r, self.k_gnss)
+            Hk[0, 0] = Hk[1, 1] = float(np.sum(w / gs ** 2))
+            gk[:2] = np.sum((w / gs)[:, None] * r, axis=0)
+        if len(uz):
+            h, Hd = range_bearing(np.broadcast_to(x[:3] - self.station, (len(uz), 3)))
+            raw = h - uz
+            raw[:, 1] = fc.wrap_angle(raw[:, 1])
+            r = raw / us
+            J = Hd / us[:, :, None]
+            w = _huber(r, self.k_usbl)
+            cost += _huber_cost(r, self.k_usbl)
+            Jt = J.transpose(0, 2, 1)
+            Hk += np.einsum("k,kij->ij", w, np.matmul(Jt, J))
+            gk += np.einsum("k,kij,kj->i", w, Jt, r)
+        return cost, gk, Hk
+
+    def _gnss1(self, x: np.ndarray, z: np.ndarray, s: float):
+        """:meth:`fix_terms` of one GNSS fix, in scalars (numpy calls cost microseconds)."""
+        r0, r1 = (float(x[0]) - float(z[0])) / s, (float(x[1]) - float(z[1])) / s
+        d = math.hypot(r0, r1)
+        k = self.k_gnss
+        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        Hk = np.zeros((3, 3))
+        Hk[0, 0] = Hk[1, 1] = w / (s * s)
+        return cost, np.array([w * r0 / s, w * r1 / s, 0.0]), Hk
+
+    def _usbl1(self, x: np.ndarray, z: np.ndarray, sig: np.ndarray):
+        """:meth:`fix_terms` of one USBL fix (range, bearing; :func:`range_bearing`)."""
+        assert self.station is not None
+        dn, de, dd = (float(x[0] - self.station[0]), float(x[1] - self.station[1]),
+                      float(x[2] - self.station[2]))
+        rng = math.sqrt(dn * dn + de * de + dd * dd)
+        rh2 = dn * dn + de * de
+        sr, sb = float(sig[0]), float(sig[1])
+        r0 = (rng - float(z[0])) / sr
+        r1 = float(fc.wrap_angle(math.atan2(de, dn) - float(z[1]))) / sb
+        d = math.hypot(r0, r1)
+        k = self.k_usbl
+        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        rr, hh = max(rng, 1e-9), max(rh2, 1e-12)
+        J = np.array([[dn / rr / sr, de / rr / sr, dd / rr / sr],
+                      [-de / hh / sb, dn / hh / sb, 0.0]])
+        return cost, w * (J[0] * r0 + J[1] * r1), w * (J.T @ J)
+
+    def _set_fix(self, i: int) -> None:
+        """(Re)linearise the fixes of window knot ``i`` at its estimate."""
+        f = self.fx[i]
+        assert f is not None
+        o = self.P + 6 * i
+        x = self.z[o:o + 3].copy()
+        _, gk, Hk = self.fix_terms(i, x)
+        bk = gk - Hk @ x
+        if f[4] is not None:
+            self.H[o:o + 3, o:o + 3] += Hk - f[4]
+            self.b[o:o + 3] += bk - f[5]
+        else:
+            self.H[o:o + 3, o:o + 3] += Hk
+            self.b[o:o + 3] += bk
+        f[4], f[5] = Hk, bk
+        self.FXL[i] = x
 
     # ------------------------------------------------------------------ reading
     @property
@@ -217,7 +298,7 @@ class LagWindow:
         linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``)."""
         P = self.P
         J = np.empty((6, P + 12))
-        J[:, :P] = -(W @ (Jp @ self.Jsel))
+        J[:, :P] = -(W @ (Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel))
         J[:, P:P + 6] = -(W @ Jx)
         J[:, P + 6:] = W
         c = -(W @ pred) - J[:, :P + 6] @ np.concatenate([th, x0])
@@ -227,14 +308,15 @@ class LagWindow:
         d = self.dyn[i]
         J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, d[1])
         Hi, bi = J.T @ J, J.T @ c
-        ix = np.ix_(self._cols(i), self._cols(i))
-        cols = self._cols(i)
-        if d[2] is not None:
-            self.H[ix] += Hi - d[2]
-            self.b[cols] += bi - d[3]
-        else:
-            self.H[ix] += Hi
-            self.b[cols] += bi
+        dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
+        P, o = self.P, self.P + 6 * i
+        H = self.H
+        H[:P, :P] += dH[:P, :P]
+        H[:P, o:o + 12] += dH[:P, P:]
+        H[o:o + 12, :P] += dH[P:, :P]
+        H[o:o + 12, o:o + 12] += dH[P:, P:]
+        self.b[:P] += db[:P]
+        self.b[o:o + 12] += db[P:]
         d[2], d[3] = Hi, bi
         self.X0L[i] = x0
         self.THL[i] = th
@@ -298,13 +380,17 @@ class LagWindow:
     def _relinearise(self) -> None:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
         thresholds since their linearisation."""
-        if not self.dyn:
-            return
         P = self.P
         th = self.z[:P]
         X = self.X
+        fmoved = (np.abs(X[:, :3] - self.FXL) > self.s.relin_pos).any(axis=1)   # NaN: False
+        if fmoved.any():
+            for i in np.flatnonzero(fmoved):
+                self._set_fix(int(i))
+        if not self.dyn:
+            return
         moved = (np.abs(X[:-1] - self.X0L) > self.relin).any(axis=1) | \
-            (np.abs(th - self.THL) > self.s.relin_param).any(axis=1)
+            (np.abs(th - self.THL) > self.s.fast_relin_param).any(axis=1)
         if not moved.any():
             return
         p = self.full_params()
@@ -314,53 +400,12 @@ class LagWindow:
             if np.all(np.isfinite(pred)):
                 self._set_dyn(int(i), x0, th.copy(), pred, Jx, Jp)
 
-    def _fixes(self, H: np.ndarray, g: np.ndarray, z: np.ndarray, first_only: bool) -> None:
-        """Add the fixes' Gauss-Newton blocks (Huber-weighted, linearised at ``z``) to
-        ``H`` and the gradient ``g`` (all knots, or the oldest knot's only)."""
-        P = self.P
-        N = len(z)
-        X = z[P:].reshape(-1, 6)
-        kt = np.asarray(self.kt)
-        Hf = H.reshape(-1)
-        t_cut = kt[0] + 1e-9 if first_only else np.inf
-        if len(self.g_t):
-            sel = self.g_t <= t_cut
-            if sel.any():
-                gi = np.searchsorted(kt, self.g_t[sel] - 1e-9)
-                sig = self.g_s[sel]
-                r = (X[gi, :2] - self.g_z[sel]) / sig[:, None]
-                w = _huber(r, self.k_gnss) / sig ** 2
-                c = P + 6 * gi
-                for a in range(2):
-                    _scatter_add(Hf, (c + a) * (N + 1), w)
-                    _scatter_add(g, c + a, w * r[:, a] * sig)
-        if len(self.u_t):
-            sel = self.u_t <= t_cut
-            if sel.any():
-                ui = np.searchsorted(kt, self.u_t[sel] - 1e-9)
-                sig = self.u_s[sel]
-                h, Hd = range_bearing(X[ui, :3] - self.station)
-                raw = h - self.u_z[sel]
-                raw[:, 1] = fc.wrap_angle(raw[:, 1])
-                r = raw / sig
-                Jm = Hd / sig[:, :, None]
-                w = _huber(r, self.k_usbl)
-                Jt = Jm.transpose(0, 2, 1)
-                c = P + 6 * ui
-                a3 = np.arange(3)
-                rows = c[:, None] + a3[None, :]                       # (k, 3)
-                flat = (rows[:, :, None] * N + rows[:, None, :]).reshape(-1)
-                _scatter_add(Hf, flat, (w[:, None, None] * np.matmul(Jt, Jm)).reshape(-1))
-                _scatter_add(g, rows.reshape(-1),
-                             (w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0]).reshape(-1))
-
     def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton normal equations ``(H, g)`` of the window at ``z`` (default: the
         estimate): held quadratic, fixes and hold priors."""
         z = self.z if z is None else z
         H = self.H.copy()
         g = self.H @ z + self.b
-        self._fixes(H, g, z, False)
         if self.hold_w is not None and self.P:
             H[self.pidx, self.pidx] += self.hold_w
             g[:self.P] += self.hold_w * (z[:self.P] - self.th0)
@@ -372,30 +417,29 @@ class LagWindow:
         system is not positive definite (the estimate is left as it was)."""
         self._relinearise()
         H, g = self.system()
-        with np.errstate(all="ignore"):
-            np.linalg.cholesky(H)             # raises when not positive definite
-            Hi = np.linalg.inv(H)
-            z = self.z - Hi @ g
-        if not np.all(np.isfinite(z)):
-            raise np.linalg.LinAlgError("non-finite step")
         P = self.P
+        rhs = np.zeros((len(g), P + 1))
+        rhs[:, 0] = g
+        rhs[self.pidx, self.pidx + 1] = 1.0
+        with np.errstate(all="ignore"):
+            sol = np.linalg.solve(H, rhs)    # the step, and the parameters' columns of H^-1
+            z = self.z - sol[:, 0]
+            cov = sol[:P, 1:]
+        if not (np.all(np.isfinite(sol)) and np.all(np.diag(cov) > 0)):
+            raise np.linalg.LinAlgError("the window's system is not positive definite")
         z[:P] = np.clip(z[:P], self.lo, self.hi)
         self.z = z
-        self.cov = Hi[:P, :P]
+        self.cov = cov
         self._marginalise()
 
     def _marginalise(self) -> None:
         """Eliminate the knots older than ``lag`` before the newest from the held quadratic
-        (Schur complement; the fixes on them linearised at the current estimate)."""
+        (Schur complement at the factors' linearisation points)."""
         P = self.P
         while self.n > 2 and self.kt[0] < self.kt[-1] - self.lag - 1e-6:
             z = self.z
             N = len(z)
-            Hc = np.zeros((N, N))
-            gc = np.zeros(N)
-            self._fixes(Hc, gc, z, True)
-            H = self.H + Hc
-            b = self.b + gc - Hc @ z
+            H, b = self.H, self.b
             r = np.concatenate([self.pidx, np.arange(P + 6, N)])
             a = slice(P, P + 6)
             Hra = H[r, a]
@@ -405,34 +449,19 @@ class LagWindow:
             self.b = b[r] - K @ b[a]
             self.z = z[r]
             self.n -= 1
-            t0 = self.kt.pop(0)
+            self.kt.pop(0)
             self.kid.pop(0)
             self.dyn.pop(0)
             self.X0L, self.THL = self.X0L[1:], self.THL[1:]
-            for pre in ("g", "u"):
-                tt = getattr(self, pre + "_t")
-                if len(tt) and tt[0] <= t0 + 1e-9:
-                    k = tt > t0 + 1e-9
-                    for f in ("_t", "_z", "_s"):
-                        setattr(self, pre + f, getattr(self, pre + f)[k])
+            self.fx.pop(0)
+            self.FXL = self.FXL[1:]
 
     # ------------------------------------------------------------------ tests
     def cost(self, z: np.ndarray) -> float:
-        """The window's cost (1/2 chi-square up to a constant) at ``z``: held quadratic,
-        fixes (Huber), hold priors; its gradient is :meth:`system`'s ``g``."""
+        """The window's linearised cost (1/2 chi-square up to a constant) at ``z``: held
+        quadratic and hold priors; its gradient is :meth:`system`'s ``g``."""
         P = self.P
         c = float(0.5 * z @ self.H @ z + self.b @ z)
-        X = z[P:].reshape(-1, 6)
-        kt = np.asarray(self.kt)
-        if len(self.g_t):
-            gi = np.searchsorted(kt, self.g_t - 1e-9)
-            c += _huber_cost((X[gi, :2] - self.g_z) / self.g_s[:, None], self.k_gnss)
-        if len(self.u_t):
-            ui = np.searchsorted(kt, self.u_t - 1e-9)
-            h, _ = range_bearing(X[ui, :3] - self.station)
-            raw = h - self.u_z
-            raw[:, 1] = fc.wrap_angle(raw[:, 1])
-            c += _huber_cost(raw / self.u_s, self.k_usbl)
         if self.hold_w is not None:
             c += 0.5 * float(np.sum(self.hold_w * (z[:P] - self.th0) ** 2))
         return c
