@@ -33,9 +33,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dposv as _posv
 
 from aqfg.fg import factors as fc
-from aqfg.fg.fastlm import _scatter_add
 from aqfg.model.measurements import range_bearing
 
 
@@ -91,7 +91,6 @@ class LagWindow:
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.set_mission(mission)
         self._wcache: dict = {}
-        self._idx: dict[int, np.ndarray] = {}
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
         self.n = 1
@@ -286,13 +285,6 @@ class LagWindow:
             W = self._wcache[key] = np.linalg.inv(L)
         return W
 
-    def _cols(self, i: int) -> np.ndarray:
-        """Columns of ``z`` of dynamics factor ``i``: theta, knot i, knot i + 1."""
-        c = self._idx.get(i)
-        if c is None:
-            c = self._idx[i] = np.concatenate([self.pidx, self.P + 6 * i + np.arange(12)])
-        return c
-
     def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
         """Whitened linear model ``e = J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
         linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``)."""
@@ -421,12 +413,13 @@ class LagWindow:
         rhs = np.zeros((len(g), P + 1))
         rhs[:, 0] = g
         rhs[self.pidx, self.pidx + 1] = 1.0
-        with np.errstate(all="ignore"):
-            sol = np.linalg.solve(H, rhs)    # the step, and the parameters' columns of H^-1
-            z = self.z - sol[:, 0]
-            cov = sol[:P, 1:]
-        if not (np.all(np.isfinite(sol)) and np.all(np.diag(cov) > 0)):
+        # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
+        # the parameters' columns of H^-1
+        _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
+        if info != 0 or not np.all(np.isfinite(sol)):
             raise np.linalg.LinAlgError("the window's system is not positive definite")
+        z = self.z - sol[:, 0]
+        cov = sol[:P, 1:]
         z[:P] = np.clip(z[:P], self.lo, self.hi)
         self.z = z
         self.cov = cov
@@ -440,14 +433,21 @@ class LagWindow:
             z = self.z
             N = len(z)
             H, b = self.H, self.b
-            r = np.concatenate([self.pidx, np.arange(P + 6, N)])
-            a = slice(P, P + 6)
-            Hra = H[r, a]
-            K = np.linalg.solve(H[a, a], Hra.T).T          # H_ra H_aa^-1
-            Hn = H[np.ix_(r, r)] - K @ Hra.T
-            self.H = 0.5 * (Hn + Hn.T)
-            self.b = b[r] - K @ b[a]
-            self.z = z[r]
+            # [theta, x0, rest] -> [theta, rest]: x0 eliminated
+            Har = np.concatenate([H[P:P + 6, :P], H[P:P + 6, P + 6:]], axis=1)   # (6, N-6)
+            rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
+            _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)          # H_aa^-1 [H_ar, b_a]
+            if info != 0:
+                raise np.linalg.LinAlgError("a marginalised knot's information is singular")
+            Hn = np.empty((N - 6, N - 6))
+            Hn[:P, :P] = H[:P, :P]
+            Hn[:P, P:] = H[:P, P + 6:]
+            Hn[P:, :P] = H[P + 6:, :P]
+            Hn[P:, P:] = H[P + 6:, P + 6:]
+            Hn -= Har.T @ sol[:, :-1]
+            self.H = Hn
+            self.b = np.concatenate([b[:P], b[P + 6:]]) - Har.T @ sol[:, -1]
+            self.z = np.concatenate([z[:P], z[P + 6:]])
             self.n -= 1
             self.kt.pop(0)
             self.kid.pop(0)

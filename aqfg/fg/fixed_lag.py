@@ -32,7 +32,6 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg import noise
-from aqfg.fg.fastlag import LagWindow
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -47,6 +46,7 @@ from aqfg.fg.common import (
     residuals,
     robust_fix_table,
 )
+from aqfg.fg.fastlag import LagWindow
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
@@ -456,7 +456,7 @@ class FixedLagSmoother:
         the step retried; if that fails too, the step is skipped (recorded in ``events``)."""
         eng = self._fast
         assert eng is not None
-        for it in range(max(self.settings.iterations_per_update, 1)):
+        for _ in range(max(self.settings.iterations_per_update, 1)):
             try:
                 eng.step()
             except np.linalg.LinAlgError as exc:
