@@ -159,6 +159,7 @@ class FixedLagSmoother:
         self.knots: list[float] = []
         self.keys: list[int] = []
         self.filtered: list[np.ndarray] = []      # causal estimate per knot
+        self._pending: list[tuple] = []            # numpy engine: deferred causal states
         self.anchor_idx: list[int] = []           # knot index of each fix
         self.latest: dict[int, np.ndarray] = {}   # knot index -> latest estimate
         self.seg = 0
@@ -350,12 +351,12 @@ class FixedLagSmoother:
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         new_t = np.concatenate([grid, [t_fix]])
         all_t = np.concatenate([[t_last], new_t])
-        steps, off = self._steps(all_t)
         if self._fast is not None:
-            info = self._update_fast(t_fix, t_last, new_t, steps, off)
+            info = self._update_fast(t_fix, t_last, new_t, all_t)
             if self._reinit_due(t_fix):
                 info = self._reinitialise(t_fix) or info
             return info
+        steps, off = self._steps(all_t)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         stamps = {}
@@ -420,35 +421,54 @@ class FixedLagSmoother:
             info = self._reinitialise(t_fix) or info
         return info
 
-    def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, steps, off
+    def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
                      ) -> UpdateInfo:
         """:meth:`update` on the numpy engine: one knot at the fix (its dynamics factor over
-        every input since the last one), the knots between on the causal track from the
-        model's prediction."""
+        every input since the last one); the knots between join the causal track as the
+        model's prediction from the last fix, computed when the track is read
+        (:meth:`_materialise`)."""
         eng = self._fast
         assert eng is not None
         s = self.settings
-        x = eng.X[-1].copy()
-        p = eng.full_params()
         i0 = len(self.knots)
-        st = steps.slice(int(off[0]), int(off[-1])) if len(new_t) > 1 else steps
-        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, st, self.q_scale)
         if len(new_t) > 1:
-            with np.errstate(all="ignore"):
-                Xi = self.model.rollout_segments(x, p, steps, off)[1:-1]
-            if not np.all(np.isfinite(Xi)):
-                Xi = np.where(np.isfinite(Xi), Xi, np.where(np.isfinite(x), x, 0.0))
-            self.filtered.extend(Xi)
+            self._pending.append((i0, all_t, eng.X[-1].copy(), eng.full_params()))
+            self.filtered.extend([None] * (len(new_t) - 1))      # type: ignore[list-item]
+        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, self._interval_steps(all_t),
+                        self.q_scale)
         if not np.all(np.isfinite(eng.last_pred)):
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
         self.filtered.append(x_fix)
-        self.knots.extend(map(float, new_t))
+        self.knots.extend(new_t.tolist())
         self.pred_t.append(float(t_fix))
         self.pred_x.append(x_fix.copy())
         if s.adapt_process:
             self._adapt(t_fix, float(t_fix - t_last), x_fix)
         return self._update(None, None, {}, t_fix, len(new_t))
+
+    def _interval_steps(self, all_t: np.ndarray):
+        """Kernel steps from ``all_t[0]`` to ``all_t[-1]`` in one piece (the numpy engine's
+        dynamics factor): a slice of the plan when it has both knots."""
+        if self._plan is not None:
+            _, index, steps, off = self._plan
+            i, j = index.get(float(all_t[0])), index.get(float(all_t[-1]))
+            if i is not None and j is not None and j > i:
+                return steps.slice(int(off[i]), int(off[j]))
+        steps, off = self._steps(all_t)
+        return steps.slice(int(off[0]), int(off[-1]))
+
+    def _materialise(self) -> None:
+        """The numpy engine's deferred causal states between fixes: the model's prediction
+        from the fix before them with the parameters of then (one kernel roll-out each)."""
+        pending, self._pending = getattr(self, "_pending", []), []
+        for i0, all_t, x, p in pending:
+            steps, off = self._steps(all_t)
+            with np.errstate(all="ignore"):
+                Xi = self.model.rollout_segments(x, p, steps, off)[1:-1]
+            if not np.all(np.isfinite(Xi)):
+                Xi = np.where(np.isfinite(Xi), Xi, np.where(np.isfinite(x), x, 0.0))
+            self.filtered[i0:i0 + len(Xi)] = list(Xi)
 
     def _fast_step(self, t_fix: float) -> None:
         """The numpy engine's Gauss-Newton step(s), surviving a system that is not positive
@@ -566,6 +586,7 @@ class FixedLagSmoother:
             "t": float(t_fix), "event": "re-initialised from a batch solve of the fixes so far",
             "theta_e_before": float(p[self.model.index("theta_e")]), "theta_e_after": float(th_b)}]
         timings = {k: list(v) for k, v in self.timings.items()}
+        self._materialise()
         # what was reported causally before the restart stays as it was reported
         causal = (list(self.hist_t), list(self.hist_v), list(self.hist_s),
                   list(self.filtered), list(self.pred_t), list(self.pred_x))
@@ -586,6 +607,7 @@ class FixedLagSmoother:
         if len(self.filtered) >= n_kept and self.hist_t[:len(causal[0])] == causal[0]:
             self.hist_t, self.hist_v, self.hist_s = causal[0], causal[1], causal[2]
             self.filtered[:n_kept] = causal[3]
+            self._pending = [q for q in self._pending if q[0] >= n_kept]
             self.pred_t, self.pred_x = causal[4], causal[5]
         self._release(t_fix)
         # per-update timings stay aligned with the (replayed) history; the updates before
@@ -751,7 +773,7 @@ class FixedLagSmoother:
     def _last_finite_state(self) -> np.ndarray:
         """The newest finite causal state (position held, velocity zero if none)."""
         for x in reversed(self.filtered[:max(self._n_committed, 1)]):
-            if np.all(np.isfinite(x)):
+            if x is not None and np.all(np.isfinite(x)):
                 return np.asarray(x, float)
         return np.zeros(6)
 
@@ -878,6 +900,7 @@ class FixedLagSmoother:
     def filtered_track(self) -> Track:
         """The causal track: each knot as first predicted, each fix knot right after its
         update."""
+        self._materialise()
         X = np.array(self.filtered)
         return Track(np.array(self.knots), X[:, :3], X[:, 3:])
 
