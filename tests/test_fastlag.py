@@ -62,9 +62,9 @@ def test_dynamics_and_fix_linearisations_match_finite_differences(usbl):
         x0 = eng.X[i].copy()
         x1 = eng.X[i + 1].copy()
 
-        def resid(v):
+        def resid(v):        # the negated whitened residual W (f(x0, p) - x1), as dyn_linear
             p = lay.full({g: v[:P][sl] for g, sl in eng.slices.items()})
-            return W @ (v[P + 6:] - eng.model.propagate(v[P:P + 6], p, steps)[0])
+            return W @ (eng.model.propagate(v[P:P + 6], p, steps)[0] - v[P + 6:])
         pred, Jx, Jp = eng.model.propagate(x0, eng.full_params(), steps)
         J, c = eng.dyn_linear(i, x0, th, pred, Jx, Jp, W)
         v = np.concatenate([th, x0, x1])

@@ -286,20 +286,22 @@ class LagWindow:
         return W
 
     def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
-        """Whitened linear model ``e = J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
-        linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``)."""
+        """Whitened linear model ``J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
+        linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``): the negated residual
+        ``f(x0, p) - x1`` (the sign leaves the normal equations as they are)."""
         P = self.P
-        J = np.empty((6, P + 12))
-        J[:, :P] = -(W @ (Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel))
-        J[:, P:P + 6] = -(W @ Jx)
-        J[:, P + 6:] = W
-        c = -(W @ pred) - J[:, :P + 6] @ np.concatenate([th, x0])
-        return J, c
+        M = np.empty((6, P + 12))
+        M[:, :P] = Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel
+        M[:, P:P + 6] = Jx
+        M[:, P + 6:] = _MINUS_I6
+        c = W @ (pred - M[:, :P + 6] @ np.concatenate([th, x0]))
+        return W @ M, c
 
     def _set_dyn(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp) -> None:
         d = self.dyn[i]
         J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, d[1])
-        Hi, bi = J.T @ J, J.T @ c
+        Jt = J.T
+        Hi, bi = Jt @ J, Jt @ c
         dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
         P, o = self.P, self.P + 6 * i
         H = self.H
@@ -371,26 +373,28 @@ class LagWindow:
     # ------------------------------------------------------------------ the system
     def _relinearise(self) -> None:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
-        thresholds since their linearisation."""
+        thresholds since their linearisation, and the fixes whose knot moved past
+        ``relin_pos``."""
         P = self.P
         th = self.z[:P]
-        X = self.X
-        fmoved = (np.abs(X[:, :3] - self.FXL) > self.s.relin_pos).any(axis=1)   # NaN: False
-        if fmoved.any():
-            for i in np.flatnonzero(fmoved):
+        X = self.z[P:].reshape(-1, 6)
+        fm = np.abs(X[:, :3] - self.FXL) > self.s.relin_pos          # NaN (no fix): False
+        if fm.any():
+            for i in np.flatnonzero(fm.any(axis=1)):
                 self._set_fix(int(i))
         if not self.dyn:
             return
-        moved = (np.abs(X[:-1] - self.X0L) > self.relin).any(axis=1) | \
-            (np.abs(th - self.THL) > self.s.fast_relin_param).any(axis=1)
-        if not moved.any():
+        dx = np.abs(X[:-1] - self.X0L) > self.relin
+        dth = np.abs(th - self.THL) > self.s.fast_relin_param
+        if not (dx.any() or dth.any()):
             return
         p = self.full_params()
-        for i in np.flatnonzero(moved):
+        th = th.copy()
+        for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
             x0 = X[i].copy()
             pred, Jx, Jp = self.model.propagate(x0, p, self.dyn[i][0])
             if np.all(np.isfinite(pred)):
-                self._set_dyn(int(i), x0, th.copy(), pred, Jx, Jp)
+                self._set_dyn(int(i), x0, th, pred, Jx, Jp)
 
     def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton normal equations ``(H, g)`` of the window at ``z`` (default: the
@@ -465,6 +469,9 @@ class LagWindow:
         if self.hold_w is not None:
             c += 0.5 * float(np.sum(self.hold_w * (z[:P] - self.th0) ** 2))
         return c
+
+
+_MINUS_I6 = -np.eye(6)
 
 
 def _huber(r: np.ndarray, k: float | None) -> np.ndarray:

@@ -22,6 +22,7 @@ or simply ``FixedLagSmoother(...).run(mission) -> Result``.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -716,14 +717,19 @@ class FixedLagSmoother:
         of dragging the track off the fixes)."""
         s = self.settings
         t, pos, var = self._fixes
-        i = np.searchsorted(t, t_fix - 1e-6)
+        i = int(t.searchsorted(t_fix - 1e-6))
         if i >= len(t) or abs(t[i] - t_fix) > 1e-6 or dt <= 0:
             return
-        e2 = float(np.sum((pos[i] - x_pred[:2]) ** 2))
-        q = float(s.process.cov(dt, self.mission.planar)[0, 0])
-        if not (np.isfinite(e2) and np.isfinite(var[i]) and q > 0):
+        # in scalars: this runs at every update (numpy calls cost microseconds each)
+        e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 + (float(pos[i, 1]) - float(x_pred[1])) ** 2
+        key = round(dt, 9)
+        q = self._noise.get(key)
+        if q is None:
+            q = self._noise[key] = float(s.process.cov(dt, self.mission.planar)[0, 0])
+        v = float(var[i])
+        if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
-        self._innov.append(float(noise.excess(e2, var[i], q)))
+        self._innov.append(noise.excess_scalar(e2, v, q))
         self.q_scale = max(noise.variance_factor(self._innov[-s.adapt_window:], s),
                            self._q_floor)
 

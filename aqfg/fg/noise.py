@@ -14,6 +14,8 @@ it. The fixed-lag smoother (:mod:`aqfg.fg.fixed_lag`) uses its causal innovation
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -34,10 +36,24 @@ def excess(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike) -> np.nd
     return np.maximum(e2 / 2.0 - 2.0 * var, 0.0) / np.maximum(q_pos, 1e-300)
 
 
+def excess_scalar(e2: float, var: float, q_pos: float) -> float:
+    """:func:`excess` of one innovation, in Python floats (the online smoother's per-update
+    path)."""
+    return max(e2 / 2.0 - 2.0 * var, 0.0) / max(q_pos, 1e-300)
+
+
 def variance_factor(values: npt.ArrayLike, settings: FGSettings, min_count: int = 3) -> float:
     """The process-noise variance factor from normalised excesses (:func:`excess`): their
     median, at least 1 and at most ``settings.adapt_max``, quantised to powers of sqrt 2
     (so noise models can be shared); 1 with fewer than ``min_count`` finite values."""
+    if isinstance(values, list):               # the online path: a few floats
+        fv = sorted(float(x) for x in values if math.isfinite(x))
+        if len(fv) < min_count:
+            return 1.0
+        k = len(fv) // 2
+        med = fv[k] if len(fv) % 2 else 0.5 * (fv[k - 1] + fv[k])
+        target = min(max(med, 1.0), settings.adapt_max)
+        return float(2.0 ** (round(2.0 * math.log2(target)) / 2.0))
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     if len(v) < min_count:
