@@ -2,11 +2,22 @@
 mode (§III-E): after each absolute fix, the states inside a window of ``window`` seconds and
 the parameter nodes are re-estimated jointly.
 
-Built on GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath): states older than the
-window are marginalised into a prior (a linear container factor), not forgotten; the
-parameter keys are re-stamped with the current time at every update so they never leave the
-window (gtsam-notes). Only the window's Values reach the CustomFactor callbacks, so the cost
-per update does not grow with the mission.
+One orchestration (holding the parameters until a batch re-initialisation, replays,
+adaptive process noise, events, history, causal and corrected tracks), two engines chosen
+by ``FGSettings.online_engine``:
+
+* "numpy" (default where the configuration allows it, :mod:`aqfg.fg.fastlag`): knots at
+  the fixes only, one Gauss-Newton step per update on the window's dense normal equations,
+  knots older than the window folded into a Gaussian prior by a Schur complement; no Python
+  callback per factor;
+* "gtsam" (and the fallback: measurement effects, random-walk parameters, a thrust lag,
+  depth readings): GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath) on 1-s knots:
+  states older than the window are marginalised into a prior (a linear container factor),
+  not forgotten; the parameter keys are re-stamped with the current time at every update
+  so they never leave the window (gtsam-notes). Only the window's Values reach the
+  CustomFactor callbacks, so the cost per update does not grow with the mission.
+
+``engine`` / ``engine_note`` (and ``Result.info``) say which engine ran and why.
 
 Step-by-step use (live data)::
 
