@@ -251,7 +251,7 @@ class LagWindow:
         return self.z[:self.P]
 
     def full_params(self) -> np.ndarray:
-        th = np.clip(self.z[:self.P], self.lo, self.hi)
+        th = np.minimum(np.maximum(self.z[:self.P], self.lo), self.hi)
         return self.layout.full({g: th[sl] for g, sl in self.slices.items()})
 
     def sigma(self) -> np.ndarray:
@@ -329,7 +329,7 @@ class LagWindow:
         H = np.zeros((N + 6, N + 6))
         H[:N, :N] = self.H
         self.H = H
-        ok = bool(np.all(np.isfinite(pred)))
+        ok = bool(np.isfinite(pred).all())
         x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
         self.b = np.concatenate([self.b, np.zeros(6)])
         self.z = np.concatenate([self.z, x1])
@@ -393,7 +393,7 @@ class LagWindow:
         for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
             x0 = X[i].copy()
             pred, Jx, Jp = self.model.propagate(x0, p, self.dyn[i][0])
-            if np.all(np.isfinite(pred)):
+            if np.isfinite(pred).all():
                 self._set_dyn(int(i), x0, th, pred, Jx, Jp)
 
     def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -420,11 +420,11 @@ class LagWindow:
         # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
         # the parameters' columns of H^-1
         _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
-        if info != 0 or not np.all(np.isfinite(sol)):
+        if info != 0 or not np.isfinite(sol).all():
             raise np.linalg.LinAlgError("the window's system is not positive definite")
         z = self.z - sol[:, 0]
         cov = sol[:P, 1:]
-        z[:P] = np.clip(z[:P], self.lo, self.hi)
+        z[:P] = np.minimum(np.maximum(z[:P], self.lo), self.hi)
         self.z = z
         self.cov = cov
         self._marginalise()

@@ -448,7 +448,7 @@ class FixedLagSmoother:
             self.filtered.extend([None] * (len(new_t) - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, self._interval_steps(all_t),
                         self.q_scale)
-        if not np.all(np.isfinite(eng.last_pred)):
+        if not np.isfinite(eng.last_pred).all():
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
         self.filtered.append(x_fix)
@@ -647,13 +647,12 @@ class FixedLagSmoother:
         if eng is not None:
             self._fast_step(t_fix)
             self._n_committed = len(self.knots)
-            sg_all = eng.sigma()
-            for g, v in eng.group_values().items():
-                sg = sg_all[eng.slices[g]]
-                self._last_params[g] = lay.project(g, v)
-                for n, a, b in zip(lay.names[g], v, sg):
-                    values[n], sigma[n] = float(a), float(b)
-                nv.append(v); ns.append(sg)
+            th, sg_all = eng.z[:eng.P].copy(), eng.sigma()
+            for g, sl in eng.slices.items():
+                self._last_params[g] = lay.project(g, th[sl])
+            names = lay.estimated
+            values, sigma = dict(zip(names, th.tolist())), dict(zip(names, sg_all.tolist()))
+            nv, ns = [th], [sg_all]
         else:
             self._guarded_update(graph, vals, stamps, t_fix)
             self._n_committed = len(self.keys)
@@ -712,8 +711,8 @@ class FixedLagSmoother:
 
     def _record(self, t_fix, dt, values, sigma, nv, ns, n_new) -> UpdateInfo:
         self.hist_t.append(float(t_fix))
-        self.hist_v.append(np.concatenate(nv) if nv else np.zeros(0))
-        self.hist_s.append(np.concatenate(ns) if ns else np.zeros(0))
+        self.hist_v.append(nv[0] if len(nv) == 1 else np.concatenate(nv) if nv else np.zeros(0))
+        self.hist_s.append(ns[0] if len(ns) == 1 else np.concatenate(ns) if ns else np.zeros(0))
         self.n_fix = int(np.searchsorted(self.fix_t, t_fix + 1e-9))
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
