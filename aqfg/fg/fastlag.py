@@ -78,6 +78,7 @@ class LagWindow:
                 if pos >= 0:
                     self.Jsel[pos, self.slices[g].start + j] = 1.0
         self.pidx = np.arange(P)
+        self.names = layout.estimated
         jc = [int(np.flatnonzero(self.Jsel[:, j])[0]) if self.Jsel[:, j].any() else -1
               for j in range(P)]
         self.jcols = np.array(jc, int) if all(c >= 0 for c in jc) else None
@@ -107,7 +108,8 @@ class LagWindow:
         self.H[ii, ii] += wf
         self.b[ii] -= wf * np.asarray(first_mean, float)
         self._surface(0)
-        # dynamics factors, one per interval: [steps, W, H_i, b_i]; their linearisation points
+        # dynamics factors, one per interval: [steps, W, H_i, b_i, kernel]; their
+        # linearisation points
         self.dyn: list[list] = []
         self.X0L = np.zeros((0, 6))
         self.THL = np.zeros((0, P))
@@ -323,7 +325,8 @@ class LagWindow:
         t_last = self.kt[-1]
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
-        pred, Jx, Jp = self.model.propagate(x0, self.full_params(), steps)
+        prop = fc.propagator(self.model, steps)       # the kernel's arguments prepared once
+        pred, Jx, Jp = prop(x0, self.full_params())
         self.last_pred = pred
         N = P + 6 * n
         H = np.zeros((N + 6, N + 6))
@@ -337,7 +340,7 @@ class LagWindow:
         self.kt.append(float(t))
         self.kid.append(int(kid))
         self._surface(n)
-        self.dyn.append([steps, self._whitening(t - t_last, q_scale), None, None])
+        self.dyn.append([steps, self._whitening(t - t_last, q_scale), None, None, prop])
         self.X0L = np.concatenate([self.X0L, x0[None]])
         self.THL = np.concatenate([self.THL, th[None]])
         if ok:
@@ -392,7 +395,7 @@ class LagWindow:
         th = th.copy()
         for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
             x0 = X[i].copy()
-            pred, Jx, Jp = self.model.propagate(x0, p, self.dyn[i][0])
+            pred, Jx, Jp = self.dyn[i][4](x0, p)
             if np.isfinite(pred).all():
                 self._set_dyn(int(i), x0, th, pred, Jx, Jp)
 

@@ -647,10 +647,10 @@ class FixedLagSmoother:
         if eng is not None:
             self._fast_step(t_fix)
             self._n_committed = len(self.knots)
-            th, sg_all = eng.z[:eng.P].copy(), eng.sigma()
+            th, sg_all = eng.z[:eng.P].copy(), eng.sigma()      # th: inside the bounds
             for g, sl in eng.slices.items():
-                self._last_params[g] = lay.project(g, th[sl])
-            names = lay.estimated
+                self._last_params[g] = th[sl]
+            names = eng.names
             values, sigma = dict(zip(names, th.tolist())), dict(zip(names, sg_all.tolist()))
             nv, ns = [th], [sg_all]
         else:
