@@ -20,6 +20,8 @@ Figures (each a median over repeated runs; the machine may be shared, so read me
   long online stream (2 h; per-update median and RSS in its first 10 minutes after the
   warm-up and its last 10 minutes).
 
+The fixed-lag smoother runs with its default engine (numpy where the configuration allows
+it, :mod:`aqfg.fg.fastlag`); the GTSAM engine is timed beside it on the same mission.
 The factor graph's per-update time includes the parameter marginal covariances; the
 update-error optimisation time excludes its Gauss-Newton sigma (computed after). Fixed-lag
 updates during the warm-up (window grown to everything since the start until the
