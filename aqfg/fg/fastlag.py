@@ -90,6 +90,8 @@ class LagWindow:
                        else sn.robust_k)
         self.surf_w = 1.0 / np.asarray(s.surface_sigma, float) ** 2
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
+        self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
+                                                       for n in layout.estimated])
         self.set_mission(mission)
         self._wcache: dict = {}
         # the estimate and the held quadratic
@@ -388,7 +390,7 @@ class LagWindow:
         if not self.dyn:
             return
         dx = np.abs(X[:-1] - self.X0L) > self.relin
-        dth = np.abs(th - self.THL) > self.s.fast_relin_param
+        dth = np.abs(th - self.THL) > self.relin_th
         if not (dx.any() or dth.any()):
             return
         p = self.full_params()
