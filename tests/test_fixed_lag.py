@@ -72,8 +72,8 @@ def test_fixed_lag_end_agrees_with_batch(vehicle, usbl, seed):
 def test_step_by_step_api_window_and_past_correction():
     m, tr = simulate("asv", seed=7, duration=300.0, params={"theta_e": 0.6})
     m = with_gnss_every(m, 8.0)
-    fl = FixedLagSmoother(init=fixed_truth(tr), window=24.0,
-                          settings=FGSettings(warmup_tol=0.0))     # plain 24 s window
+    fl = FixedLagSmoother(init=fixed_truth(tr), window=24.0,       # plain 24 s window, the
+                          settings=FGSettings(warmup_tol=0.0, online_engine="gtsam"))   # ISAM2
     info = fl.start(m)
     assert info.t == pytest.approx(m.gnss.t[0]) and set(info.values) == set(VAR)
     n_states = []

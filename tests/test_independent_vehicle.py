@@ -14,7 +14,7 @@ from conftest import data_path
 
 from aqfg.data import load_mission, load_truth
 from aqfg.data.mission import with_gnss_every
-from aqfg.fg import BatchSmoother, FixedLagSmoother, fit_fg
+from aqfg.fg import BatchSmoother, FGSettings, FixedLagSmoother, fit_fg
 
 DEG = np.pi / 180
 
@@ -191,7 +191,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     after marginalisation) is recovered by a restart and recorded, not raised."""
     from aqfg.sim import simulate
     m, _ = simulate("asv", seed=3, duration=120.0, gnss_period=8.0)
-    fl = FixedLagSmoother(window=24.0)
+    fl = FixedLagSmoother(window=24.0, settings=FGSettings(online_engine="gtsam"))
     fl.start(m, plan=True)
     for _ in range(5):
         fl.update()

@@ -63,6 +63,13 @@ class FGSettings:
         thresholds (m, m/s, parameter units) and the number of ISAM2 iterations after each
         fix (coarse thresholds and one iteration: positions enter the dynamics linearly, so
         their linearisation point matters little; measured in docs/architecture.md).
+    online_engine: the fixed-lag smoother's engine: "numpy" (:mod:`aqfg.fg.fastlag`, knots at
+        the fixes, no Python callback per factor) where the configuration allows it, else
+        "gtsam" (ISAM2 with CustomFactors on 1-s knots), which "gtsam" forces.
+    fast_relin_param: the numpy engine's parameter relinearisation threshold, a fraction of
+        each parameter's ParamSpec.scale (0.05: 0.025 rad of heading offset; a dynamics
+        factor's error from a held linearisation is second order in the parameters' move:
+        0.025 rad on an 8-s interval is ~1.5 % of its noise sigma; docs/speed.md).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
@@ -93,6 +100,8 @@ class FGSettings:
     relin_vel: float = 0.05
     relin_param: float = 0.001
     iterations_per_update: int = 1
+    online_engine: str = "numpy"
+    fast_relin_param: float = 0.05
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 

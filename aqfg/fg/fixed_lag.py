@@ -2,11 +2,22 @@
 mode (§III-E): after each absolute fix, the states inside a window of ``window`` seconds and
 the parameter nodes are re-estimated jointly.
 
-Built on GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath): states older than the
-window are marginalised into a prior (a linear container factor), not forgotten; the
-parameter keys are re-stamped with the current time at every update so they never leave the
-window (gtsam-notes). Only the window's Values reach the CustomFactor callbacks, so the cost
-per update does not grow with the mission.
+One orchestration (holding the parameters until a batch re-initialisation, replays,
+adaptive process noise, events, history, causal and corrected tracks), two engines chosen
+by ``FGSettings.online_engine``:
+
+* "numpy" (default where the configuration allows it, :mod:`aqfg.fg.fastlag`): knots at
+  the fixes only, one Gauss-Newton step per update on the window's dense normal equations,
+  knots older than the window folded into a Gaussian prior by a Schur complement; no Python
+  callback per factor;
+* "gtsam" (and the fallback: measurement effects, random-walk parameters, a thrust lag,
+  depth readings): GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath) on 1-s knots:
+  states older than the window are marginalised into a prior (a linear container factor),
+  not forgotten; the parameter keys are re-stamped with the current time at every update
+  so they never leave the window (gtsam-notes). Only the window's Values reach the
+  CustomFactor callbacks, so the cost per update does not grow with the mission.
+
+``engine`` / ``engine_note`` (and ``Result.info``) say which engine ran and why.
 
 Step-by-step use (live data)::
 
@@ -22,6 +33,7 @@ or simply ``FixedLagSmoother(...).run(mission) -> Result``.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -46,6 +58,7 @@ from aqfg.fg.common import (
     residuals,
     robust_fix_table,
 )
+from aqfg.fg.fastlag import LagWindow
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
@@ -158,6 +171,7 @@ class FixedLagSmoother:
         self.knots: list[float] = []
         self.keys: list[int] = []
         self.filtered: list[np.ndarray] = []      # causal estimate per knot
+        self._pending: list[tuple] = []            # numpy engine: deferred causal states
         self.anchor_idx: list[int] = []           # knot index of each fix
         self.latest: dict[int, np.ndarray] = {}   # knot index -> latest estimate
         self.seg = 0
@@ -197,6 +211,14 @@ class FixedLagSmoother:
         x0[3:] = 0.0
         if mission.planar:
             x0[2] = 0.0
+        hold = replaying or self._reinit_scheduled()
+        reason = ("online_engine = 'gtsam'" if s.online_engine == "gtsam" else
+                  LagWindow.unsupported(self.model, self.layout, mission, s))
+        self.engine = "gtsam" if reason else "numpy"
+        self.engine_note = reason
+        self._fast: LagWindow | None = None
+        if not reason:
+            return self._start_fast(mission, t0, x0, hold, replaying)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         k0 = fc.state_key(0, 0)
@@ -204,7 +226,6 @@ class FixedLagSmoother:
         graph.add(first_knot_prior(mission, k0, x0, s))
         if mission.planar:
             graph.add(fc.surface_factor(k0, *s.surface_sigma))
-        hold = replaying or self._reinit_scheduled()
         hold_pos = []
         for g in self.layout.groups:
             k = self._node(g)
@@ -233,6 +254,33 @@ class FixedLagSmoother:
         info = self._update(graph, vals, {k0: t0}, t0, 1)
         if hold_pos and len(self._last_new_idx) == graph.size():
             self._hold_idx = [int(self._last_new_idx[i]) for i in hold_pos]
+        return info
+
+    def _prior_sigmas(self, replaying: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Sigmas of the parameter priors (as :func:`fc.param_prior`) and of the hold
+        priors, in the layout's order."""
+        s = self.settings
+        sig = dict(s.prior_sigma)
+        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
+        names = self.layout.estimated
+        prior = np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale) for n in names])
+        hold = np.array([1e-3 * self.model.spec(n).scale for n in names])
+        return prior, hold
+
+    def _start_fast(self, mission: Mission, t0: float, x0: np.ndarray, hold: bool,
+                    replaying: bool) -> UpdateInfo:
+        """:meth:`start` on the numpy engine (:mod:`aqfg.fg.fastlag`)."""
+        s = self.settings
+        pf = first_knot_prior(mission, fc.state_key(0, 0), x0, s)
+        prior, hold_sig = self._prior_sigmas(replaying)
+        self._fast = LagWindow(self.model, self.layout, s, mission, self.window, prior,
+                               hold_sig if hold else None, x0, np.asarray(pf.prior()),
+                               np.asarray(pf.noiseModel().sigmas()), t0, 0)
+        self.knots.append(t0)
+        self.filtered.append(x0.copy())
+        info = self._update(None, None, {}, t0, 1)
+        if hold:
+            self._hold_idx = [-1]              # the engine's hold priors
         return info
 
     def _make_plan(self) -> None:
@@ -278,6 +326,8 @@ class FixedLagSmoother:
 
     def params(self) -> np.ndarray:
         """Current full parameter vector (inside the physical bounds)."""
+        if self._fast is not None:
+            return self._fast.full_params()
         nd = {}
         for g in self.layout.groups:
             try:
@@ -298,6 +348,8 @@ class FixedLagSmoother:
             self.fix_t = np.unique(mission.fix_times())
             self._plan = None                      # inputs may have changed: no plan
             self._fixes = robust_fix_table(mission, self.settings)
+            if self._fast is not None:
+                self._fast.set_mission(mission)
         if t_fix is None:
             if not self.pending():
                 raise ValueError("no fix left to process")
@@ -314,6 +366,13 @@ class FixedLagSmoother:
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         new_t = np.concatenate([grid, [t_fix]])
         all_t = np.concatenate([[t_last], new_t])
+        if self._fast is not None:
+            info = self._update_fast(t_fix, t_last, new_t, all_t)
+            if self._reinit_due(t_fix):
+                info = self._reinitialise(t_fix) or info
+            elif self._troubled(t_fix):
+                info = self._reinitialise(t_fix, force=True) or info
+            return info
         steps, off = self._steps(all_t)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
@@ -392,6 +451,77 @@ class FixedLagSmoother:
         return (bad and self.n_fix >= 6 and "theta_e" not in self.init
                 and t_fix - getattr(self, "_forced_at", -np.inf) >= 30.0)
 
+    def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
+                     ) -> UpdateInfo:
+        """:meth:`update` on the numpy engine: one knot at the fix (its dynamics factor over
+        every input since the last one); the knots between join the causal track as the
+        model's prediction from the last fix, computed when the track is read
+        (:meth:`_materialise`)."""
+        eng = self._fast
+        assert eng is not None
+        s = self.settings
+        i0 = len(self.knots)
+        if len(new_t) > 1:
+            self._pending.append((i0, all_t, eng.X[-1].copy(), eng.full_params()))
+            self.filtered.extend([None] * (len(new_t) - 1))      # type: ignore[list-item]
+        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, self._interval_steps(all_t),
+                        self.q_scale)
+        if not np.isfinite(eng.last_pred).all():
+            if not self.events or self.events[-1].get("event") != "prediction diverged":
+                self.events.append({"t": float(t_fix), "event": "prediction diverged"})
+        self.filtered.append(x_fix)
+        self.knots.extend(new_t.tolist())
+        self.pred_t.append(float(t_fix))
+        self.pred_x.append(x_fix.copy())
+        if s.adapt_process:
+            self._adapt(t_fix, float(t_fix - t_last), x_fix)
+        return self._update(None, None, {}, t_fix, len(new_t))
+
+    def _interval_steps(self, all_t: np.ndarray):
+        """Kernel steps from ``all_t[0]`` to ``all_t[-1]`` in one piece (the numpy engine's
+        dynamics factor): a slice of the plan when it has both knots."""
+        if self._plan is not None:
+            _, index, steps, off = self._plan
+            i, j = index.get(float(all_t[0])), index.get(float(all_t[-1]))
+            if i is not None and j is not None and j > i:
+                return steps.slice(int(off[i]), int(off[j]))
+        steps, off = self._steps(all_t)
+        return steps.slice(int(off[0]), int(off[-1]))
+
+    def _materialise(self) -> None:
+        """The numpy engine's deferred causal states between fixes: the model's prediction
+        from the fix before them with the parameters of then (one kernel roll-out each)."""
+        pending, self._pending = getattr(self, "_pending", []), []
+        for i0, all_t, x, p in pending:
+            steps, off = self._steps(all_t)
+            with np.errstate(all="ignore"):
+                Xi = self.model.rollout_segments(x, p, steps, off)[1:-1]
+            if not np.all(np.isfinite(Xi)):
+                Xi = np.where(np.isfinite(Xi), Xi, np.where(np.isfinite(x), x, 0.0))
+            self.filtered[i0:i0 + len(Xi)] = list(Xi)
+
+    def _fast_step(self, t_fix: float) -> None:
+        """The numpy engine's Gauss-Newton step(s), surviving a system that is not positive
+        definite: the marginal is replaced by broad priors around the current estimate and
+        the step retried; if that fails too, the step is skipped (recorded in ``events``)."""
+        eng = self._fast
+        assert eng is not None
+        for _ in range(max(self.settings.iterations_per_update, 1)):
+            try:
+                eng.step()
+            except np.linalg.LinAlgError as exc:
+                err = str(exc) or type(exc).__name__
+                eng.broaden(np.array([10.0, 10.0, 1.0, 2.0, 2.0, 0.5]),
+                            self.settings.prior_scale)
+                try:
+                    eng.step()
+                    self.events.append({"t": float(t_fix), "event": "restarted (broad priors)",
+                                        "error": err})
+                except np.linalg.LinAlgError:
+                    self.events.append({"t": float(t_fix), "event": "fix skipped",
+                                        "error": err})
+                return
+
     # ---------------------------------------------------------------- causal initialisation
     def _reinit_scheduled(self) -> bool:
         """Online without a given heading offset: batch re-initialisations are scheduled
@@ -411,6 +541,12 @@ class FixedLagSmoother:
         """Remove the hold priors: the parameters follow the data from here."""
         idx, self._hold_idx = self._hold_idx, []
         if not idx:
+            return
+        if self._fast is not None:
+            self._fast.release()
+            for _ in range(2):
+                self._fast_step(t_fix)
+            self.events.append({"t": float(t_fix), "event": "parameters released"})
             return
         try:
             self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, idx)
@@ -498,6 +634,7 @@ class FixedLagSmoother:
             "t": float(t_fix), "event": "re-initialised from a batch solve of the fixes so far",
             "theta_e_before": float(p[self.model.index("theta_e")]), "theta_e_after": float(th_b)}]
         timings = {k: list(v) for k, v in self.timings.items()}
+        self._materialise()
         # what was reported causally before the restart stays as it was reported
         causal = (list(self.hist_t), list(self.hist_v), list(self.hist_s),
                   list(self.filtered), list(self.pred_t), list(self.pred_x))
@@ -518,6 +655,7 @@ class FixedLagSmoother:
         if len(self.filtered) >= n_kept and self.hist_t[:len(causal[0])] == causal[0]:
             self.hist_t, self.hist_v, self.hist_s = causal[0], causal[1], causal[2]
             self.filtered[:n_kept] = causal[3]
+            self._pending = [q for q in self._pending if q[0] >= n_kept]
             self.pred_t, self.pred_x = causal[4], causal[5]
         self._release(t_fix)
         # per-update timings stay aligned with the (replayed) history; the updates before
@@ -528,18 +666,37 @@ class FixedLagSmoother:
 
     def _update(self, graph, vals, stamps, t_fix: float, n_new: int) -> UpdateInfo:
         lay = self.layout
-        for g in lay.groups:                       # parameter nodes never leave the window
-            stamps[self._node(g)] = float(t_fix)
+        for g in (lay.groups if self._fast is None else ()):
+            stamps[self._node(g)] = float(t_fix)   # parameter nodes never leave the window
         t_a = time.perf_counter()
+        eng = self._fast
         if self.warming:
             # warm-up: keep everything since the start in the window until the parameters
             # are known well enough to linearise the marginal priors near the truth
-            self.smoother.setSmootherLag(max(self.window, t_fix - self.knots[0] + 1.0))
-        self._guarded_update(graph, vals, stamps, t_fix)
-        self._n_committed = len(self.keys)
+            lag = max(self.window, t_fix - self.knots[0] + 1.0)
+            if eng is not None:
+                eng.lag = lag
+            else:
+                self.smoother.setSmootherLag(lag)
         values, sigma = {}, {}
         nv, ns, nh = [], [], []
-        for g in lay.groups:
+        if eng is not None:
+            self._fast_step(t_fix)
+            self._n_committed = len(self.knots)
+            th, sg_all = eng.z[:eng.P].copy(), eng.sigma()      # th: inside the bounds
+            for g, sl in eng.slices.items():
+                self._last_params[g] = th[sl]
+            names = eng.names
+            # reported sigma: see below
+            sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
+                if self._inflation else sg_all
+            values, sigma = dict(zip(names, th.tolist())), dict(zip(names, sh_all.tolist()))
+            nv, ns, nh = [th], [sg_all], [sh_all]
+            self._raw_sigma.update(zip(names, sg_all.tolist()))
+        else:
+            self._guarded_update(graph, vals, stamps, t_fix)
+            self._n_committed = len(self.keys)
+        for g in (lay.groups if eng is None else ()):
             k = self._node(g)
             try:
                 v = self.smoother.calculateEstimateVector(k)
@@ -563,7 +720,10 @@ class FixedLagSmoother:
             if done or t_fix - self.knots[0] >= self.settings.warmup_max:
                 self.warming = False
                 self.warmup_end = float(t_fix)
-                self.smoother.setSmootherLag(self.window)
+                if eng is not None:
+                    eng.lag = self.window
+                else:
+                    self.smoother.setSmootherLag(self.window)
         t_b = time.perf_counter()
         dt = t_b - t_a
         self.timings["update"].append(dt)
@@ -571,6 +731,16 @@ class FixedLagSmoother:
         # the fix knot's estimate (causal), and the latest estimates of knots in the window
         i_fix = len(self.knots) - 1
         self.anchor_idx.append(i_fix)
+        if eng is not None:
+            self.filtered[i_fix] = eng.X[-1].copy()
+            for i in reversed(self.anchor_idx):
+                if self.knots[i] < t_fix - self.window + 1e-6:
+                    break
+                x = eng.state(i)
+                if x is None:
+                    break
+                self.latest[i] = x
+            return self._record(t_fix, dt, values, sigma, nv, nh, n_new)
         try:
             self.filtered[i_fix] = self.smoother.calculateEstimateVector(self.keys[i_fix])
         except GTSAM_ERRORS:
@@ -582,9 +752,12 @@ class FixedLagSmoother:
                 self.latest[i] = self.smoother.calculateEstimateVector(self.keys[i])
             except GTSAM_ERRORS:                  # left behind by a restart
                 break
+        return self._record(t_fix, dt, values, sigma, nv, nh, n_new)
+
+    def _record(self, t_fix, dt, values, sigma, nv, nh, n_new) -> UpdateInfo:
         self.hist_t.append(float(t_fix))
-        self.hist_v.append(np.concatenate(nv) if nv else np.zeros(0))
-        self.hist_s.append(np.concatenate(nh) if nh else np.zeros(0))
+        self.hist_v.append(nv[0] if len(nv) == 1 else np.concatenate(nv) if nv else np.zeros(0))
+        self.hist_s.append(nh[0] if len(nh) == 1 else np.concatenate(nh) if nh else np.zeros(0))
         self.n_fix = int(np.searchsorted(self.fix_t, t_fix + 1e-9))
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
@@ -599,16 +772,22 @@ class FixedLagSmoother:
         of dragging the track off the fixes)."""
         s = self.settings
         t, pos, var = self._fixes
-        i = np.searchsorted(t, t_fix - 1e-6)
+        i = int(t.searchsorted(t_fix - 1e-6))
         if i >= len(t) or abs(t[i] - t_fix) > 1e-6 or dt <= 0:
             return
-        e2 = float(np.sum((pos[i] - x_pred[:2]) ** 2))
-        q = float(s.process.cov(dt, self.mission.planar)[0, 0])
-        if not (np.isfinite(e2) and np.isfinite(var[i]) and q > 0):
+        # in scalars: this runs at every update (numpy calls cost microseconds each)
+        e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 + (float(pos[i, 1]) - float(x_pred[1])) ** 2
+        key = round(dt, 9)
+        q = self._noise.get(key)
+        if q is None:
+            q = self._noise[key] = float(s.process.cov(dt, self.mission.planar)[0, 0])
+        v = float(var[i])
+        if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
-        self._innov.append((e2, float(var[i]), q))
-        recent = np.array(self._innov[-s.adapt_window:])
-        self.q_scale = max(noise.variance_factor(recent[:, 0], recent[:, 1], recent[:, 2], s),
+        self._innov.append((e2, v, q))
+        recent = self._innov[-s.adapt_window:]
+        self.q_scale = max(noise.variance_factor([r[0] for r in recent], [r[1] for r in recent],
+                                                 [r[2] for r in recent], s),
                            self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:
@@ -675,7 +854,7 @@ class FixedLagSmoother:
     def _last_finite_state(self) -> np.ndarray:
         """The newest finite causal state (position held, velocity zero if none)."""
         for x in reversed(self.filtered[:max(self._n_committed, 1)]):
-            if np.all(np.isfinite(x)):
+            if x is not None and np.all(np.isfinite(x)):
                 return np.asarray(x, float)
         return np.zeros(6)
 
@@ -802,6 +981,7 @@ class FixedLagSmoother:
     def filtered_track(self) -> Track:
         """The causal track: each knot as first predicted, each fix knot right after its
         update."""
+        self._materialise()
         X = np.array(self.filtered)
         return Track(np.array(self.knots), X[:, :3], X[:, 3:])
 
@@ -857,6 +1037,8 @@ class FixedLagSmoother:
                             "process_noise_scale": float(self.q_scale),
                             "sigma_inflation": dict(self._inflation),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
+                            "engine": getattr(self, "engine", "gtsam"),
+                            "engine_note": getattr(self, "engine_note", ""),
                             "settings": self.settings},
                       effects=tuple(e.name for e in self.model.effects), model=self.model)
 

@@ -1,0 +1,495 @@
+"""The fixed-lag smoother's window in numpy: the online engine without a Python callback per
+factor (:class:`aqfg.fg.fixed_lag.FixedLagSmoother` with ``FGSettings.online_engine =
+"numpy"``).
+
+The GTSAM engine (ISAM2 with ``CustomFactor`` s) calls Python for every new and every
+relinearised dynamics factor (docs/speed.md). This engine holds the same problem as arrays:
+
+* knots only at fix times, one dynamics factor per fix interval (``ProcessNoise.cov(dt)`` is
+  the exact covariance of the model error over any ``dt``, so the statistics are those of
+  the 1-s knots; the causal track's intermediate states are the model's prediction, as
+  they are with 1-s knots);
+* variables ``z = [theta (P), x_0 .. x_{n-1} (6 each)]``: the estimated parameters (the
+  layout's groups concatenated) and the window's knots (NED position, velocity);
+* factors: the first-knot prior, dynamics (``Model.propagate``, whitened by
+  ``W^T W = (q Q(dt))^-1``), the surface constraint of planar vehicles, GNSS position and
+  USBL range/bearing fixes with GTSAM's Huber reweighting, parameter priors, removable
+  "hold" priors on the parameters, and the marginal of the knots that left the window (a
+  dense Gaussian on ``[theta, oldest knot]``, a Schur complement, linearised where the
+  knot left, as GTSAM's linear container factor);
+* per update one Gauss-Newton step (as one ISAM2 iteration): each dynamics factor keeps
+  its linearisation (prediction and Jacobians at ``(x0_lin, theta_lin)``) until its first
+  knot or the parameters moved past ``FGSettings.relin_*`` from it; the fixes (cheap) are
+  relinearised at every step. The system is a few knots x 6 + P: one dense Cholesky; the
+  parameters' marginal covariance is the inverse's parameter block. The parameters are
+  projected into the layout's bounds after each step (as the batch LM).
+
+:meth:`LagWindow.unsupported` says why a configuration needs the GTSAM engine
+(measurement effects such as a lever arm or USBL distortions, a Cauchy loss, random-walk
+parameters, a thrust lag, depth readings of a non-planar vehicle).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg.lapack import dposv as _posv
+
+from aqfg.fg import factors as fc
+from aqfg.model.measurements import range_bearing
+
+
+class LagWindow:
+    """The window's factors and estimate (see the module docstring). Times in s, states
+    ``[n, e, d, vn, ve, vd]``.
+
+    The factors whose linearisation is held (dynamics at their linearisation point, the
+    surface constraint, the priors and the marginal) sum to one quadratic
+    ``1/2 z^T H z + b^T z`` in the window's variables ``z`` (absolute values), kept up to
+    date incrementally: a new knot extends it, a relinearised dynamics factor swaps its
+    contribution, a knot leaving the window is eliminated from it (Schur complement, with
+    the fixes on that knot linearised there). The fixes (Huber-weighted) and the hold
+    priors are added at each step.
+    """
+
+    def __init__(self, model, layout: fc.ParamLayout, settings, mission, lag: float,
+                 prior_sigma: np.ndarray, hold_sigma: np.ndarray | None,
+                 x0: np.ndarray, first_mean: np.ndarray, first_sigma: np.ndarray,
+                 t0: float, kid0: int):
+        s = settings
+        self.model, self.layout, self.s = model, layout, s
+        self.planar = bool(mission.planar)
+        self.lag = float(lag)
+        groups = layout.groups
+        th0 = np.concatenate([layout.initial(g) for g in groups]) if groups else np.zeros(0)
+        P = self.P = len(th0)
+        self.th0 = th0.copy()
+        self.lo = np.concatenate([layout.bounds(g)[0] for g in groups]) if groups else np.zeros(0)
+        self.hi = np.concatenate([layout.bounds(g)[1] for g in groups]) if groups else np.zeros(0)
+        self.slices = {}
+        c = 0
+        for g in groups:
+            self.slices[g] = slice(c, c + layout.dim(g))
+            c += layout.dim(g)
+        ncol = len(model.dyn_columns())
+        self.Jsel = np.zeros((ncol, P))          # kernel J_p columns -> theta
+        for g in layout.dyn_groups():
+            for j, pos in enumerate(layout.dyn_pos[g]):
+                if pos >= 0:
+                    self.Jsel[pos, self.slices[g].start + j] = 1.0
+        self.pidx = np.arange(P)
+        self.names = layout.estimated
+        jc = [int(np.flatnonzero(self.Jsel[:, j])[0]) if self.Jsel[:, j].any() else -1
+              for j in range(P)]
+        self.jcols = np.array(jc, int) if all(c >= 0 for c in jc) else None
+        self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
+        sn = s.sensors
+        self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
+                       else sn.robust_k_gnss)
+        self.k_usbl = (None if sn.robust == "none" or "usbl" not in sn.robust_on
+                       else sn.robust_k)
+        self.surf_w = 1.0 / np.asarray(s.surface_sigma, float) ** 2
+        self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
+        self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
+                                                       for n in layout.estimated])
+        self.set_mission(mission)
+        self._wcache: dict = {}
+        # the estimate and the held quadratic
+        self.z = np.concatenate([th0, np.asarray(x0, float)])
+        self.n = 1
+        self.kt = [float(t0)]
+        self.kid = [int(kid0)]
+        N = P + 6
+        self.H = np.zeros((N, N))
+        self.b = np.zeros(N)
+        wp = 1.0 / np.asarray(prior_sigma, float) ** 2
+        self.H[self.pidx, self.pidx] += wp
+        self.b[:P] -= wp * th0
+        wf = 1.0 / np.asarray(first_sigma, float) ** 2
+        ii = P + np.arange(6)
+        self.H[ii, ii] += wf
+        self.b[ii] -= wf * np.asarray(first_mean, float)
+        self._surface(0)
+        # dynamics factors, one per interval: [steps, W, H_i, b_i, kernel]; their
+        # linearisation points
+        self.dyn: list[list] = []
+        self.X0L = np.zeros((0, 6))
+        self.THL = np.zeros((0, P))
+        self.last_pred = np.asarray(x0, float)
+        # fixes per window knot: [gnss z, sigma, usbl z, sigma, H_k, b_k] or None, and the
+        # position each knot's fixes are linearised at (NaN: no fix)
+        self.fx: list[list | None] = []
+        self.FXL = np.zeros((0, 3))
+        self.cov = np.full((P, P), np.nan)
+        self._take_fixes(float(t0) - 1e-6, float(t0))
+
+    # ------------------------------------------------------------------ configuration
+    @staticmethod
+    def unsupported(model, layout: fc.ParamLayout, mission, settings) -> str:
+        """Why this engine cannot run the configuration ("" when it can)."""
+        from aqfg.fg.fastlm import _plain_sensors
+        from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+        if settings.sensors.robust not in ("huber", "none"):
+            return f"{settings.sensors.robust} loss"
+        if settings.walk_sigma:
+            return "random-walk parameters"
+        if any(isinstance(e, (SensorOffsetTerm, UsblTerm)) for e in model.effects) \
+                or layout.meas_groups("gnss") or layout.meas_groups("usbl") \
+                or not _plain_sensors(layout.base):
+            return "measurement effects"
+        if model.lookback > 0:
+            return "thrust lag (warm-up steps between knots)"
+        if not mission.planar and mission.depth is not None and len(mission.depth.t):
+            return "depth readings"
+        if not model.uses_cpp:
+            return "no compiled kernel for this model"
+        return ""
+
+    def set_mission(self, mission) -> None:
+        """The fix table of ``mission`` (again when a live mission grows)."""
+        from aqfg.fg.common import Measurements
+        m = Measurements.of(mission, self.s)
+        self.tab_g = (m.gnss_t, m.gnss_z, m.gnss_sigma)
+        self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
+        self.station = None if m.station is None else np.asarray(m.station, float)
+
+    def _take_fixes(self, t_lo: float, t_hi: float) -> None:
+        """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate."""
+        gt, gz, gs = self.tab_g
+        a, b = np.searchsorted(gt, [t_lo + 1e-9, t_hi + 1e-9])
+        ut, uz, us = self.tab_u
+        c, d = np.searchsorted(ut, [t_lo + 1e-9, t_hi + 1e-9])
+        if b <= a and d <= c:
+            self.fx.append(None)
+            self.FXL = np.concatenate([self.FXL, np.full((1, 3), np.nan)])
+            return
+        self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
+        self.FXL = np.concatenate([self.FXL, np.zeros((1, 3))])
+        self._set_fix(self.n - 1)
+
+    def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Cost (Huber), gradient (3,) and Gauss-Newton block (3, 3) of the fixes of window
+        knot ``i`` at position ``x`` (NED, m), Huber weights at ``x``."""
+        f = self.fx[i]
+        assert f is not None
+        gz, gs, uz, us = f[:4]
+        if len(gz) == 1 and not len(uz):
+            return self._gnss1(x, gz[0], float(gs[0]))
+        if len(uz) == 1 and not len(gz):
+            return self._usbl1(x, uz[0], us[0])
+        Hk = np.zeros((3, 3))
+        gk = np.zeros(3)
+        cost = 0.0
+        if len(gz):
+            r = (x[:2] - gz) / gs[:, None]
+            w = _huber(r, self.k_gnss)
+            cost += _huber_cost(r, self.k_gnss)
+            Hk[0, 0] = Hk[1, 1] = float(np.sum(w / gs ** 2))
+            gk[:2] = np.sum((w / gs)[:, None] * r, axis=0)
+        if len(uz):
+            h, Hd = range_bearing(np.broadcast_to(x[:3] - self.station, (len(uz), 3)))
+            raw = h - uz
+            raw[:, 1] = fc.wrap_angle(raw[:, 1])
+            r = raw / us
+            J = Hd / us[:, :, None]
+            w = _huber(r, self.k_usbl)
+            cost += _huber_cost(r, self.k_usbl)
+            Jt = J.transpose(0, 2, 1)
+            Hk += np.einsum("k,kij->ij", w, np.matmul(Jt, J))
+            gk += np.einsum("k,kij,kj->i", w, Jt, r)
+        return cost, gk, Hk
+
+    def _gnss1(self, x: np.ndarray, z: np.ndarray, s: float):
+        """:meth:`fix_terms` of one GNSS fix, in scalars (numpy calls cost microseconds)."""
+        r0, r1 = (float(x[0]) - float(z[0])) / s, (float(x[1]) - float(z[1])) / s
+        d = math.hypot(r0, r1)
+        k = self.k_gnss
+        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        Hk = np.zeros((3, 3))
+        Hk[0, 0] = Hk[1, 1] = w / (s * s)
+        return cost, np.array([w * r0 / s, w * r1 / s, 0.0]), Hk
+
+    def _usbl1(self, x: np.ndarray, z: np.ndarray, sig: np.ndarray):
+        """:meth:`fix_terms` of one USBL fix (range, bearing; :func:`range_bearing`)."""
+        assert self.station is not None
+        dn, de, dd = (float(x[0] - self.station[0]), float(x[1] - self.station[1]),
+                      float(x[2] - self.station[2]))
+        rng = math.sqrt(dn * dn + de * de + dd * dd)
+        rh2 = dn * dn + de * de
+        sr, sb = float(sig[0]), float(sig[1])
+        r0 = (rng - float(z[0])) / sr
+        r1 = float(fc.wrap_angle(math.atan2(de, dn) - float(z[1]))) / sb
+        d = math.hypot(r0, r1)
+        k = self.k_usbl
+        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        rr, hh = max(rng, 1e-9), max(rh2, 1e-12)
+        J = np.array([[dn / rr / sr, de / rr / sr, dd / rr / sr],
+                      [-de / hh / sb, dn / hh / sb, 0.0]])
+        return cost, w * (J[0] * r0 + J[1] * r1), w * (J.T @ J)
+
+    def _set_fix(self, i: int) -> None:
+        """(Re)linearise the fixes of window knot ``i`` at its estimate."""
+        f = self.fx[i]
+        assert f is not None
+        o = self.P + 6 * i
+        x = self.z[o:o + 3].copy()
+        _, gk, Hk = self.fix_terms(i, x)
+        bk = gk - Hk @ x
+        if f[4] is not None:
+            self.H[o:o + 3, o:o + 3] += Hk - f[4]
+            self.b[o:o + 3] += bk - f[5]
+        else:
+            self.H[o:o + 3, o:o + 3] += Hk
+            self.b[o:o + 3] += bk
+        f[4], f[5] = Hk, bk
+        self.FXL[i] = x
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def X(self) -> np.ndarray:
+        """The window's knot estimates (n, 6) (a view)."""
+        return self.z[self.P:].reshape(-1, 6)
+
+    @property
+    def th(self) -> np.ndarray:
+        return self.z[:self.P]
+
+    def full_params(self) -> np.ndarray:
+        th = np.minimum(np.maximum(self.z[:self.P], self.lo), self.hi)
+        return self.layout.full({g: th[sl] for g, sl in self.slices.items()})
+
+    def sigma(self) -> np.ndarray:
+        """1-sigma of the parameters (marginal of the last step's linearisation)."""
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+
+    def group_values(self) -> dict[str, np.ndarray]:
+        return {g: self.z[sl].copy() for g, sl in self.slices.items()}
+
+    def state(self, kid: int) -> np.ndarray | None:
+        """Estimate of the knot with orchestration index ``kid`` (None: not in the window)."""
+        try:
+            i = self.kid.index(kid)
+        except ValueError:
+            return None
+        o = self.P + 6 * i
+        return self.z[o:o + 6].copy()
+
+    # ------------------------------------------------------------------ building
+    def _surface(self, k: int) -> None:
+        if self.planar:
+            o = self.P + 6 * k
+            self.H[o + 2, o + 2] += self.surf_w[0]
+            self.H[o + 5, o + 5] += self.surf_w[1]
+
+    def _whitening(self, dt: float, q: float) -> np.ndarray:
+        key = (round(dt, 9), q)
+        W = self._wcache.get(key)
+        if W is None:
+            L = np.linalg.cholesky(q * self.s.process.cov(dt, self.planar))
+            W = self._wcache[key] = np.linalg.inv(L)
+        return W
+
+    def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
+        """Whitened linear model ``J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
+        linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``): the negated residual
+        ``f(x0, p) - x1`` (the sign leaves the normal equations as they are)."""
+        P = self.P
+        M = np.empty((6, P + 12))
+        M[:, :P] = Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel
+        M[:, P:P + 6] = Jx
+        M[:, P + 6:] = _MINUS_I6
+        c = W @ (pred - M[:, :P + 6] @ np.concatenate([th, x0]))
+        return W @ M, c
+
+    def _set_dyn(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp) -> None:
+        d = self.dyn[i]
+        J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, d[1])
+        Jt = J.T
+        Hi, bi = Jt @ J, Jt @ c
+        dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
+        P, o = self.P, self.P + 6 * i
+        H = self.H
+        H[:P, :P] += dH[:P, :P]
+        H[:P, o:o + 12] += dH[:P, P:]
+        H[o:o + 12, :P] += dH[P:, :P]
+        H[o:o + 12, o:o + 12] += dH[P:, P:]
+        self.b[:P] += db[:P]
+        self.b[o:o + 12] += db[P:]
+        d[2], d[3] = Hi, bi
+        self.X0L[i] = x0
+        self.THL[i] = th
+
+    def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
+        """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
+        ``steps`` linearised at the current estimate and the fixes in between; returns the
+        model's prediction there (the knot's initial value)."""
+        P, n = self.P, self.n
+        t_last = self.kt[-1]
+        x0 = self.z[-6:].copy()
+        th = self.z[:P].copy()
+        prop = fc.propagator(self.model, steps)       # the kernel's arguments prepared once
+        pred, Jx, Jp = prop(x0, self.full_params())
+        self.last_pred = pred
+        N = P + 6 * n
+        H = np.zeros((N + 6, N + 6))
+        H[:N, :N] = self.H
+        self.H = H
+        ok = bool(np.isfinite(pred).all())
+        x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
+        self.b = np.concatenate([self.b, np.zeros(6)])
+        self.z = np.concatenate([self.z, x1])
+        self.n = n + 1
+        self.kt.append(float(t))
+        self.kid.append(int(kid))
+        self._surface(n)
+        self.dyn.append([steps, self._whitening(t - t_last, q_scale), None, None, prop])
+        self.X0L = np.concatenate([self.X0L, x0[None]])
+        self.THL = np.concatenate([self.THL, th[None]])
+        if ok:
+            self._set_dyn(n - 1, x0, th, pred, Jx, Jp)
+        else:                   # a diverged model: relinearised at the next step
+            self.dyn[-1][2:] = [np.zeros((P + 12, P + 12)), np.zeros(P + 12)]
+            self.X0L[-1] = np.inf
+        self._take_fixes(t_last, float(t))
+        return np.array(x1)
+
+    def release(self) -> None:
+        """Remove the hold priors on the parameters."""
+        self.hold_w = None
+
+    def broaden(self, state_sigma: np.ndarray, prior_scale: float) -> None:
+        """Recovery from a failed step: broad priors around the current estimate on every
+        knot (``state_sigma``) and the parameters (``prior_scale`` x their scales), and the
+        dynamics factors relinearised at the estimate."""
+        P = self.P
+        sc = np.array([prior_scale * self.layout.model.spec(n).scale
+                       for n in self.layout.estimated])
+        w = np.concatenate([1.0 / sc ** 2, np.tile(1.0 / np.asarray(state_sigma) ** 2, self.n)])
+        z = np.where(np.isfinite(self.z), self.z, 0.0)
+        z[:P] = np.clip(np.where(np.isfinite(self.z[:P]), z[:P], self.th0), self.lo, self.hi)
+        self.z = z
+        self.H = np.where(np.isfinite(self.H), self.H, 0.0)
+        self.b = np.where(np.isfinite(self.b), self.b, 0.0)
+        k = np.arange(len(z))
+        self.H[k, k] += w
+        self.b -= w * z
+        self.X0L = self.X0L + np.inf               # forces the relinearisation
+
+    # ------------------------------------------------------------------ the system
+    def _relinearise(self) -> None:
+        """Relinearise the dynamics factors whose first knot or parameters moved past the
+        thresholds since their linearisation, and the fixes whose knot moved past
+        ``relin_pos``."""
+        P = self.P
+        th = self.z[:P]
+        X = self.z[P:].reshape(-1, 6)
+        fm = np.abs(X[:, :3] - self.FXL) > self.s.relin_pos          # NaN (no fix): False
+        if fm.any():
+            for i in np.flatnonzero(fm.any(axis=1)):
+                self._set_fix(int(i))
+        if not self.dyn:
+            return
+        dx = np.abs(X[:-1] - self.X0L) > self.relin
+        dth = np.abs(th - self.THL) > self.relin_th
+        if not (dx.any() or dth.any()):
+            return
+        p = self.full_params()
+        th = th.copy()
+        for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
+            x0 = X[i].copy()
+            pred, Jx, Jp = self.dyn[i][4](x0, p)
+            if np.isfinite(pred).all():
+                self._set_dyn(int(i), x0, th, pred, Jx, Jp)
+
+    def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton normal equations ``(H, g)`` of the window at ``z`` (default: the
+        estimate): held quadratic, fixes and hold priors."""
+        z = self.z if z is None else z
+        H = self.H.copy()
+        g = self.H @ z + self.b
+        if self.hold_w is not None and self.P:
+            H[self.pidx, self.pidx] += self.hold_w
+            g[:self.P] += self.hold_w * (z[:self.P] - self.th0)
+        return H, g
+
+    def step(self) -> None:
+        """One Gauss-Newton step of the window (relinearising what moved), then the knots
+        older than the lag are marginalised. Raises ``np.linalg.LinAlgError`` when the
+        system is not positive definite (the estimate is left as it was)."""
+        self._relinearise()
+        H, g = self.system()
+        P = self.P
+        rhs = np.zeros((len(g), P + 1))
+        rhs[:, 0] = g
+        rhs[self.pidx, self.pidx + 1] = 1.0
+        # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
+        # the parameters' columns of H^-1
+        _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
+        if info != 0 or not np.isfinite(sol).all():
+            raise np.linalg.LinAlgError("the window's system is not positive definite")
+        z = self.z - sol[:, 0]
+        cov = sol[:P, 1:]
+        z[:P] = np.minimum(np.maximum(z[:P], self.lo), self.hi)
+        self.z = z
+        self.cov = cov
+        self._marginalise()
+
+    def _marginalise(self) -> None:
+        """Eliminate the knots older than ``lag`` before the newest from the held quadratic
+        (Schur complement at the factors' linearisation points)."""
+        P = self.P
+        while self.n > 2 and self.kt[0] < self.kt[-1] - self.lag - 1e-6:
+            z = self.z
+            N = len(z)
+            H, b = self.H, self.b
+            # [theta, x0, rest] -> [theta, rest]: x0 eliminated
+            Har = np.concatenate([H[P:P + 6, :P], H[P:P + 6, P + 6:]], axis=1)   # (6, N-6)
+            rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
+            _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)          # H_aa^-1 [H_ar, b_a]
+            if info != 0:
+                raise np.linalg.LinAlgError("a marginalised knot's information is singular")
+            Hn = np.empty((N - 6, N - 6))
+            Hn[:P, :P] = H[:P, :P]
+            Hn[:P, P:] = H[:P, P + 6:]
+            Hn[P:, :P] = H[P + 6:, :P]
+            Hn[P:, P:] = H[P + 6:, P + 6:]
+            Hn -= Har.T @ sol[:, :-1]
+            self.H = Hn
+            self.b = np.concatenate([b[:P], b[P + 6:]]) - Har.T @ sol[:, -1]
+            self.z = np.concatenate([z[:P], z[P + 6:]])
+            self.n -= 1
+            self.kt.pop(0)
+            self.kid.pop(0)
+            self.dyn.pop(0)
+            self.X0L, self.THL = self.X0L[1:], self.THL[1:]
+            self.fx.pop(0)
+            self.FXL = self.FXL[1:]
+
+    # ------------------------------------------------------------------ tests
+    def cost(self, z: np.ndarray) -> float:
+        """The window's linearised cost (1/2 chi-square up to a constant) at ``z``: held
+        quadratic and hold priors; its gradient is :meth:`system`'s ``g``."""
+        P = self.P
+        c = float(0.5 * z @ self.H @ z + self.b @ z)
+        if self.hold_w is not None:
+            c += 0.5 * float(np.sum(self.hold_w * (z[:P] - self.th0) ** 2))
+        return c
+
+
+_MINUS_I6 = -np.eye(6)
+
+
+def _huber(r: np.ndarray, k: float | None) -> np.ndarray:
+    """GTSAM's Huber weight of whitened residual rows ``r`` (n, m): 1 within ``k`` of the
+    row's norm, ``k / |r|`` beyond."""
+    if k is None:
+        return np.ones(len(r))
+    d = np.sqrt(np.sum(r * r, axis=1))
+    return np.where(d > k, k / np.maximum(d, 1e-300), 1.0)
+
+
+def _huber_cost(r: np.ndarray, k: float | None) -> float:
+    d = np.sqrt(np.sum(r * r, axis=1))
+    if k is None:
+        return 0.5 * float(np.sum(d * d))
+    return float(np.sum(np.where(d > k, k * (d - 0.5 * k), 0.5 * d * d)))
