@@ -41,3 +41,19 @@ def test_an_outlying_fix_does_not_raise_it():
 
 def test_too_few_fixes_keep_the_nominal_noise():
     assert variance_factor([1e3, 1e3], [1.0, 1.0], [0.01, 0.01], S) == 1.0
+
+
+def test_the_float_shortcut_agrees_with_the_grid():
+    """nominal_suffices (the online path's shortcut) only says q = 1 where the likelihood
+    grid says so too, and the list and array paths give the same factor."""
+    from aqfg.fg.noise import nominal_suffices
+    rng = np.random.default_rng(3)
+    n_short = 0
+    for q_true in (1.0, 1.0, 4.0, 64.0) * 50:
+        e2, R, Q = innovations(rng, q_true)
+        lists = [list(map(float, a)) for a in (e2, R, Q)]
+        if nominal_suffices(*lists):
+            n_short += 1
+            assert variance_factor(e2, R, Q, S) == 1.0
+        assert variance_factor(*lists, S) == variance_factor(e2, R, Q, S)
+    assert n_short > 50                        # the shortcut is taken when it can be

@@ -14,6 +14,8 @@ it. The fixed-lag smoother (:mod:`aqfg.fg.fixed_lag`) uses its causal innovation
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -40,6 +42,8 @@ def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
     beyond its 99 % quantile. 1 with fewer than
     ``min_count`` usable fixes, and 1 unless the best factor is significantly more likely.
     """
+    if isinstance(e2, list) and nominal_suffices(e2, var, q_pos):   # type: ignore[arg-type]
+        return 1.0
     ea, va, qa = (np.asarray(a, float).ravel() for a in (e2, var, q_pos))
     ok = np.isfinite(ea) & np.isfinite(va) & np.isfinite(qa) & (qa > 0)
     ea, va, qa = ea[ok], va[ok], qa[ok]
@@ -66,6 +70,23 @@ def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
     # larger than the model's over an interval, ten innovations barely inform q, and the
     # plain maximum drew factors of 30-90 on a model that is the vehicle
     return float(grid[j]) if nll[0] - nll[j] > 0.5 * LR_CHI2_1 else 1.0
+
+
+def nominal_suffices(e2: list[float], var: list[float], q_pos: list[float]) -> bool:
+    """True when no factor q >= 1 can pass :func:`variance_factor`'s likelihood-ratio
+    test, decided in Python floats (the online path runs it at every update; numpy calls
+    cost microseconds each). Raising a fix's variance by r changes its term
+    ``u / 2 + log v`` by at most ``g(u) = u / 2 - 1 - log(u / 2)`` (at r = u / 2, for
+    u > 2, else 0), u at q = 1; the bound sums these, Huberisation ignored (it only lowers
+    the gain)."""
+    gain = 0.0
+    for a, r, q in zip(e2, var, q_pos):
+        if not (math.isfinite(a) and math.isfinite(r) and q > 0):
+            return False
+        u = a / (q + 2.0 * r)
+        if u > 2.0:
+            gain += 0.5 * u - 1.0 - math.log(0.5 * u)
+    return gain <= 0.5 * LR_CHI2_1
 
 
 def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
