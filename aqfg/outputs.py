@@ -256,6 +256,18 @@ def dumps(obj: Any) -> str:
     return json.dumps(doc, indent=2, allow_nan=False) + "\n"
 
 
+def read_json(path: str | os.PathLike, flag: str) -> Any:
+    """The JSON document at ``path``; a missing file or invalid JSON raises an error that
+    names the option (``flag``, e.g. ``--model``) and the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{flag}: no such file {p}")
+    try:
+        return json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{flag} {p}: not valid JSON ({e})") from None
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
     """Write :func:`dumps` of ``obj`` to ``path``."""
     p = Path(path)

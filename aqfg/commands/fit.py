@@ -10,7 +10,6 @@ with 1-sigma.
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -35,13 +34,9 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
     """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``."""
     out: dict[str, float] = {}
     if params_from:
+        from aqfg.outputs import read_json
         p = Path(params_from)
-        if not p.is_file():
-            raise FileNotFoundError(f"--params-from: no such file {p}")
-        try:
-            data = json.loads(p.read_text())
-        except json.JSONDecodeError as e:
-            raise ValueError(f"--params-from {p}: not valid JSON ({e})") from None
+        data = read_json(p, "--params-from")
         if not isinstance(data, dict):
             raise ValueError(f"--params-from {p}: expected a parameters.json document")
         try:

@@ -176,14 +176,8 @@ class ModelFile:
 
 def read_model(path) -> ModelFile:
     """Read and check a model file (``aqfg-model/1``)."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"--model: no such file {p}")
-    try:
-        data = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{p}: not valid JSON ({e})") from None
-    return ModelFile.from_json(data, where=str(p))
+    from aqfg.outputs import read_json
+    return ModelFile.from_json(read_json(path, "--model"), where=str(Path(path)))
 
 
 __all__ = ["FORMAT", "ModelFile", "ModelFileError", "read_model"]
