@@ -346,6 +346,14 @@ class BatchSmoother:
                     (all(x.plausible for x in v) == all(x.plausible for x in verdicts)
                      and o.cost < out.cost):
                 out, verdicts = o, v
+        slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
+        held = None
+        if not all(v.plausible for v in verdicts):
+            held = self._hold_sway(missions, bg, basins, verdicts)
+            if held is not None:
+                return held
+        elif slips and max(slips) > plausibility.SUSPECT_SLIP:
+            held = self._hold_sway(missions, bg, basins, verdicts)
         values, err, gfg = out.values, out.cost, out.gfg
         n_it, n_trials, converged, it_times = out.iterations, out.trials, out.converged, out.it_times
         # marginal covariances of the parameter nodes from the undamped Bayes tree
@@ -403,6 +411,21 @@ class BatchSmoother:
         if n_out:
             res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
                                         "down-weighted as outliers (listed in info['outliers'])")
+        if held is not None:
+            # a plausible but sliding fit: the non-sliding alternative, said, not chosen
+            th_f, th_h = res.values.get("theta_e"), held.values.get("theta_e")
+            if th_f is not None and th_h is not None and \
+                    abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
+                res.info["alternative_held_sway"] = {
+                    "values": dict(held.values), "sigma": dict(held.sigma),
+                    "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
+                res.info["warnings"].append(
+                    f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
+                    f"with the sway drag held high (no sliding) theta_e is "
+                    f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "
+                    f"(cost {held.info.get('cost', np.nan):.1f} against {err:.1f}): if this hull "
+                    f"does not slide, pass --init k_yz={held.values['k_yz']:.3g} and leave "
+                    "k_yz out of --estimate")
         if self.log_warnings:
             for w in res.info["warnings"]:
                 log.warning("fg: %s", w)
@@ -449,7 +472,10 @@ class BatchSmoother:
     def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility]):
         """Other starts worth solving from: other heading basins of the closed form, when
         the first solution is implausible or another basin explained the fixes almost as
-        well (robust misfit within 25 %)."""
+        well (robust misfit within 25 %); and, when it is implausible and the constants
+        were searched, the best start with a sway drag at least ten times the surge drag
+        (an implausible solution slides sideways with k_yz near zero; on a 7.5-min crop of
+        an Otter mission every heading start slid into it, docs/independent-vehicle.md)."""
         if not bg.starts or not all(bg.starts) or "variable" not in bg.layout.names \
                 or "theta_e" not in bg.layout.names["variable"]:
             return
@@ -463,31 +489,78 @@ class BatchSmoother:
             close = any(len(h) > j and h[j].misfit <= 1.25 * h[0].misfit for h in heads)
             if not (implausible or close):
                 continue
-            vals = gtsam.Values(bg.values)
-            for part, h in zip(bg.parts, heads):
-                st = h[j] if len(h) > j else h[0]
-                for k, x in zip(part.keys, start_states(st, part.mission, part.knots)):
-                    vals.update(k, x)
-                names = bg.layout.names["variable"]
-                for seg in range(len(part.seg_starts)):
-                    key = fc.node_key("variable", part.index, seg)
-                    v = vals.atVector(key).copy()
-                    for n, val in (("theta_e", st.theta_e), ("s_x", st.current[0]),
-                                   ("s_y", st.current[1])):
-                        if n in names:
-                            v[names.index(n)] = val
-                    vals.update(key, bg.layout.project("variable", v))
-            if "fixed" in bg.layout.names:
-                key = fc.node_key("fixed")
-                names = bg.layout.names["fixed"]
-                f = vals.atVector(key).copy()
-                st0 = heads[0][j] if len(heads[0]) > j else heads[0][0]
-                for n in ("k", "k_x", "k_yz"):
-                    if n in names and (implausible or n not in self.init):
-                        f[names.index(n)] = st0.fixed[n]
-                vals.update(key, bg.layout.project("fixed", f))
-            theta_e = heads[0][min(j, len(heads[0]) - 1)].theta_e
-            yield f"alternative heading start {np.degrees(theta_e):.0f} deg", vals
+            sts = [h[j] if len(h) > j else h[0] for h in heads]
+            yield (f"alternative heading start {np.degrees(sts[0].theta_e):.0f} deg",
+                   self._start_values(bg, sts, implausible))
+        searched = len(bg.starts[0]) > 1
+        if implausible and searched and not user:
+            sway = [[s for s in st if s.fixed["k_yz"] >= 10.0 * s.fixed["k_x"]] for st in bg.starts]
+            if all(sway):
+                sts = [w[0] for w in sway]
+                yield (f"high sway-drag start {np.degrees(sts[0].theta_e):.0f} deg",
+                       self._start_values(bg, sts, True))
+
+    def _hold_sway(self, missions, bg: BuiltGraph, basins: list[dict],
+                   verdicts: list[Plausibility]) -> Result | None:
+        """No start gave a plausible solution and the sway drag is estimated: the fixes alone
+        prefer a hull sliding sideways (k_yz near zero), which no vessel does on a held
+        course. Solve again with k_yz held at the high sway-drag start's value (at least ten
+        times the surge drag; above that the slip is near zero whatever its value) and
+        return that fit, if it is plausible, with a warning and the free fit's basins."""
+        lay = bg.layout
+        if not {"k_x", "k_yz"} <= set(lay.estimated) or "k_yz" in self.init \
+                or not bg.starts or not all(bg.starts):
+            return None
+        sway = [s for s in bg.starts[0] if s.fixed["k_yz"] >= 10.0 * s.fixed["k_x"]]
+        if not sway:
+            return None
+        st = sway[0]
+        init = {**self.init, "k_yz": st.fixed["k_yz"], "k": st.fixed["k"], "k_x": st.fixed["k_x"]}
+        sm = BatchSmoother(self.model, effects=self.effects,
+                           estimate=tuple(n for n in lay.estimated if n != "k_yz"), init=init,
+                           settings=self.settings)
+        sm.log_warnings = False
+        res = sm.run(missions)
+        if not res.info.get("plausible"):
+            return None
+        slip = max((v.slip_deg or 0.0) for v in verdicts)
+        w = (f"the free fit slid sideways through the water ({slip:.0f} deg off the thrust axis "
+             f"on held courses), which no hull does: k_yz held at {st.fixed['k_yz']:.3g} "
+             f"(sway drag {st.fixed['k_yz'] / st.fixed['k_x']:.0f}x the surge drag, where the "
+             "slip is near zero whatever its value); run `aqfg diagnose` for the missing physics")
+        res.info["warnings"] = [w, *res.info.get("warnings", [])]
+        res.info["held_sway"] = {"k_yz": float(st.fixed["k_yz"]), "free_fit_basins": basins}
+        if self.log_warnings:
+            for x in res.info["warnings"]:
+                log.warning("fg: %s", x)
+        return res
+
+    def _start_values(self, bg: BuiltGraph, sts: list[Start], constants: bool) -> gtsam.Values:
+        """Values of the graph at the starts ``sts`` (one per mission): knot states, heading
+        offset and current; the constants of the first mission's start where they are
+        estimated and ``constants`` (or not given by the user)."""
+        vals = gtsam.Values(bg.values)
+        names = bg.layout.names["variable"]
+        for part, st in zip(bg.parts, sts):
+            for k, x in zip(part.keys, start_states(st, part.mission, part.knots)):
+                vals.update(k, x)
+            for seg in range(len(part.seg_starts)):
+                key = fc.node_key("variable", part.index, seg)
+                v = vals.atVector(key).copy()
+                for n, val in (("theta_e", st.theta_e), ("s_x", st.current[0]),
+                               ("s_y", st.current[1])):
+                    if n in names:
+                        v[names.index(n)] = val
+                vals.update(key, bg.layout.project("variable", v))
+        if "fixed" in bg.layout.names:
+            key = fc.node_key("fixed")
+            fnames = bg.layout.names["fixed"]
+            f = vals.atVector(key).copy()
+            for n in ("k", "k_x", "k_yz"):
+                if n in fnames and (constants or n not in self.init):
+                    f[fnames.index(n)] = sts[0].fixed[n]
+            vals.update(key, bg.layout.project("fixed", f))
+        return vals
 
     # ---------------------------------------------------------------- result
     def make_result(self, layout: fc.ParamLayout, values: gtsam.Values, parts: list[MissionPart],

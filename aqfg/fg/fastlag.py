@@ -348,7 +348,7 @@ class LagWindow:
         if ok:
             self._set_dyn(n - 1, x0, th, pred, Jx, Jp)
         else:                   # a diverged model: relinearised at the next step
-            self.dyn[-1][2:] = [np.zeros((P + 12, P + 12)), np.zeros(P + 12)]
+            self.dyn[-1][2:4] = [np.zeros((P + 12, P + 12)), np.zeros(P + 12)]
             self.X0L[-1] = np.inf
         self._take_fixes(t_last, float(t))
         return np.array(x1)
