@@ -94,6 +94,10 @@ class LagWindow:
                                                        for n in layout.estimated])
         self.set_mission(mission)
         self._wcache: dict = {}
+        self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
+        self._fp: tuple | None = None  # (theta bytes, full_params) of the last call
+        self._rhs_cols = (self.pidx, self.pidx + 1)
+        self.last_ok = True
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
         self.n = 1
@@ -156,15 +160,16 @@ class LagWindow:
     def _take_fixes(self, t_lo: float, t_hi: float) -> None:
         """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate."""
         gt, gz, gs = self.tab_g
-        a, b = np.searchsorted(gt, [t_lo + 1e-9, t_hi + 1e-9])
+        lo, hi = t_lo + 1e-9, t_hi + 1e-9
+        a, b = int(gt.searchsorted(lo)), int(gt.searchsorted(hi))
         ut, uz, us = self.tab_u
-        c, d = np.searchsorted(ut, [t_lo + 1e-9, t_hi + 1e-9])
+        c, d = int(ut.searchsorted(lo)), int(ut.searchsorted(hi))
         if b <= a and d <= c:
             self.fx.append(None)
-            self.FXL = np.concatenate([self.FXL, np.full((1, 3), np.nan)])
+            self.FXL = np.concatenate([self.FXL, _NAN13])
             return
         self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
-        self.FXL = np.concatenate([self.FXL, np.zeros((1, 3))])
+        self.FXL = np.concatenate([self.FXL, _ZERO13])
         self._set_fix(self.n - 1)
 
     def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -255,8 +260,17 @@ class LagWindow:
         return self.z[:self.P]
 
     def full_params(self) -> np.ndarray:
-        th = np.minimum(np.maximum(self.z[:self.P], self.lo), self.hi)
-        return self.layout.full({g: th[sl] for g, sl in self.slices.items()})
+        """The full parameter vector at the estimate (inside the bounds; a new array)."""
+        return self._params().copy()
+
+    def _params(self) -> np.ndarray:
+        """:meth:`full_params`, computed once per parameter estimate (read only)."""
+        th = self.z[:self.P]
+        key = th.tobytes()
+        if self._fp is None or self._fp[0] != key:
+            th = np.minimum(np.maximum(th, self.lo), self.hi)
+            self._fp = (key, self.layout.full({g: th[sl] for g, sl in self.slices.items()}))
+        return self._fp[1]
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the parameters (marginal of the last step's linearisation)."""
@@ -307,14 +321,19 @@ class LagWindow:
         Jt = J.T
         Hi, bi = Jt @ J, Jt @ c
         dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
-        P, o = self.P, self.P + 6 * i
         H = self.H
-        H[:P, :P] += dH[:P, :P]
-        H[:P, o:o + 12] += dH[:P, P:]
-        H[o:o + 12, :P] += dH[P:, :P]
-        H[o:o + 12, o:o + 12] += dH[P:, P:]
-        self.b[:P] += db[:P]
-        self.b[o:o + 12] += db[P:]
+        if not H.flags.c_contiguous:
+            H = self.H = np.ascontiguousarray(H)
+        N = len(H)
+        key = (N, i)
+        ix = self._dyn_idx.get(key)
+        if ix is None:          # rows/columns [theta, x_i, x_i+1] of H, flat and plain
+            P, o = self.P, self.P + 6 * i
+            r = np.concatenate([np.arange(P), np.arange(o, o + 12)])
+            ix = self._dyn_idx[key] = ((r[:, None] * N + r[None, :]).ravel(), r)
+        Hf = H.reshape(-1)      # a view (C-contiguous)
+        Hf[ix[0]] += dH.ravel()
+        self.b[ix[1]] += db
         d[2], d[3] = Hi, bi
         self.X0L[i] = x0
         self.THL[i] = th
@@ -328,13 +347,13 @@ class LagWindow:
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
         prop = fc.propagator(self.model, steps)       # the kernel's arguments prepared once
-        pred, Jx, Jp = prop(x0, self.full_params())
+        pred, Jx, Jp = prop(x0, self._params())
         self.last_pred = pred
         N = P + 6 * n
         H = np.zeros((N + 6, N + 6))
         H[:N, :N] = self.H
         self.H = H
-        ok = bool(np.isfinite(pred).all())
+        ok = self.last_ok = all(map(math.isfinite, pred.tolist()))
         x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
         self.b = np.concatenate([self.b, np.zeros(6)])
         self.z = np.concatenate([self.z, x1])
@@ -391,11 +410,12 @@ class LagWindow:
             return
         dx = np.abs(X[:-1] - self.X0L) > self.relin
         dth = np.abs(th - self.THL) > self.relin_th
-        if not (dx.any() or dth.any()):
+        move = np.flatnonzero(dx.any(axis=1) | dth.any(axis=1))
+        if not len(move):
             return
-        p = self.full_params()
+        p = self._params()
         th = th.copy()
-        for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
+        for i in move.tolist():
             x0 = X[i].copy()
             pred, Jx, Jp = self.dyn[i][4](x0, p)
             if np.isfinite(pred).all():
@@ -421,7 +441,7 @@ class LagWindow:
         P = self.P
         rhs = np.zeros((len(g), P + 1))
         rhs[:, 0] = g
-        rhs[self.pidx, self.pidx + 1] = 1.0
+        rhs[self._rhs_cols] = 1.0
         # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
         # the parameters' columns of H^-1
         _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
@@ -477,6 +497,8 @@ class LagWindow:
 
 
 _MINUS_I6 = -np.eye(6)
+_NAN13 = np.full((1, 3), np.nan)
+_ZERO13 = np.zeros((1, 3))
 
 
 def _huber(r: np.ndarray, k: float | None) -> np.ndarray:
