@@ -155,6 +155,9 @@ class FixedLagSmoother:
         if self._estimate_vehicle:
             est = tuple(dict.fromkeys((*est, *vehicle)))
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
+        # per-update constants of the layout (its properties build tuples on each call)
+        self._theta_est = "theta_e" in self.layout.estimated
+        self._scales = np.array([self.model.spec(n).scale for n in self.layout.estimated])
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
             raise ValueError(f"mission {mission.name!r} has no GNSS or USBL fix")
@@ -364,8 +367,8 @@ class FixedLagSmoother:
         # new knots on the grid up to the fix
         sp = s.knot_spacing
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
-        new_t = np.concatenate([grid, [t_fix]])
-        all_t = np.concatenate([[t_last], new_t])
+        all_t = np.concatenate([[t_last], grid, [t_fix]])
+        new_t = all_t[1:]
         if self._fast is not None:
             info = self._update_fast(t_fix, t_last, new_t, all_t)
             if self._reinit_due(t_fix):
@@ -461,12 +464,13 @@ class FixedLagSmoother:
         assert eng is not None
         s = self.settings
         i0 = len(self.knots)
-        if len(new_t) > 1:
-            self._pending.append((i0, all_t, eng.X[-1].copy(), eng.full_params()))
-            self.filtered.extend([None] * (len(new_t) - 1))      # type: ignore[list-item]
-        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, self._interval_steps(all_t),
+        n_new = len(new_t)
+        if n_new > 1:
+            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng.full_params()))
+            self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
+        x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
                         self.q_scale)
-        if not np.isfinite(eng.last_pred).all():
+        if not eng.last_ok:
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
         self.filtered.append(x_fix)
@@ -475,7 +479,7 @@ class FixedLagSmoother:
         self.pred_x.append(x_fix.copy())
         if s.adapt_process:
             self._adapt(t_fix, float(t_fix - t_last), x_fix)
-        return self._update(None, None, {}, t_fix, len(new_t))
+        return self._update(None, None, {}, t_fix, n_new)
 
     def _interval_steps(self, all_t: np.ndarray):
         """Kernel steps from ``all_t[0]`` to ``all_t[-1]`` in one piece (the numpy engine's
@@ -526,8 +530,7 @@ class FixedLagSmoother:
     def _reinit_scheduled(self) -> bool:
         """Online without a given heading offset: batch re-initialisations are scheduled
         (the parameters are held until the first)."""
-        s = self.settings
-        return (s.online_init_after > 0 and "theta_e" in self.layout.estimated
+        return (self.settings.online_init_after > 0 and self._theta_est
                 and "theta_e" not in self.init)
 
     def _reinit_due(self, t_fix: float) -> bool:
@@ -714,7 +717,7 @@ class FixedLagSmoother:
             nv.append(v); ns.append(sg); nh.append(sh)
             self._raw_sigma.update(zip(lay.names[g], map(float, sg)))
         if self.warming:
-            sc = np.array([self.model.spec(n).scale for n in lay.estimated])
+            sc = self._scales
             done = (np.all(np.concatenate(ns) < self.settings.warmup_tol * sc) if ns else True
                     ) and not self._hold_idx
             if done or t_fix - self.knots[0] >= self.settings.warmup_max:
@@ -732,7 +735,7 @@ class FixedLagSmoother:
         i_fix = len(self.knots) - 1
         self.anchor_idx.append(i_fix)
         if eng is not None:
-            self.filtered[i_fix] = eng.X[-1].copy()
+            self.filtered[i_fix] = eng.z[-6:].copy()
             for i in reversed(self.anchor_idx):
                 if self.knots[i] < t_fix - self.window + 1e-6:
                     break
