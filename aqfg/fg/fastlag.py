@@ -92,6 +92,7 @@ class LagWindow:
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
+        self._relin_l, self._relin_th_l = self.relin.tolist(), self.relin_th.tolist()
         self.set_mission(mission)
         self._wcache: dict = {}
         self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
@@ -399,23 +400,27 @@ class LagWindow:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
         thresholds since their linearisation, and the fixes whose knot moved past
         ``relin_pos``."""
+        # in Python floats: a few knots, and numpy calls cost microseconds each
         P = self.P
         th = self.z[:P]
         X = self.z[P:].reshape(-1, 6)
-        fm = np.abs(X[:, :3] - self.FXL) > self.s.relin_pos          # NaN (no fix): False
-        if fm.any():
-            for i in np.flatnonzero(fm.any(axis=1)):
-                self._set_fix(int(i))
+        Xl = X.tolist()
+        rp = self.s.relin_pos
+        for i, (x, f) in enumerate(zip(Xl, self.FXL.tolist())):
+            # NaN (no fix): False
+            if abs(x[0] - f[0]) > rp or abs(x[1] - f[1]) > rp or abs(x[2] - f[2]) > rp:
+                self._set_fix(i)
         if not self.dyn:
             return
-        dx = np.abs(X[:-1] - self.X0L) > self.relin
-        dth = np.abs(th - self.THL) > self.relin_th
-        move = np.flatnonzero(dx.any(axis=1) | dth.any(axis=1))
-        if not len(move):
+        rl, rt, thl = self._relin_l, self._relin_th_l, th.tolist()
+        move = [i for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L.tolist(), self.THL.tolist()))
+                if any(abs(a - b) > r for a, b, r in zip(x, x0, rl))
+                or any(abs(a - b) > r for a, b, r in zip(thl, t0, rt))]
+        if not move:
             return
         p = self._params()
         th = th.copy()
-        for i in move.tolist():
+        for i in move:
             x0 = X[i].copy()
             pred, Jx, Jp = self.dyn[i][4](x0, p)
             if np.isfinite(pred).all():
