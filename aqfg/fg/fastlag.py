@@ -98,6 +98,7 @@ class LagWindow:
         self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
         self._fp: tuple | None = None  # (theta bytes, full_params) of the last call
         self._rhs_cols = (self.pidx, self.pidx + 1)
+        self._keep: dict = {}          # N -> the variables left when the oldest knot goes
         self.last_ok = True
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
@@ -467,21 +468,21 @@ class LagWindow:
             z = self.z
             N = len(z)
             H, b = self.H, self.b
-            # [theta, x0, rest] -> [theta, rest]: x0 eliminated
-            Har = np.concatenate([H[P:P + 6, :P], H[P:P + 6, P + 6:]], axis=1)   # (6, N-6)
+            # [theta, x0, rest] -> [theta, rest]: x0 eliminated (flat indices: one take)
+            keep = self._keep.get(N)
+            if keep is None:
+                k = np.concatenate([np.arange(P), np.arange(P + 6, N)])
+                keep = self._keep[N] = (k, (k[:, None] * N + k[None, :]).ravel())
+            Har = H[P:P + 6].take(keep[0], axis=1)                            # (6, N-6)
             rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
             _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)          # H_aa^-1 [H_ar, b_a]
             if info != 0:
                 raise np.linalg.LinAlgError("a marginalised knot's information is singular")
-            Hn = np.empty((N - 6, N - 6))
-            Hn[:P, :P] = H[:P, :P]
-            Hn[:P, P:] = H[:P, P + 6:]
-            Hn[P:, :P] = H[P + 6:, :P]
-            Hn[P:, P:] = H[P + 6:, P + 6:]
+            Hn = H.take(keep[1]).reshape(N - 6, N - 6)
             Hn -= Har.T @ sol[:, :-1]
             self.H = Hn
-            self.b = np.concatenate([b[:P], b[P + 6:]]) - Har.T @ sol[:, -1]
-            self.z = np.concatenate([z[:P], z[P + 6:]])
+            self.b = b.take(keep[0]) - Har.T @ sol[:, -1]
+            self.z = z.take(keep[0])
             self.n -= 1
             self.kt.pop(0)
             self.kid.pop(0)
