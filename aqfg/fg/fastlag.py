@@ -82,6 +82,9 @@ class LagWindow:
         jc = [int(np.flatnonzero(self.Jsel[:, j])[0]) if self.Jsel[:, j].any() else -1
               for j in range(P)]
         self.jcols = np.array(jc, int) if all(c >= 0 for c in jc) else None
+        # the same columns as a slice (a view) when they are consecutive
+        self._jsl = (slice(jc[0], jc[0] + P) if P and self.jcols is not None
+                     and jc == list(range(jc[0], jc[0] + P)) else None)
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
         sn = s.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
@@ -239,6 +242,8 @@ class LagWindow:
         f = self.fx[i]
         assert f is not None
         o = self.P + 6 * i
+        if len(f[0]) == 1 and not len(f[2]):
+            return self._set_gnss1(i, f, o)
         x = self.z[o:o + 3].copy()
         _, gk, Hk = self.fix_terms(i, x)
         bk = gk - Hk @ x
@@ -250,6 +255,39 @@ class LagWindow:
             self.b[o:o + 3] += bk
         f[4], f[5] = Hk, bk
         self.FXL[i] = x
+
+    def _set_gnss1(self, i: int, f: list, o: int) -> None:
+        """:meth:`_set_fix` of a knot with one GNSS fix, relinearised, in Python floats: the
+        same numbers as the matrix form (``Hk = diag(h, h, 0)``, ``gk = (g0, g1, 0)``: the
+        zero entries change nothing)."""
+        x0, x1, x2 = self.z[o:o + 3].tolist()
+        gz, s = f[0][0], float(f[1][0])
+        r0, r1 = (x0 - float(gz[0])) / s, (x1 - float(gz[1])) / s
+        d = math.hypot(r0, r1)
+        k = self.k_gnss
+        w = 1.0 if k is None or d <= k else k / d
+        h = w / (s * s)
+        g0, g1 = w * r0 / s, w * r1 / s
+        z0 = 0.0 * x0 + 0.0 * x1 + 0.0 * x2          # (Hk x)'s zero terms (NaN with x)
+        b0, b1, b2 = g0 - (h * x0 + z0), g1 - (h * x1 + z0), 0.0 - z0
+        Hp, bp = f[4], f[5]
+        H, b = self.H, self.b
+        if Hp is None:
+            H[o, o] += h
+            H[o + 1, o + 1] += h
+            b[o] += b0
+            b[o + 1] += b1
+            b[o + 2] += b2
+        else:
+            H[o, o] += h - Hp[0, 0]
+            H[o + 1, o + 1] += h - Hp[1, 1]
+            b[o] += b0 - bp[0]
+            b[o + 1] += b1 - bp[1]
+            b[o + 2] += b2 - bp[2]
+        Hk = np.zeros((3, 3))
+        Hk[0, 0] = Hk[1, 1] = h
+        f[4], f[5] = Hk, np.array([b0, b1, b2])
+        self.FXL[i] = (x0, x1, x2)
 
     # ------------------------------------------------------------------ reading
     @property
@@ -311,7 +349,8 @@ class LagWindow:
         ``f(x0, p) - x1`` (the sign leaves the normal equations as they are)."""
         P = self.P
         M = np.empty((6, P + 12))
-        M[:, :P] = Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel
+        M[:, :P] = (Jp[:, self._jsl] if self._jsl is not None else
+                    Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel)
         M[:, P:P + 6] = Jx
         M[:, P + 6:] = _MINUS_I6
         c = W @ (pred - M[:, :P + 6] @ np.concatenate([th, x0]))
