@@ -102,6 +102,8 @@ class LagWindow:
         self._fp: tuple | None = None  # (theta bytes, full_params) of the last call
         self._rhs_cols = (self.pidx, self.pidx + 1)
         self._keep: dict = {}          # N -> the variables left when the oldest knot goes
+        self._rhs: dict = {}           # N -> [0, I_P; 0, 0]: the step's right-hand sides
+        self._kern: tuple | None = None
         self.last_ok = True
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
@@ -335,6 +337,23 @@ class LagWindow:
             self.H[o + 2, o + 2] += self.surf_w[0]
             self.H[o + 5, o + 5] += self.surf_w[1]
 
+    def _propagator(self, steps):
+        """:func:`fc.propagator` with the vehicle's geometry converted once."""
+        if self._kern is None:
+            from aqfg.model.params import N_DYN
+            from aqfg.model.vehicle import compiled_kernel
+            cpp = compiled_kernel()
+            if cpp is None or not self.model.uses_cpp:
+                return fc.propagator(self.model, steps)
+            g = self.model.geometry
+            self._kern = (cpp.propagate, N_DYN, np.ascontiguousarray(g.dirs, float),
+                          np.ascontiguousarray(g.side, float), bool(g.planar))
+        kernel, nd, dirs, side, planar = self._kern
+        args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+                np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+                np.ascontiguousarray(steps.tm, float), dirs, side, planar)
+        return lambda x0, p: kernel(x0, p[:nd], *args)
+
     def _whitening(self, dt: float, q: float) -> np.ndarray:
         key = (round(dt, 9), q)
         W = self._wcache.get(key)
@@ -387,7 +406,7 @@ class LagWindow:
         t_last = self.kt[-1]
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
-        prop = fc.propagator(self.model, steps)       # the kernel's arguments prepared once
+        prop = self._propagator(steps)                # the kernel's arguments prepared once
         pred, Jx, Jp = prop(x0, self._params())
         self.last_pred = pred
         N = P + 6 * n
@@ -484,9 +503,13 @@ class LagWindow:
         self._relinearise()
         H, g = self.system()
         P = self.P
-        rhs = np.zeros((len(g), P + 1))
+        N = len(g)
+        rhs = self._rhs.get(N)
+        if rhs is None:
+            rhs = self._rhs[N] = np.zeros((N, P + 1))
+            rhs[self._rhs_cols] = 1.0
+        rhs = rhs.copy()
         rhs[:, 0] = g
-        rhs[self._rhs_cols] = 1.0
         # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
         # the parameters' columns of H^-1
         _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)

@@ -693,9 +693,11 @@ class FixedLagSmoother:
             # reported sigma: see below
             sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
                 if self._inflation else sg_all
-            values, sigma = dict(zip(names, th.tolist())), dict(zip(names, sh_all.tolist()))
+            sg_l = sg_all.tolist()
+            values = dict(zip(names, th.tolist()))
+            sigma = dict(zip(names, sh_all.tolist() if self._inflation else sg_l))
             nv, ns, nh = [th], [sg_all], [sh_all]
-            self._raw_sigma.update(zip(names, sg_all.tolist()))
+            self._raw_sigma.update(zip(names, sg_l))
         else:
             self._guarded_update(graph, vals, stamps, t_fix)
             self._n_committed = len(self.keys)
