@@ -415,7 +415,7 @@ class LagWindow:
         self.H = H
         ok = self.last_ok = all(map(math.isfinite, pred.tolist()))
         x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
-        self.b = np.concatenate([self.b, np.zeros(6)])
+        self.b = np.concatenate([self.b, _ZERO6])
         self.z = np.concatenate([self.z, x1])
         self.n = n + 1
         self.kt.append(float(t))
@@ -566,6 +566,7 @@ class LagWindow:
 
 _MINUS_I6 = -np.eye(6)
 _NAN13 = np.full((1, 3), np.nan)
+_ZERO6 = np.zeros(6)
 _ZERO13 = np.zeros((1, 3))
 
 

@@ -466,7 +466,8 @@ class FixedLagSmoother:
         i0 = len(self.knots)
         n_new = len(new_t)
         if n_new > 1:
-            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng.full_params()))
+            # the parameters of now (_params: a new array per estimate, never written)
+            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng._params()))
             self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
                         self.q_scale)
@@ -763,7 +764,7 @@ class FixedLagSmoother:
         self.hist_t.append(float(t_fix))
         self.hist_v.append(nv[0] if len(nv) == 1 else np.concatenate(nv) if nv else np.zeros(0))
         self.hist_s.append(nh[0] if len(nh) == 1 else np.concatenate(nh) if nh else np.zeros(0))
-        self.n_fix = int(np.searchsorted(self.fix_t, t_fix + 1e-9))
+        self.n_fix = int(self.fix_t.searchsorted(t_fix + 1e-9))
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
     # ---------------------------------------------------------------- robustness
