@@ -37,6 +37,14 @@ from scipy.linalg.lapack import dposv as _posv
 
 from aqfg.fg import factors as fc
 from aqfg.model.measurements import range_bearing
+from aqfg.model.vehicle import compiled_kernel
+
+
+def _kernel_propagate():
+    """The compiled kernel's ``propagate`` (the caller checked that it is built)."""
+    cpp = compiled_kernel()
+    assert cpp is not None
+    return cpp.propagate
 
 
 class LagWindow:
@@ -341,14 +349,13 @@ class LagWindow:
         """:func:`fc.propagator` with the vehicle's geometry converted once."""
         if self._kern is None:
             from aqfg.model.params import N_DYN
-            from aqfg.model.vehicle import compiled_kernel
-            cpp = compiled_kernel()
-            if cpp is None or not self.model.uses_cpp:
+            if compiled_kernel() is None or not self.model.uses_cpp:
                 return fc.propagator(self.model, steps)
             g = self.model.geometry
-            self._kern = (cpp.propagate, N_DYN, np.ascontiguousarray(g.dirs, float),
+            self._kern = (N_DYN, np.ascontiguousarray(g.dirs, float),
                           np.ascontiguousarray(g.side, float), bool(g.planar))
-        kernel, nd, dirs, side, planar = self._kern
+        nd, dirs, side, planar = self._kern
+        kernel = _kernel_propagate()      # not held: the window stays deep-copyable
         args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
                 np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
                 np.ascontiguousarray(steps.tm, float), dirs, side, planar)
