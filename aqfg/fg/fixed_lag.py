@@ -779,10 +779,12 @@ class FixedLagSmoother:
         s = self.settings
         t, pos, var = self._fixes
         i = int(t.searchsorted(t_fix - 1e-6))
-        if i >= len(t) or abs(t[i] - t_fix) > 1e-6 or dt <= 0:
+        if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6 or dt <= 0:
             return
         # in scalars: this runs at every update (numpy calls cost microseconds each)
-        e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 + (float(pos[i, 1]) - float(x_pred[1])) ** 2
+        p0, p1 = pos[i, :2].tolist()
+        x0, x1 = x_pred[:2].tolist()
+        e2 = (p0 - x0) ** 2 + (p1 - x1) ** 2
         key = round(dt, 9)
         q = self._noise.get(key)
         if q is None:
@@ -791,10 +793,8 @@ class FixedLagSmoother:
         if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
         self._innov.append((e2, v, q))
-        recent = self._innov[-s.adapt_window:]
-        self.q_scale = max(noise.variance_factor([r[0] for r in recent], [r[1] for r in recent],
-                                                 [r[2] for r in recent], s),
-                           self._q_floor)
+        ea, va, qa = map(list, zip(*self._innov[-s.adapt_window:]))
+        self.q_scale = max(noise.variance_factor(ea, va, qa, s), self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:
         """``smoother.update`` that survives GTSAM's failures (indeterminate systems after
