@@ -37,6 +37,14 @@ from scipy.linalg.lapack import dposv as _posv
 
 from aqfg.fg import factors as fc
 from aqfg.model.measurements import range_bearing
+from aqfg.model.vehicle import compiled_kernel
+
+
+def _kernel_propagate():
+    """The compiled kernel's ``propagate`` (the caller checked that it is built)."""
+    cpp = compiled_kernel()
+    assert cpp is not None
+    return cpp.propagate
 
 
 class LagWindow:
@@ -82,6 +90,9 @@ class LagWindow:
         jc = [int(np.flatnonzero(self.Jsel[:, j])[0]) if self.Jsel[:, j].any() else -1
               for j in range(P)]
         self.jcols = np.array(jc, int) if all(c >= 0 for c in jc) else None
+        # the same columns as a slice (a view) when they are consecutive
+        self._jsl = (slice(jc[0], jc[0] + P) if P and self.jcols is not None
+                     and jc == list(range(jc[0], jc[0] + P)) else None)
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
         sn = s.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
@@ -92,8 +103,16 @@ class LagWindow:
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
+        self._relin_l, self._relin_th_l = self.relin.tolist(), self.relin_th.tolist()
         self.set_mission(mission)
         self._wcache: dict = {}
+        self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
+        self._fp: tuple | None = None  # (theta bytes, full_params) of the last call
+        self._rhs_cols = (self.pidx, self.pidx + 1)
+        self._keep: dict = {}          # N -> the variables left when the oldest knot goes
+        self._rhs: dict = {}           # N -> [0, I_P; 0, 0]: the step's right-hand sides
+        self._kern: tuple | None = None
+        self.last_ok = True
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
         self.n = 1
@@ -156,15 +175,16 @@ class LagWindow:
     def _take_fixes(self, t_lo: float, t_hi: float) -> None:
         """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate."""
         gt, gz, gs = self.tab_g
-        a, b = np.searchsorted(gt, [t_lo + 1e-9, t_hi + 1e-9])
+        lo, hi = t_lo + 1e-9, t_hi + 1e-9
+        a, b = int(gt.searchsorted(lo)), int(gt.searchsorted(hi))
         ut, uz, us = self.tab_u
-        c, d = np.searchsorted(ut, [t_lo + 1e-9, t_hi + 1e-9])
+        c, d = int(ut.searchsorted(lo)), int(ut.searchsorted(hi))
         if b <= a and d <= c:
             self.fx.append(None)
-            self.FXL = np.concatenate([self.FXL, np.full((1, 3), np.nan)])
+            self.FXL = np.concatenate([self.FXL, _NAN13])
             return
         self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
-        self.FXL = np.concatenate([self.FXL, np.zeros((1, 3))])
+        self.FXL = np.concatenate([self.FXL, _ZERO13])
         self._set_fix(self.n - 1)
 
     def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -232,6 +252,8 @@ class LagWindow:
         f = self.fx[i]
         assert f is not None
         o = self.P + 6 * i
+        if len(f[0]) == 1 and not len(f[2]):
+            return self._set_gnss1(i, f, o)
         x = self.z[o:o + 3].copy()
         _, gk, Hk = self.fix_terms(i, x)
         bk = gk - Hk @ x
@@ -244,6 +266,39 @@ class LagWindow:
         f[4], f[5] = Hk, bk
         self.FXL[i] = x
 
+    def _set_gnss1(self, i: int, f: list, o: int) -> None:
+        """:meth:`_set_fix` of a knot with one GNSS fix, relinearised, in Python floats: the
+        same numbers as the matrix form (``Hk = diag(h, h, 0)``, ``gk = (g0, g1, 0)``: the
+        zero entries change nothing)."""
+        x0, x1, x2 = self.z[o:o + 3].tolist()
+        gz, s = f[0][0], float(f[1][0])
+        r0, r1 = (x0 - float(gz[0])) / s, (x1 - float(gz[1])) / s
+        d = math.hypot(r0, r1)
+        k = self.k_gnss
+        w = 1.0 if k is None or d <= k else k / d
+        h = w / (s * s)
+        g0, g1 = w * r0 / s, w * r1 / s
+        z0 = 0.0 * x0 + 0.0 * x1 + 0.0 * x2          # (Hk x)'s zero terms (NaN with x)
+        b0, b1, b2 = g0 - (h * x0 + z0), g1 - (h * x1 + z0), 0.0 - z0
+        Hp, bp = f[4], f[5]
+        H, b = self.H, self.b
+        if Hp is None:
+            H[o, o] += h
+            H[o + 1, o + 1] += h
+            b[o] += b0
+            b[o + 1] += b1
+            b[o + 2] += b2
+        else:
+            H[o, o] += h - Hp[0, 0]
+            H[o + 1, o + 1] += h - Hp[1, 1]
+            b[o] += b0 - bp[0]
+            b[o + 1] += b1 - bp[1]
+            b[o + 2] += b2 - bp[2]
+        Hk = np.zeros((3, 3))
+        Hk[0, 0] = Hk[1, 1] = h
+        f[4], f[5] = Hk, np.array([b0, b1, b2])
+        self.FXL[i] = (x0, x1, x2)
+
     # ------------------------------------------------------------------ reading
     @property
     def X(self) -> np.ndarray:
@@ -255,8 +310,17 @@ class LagWindow:
         return self.z[:self.P]
 
     def full_params(self) -> np.ndarray:
-        th = np.minimum(np.maximum(self.z[:self.P], self.lo), self.hi)
-        return self.layout.full({g: th[sl] for g, sl in self.slices.items()})
+        """The full parameter vector at the estimate (inside the bounds; a new array)."""
+        return self._params().copy()
+
+    def _params(self) -> np.ndarray:
+        """:meth:`full_params`, computed once per parameter estimate (read only)."""
+        th = self.z[:self.P]
+        key = th.tobytes()
+        if self._fp is None or self._fp[0] != key:
+            th = np.minimum(np.maximum(th, self.lo), self.hi)
+            self._fp = (key, self.layout.full({g: th[sl] for g, sl in self.slices.items()}))
+        return self._fp[1]
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the parameters (marginal of the last step's linearisation)."""
@@ -281,6 +345,22 @@ class LagWindow:
             self.H[o + 2, o + 2] += self.surf_w[0]
             self.H[o + 5, o + 5] += self.surf_w[1]
 
+    def _propagator(self, steps):
+        """:func:`fc.propagator` with the vehicle's geometry converted once."""
+        if self._kern is None:
+            from aqfg.model.params import N_DYN
+            if compiled_kernel() is None or not self.model.uses_cpp:
+                return fc.propagator(self.model, steps)
+            g = self.model.geometry
+            self._kern = (N_DYN, np.ascontiguousarray(g.dirs, float),
+                          np.ascontiguousarray(g.side, float), bool(g.planar))
+        nd, dirs, side, planar = self._kern
+        kernel = _kernel_propagate()      # not held: the window stays deep-copyable
+        args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+                np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+                np.ascontiguousarray(steps.tm, float), dirs, side, planar)
+        return lambda x0, p: kernel(x0, p[:nd], *args)
+
     def _whitening(self, dt: float, q: float) -> np.ndarray:
         key = (round(dt, 9), q)
         W = self._wcache.get(key)
@@ -295,7 +375,8 @@ class LagWindow:
         ``f(x0, p) - x1`` (the sign leaves the normal equations as they are)."""
         P = self.P
         M = np.empty((6, P + 12))
-        M[:, :P] = Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel
+        M[:, :P] = (Jp[:, self._jsl] if self._jsl is not None else
+                    Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel)
         M[:, P:P + 6] = Jx
         M[:, P + 6:] = _MINUS_I6
         c = W @ (pred - M[:, :P + 6] @ np.concatenate([th, x0]))
@@ -307,14 +388,19 @@ class LagWindow:
         Jt = J.T
         Hi, bi = Jt @ J, Jt @ c
         dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
-        P, o = self.P, self.P + 6 * i
         H = self.H
-        H[:P, :P] += dH[:P, :P]
-        H[:P, o:o + 12] += dH[:P, P:]
-        H[o:o + 12, :P] += dH[P:, :P]
-        H[o:o + 12, o:o + 12] += dH[P:, P:]
-        self.b[:P] += db[:P]
-        self.b[o:o + 12] += db[P:]
+        if not H.flags.c_contiguous:
+            H = self.H = np.ascontiguousarray(H)
+        N = len(H)
+        key = (N, i)
+        ix = self._dyn_idx.get(key)
+        if ix is None:          # rows/columns [theta, x_i, x_i+1] of H, flat and plain
+            P, o = self.P, self.P + 6 * i
+            r = np.concatenate([np.arange(P), np.arange(o, o + 12)])
+            ix = self._dyn_idx[key] = ((r[:, None] * N + r[None, :]).ravel(), r)
+        Hf = H.reshape(-1)      # a view (C-contiguous)
+        Hf[ix[0]] += dH.ravel()
+        self.b[ix[1]] += db
         d[2], d[3] = Hi, bi
         self.X0L[i] = x0
         self.THL[i] = th
@@ -327,16 +413,16 @@ class LagWindow:
         t_last = self.kt[-1]
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
-        prop = fc.propagator(self.model, steps)       # the kernel's arguments prepared once
-        pred, Jx, Jp = prop(x0, self.full_params())
+        prop = self._propagator(steps)                # the kernel's arguments prepared once
+        pred, Jx, Jp = prop(x0, self._params())
         self.last_pred = pred
         N = P + 6 * n
         H = np.zeros((N + 6, N + 6))
         H[:N, :N] = self.H
         self.H = H
-        ok = bool(np.isfinite(pred).all())
+        ok = self.last_ok = all(map(math.isfinite, pred.tolist()))
         x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
-        self.b = np.concatenate([self.b, np.zeros(6)])
+        self.b = np.concatenate([self.b, _ZERO6])
         self.z = np.concatenate([self.z, x1])
         self.n = n + 1
         self.kt.append(float(t))
@@ -380,22 +466,27 @@ class LagWindow:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
         thresholds since their linearisation, and the fixes whose knot moved past
         ``relin_pos``."""
+        # in Python floats: a few knots, and numpy calls cost microseconds each
         P = self.P
         th = self.z[:P]
         X = self.z[P:].reshape(-1, 6)
-        fm = np.abs(X[:, :3] - self.FXL) > self.s.relin_pos          # NaN (no fix): False
-        if fm.any():
-            for i in np.flatnonzero(fm.any(axis=1)):
-                self._set_fix(int(i))
+        Xl = X.tolist()
+        rp = self.s.relin_pos
+        for i, (x, f) in enumerate(zip(Xl, self.FXL.tolist())):
+            # NaN (no fix): False
+            if abs(x[0] - f[0]) > rp or abs(x[1] - f[1]) > rp or abs(x[2] - f[2]) > rp:
+                self._set_fix(i)
         if not self.dyn:
             return
-        dx = np.abs(X[:-1] - self.X0L) > self.relin
-        dth = np.abs(th - self.THL) > self.relin_th
-        if not (dx.any() or dth.any()):
+        rl, rt, thl = self._relin_l, self._relin_th_l, th.tolist()
+        move = [i for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L.tolist(), self.THL.tolist()))
+                if any(abs(a - b) > r for a, b, r in zip(x, x0, rl))
+                or any(abs(a - b) > r for a, b, r in zip(thl, t0, rt))]
+        if not move:
             return
-        p = self.full_params()
+        p = self._params()
         th = th.copy()
-        for i in np.flatnonzero(dx.any(axis=1) | dth.any(axis=1)):
+        for i in move:
             x0 = X[i].copy()
             pred, Jx, Jp = self.dyn[i][4](x0, p)
             if np.isfinite(pred).all():
@@ -419,9 +510,13 @@ class LagWindow:
         self._relinearise()
         H, g = self.system()
         P = self.P
-        rhs = np.zeros((len(g), P + 1))
+        N = len(g)
+        rhs = self._rhs.get(N)
+        if rhs is None:
+            rhs = self._rhs[N] = np.zeros((N, P + 1))
+            rhs[self._rhs_cols] = 1.0
+        rhs = rhs.copy()
         rhs[:, 0] = g
-        rhs[self.pidx, self.pidx + 1] = 1.0
         # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
         # the parameters' columns of H^-1
         _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
@@ -442,21 +537,21 @@ class LagWindow:
             z = self.z
             N = len(z)
             H, b = self.H, self.b
-            # [theta, x0, rest] -> [theta, rest]: x0 eliminated
-            Har = np.concatenate([H[P:P + 6, :P], H[P:P + 6, P + 6:]], axis=1)   # (6, N-6)
+            # [theta, x0, rest] -> [theta, rest]: x0 eliminated (flat indices: one take)
+            keep = self._keep.get(N)
+            if keep is None:
+                k = np.concatenate([np.arange(P), np.arange(P + 6, N)])
+                keep = self._keep[N] = (k, (k[:, None] * N + k[None, :]).ravel())
+            Har = H[P:P + 6].take(keep[0], axis=1)                            # (6, N-6)
             rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
             _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)          # H_aa^-1 [H_ar, b_a]
             if info != 0:
                 raise np.linalg.LinAlgError("a marginalised knot's information is singular")
-            Hn = np.empty((N - 6, N - 6))
-            Hn[:P, :P] = H[:P, :P]
-            Hn[:P, P:] = H[:P, P + 6:]
-            Hn[P:, :P] = H[P + 6:, :P]
-            Hn[P:, P:] = H[P + 6:, P + 6:]
+            Hn = H.take(keep[1]).reshape(N - 6, N - 6)
             Hn -= Har.T @ sol[:, :-1]
             self.H = Hn
-            self.b = np.concatenate([b[:P], b[P + 6:]]) - Har.T @ sol[:, -1]
-            self.z = np.concatenate([z[:P], z[P + 6:]])
+            self.b = b.take(keep[0]) - Har.T @ sol[:, -1]
+            self.z = z.take(keep[0])
             self.n -= 1
             self.kt.pop(0)
             self.kid.pop(0)
@@ -477,6 +572,9 @@ class LagWindow:
 
 
 _MINUS_I6 = -np.eye(6)
+_NAN13 = np.full((1, 3), np.nan)
+_ZERO6 = np.zeros(6)
+_ZERO13 = np.zeros((1, 3))
 
 
 def _huber(r: np.ndarray, k: float | None) -> np.ndarray:

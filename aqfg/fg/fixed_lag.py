@@ -155,6 +155,9 @@ class FixedLagSmoother:
         if self._estimate_vehicle:
             est = tuple(dict.fromkeys((*est, *vehicle)))
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
+        # per-update constants of the layout (its properties build tuples on each call)
+        self._theta_est = "theta_e" in self.layout.estimated
+        self._scales = np.array([self.model.spec(n).scale for n in self.layout.estimated])
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
             raise ValueError(f"mission {mission.name!r} has no GNSS or USBL fix")
@@ -364,8 +367,8 @@ class FixedLagSmoother:
         # new knots on the grid up to the fix
         sp = s.knot_spacing
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
-        new_t = np.concatenate([grid, [t_fix]])
-        all_t = np.concatenate([[t_last], new_t])
+        all_t = np.concatenate([[t_last], grid, [t_fix]])
+        new_t = all_t[1:]
         if self._fast is not None:
             info = self._update_fast(t_fix, t_last, new_t, all_t)
             if self._reinit_due(t_fix):
@@ -461,12 +464,14 @@ class FixedLagSmoother:
         assert eng is not None
         s = self.settings
         i0 = len(self.knots)
-        if len(new_t) > 1:
-            self._pending.append((i0, all_t, eng.X[-1].copy(), eng.full_params()))
-            self.filtered.extend([None] * (len(new_t) - 1))      # type: ignore[list-item]
-        x_fix = eng.add(float(t_fix), i0 + len(new_t) - 1, self._interval_steps(all_t),
+        n_new = len(new_t)
+        if n_new > 1:
+            # the parameters of now (_params: a new array per estimate, never written)
+            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng._params()))
+            self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
+        x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
                         self.q_scale)
-        if not np.isfinite(eng.last_pred).all():
+        if not eng.last_ok:
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
         self.filtered.append(x_fix)
@@ -475,7 +480,7 @@ class FixedLagSmoother:
         self.pred_x.append(x_fix.copy())
         if s.adapt_process:
             self._adapt(t_fix, float(t_fix - t_last), x_fix)
-        return self._update(None, None, {}, t_fix, len(new_t))
+        return self._update(None, None, {}, t_fix, n_new)
 
     def _interval_steps(self, all_t: np.ndarray):
         """Kernel steps from ``all_t[0]`` to ``all_t[-1]`` in one piece (the numpy engine's
@@ -526,8 +531,7 @@ class FixedLagSmoother:
     def _reinit_scheduled(self) -> bool:
         """Online without a given heading offset: batch re-initialisations are scheduled
         (the parameters are held until the first)."""
-        s = self.settings
-        return (s.online_init_after > 0 and "theta_e" in self.layout.estimated
+        return (self.settings.online_init_after > 0 and self._theta_est
                 and "theta_e" not in self.init)
 
     def _reinit_due(self, t_fix: float) -> bool:
@@ -690,9 +694,11 @@ class FixedLagSmoother:
             # reported sigma: see below
             sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
                 if self._inflation else sg_all
-            values, sigma = dict(zip(names, th.tolist())), dict(zip(names, sh_all.tolist()))
+            sg_l = sg_all.tolist()
+            values = dict(zip(names, th.tolist()))
+            sigma = dict(zip(names, sh_all.tolist() if self._inflation else sg_l))
             nv, ns, nh = [th], [sg_all], [sh_all]
-            self._raw_sigma.update(zip(names, sg_all.tolist()))
+            self._raw_sigma.update(zip(names, sg_l))
         else:
             self._guarded_update(graph, vals, stamps, t_fix)
             self._n_committed = len(self.keys)
@@ -714,7 +720,7 @@ class FixedLagSmoother:
             nv.append(v); ns.append(sg); nh.append(sh)
             self._raw_sigma.update(zip(lay.names[g], map(float, sg)))
         if self.warming:
-            sc = np.array([self.model.spec(n).scale for n in lay.estimated])
+            sc = self._scales
             done = (np.all(np.concatenate(ns) < self.settings.warmup_tol * sc) if ns else True
                     ) and not self._hold_idx
             if done or t_fix - self.knots[0] >= self.settings.warmup_max:
@@ -732,7 +738,7 @@ class FixedLagSmoother:
         i_fix = len(self.knots) - 1
         self.anchor_idx.append(i_fix)
         if eng is not None:
-            self.filtered[i_fix] = eng.X[-1].copy()
+            self.filtered[i_fix] = eng.z[-6:].copy()
             for i in reversed(self.anchor_idx):
                 if self.knots[i] < t_fix - self.window + 1e-6:
                     break
@@ -758,7 +764,7 @@ class FixedLagSmoother:
         self.hist_t.append(float(t_fix))
         self.hist_v.append(nv[0] if len(nv) == 1 else np.concatenate(nv) if nv else np.zeros(0))
         self.hist_s.append(nh[0] if len(nh) == 1 else np.concatenate(nh) if nh else np.zeros(0))
-        self.n_fix = int(np.searchsorted(self.fix_t, t_fix + 1e-9))
+        self.n_fix = int(self.fix_t.searchsorted(t_fix + 1e-9))
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
     # ---------------------------------------------------------------- robustness
@@ -773,10 +779,12 @@ class FixedLagSmoother:
         s = self.settings
         t, pos, var = self._fixes
         i = int(t.searchsorted(t_fix - 1e-6))
-        if i >= len(t) or abs(t[i] - t_fix) > 1e-6 or dt <= 0:
+        if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6 or dt <= 0:
             return
         # in scalars: this runs at every update (numpy calls cost microseconds each)
-        e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 + (float(pos[i, 1]) - float(x_pred[1])) ** 2
+        p0, p1 = pos[i, :2].tolist()
+        x0, x1 = x_pred[:2].tolist()
+        e2 = (p0 - x0) ** 2 + (p1 - x1) ** 2
         key = round(dt, 9)
         q = self._noise.get(key)
         if q is None:
@@ -785,10 +793,8 @@ class FixedLagSmoother:
         if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
         self._innov.append((e2, v, q))
-        recent = self._innov[-s.adapt_window:]
-        self.q_scale = max(noise.variance_factor([r[0] for r in recent], [r[1] for r in recent],
-                                                 [r[2] for r in recent], s),
-                           self._q_floor)
+        ea, va, qa = map(list, zip(*self._innov[-s.adapt_window:]))
+        self.q_scale = max(noise.variance_factor(ea, va, qa, s), self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:
         """``smoother.update`` that survives GTSAM's failures (indeterminate systems after
