@@ -599,6 +599,17 @@ class FixedLagSmoother:
             if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
                 self._release(t_fix)
             return None
+        if not bres.info.get("plausible", True):
+            # a batch of a short stretch with the constants free can land on a vehicle no
+            # hull is (thrust 500x, currents at their bounds on a 40-s crop of an Otter
+            # mission); replayed with such values held, every prediction diverged
+            self.events.append({"t": float(t_fix), "event": "batch re-initialisation "
+                                "implausible: not used",
+                                "reasons": [r for v in bres.info.get("plausibility", {}).values()
+                                            for r in v.get("reasons", [])]})
+            if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
+                self._release(t_fix)
+            return None
         # the process noise this model needs, measured on all the fixes so far, is the
         # floor of the online factor from here (aqfg.fg.noise)
         self._q_floor = float(bres.info.get("process_noise_scale", 1.0))

@@ -19,7 +19,8 @@ Two checks, neither tied to a particular vehicle:
   constants give 60 deg in a sustained turn), so turns are not judged; on straight legs
   any sway drag brings the slip to zero within seconds.
 * **bounds**: an estimated thrust or drag constant pinned at its lower bound (no thrust,
-  or no drag on an axis) is not a vehicle.
+  or no drag on an axis) is not a vehicle; nor is a current at its bound (a batch of the
+  first 40 s of a crop of an Otter mission, all six free, put both components there).
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ class Plausibility:
     """Verdict on one solution."""
     plausible: bool
     slip_deg: float | None               # median slip angle (deg); None if not testable
-    pinned: list[str] = field(default_factory=list)   # constants at their lower bound
+    pinned: list[str] = field(default_factory=list)   # at a bound: constants low, currents
     reasons: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -96,4 +97,10 @@ def check(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.nd
                 pinned.append(n)
     if pinned:
         reasons.append(f"{', '.join(pinned)} at the lower bound (no thrust or no drag)")
+    at_bound = [n for n in ("s_x", "s_y") if n in estimated
+                and abs(p[model.index(n)]) >= 0.99 * model.spec(n).upper]
+    if at_bound:
+        pinned += at_bound
+        reasons.append(f"{', '.join(at_bound)} at the {model.spec(at_bound[0]).upper:g} m/s "
+                       "bound (a current no vehicle of this kind works in)")
     return Plausibility(not reasons, slip, pinned, reasons)
