@@ -350,7 +350,7 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
     st = figs.get("stream")
     if st:
         after = (f"after the warm-up (first {st['warmup_s']:.0f} s)" if st["warmup_s"] > 0
-                 else "(stream too short to leave the warm-up out)")
+                 else "(no warm-up left out)")
         rows.append((f"{st['duration'] / 3600:.2g}-h stream (GNSS 8 s, {st['updates']} updates): "
                      f"per-update median, last {st['edge'] / 60:.0f} min / first "
                      f"{st['edge'] / 60:.0f} min {after}",
