@@ -11,7 +11,6 @@ factor graph and of the update-error method.
 """
 from __future__ import annotations
 
-import copy
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -22,35 +21,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 import independent_vehicle as iv  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
-from aqfg.data.mission import with_gnss_every  # noqa: E402
+from aqfg.data.mission import between, with_gnss_every  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 MISSIONS = ["otter-example", "otter-dev-calm-a", "otter-dev-calm-b",
             "otter-dev-current-weakprop", "otter-dev-yawdrift"]
 CROPS = [(150.0, 1e9), (300.0, 1e9), (0.0, 450.0)]
-
-
-def crop(m, a: float, b: float):
-    """The mission between a and b s (every stream cut alike)."""
-    v = copy.copy(m)
-
-    def cut(obj, fields):
-        if obj is None:
-            return None
-        o = copy.copy(obj)
-        k = (obj.t >= a) & (obj.t <= b)
-        for f in fields:
-            x = getattr(obj, f, None)
-            if isinstance(x, np.ndarray) and len(x) == len(obj.t):
-                setattr(o, f, x[k])
-        o.t = obj.t[k]
-        return o
-    v.imu = cut(m.imu, ("q", "acc", "gyro"))
-    v.motors = cut(m.motors, ("u",))
-    v.gnss = cut(m.gnss, ("ne", "sigma", "latlon"))
-    v.usbl = cut(m.usbl, ("range", "bearing", "elevation"))
-    v.depth = cut(m.depth, ("depth",))
-    return v
 
 
 def one(args) -> str:
@@ -60,7 +36,7 @@ def one(args) -> str:
     tr = load_truth(DATA / name)
     full = load_mission(DATA / name)
     b = min(b, float(full.imu.t[-1]))
-    m = with_gnss_every(crop(full, a, b), ge)
+    m = with_gnss_every(between(full, a, b), ge)
     d = fit_fg([load_mission(DATA / iv.DONOR[name])])
     init = {n: d.values[n] for n in ("k", "k_x", "k_yz")}
     P = tr.params

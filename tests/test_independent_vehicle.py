@@ -263,25 +263,8 @@ def test_online_without_the_vehicles_constants_estimates_them_and_says_so(caplog
 def crop(m, a: float, b: float):
     """The mission between a and b s: another start state and leg geometry, data no
     constant was chosen on."""
-    import copy
-    v = copy.copy(m)
-
-    def cut(obj, fields):
-        if obj is None:
-            return None
-        o = copy.copy(obj)
-        k = (obj.t >= a) & (obj.t <= b)
-        for f in fields:
-            x = getattr(obj, f, None)
-            if isinstance(x, np.ndarray) and len(x) == len(obj.t):
-                setattr(o, f, x[k])
-        o.t = obj.t[k]
-        return o
-    v.imu = cut(m.imu, ("q", "acc", "gyro"))
-    v.motors = cut(m.motors, ("u",))
-    v.gnss = cut(m.gnss, ("ne", "sigma", "latlon"))
-    v.usbl = cut(m.usbl, ("range", "bearing", "elevation"))
-    return v
+    from aqfg.data.mission import between
+    return between(m, a, b)
 
 
 @pytest.mark.slow

@@ -504,3 +504,16 @@ def test_bad_truth_csv_is_located(tmp_path):
     load_mission(root)                        # the mission never reads truth
     with pytest.raises(MissionFormatError, match=r"truth\.csv, row 3, column 'east'"):
         load_truth(root)
+
+
+def test_between_cuts_every_stream_and_refuses_an_empty_span():
+    from aqfg.data.mission import between
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=1, duration=120.0, usbl=True)
+    part = between(m, 30.0, 90.0)
+    for s in (part.imu, part.motors, part.gnss, part.usbl):
+        assert s.t.min() >= 30.0 and s.t.max() <= 90.0 and len(s.t) > 0
+    assert len(part.imu.q) == len(part.imu.t) and len(part.usbl.range) == len(part.usbl.t)
+    assert len(m.imu.t) > len(part.imu.t)            # the original is untouched
+    with pytest.raises(ValueError, match="not after the start"):
+        between(m, 50.0, 50.0)

@@ -151,3 +151,31 @@ def without_gnss(mission: Mission, keep_first: bool = True) -> Mission:
     n = 1 if keep_first else 0
     out.gnss = Gnss(g.t[:n], g.ne[:n], None if g.sigma is None else g.sigma[:n])
     return out
+
+
+def between(mission: Mission, t_from: float, t_to: float) -> Mission:
+    """A copy holding only the samples of every stream (IMU, motors, GNSS, USBL, depth) with
+    ``t_from <= t <= t_to`` (s, the mission's clock): part of a mission fitted on its own,
+    e.g. from a start under way instead of at rest."""
+    import copy
+    if not t_to > t_from:
+        raise ValueError(f"between: the end {t_to} s is not after the start {t_from} s")
+    out = copy.copy(mission)
+
+    def cut(obj, fields):
+        if obj is None:
+            return None
+        o = copy.copy(obj)
+        k = (obj.t >= t_from) & (obj.t <= t_to)
+        for f in fields:
+            x = getattr(obj, f, None)
+            if isinstance(x, np.ndarray) and len(x) == len(obj.t):
+                setattr(o, f, x[k])
+        o.t = obj.t[k]
+        return o
+    out.imu = cut(mission.imu, ("q", "acc", "gyro"))
+    out.motors = cut(mission.motors, ("u",))
+    out.gnss = cut(mission.gnss, ("ne", "sigma", "latlon"))
+    out.usbl = cut(mission.usbl, ("range", "bearing", "elevation"))
+    out.depth = cut(mission.depth, ("depth",))
+    return out
