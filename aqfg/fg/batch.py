@@ -328,7 +328,14 @@ class BatchSmoother:
             gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
         out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
         q_scale, q_tried = 1.0, dict[float, float]()
-        if s.adapt_batch and fs is not None and out.fast is not None:
+        # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
+        # noise is the honest sigma there (docs/independent-vehicle.md)
+        b = s.sandwich_block or np.inf
+        n_blocks = sum(int(np.floor((float(p.knots[-1]) - float(p.knots[0])) / b)) + 1
+                       for p in parts)
+        short = n_blocks < sum(layout.dim(g) for g, _, _ in node_list) + 2
+        adapt = short if s.adapt_batch is None else s.adapt_batch
+        if adapt and fs is not None and out.fast is not None:
             # how much process noise the model needs (aqfg.fg.noise): a model that is not
             # the vehicle's bends the parameters under the nominal noise
             X0, th0 = fs.from_values(out.values)

@@ -44,11 +44,15 @@ class FGSettings:
         error and makes the newest velocity follow the fixes' noise (a USBL fix 0.5 s
         after a GNSS fix set velocities of 5 m/s; docs/independent-vehicle.md).
     adapt_batch: the batch chooses the process-noise variance factor by its evidence
-        (:func:`aqfg.fg.noise.evidence_search`). Off by default: over a whole mission the
+        (:func:`aqfg.fg.noise.evidence_search`): True, False, or None (default) for
+        only where the data are too short for the sandwich (below). Over a whole mission the
         nominal noise gave the better estimates and a larger one freed degenerate solutions;
         on for the online re-initialisations, which solve a short stretch of data where the
-        tight noise turned the model's error into a confident heading error
-        (docs/independent-vehicle.md).
+        tight noise turned the model's error into a confident heading error; and, by
+        default, for data too short for the sandwich's time blocks (fewer than the
+        parameters + 2), where the Hessian sigma alone was 6-15 times too small on Otter
+        crops of 2.5-5 min (docs/independent-vehicle.md). The diagnosis sets False: a noise
+        chosen to explain the fixes would hide the misfit it is there to show.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -78,7 +82,7 @@ class FGSettings:
     knot_spacing: float = 1.0
     sandwich_block: float = 60.0
     adapt_process: bool = True
-    adapt_batch: bool = False
+    adapt_batch: bool | None = None
     online_init_after: float = 20.0
     online_reinit_until: float = 960.0
     adapt_window: int = 10
