@@ -311,10 +311,11 @@ class LagWindow:
 
     def full_params(self) -> np.ndarray:
         """The full parameter vector at the estimate (inside the bounds; a new array)."""
-        return self._params().copy()
+        return self.params_view().copy()
 
-    def _params(self) -> np.ndarray:
-        """:meth:`full_params`, computed once per parameter estimate (read only)."""
+    def params_view(self) -> np.ndarray:
+        """:meth:`full_params` without the copy: computed once per parameter estimate, a new
+        array each time the estimate changes, never written (callers may keep it)."""
         th = self.z[:self.P]
         key = th.tobytes()
         if self._fp is None or self._fp[0] != key:
@@ -414,7 +415,7 @@ class LagWindow:
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
         prop = self._propagator(steps)                # the kernel's arguments prepared once
-        pred, Jx, Jp = prop(x0, self._params())
+        pred, Jx, Jp = prop(x0, self.params_view())
         self.last_pred = pred
         N = P + 6 * n
         H = np.zeros((N + 6, N + 6))
@@ -484,7 +485,7 @@ class LagWindow:
                 or any(abs(a - b) > r for a, b, r in zip(thl, t0, rt))]
         if not move:
             return
-        p = self._params()
+        p = self.params_view()
         th = th.copy()
         for i in move:
             x0 = X[i].copy()

@@ -200,6 +200,7 @@ class FixedLagSmoother:
             self._q_floor = 1.0                    # the last re-initialisation batch's factor
             self._inflation: dict[str, float] = {}   # sigma reported / marginal, per name
             self._raw_sigma: dict[str, float] = {}   # the latest marginal sigma per name
+            self._forced_at = -np.inf              # time of the last forced re-initialisation
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
         self._innov: list[tuple[float, float, float]] = []   # fix innovations (e2, R, Q_pos)
         self._fixes = robust_fix_table(mission, s)
@@ -362,20 +363,25 @@ class FixedLagSmoother:
         t_last = self.knots[-1]
         if t_fix <= t_last + 1e-9:
             raise ValueError(f"fix time {t_fix} s is not after the last processed time {t_last} s")
-        s = self.settings
-        lay = self.layout
         # new knots on the grid up to the fix
-        sp = s.knot_spacing
+        sp = self.settings.knot_spacing
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         all_t = np.concatenate([[t_last], grid, [t_fix]])
         new_t = all_t[1:]
-        if self._fast is not None:
-            info = self._update_fast(t_fix, t_last, new_t, all_t)
-            if self._reinit_due(t_fix):
-                info = self._reinitialise(t_fix) or info
-            elif self._troubled(t_fix):
-                info = self._reinitialise(t_fix, force=True) or info
-            return info
+        step = self._update_fast if self._fast is not None else self._update_gtsam
+        info = step(t_fix, t_last, new_t, all_t)
+        if self._reinit_due(t_fix):
+            info = self._reinitialise(t_fix) or info
+        elif self._troubled(t_fix):
+            info = self._reinitialise(t_fix, force=True) or info
+        return info
+
+    def _update_gtsam(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
+                      ) -> UpdateInfo:
+        """:meth:`update` on the GTSAM engine: the knots on the grid up to the fix, their
+        dynamics factors and the fixes' factors, one ISAM2 update."""
+        s = self.settings
+        lay = self.layout
         steps, off = self._steps(all_t)
         graph = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
@@ -436,12 +442,7 @@ class FixedLagSmoother:
                                      lambda i: self.keys[i0 - 1 + i],
                                      lambda stream, t: self._node_keys(lay.meas_groups(stream)), s):
             graph.add(f)
-        info = self._update(graph, vals, stamps, t_fix, len(new_t))
-        if self._reinit_due(t_fix):
-            info = self._reinitialise(t_fix) or info
-        elif self._troubled(t_fix):
-            info = self._reinitialise(t_fix, force=True) or info
-        return info
+        return self._update(graph, vals, stamps, t_fix, len(new_t))
 
     def _troubled(self, t_fix: float) -> bool:
         """This update skipped its fix, saw the model's prediction diverge or needed a
@@ -452,7 +453,7 @@ class FixedLagSmoother:
         bad = any(e["event"] in ("fix skipped", "prediction diverged", "restarted (broad priors)")
                   for e in self.events[self._ev_mark:])
         return (bad and self.n_fix >= 6 and "theta_e" not in self.init
-                and t_fix - getattr(self, "_forced_at", -np.inf) >= 30.0)
+                and t_fix - self._forced_at >= 30.0)
 
     def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
                      ) -> UpdateInfo:
@@ -466,8 +467,8 @@ class FixedLagSmoother:
         i0 = len(self.knots)
         n_new = len(new_t)
         if n_new > 1:
-            # the parameters of now (_params: a new array per estimate, never written)
-            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng._params()))
+            # the parameters of now (params_view: a new array per estimate, never written)
+            self._pending.append((i0, all_t, eng.z[-6:].copy(), eng.params_view()))
             self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
                         self.q_scale)
