@@ -7,6 +7,7 @@
 #include <nanobind/stl/tuple.h>
 
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <initializer_list>
 #include <string>
@@ -24,6 +25,7 @@ using InF64 = nb::ndarray<const double, nb::c_contig, nb::device::cpu>;
 using InU8 = nb::ndarray<const std::uint8_t, nb::c_contig, nb::device::cpu>;
 using InI64 = nb::ndarray<const std::int64_t, nb::c_contig, nb::device::cpu>;
 using OutF64 = nb::ndarray<nb::numpy, double>;
+using InOutF64 = nb::ndarray<double, nb::c_contig, nb::device::cpu>;
 
 constexpr std::int64_t ANY = -1;
 const std::string P_SHAPE = "(N_DYN,) = (" + std::to_string(kn::N_DYN) + ",)";
@@ -50,6 +52,13 @@ AQFG_CLONES void run_propagate_many(const double* X0, const double* p, const kn:
   for (std::ptrdiff_t k = 0; k < K; ++k)
     kn::propagate(X0 + 6 * k, p, s.slice(off[k], off[k + 1], g.n_thr), g, X1 + 6 * k,
                   JX + 36 * k, JP + 6 * kn::N_DYN * k);
+}
+
+AQFG_CLONES void run_linearise(const double* x0, const double* p, const double* theta,
+                              const std::int64_t* cols, int P, const double* W,
+                              const kn::Steps& s, const kn::Geometry& g, double* x1, double* H,
+                              double* b) {
+  kn::linearise(x0, p, theta, cols, P, W, s, g, x1, H, b);
 }
 
 AQFG_CLONES void run_rollout(const double* x0, const double* p, const kn::Steps& s,
@@ -176,6 +185,97 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
   return {a1, a2, a3};
 }
 
+// theta's kernel columns: P <= N_DYN indices into the N_DYN parameters.
+void check_cols(const char* fn, const InI64& cols, std::int64_t P) {
+  if (P > kn::N_DYN)
+    throw nb::value_error((std::string(fn) + ": argument 'theta' must have at most N_DYN = " +
+                           std::to_string(kn::N_DYN) + " entries, got " + std::to_string(P))
+                              .c_str());
+  check_shape(fn, "cols", cols, {P}, "(P,) with P = len(theta)");
+  for (std::int64_t j = 0; j < P; ++j)
+    if (cols.data()[j] < 0 || cols.data()[j] >= kn::N_DYN)
+      throw nb::value_error((std::string(fn) + ": argument 'cols' must index the N_DYN = " +
+                             std::to_string(kn::N_DYN) + " parameters; cols[" +
+                             std::to_string(j) + "] = " + std::to_string(cols.data()[j]))
+                                .c_str());
+}
+
+std::tuple<OutF64, OutF64, OutF64> py_linearise(const InF64& x0, const InF64& p,
+                                                 const InF64& theta, const InI64& cols,
+                                                 const InF64& W, const InF64& h,
+                                                 const InU8& warm, const InF64& R,
+                                                 const InF64& dem, const InF64& tm,
+                                                 const InF64& dirs, const InF64& side,
+                                                 nb::handle planar_obj) {
+  const char* fn = "linearise";
+  const bool planar = as_bool(fn, "planar", planar_obj);
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  check_shape(fn, "theta", theta, {ANY}, "(P,)");
+  const std::int64_t P = static_cast<std::int64_t>(theta.shape(0));
+  check_cols(fn, cols, P);
+  check_shape(fn, "W", W, {6, 6}, "(6, 6)");
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  const std::size_t n = static_cast<std::size_t>(P + 12);
+  double *x1, *H, *b;
+  OutF64 ax1 = new_array({6}, x1), aH = new_array({n, n}, H), ab = new_array({n}, b);
+  run_linearise(x0.data(), p.data(), theta.data(), cols.data(), static_cast<int>(P), W.data(),
+                in.steps, in.geom, x1, H, b);
+  return {ax1, aH, ab};
+}
+
+// linearise, and the block swapped into the window's held quadratic in place: with
+// r = [0..P) + [o, o+12) (P = len(theta)), H[r, r] += Hn - Hblk, b[r] += bn - bblk, then
+// Hblk, bblk = Hn, bn (the factor's block, kept for its next relinearisation). Nothing is
+// written when f(x0, p) is not finite. Returns f(x0, p).
+OutF64 py_linearise_into(const InF64& x0, const InF64& p, const InF64& theta, const InI64& cols,
+                         const InF64& W, std::int64_t o, InOutF64 H, InOutF64 b, InOutF64 Hblk,
+                         InOutF64 bblk, const InF64& h, const InU8& warm, const InF64& R,
+                         const InF64& dem, const InF64& tm, const InF64& dirs,
+                         const InF64& side, nb::handle planar_obj) {
+  const char* fn = "linearise_into";
+  const bool planar = as_bool(fn, "planar", planar_obj);
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  check_shape(fn, "theta", theta, {ANY}, "(P,)");
+  const std::int64_t P = static_cast<std::int64_t>(theta.shape(0));
+  check_cols(fn, cols, P);
+  check_shape(fn, "W", W, {6, 6}, "(6, 6)");
+  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
+  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
+  check_shape(fn, "H", H, {N, N}, "(N, N)");
+  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  const std::int64_t n = P + 12;
+  check_shape(fn, "Hblk", Hblk, {n, n}, "(P+12, P+12) with P = len(theta)");
+  check_shape(fn, "bblk", bblk, {n}, "(P+12,) with P = len(theta)");
+  if (o < P || o + 12 > N)
+    throw nb::value_error(("linearise_into: argument 'o' must be in [P, N - 12] = [" +
+                           std::to_string(P) + ", " + std::to_string(N - 12) + "], got " +
+                           std::to_string(o))
+                              .c_str());
+  Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
+  double* x1;
+  OutF64 ax1 = new_array({6}, x1);
+  double Hn[kn::MAX_LIN * kn::MAX_LIN], bn[kn::MAX_LIN];
+  run_linearise(x0.data(), p.data(), theta.data(), cols.data(), static_cast<int>(P), W.data(),
+                in.steps, in.geom, x1, Hn, bn);
+  for (int i = 0; i < 6; ++i)
+    if (!std::isfinite(x1[i])) return ax1;
+  std::int64_t r[kn::MAX_LIN];
+  for (std::int64_t j = 0; j < P; ++j) r[j] = j;
+  for (std::int64_t j = 0; j < 12; ++j) r[P + j] = o + j;
+  double *Hd = H.data(), *bd = b.data(), *Hb = Hblk.data(), *bb = bblk.data();
+  for (std::int64_t a = 0; a < n; ++a) {
+    double* Hrow = Hd + r[a] * N;
+    for (std::int64_t c = 0; c < n; ++c) {
+      const std::int64_t k = a * n + c;
+      Hrow[r[c]] += Hn[k] - Hb[k];
+      Hb[k] = Hn[k];
+    }
+    bd[r[a]] += bn[a] - bb[a];
+    bb[a] = bn[a];
+  }
+  return ax1;
+}
+
 OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
                   const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
                   const InF64& side, nb::handle planar_obj) {
@@ -263,6 +363,21 @@ NB_MODULE(_kernel, m) {
         nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
         "propagate for K segments (segment k: steps offsets[k]:offsets[k+1]); returns "
         "(X1 (K, 6), JX (K, 6, 6), JP (K, 6, N_DYN)).");
+  m.def("linearise", &py_linearise, nb::arg("x0"), nb::arg("p"), nb::arg("theta"),
+        nb::arg("cols"), nb::arg("W"), nb::arg("h"), nb::arg("warm"), nb::arg("R"),
+        nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
+        "One dynamics factor's whitened Gauss-Newton block over z = [theta, x0, x1] "
+        "(theta_j = p[cols[j]]): returns (x1 (6,) = f(x0, p), H (P+12, P+12) = J^T J, "
+        "b (P+12,) = J^T c) with J = W [Jp[:, cols], Jx, -I] and c = W (x1 - [Jp[:, cols], "
+        "Jx] [theta; x0]); as aqfg.fg.fastlag.LagWindow.dyn_linear.");
+  m.def("linearise_into", &py_linearise_into, nb::arg("x0"), nb::arg("p"), nb::arg("theta"),
+        nb::arg("cols"), nb::arg("W"), nb::arg("o"), nb::arg("H").noconvert(),
+        nb::arg("b").noconvert(), nb::arg("Hblk").noconvert(), nb::arg("bblk").noconvert(),
+        nb::arg("h"), nb::arg("warm"), nb::arg("R"), nb::arg("dem"), nb::arg("tm"),
+        nb::arg("dirs"), nb::arg("side"), nb::arg("planar"),
+        "linearise, with the block swapped into the quadratic (H, b) in place: rows/columns "
+        "[0, P) and [o, o+12) get (Hn - Hblk, bn - bblk), then Hblk, bblk = Hn, bn; nothing "
+        "written when the prediction is not finite. Returns the prediction f(x0, p) (6,).");
   m.def("rollout", &py_rollout, nb::arg("x0"), nb::arg("p"), nb::arg("h"), nb::arg("warm"),
         nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"),
         nb::arg("planar"),

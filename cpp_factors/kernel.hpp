@@ -413,6 +413,59 @@ AQFG_HOT_INLINE void rollout(const double* x0, const double* p, const Steps& s, 
   }
 }
 
+// One dynamics factor's whitened Gauss-Newton block, as aqfg.fg.fastlag.LagWindow.dyn_linear
+// computes it in numpy (the reference it is tested against). Over z = [theta (P), x0 (6),
+// x1 (6)] with theta_j = p[cols[j]] (0 <= cols[j] < N_DYN, P <= N_DYN):
+//   M = [Jp[:, cols], Jx, -I],  J = W M,  c = W (f(x0, p) - M[:, :P+6] [theta; x0]),
+//   H = J^T J ((P + 12) x (P + 12), row-major),  b = J^T c (P + 12),  x1 = f(x0, p).
+// W: the factor's whitening (6 x 6 row-major, W^T W = Q^-1). The residual is the negated
+// f(x0, p) - x1 (the normal equations are the same).
+inline constexpr int MAX_LIN = N_DYN + 12;
+
+AQFG_HOT_INLINE void linearise(const double* x0, const double* p, const double* theta,
+                               const std::int64_t* cols, int P, const double* W, const Steps& s,
+                               const Geometry& g, double* x1, double* H, double* b) {
+  double Jx[36], Jp[6 * N_DYN];
+  propagate(x0, p, s, g, x1, Jx, Jp);
+  const int n = P + 12;
+  double M[6][MAX_LIN], J[6][MAX_LIN], r[6], c[6];
+  for (int i = 0; i < 6; ++i) {
+    double lin = 0.0;
+    for (int j = 0; j < P; ++j) {
+      M[i][j] = Jp[N_DYN * i + cols[j]];
+      lin += M[i][j] * theta[j];
+    }
+    for (int j = 0; j < 6; ++j) {
+      M[i][P + j] = Jx[6 * i + j];
+      lin += M[i][P + j] * x0[j];
+      M[i][P + 6 + j] = (i == j) ? -1.0 : 0.0;
+    }
+    r[i] = x1[i] - lin;
+  }
+  for (int i = 0; i < 6; ++i) {
+    double ci = 0.0;
+    for (int j = 0; j < n; ++j) J[i][j] = 0.0;
+    for (int k = 0; k < 6; ++k) {
+      const double w = W[6 * i + k];
+      if (w == 0.0) continue;
+      ci += w * r[k];
+      for (int j = 0; j < n; ++j) J[i][j] += w * M[k][j];
+    }
+    c[i] = ci;
+  }
+  for (int a = 0; a < n; ++a) {
+    double ba = 0.0;
+    for (int i = 0; i < 6; ++i) ba += J[i][a] * c[i];
+    b[a] = ba;
+    for (int e = a; e < n; ++e) {
+      double h = 0.0;
+      for (int i = 0; i < 6; ++i) h += J[i][a] * J[i][e];
+      H[n * a + e] = h;
+      H[n * e + a] = h;
+    }
+  }
+}
+
 // reference.propagate_many: K segments; segment k uses steps offsets[k]:offsets[k+1]
 // (offsets must be non-decreasing within [0, s.n]). Outputs X1 (K x 6), JX (K x 36),
 // JP (K x 6 N_DYN), row-major.

@@ -93,6 +93,69 @@ def test_dynamics_and_fix_linearisations_match_finite_differences(usbl):
     assert n_checked >= 10
 
 
+def test_cpp_block_matches_the_numpy_linearisation_and_swaps_in_place():
+    """kernel ``linearise`` / ``linearise_into`` (one C++ call per dynamics factor) against
+    the numpy reference (``dyn_linear`` and the products ``_set_dyn`` takes), and whole runs
+    with and without it."""
+    from aqfg.model.params import N_DYN
+    from aqfg.model.vehicle import compiled_kernel
+    cpp = compiled_kernel()
+    fl, eng = _engine(False)
+    g = eng.model.geometry
+    geo = (np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
+           bool(g.planar))
+    P = eng.P
+    cols = np.ascontiguousarray(eng.jcols, np.int64)
+    p = np.ascontiguousarray(eng.full_params()[:N_DYN])
+    rng = np.random.default_rng(1)
+    for i in range(len(eng.dyn)):
+        steps, W = eng.dyn[i][0], eng.dyn[i][1]
+        st = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+              np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+              np.ascontiguousarray(steps.tm, float))
+        x0, th = eng.X[i].copy(), eng.th.copy()
+        pred, Jx, Jp = eng.model.propagate(x0, eng.full_params(), steps)
+        J, c = eng.dyn_linear(i, x0, th, pred, Jx, Jp, W)
+        x1, Hc, bc = cpp.linearise(x0, p, th, cols, W, *st, *geo)
+        assert np.allclose(x1, pred, rtol=1e-13, atol=1e-12)
+        assert np.allclose(Hc, J.T @ J, rtol=1e-11, atol=1e-11 * np.abs(Hc).max())
+        assert np.allclose(bc, J.T @ c, rtol=1e-11, atol=1e-11 * np.abs(bc).max())
+        # in place: rows/columns [0, P) and [o, o + 12) get the new block minus the old one
+        N = len(eng.z)
+        H0, b0 = rng.standard_normal((N, N)), rng.standard_normal(N)
+        Hold, bold = rng.standard_normal((P + 12, P + 12)), rng.standard_normal(P + 12)
+        H, b, Hb, bb = H0.copy(), b0.copy(), Hold.copy(), bold.copy()
+        o = P + 6 * i
+        out = cpp.linearise_into(x0, p, th, cols, W, o, H, b, Hb, bb, *st, *geo)
+        r = np.concatenate([np.arange(P), np.arange(o, o + 12)])
+        want = H0.copy()
+        want[np.ix_(r, r)] += Hc - Hold
+        wb = b0.copy()
+        wb[r] += bc - bold
+        assert np.allclose(out, x1) and np.allclose(H, want, rtol=0, atol=1e-12)
+        assert np.allclose(b, wb, rtol=0, atol=1e-12)
+        assert np.array_equal(Hb, Hc) and np.array_equal(bb, bc)
+        # a prediction that is not finite writes nothing
+        bad = p.copy()
+        bad[eng.jcols[0]] = np.nan
+        out = cpp.linearise_into(x0, bad, th, cols, W, o, H, b, Hb, bb, *st, *geo)
+        assert not np.all(np.isfinite(out))
+        assert np.allclose(H, want, rtol=0, atol=1e-12) and np.array_equal(Hb, Hc)
+    # a bad argument is named
+    with pytest.raises(ValueError, match="cols"):
+        cpp.linearise(x0, p, th, cols + N_DYN, W, *st, *geo)
+    with pytest.raises(ValueError, match="'o'"):
+        cpp.linearise_into(x0, p, th, cols, W, len(eng.z), H, b, Hb, bb, *st, *geo)
+    assert hasattr(eng.dyn[-1][4], "into")          # the engine uses the C++ block
+    # whole runs: the same estimates and sigmas to rounding
+    m, _, init = _mission(2, False)
+    a, b2 = (FixedLagSmoother(init=init, window=24.0,
+                              settings=FGSettings(fast_cpp_block=f)).run(m) for f in (True, False))
+    assert np.allclose(a.history.values, b2.history.values, rtol=1e-8, atol=1e-10)
+    assert np.allclose(a.history.sigma, b2.history.sigma, rtol=1e-8, atol=1e-12)
+    assert np.allclose(a.missions[0].filtered.pos, b2.missions[0].filtered.pos, rtol=0, atol=1e-7)
+
+
 def test_system_gradient_is_the_cost_derivative_and_marginalisation_is_exact():
     fl, eng = _engine(False, n_fix=9)
     rng = np.random.default_rng(0)

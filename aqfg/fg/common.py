@@ -74,6 +74,9 @@ class FGSettings:
         each parameter's ParamSpec.scale (0.05: 0.025 rad of heading offset; a dynamics
         factor's error from a held linearisation is second order in the parameters' move:
         0.025 rad on an 8-s interval is ~1.5 % of its noise sigma; docs/speed.md).
+    fast_cpp_block: the numpy engine linearises a dynamics factor into its Gauss-Newton
+        block in one C++ call (kernel ``linearise``); False: numpy products of the kernel's
+        Jacobians (the reference the C++ is tested against; same result to rounding).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised
@@ -106,6 +109,7 @@ class FGSettings:
     iterations_per_update: int = 1
     online_engine: str = "numpy"
     fast_relin_param: float = 0.05
+    fast_cpp_block: bool = True
     warmup_tol: float = 0.1
     warmup_max: float = 300.0
 

@@ -31,6 +31,7 @@ parameters, a thrust lag, depth readings of a non-planar vehicle).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg.lapack import dposv as _posv
@@ -40,11 +41,34 @@ from aqfg.model.measurements import range_bearing
 from aqfg.model.vehicle import compiled_kernel
 
 
-def _kernel_propagate():
-    """The compiled kernel's ``propagate`` (the caller checked that it is built)."""
-    cpp = compiled_kernel()
-    assert cpp is not None
-    return cpp.propagate
+def _kernel_factory(geometry, cols):
+    """A function ``steps -> f`` building :meth:`LagWindow._propagator`'s kernel calls with
+    the geometry's arrays converted once (a plain function: the window stays
+    deep-copyable; the compiled functions are looked up per call of the factory)."""
+    from aqfg.model.params import N_DYN
+    dirs = np.ascontiguousarray(geometry.dirs, float)
+    side = np.ascontiguousarray(geometry.side, float)
+    planar = bool(geometry.planar)
+    nd = N_DYN
+
+    def make(steps):
+        cpp = compiled_kernel()
+        assert cpp is not None
+        kernel = cpp.propagate
+        args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
+                np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
+                np.ascontiguousarray(steps.tm, float), dirs, side, planar)
+
+        def f(x0, p):
+            return kernel(x0, p[:nd], *args)
+        if cols is not None:
+            into = cpp.linearise_into
+
+            def block_into(x0, p, th, W, o, H, b, Hb, bb):
+                return into(x0, p[:nd], th, cols, W, o, H, b, Hb, bb, *args)
+            f.into = block_into  # type: ignore[attr-defined]
+        return f
+    return make
 
 
 class LagWindow:
@@ -111,7 +135,12 @@ class LagWindow:
         self._rhs_cols = (self.pidx, self.pidx + 1)
         self._keep: dict = {}          # N -> the variables left when the oldest knot goes
         self._rhs: dict = {}           # N -> [0, I_P; 0, 0]: the step's right-hand sides
-        self._kern: tuple | None = None
+        self._kern: Callable | None = None     # steps -> kernel calls (_kernel_factory)
+        # kernel columns of theta for the C++ block (kernel.hpp ``linearise``); None: numpy
+        cpp = compiled_kernel()
+        self._lcols = (np.ascontiguousarray(self.jcols, np.int64)
+                       if self.jcols is not None and P and cpp is not None
+                       and hasattr(cpp, "linearise_into") and self.s.fast_cpp_block else None)
         self.last_ok = True
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
@@ -132,13 +161,14 @@ class LagWindow:
         # dynamics factors, one per interval: [steps, W, H_i, b_i, kernel]; their
         # linearisation points
         self.dyn: list[list] = []
-        self.X0L = np.zeros((0, 6))
-        self.THL = np.zeros((0, P))
+        # (Python lists of float lists: a few knots, read and written at every update)
+        self.X0L: list[list[float]] = []
+        self.THL: list[list[float]] = []
         self.last_pred = np.asarray(x0, float)
         # fixes per window knot: [gnss z, sigma, usbl z, sigma, H_k, b_k] or None, and the
         # position each knot's fixes are linearised at (NaN: no fix)
         self.fx: list[list | None] = []
-        self.FXL = np.zeros((0, 3))
+        self.FXL: list[list[float]] = []
         self.cov = np.full((P, P), np.nan)
         self._take_fixes(float(t0) - 1e-6, float(t0))
 
@@ -181,10 +211,10 @@ class LagWindow:
         c, d = int(ut.searchsorted(lo)), int(ut.searchsorted(hi))
         if b <= a and d <= c:
             self.fx.append(None)
-            self.FXL = np.concatenate([self.FXL, _NAN13])
+            self.FXL.append([math.nan] * 3)
             return
         self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
-        self.FXL = np.concatenate([self.FXL, _ZERO13])
+        self.FXL.append([0.0] * 3)
         self._set_fix(self.n - 1)
 
     def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -264,7 +294,7 @@ class LagWindow:
             self.H[o:o + 3, o:o + 3] += Hk
             self.b[o:o + 3] += bk
         f[4], f[5] = Hk, bk
-        self.FXL[i] = x
+        self.FXL[i] = x.tolist()
 
     def _set_gnss1(self, i: int, f: list, o: int) -> None:
         """:meth:`_set_fix` of a knot with one GNSS fix, relinearised, in Python floats: the
@@ -297,7 +327,7 @@ class LagWindow:
         Hk = np.zeros((3, 3))
         Hk[0, 0] = Hk[1, 1] = h
         f[4], f[5] = Hk, np.array([b0, b1, b2])
-        self.FXL[i] = (x0, x1, x2)
+        self.FXL[i] = [x0, x1, x2]
 
     # ------------------------------------------------------------------ reading
     @property
@@ -347,28 +377,24 @@ class LagWindow:
             self.H[o + 5, o + 5] += self.surf_w[1]
 
     def _propagator(self, steps):
-        """:func:`fc.propagator` with the vehicle's geometry converted once."""
+        """The dynamics factor's kernel over ``steps``: ``f(x0, p) -> (x1, Jx, Jp)``
+        (:func:`fc.propagator`), with the vehicle's geometry converted once; with the C++
+        block (``FGSettings.fast_cpp_block``) also ``f.into``, the factor linearised and
+        swapped into the held quadratic in one call (kernel ``linearise_into``)."""
         if self._kern is None:
-            from aqfg.model.params import N_DYN
             if compiled_kernel() is None or not self.model.uses_cpp:
                 return fc.propagator(self.model, steps)
-            g = self.model.geometry
-            self._kern = (N_DYN, np.ascontiguousarray(g.dirs, float),
-                          np.ascontiguousarray(g.side, float), bool(g.planar))
-        nd, dirs, side, planar = self._kern
-        kernel = _kernel_propagate()      # not held: the window stays deep-copyable
-        args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
-                np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
-                np.ascontiguousarray(steps.tm, float), dirs, side, planar)
-        return lambda x0, p: kernel(x0, p[:nd], *args)
+            self._kern = _kernel_factory(self.model.geometry, self._lcols)
+        return self._kern(steps)
 
     def _whitening(self, dt: float, q: float) -> np.ndarray:
-        key = (round(dt, 9), q)
+        """``W`` with ``W^T W = (q Q(dt))^-1``: ``L^-1 / sqrt(q)`` for ``Q(dt) = L L^T``."""
+        key = round(dt, 9)
         W = self._wcache.get(key)
         if W is None:
-            L = np.linalg.cholesky(q * self.s.process.cov(dt, self.planar))
-            W = self._wcache[key] = np.linalg.inv(L)
-        return W
+            W = self._wcache[key] = np.linalg.inv(np.linalg.cholesky(
+                self.s.process.cov(dt, self.planar)))
+        return W if q == 1.0 else W * (1.0 / math.sqrt(q))
 
     def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
         """Whitened linear model ``J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
@@ -384,11 +410,36 @@ class LagWindow:
         return W @ M, c
 
     def _set_dyn(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp) -> None:
-        d = self.dyn[i]
-        J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, d[1])
+        J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, self.dyn[i][1])
         Jt = J.T
-        Hi, bi = Jt @ J, Jt @ c
-        dH, db = (Hi, bi) if d[2] is None else (Hi - d[2], bi - d[3])
+        self._set_block(i, x0, th, Jt @ J, Jt @ c)
+
+    def _linearise(self, i: int, x0: np.ndarray, th: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Linearise dynamics factor ``i`` at ``(x0, th)`` (full parameters ``p``) into the
+        held quadratic, unless the model's prediction is not finite; returns the
+        prediction."""
+        d = self.dyn[i]
+        into = getattr(d[4], "into", None)
+        if into is not None:                 # one C++ call (kernel ``linearise_into``)
+            H = self.H
+            if not H.flags.c_contiguous:
+                H = self.H = np.ascontiguousarray(H)
+            pred = into(x0, p, th, d[1], self.P + 6 * i, H, self.b, d[2], d[3])
+            if all(map(math.isfinite, pred.tolist())):
+                self.X0L[i] = x0.tolist()
+                self.THL[i] = th.tolist()
+            return pred
+        pred, Jx, Jp = d[4](x0, p)
+        if all(map(math.isfinite, pred.tolist())):
+            self._set_dyn(i, x0, th, pred, Jx, Jp)
+        return pred
+
+    def _set_block(self, i: int, x0: np.ndarray, th: np.ndarray, Hi: np.ndarray,
+                   bi: np.ndarray) -> None:
+        """Swap dynamics factor ``i``'s block ``(Hi, bi)`` (over ``[theta, x_i, x_i+1]``)
+        into the held quadratic."""
+        d = self.dyn[i]
+        dH, db = Hi - d[2], bi - d[3]
         H = self.H
         if not H.flags.c_contiguous:
             H = self.H = np.ascontiguousarray(H)
@@ -403,8 +454,8 @@ class LagWindow:
         Hf[ix[0]] += dH.ravel()
         self.b[ix[1]] += db
         d[2], d[3] = Hi, bi
-        self.X0L[i] = x0
-        self.THL[i] = th
+        self.X0L[i] = x0.tolist()
+        self.THL[i] = th.tolist()
 
     def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
         """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
@@ -415,28 +466,25 @@ class LagWindow:
         x0 = self.z[-6:].copy()
         th = self.z[:P].copy()
         prop = self._propagator(steps)                # the kernel's arguments prepared once
-        pred, Jx, Jp = prop(x0, self.params_view())
-        self.last_pred = pred
         N = P + 6 * n
         H = np.zeros((N + 6, N + 6))
         H[:N, :N] = self.H
         self.H = H
-        ok = self.last_ok = all(map(math.isfinite, pred.tolist()))
-        x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
         self.b = np.concatenate([self.b, _ZERO6])
-        self.z = np.concatenate([self.z, x1])
         self.n = n + 1
         self.kt.append(float(t))
         self.kid.append(int(kid))
         self._surface(n)
-        self.dyn.append([steps, self._whitening(t - t_last, q_scale), None, None, prop])
-        self.X0L = np.concatenate([self.X0L, x0[None]])
-        self.THL = np.concatenate([self.THL, th[None]])
-        if ok:
-            self._set_dyn(n - 1, x0, th, pred, Jx, Jp)
-        else:                   # a diverged model: relinearised at the next step
-            self.dyn[-1][2:4] = [np.zeros((P + 12, P + 12)), np.zeros(P + 12)]
-            self.X0L[-1] = np.inf
+        self.dyn.append([steps, self._whitening(t - t_last, q_scale),
+                         np.zeros((P + 12, P + 12)), np.zeros(P + 12), prop])
+        self.X0L.append(x0.tolist())
+        self.THL.append(th.tolist())
+        pred = self.last_pred = self._linearise(n - 1, x0, th, self.params_view())
+        ok = self.last_ok = all(map(math.isfinite, pred.tolist()))
+        x1 = pred if ok else np.where(np.isfinite(x0), x0, 0.0) * np.array([1, 1, 1, 0, 0, 0.0])
+        self.z = np.concatenate([self.z, x1])
+        if not ok:              # a diverged model: relinearised at the next step
+            self.X0L[-1] = [math.inf] * 6
         self._take_fixes(t_last, float(t))
         return np.array(x1)
 
@@ -460,7 +508,7 @@ class LagWindow:
         k = np.arange(len(z))
         self.H[k, k] += w
         self.b -= w * z
-        self.X0L = self.X0L + np.inf               # forces the relinearisation
+        self.X0L = [[math.inf] * 6 for _ in self.X0L]     # forces the relinearisation
 
     # ------------------------------------------------------------------ the system
     def _relinearise(self) -> None:
@@ -473,14 +521,14 @@ class LagWindow:
         X = self.z[P:].reshape(-1, 6)
         Xl = X.tolist()
         rp = self.s.relin_pos
-        for i, (x, f) in enumerate(zip(Xl, self.FXL.tolist())):
+        for i, (x, f) in enumerate(zip(Xl, self.FXL)):
             # NaN (no fix): False
             if abs(x[0] - f[0]) > rp or abs(x[1] - f[1]) > rp or abs(x[2] - f[2]) > rp:
                 self._set_fix(i)
         if not self.dyn:
             return
         rl, rt, thl = self._relin_l, self._relin_th_l, th.tolist()
-        move = [i for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L.tolist(), self.THL.tolist()))
+        move = [i for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L, self.THL))
                 if any(abs(a - b) > r for a, b, r in zip(x, x0, rl))
                 or any(abs(a - b) > r for a, b, r in zip(thl, t0, rt))]
         if not move:
@@ -488,10 +536,7 @@ class LagWindow:
         p = self.params_view()
         th = th.copy()
         for i in move:
-            x0 = X[i].copy()
-            pred, Jx, Jp = self.dyn[i][4](x0, p)
-            if np.isfinite(pred).all():
-                self._set_dyn(int(i), x0, th, pred, Jx, Jp)
+            self._linearise(i, X[i].copy(), th, p)
 
     def system(self, z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton normal equations ``(H, g)`` of the window at ``z`` (default: the
@@ -557,9 +602,9 @@ class LagWindow:
             self.kt.pop(0)
             self.kid.pop(0)
             self.dyn.pop(0)
-            self.X0L, self.THL = self.X0L[1:], self.THL[1:]
+            del self.X0L[0], self.THL[0]
             self.fx.pop(0)
-            self.FXL = self.FXL[1:]
+            del self.FXL[0]
 
     # ------------------------------------------------------------------ tests
     def cost(self, z: np.ndarray) -> float:
@@ -573,9 +618,7 @@ class LagWindow:
 
 
 _MINUS_I6 = -np.eye(6)
-_NAN13 = np.full((1, 3), np.nan)
 _ZERO6 = np.zeros(6)
-_ZERO13 = np.zeros((1, 3))
 
 
 def _huber(r: np.ndarray, k: float | None) -> np.ndarray:
