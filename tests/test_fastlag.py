@@ -147,6 +147,18 @@ def test_cpp_block_matches_the_numpy_linearisation_and_swaps_in_place():
     with pytest.raises(ValueError, match="'o'"):
         cpp.linearise_into(x0, p, th, cols, W, len(eng.z), H, b, Hb, bb, *st, *geo)
     assert hasattr(eng.dyn[-1][4], "into")          # the engine uses the C++ block
+    # other parameter sets and orders, against numpy products of the kernel's Jacobians
+    from aqfg.model.params import INDEX
+    for names in (("k", "theta_e", "s_y", "k_x", "s_x"), ("s_y", "theta_e", "s_x")):
+        cs = np.array([INDEX[n] for n in names], np.int64)
+        t = p[cs].copy()
+        x1, Hc, bc = cpp.linearise(x0, p, t, cs, W, *st, *geo)
+        _, Jx, Jp = eng.model.propagate(x0, eng.full_params(), steps)
+        M = np.hstack([Jp[:, cs], Jx, -np.eye(6)])
+        J = W @ M
+        c = W @ (x1 - M[:, :len(cs) + 6] @ np.concatenate([t, x0]))
+        assert np.allclose(Hc, J.T @ J, rtol=1e-11, atol=1e-11 * np.abs(Hc).max()), names
+        assert np.allclose(bc, J.T @ c, rtol=1e-11, atol=1e-11 * np.abs(bc).max()), names
     # whole runs: the same estimates and sigmas to rounding
     m, _, init = _mission(2, False)
     a, b2 = (FixedLagSmoother(init=init, window=24.0,

@@ -202,7 +202,8 @@ class FixedLagSmoother:
             self._raw_sigma: dict[str, float] = {}   # the latest marginal sigma per name
             self._forced_at = -np.inf              # time of the last forced re-initialisation
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
-        self._innov: list[tuple[float, float, float]] = []   # fix innovations (e2, R, Q_pos)
+        # fix innovations (e2, R, Q_pos, noise.lr_gain of them)
+        self._innov: list[tuple[float, float, float, float]] = []
         self._fixes = robust_fix_table(mission, s)
         self.warming = s.warmup_tol > 0
         self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
@@ -804,8 +805,14 @@ class FixedLagSmoother:
         v = float(var[i])
         if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
-        self._innov.append((e2, v, q))
-        ea, va, qa = map(list, zip(*self._innov[-s.adapt_window:]))
+        self._innov.append((e2, v, q, noise.lr_gain(e2, v, q)))
+        if len(self._innov) > 4 * s.adapt_window:         # a long stream keeps what it uses
+            del self._innov[:-s.adapt_window]
+        last = self._innov[-s.adapt_window:]
+        if sum(g[3] for g in last) <= 0.5 * noise.LR_CHI2_1:    # nominal_suffices, summed
+            self.q_scale = max(1.0, self._q_floor)
+            return
+        ea, va, qa = (np.array(a) for a in list(zip(*last))[:3])
         self.q_scale = max(noise.variance_factor(ea, va, qa, s), self._q_floor)
 
     def _guarded_update(self, graph, vals, stamps, t_fix: float) -> None:

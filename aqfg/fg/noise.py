@@ -83,10 +83,15 @@ def nominal_suffices(e2: list[float], var: list[float], q_pos: list[float]) -> b
     for a, r, q in zip(e2, var, q_pos):
         if not (math.isfinite(a) and math.isfinite(r) and q > 0):
             return False
-        u = a / (q + 2.0 * r)
-        if u > 2.0:
-            gain += 0.5 * u - 1.0 - math.log(0.5 * u)
+        gain += lr_gain(a, r, q)
     return gain <= 0.5 * LR_CHI2_1
+
+
+def lr_gain(e2: float, var: float, q_pos: float) -> float:
+    """One fix's term of :func:`nominal_suffices`' bound (finite inputs, ``q_pos > 0``): the
+    most its likelihood term can fall by raising its variance."""
+    u = e2 / (q_pos + 2.0 * var)
+    return 0.5 * u - 1.0 - math.log(0.5 * u) if u > 2.0 else 0.0
 
 
 def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
