@@ -217,6 +217,9 @@ class FixedLagSmoother:
         if mission.planar:
             x0[2] = 0.0
         hold = replaying or self._reinit_scheduled()
+        # held parameters are reported with their prior's sigma (the batch's, replaying):
+        # the hold priors' tiny marginal would claim a certainty no data gave
+        self._held_sigma = self._prior_sigmas(replaying)[0] if hold else None
         reason = ("online_engine = 'gtsam'" if s.online_engine == "gtsam" else
                   LagWindow.unsupported(self.model, self.layout, mission, s))
         self.engine = "gtsam" if reason else "numpy"
@@ -539,13 +542,17 @@ class FixedLagSmoother:
     def _reinit_due(self, t_fix: float) -> bool:
         s = self.settings
         el = t_fix - self.knots[0]
-        return (self._reinit_scheduled() and el >= self._next_reinit
+        # the first batch: after online_init_after s, or online_init_fixes fixes if sooner
+        first = (self._next_reinit == s.online_init_after and self.n_fix >= s.online_init_fixes
+                 and not getattr(self, "_replaying", False))
+        return (self._reinit_scheduled() and (el >= self._next_reinit or first)
                 and (el <= s.online_reinit_until or bool(self._hold_idx))
                 and self.n_fix >= 6)
 
     def _release(self, t_fix: float) -> None:
         """Remove the hold priors: the parameters follow the data from here."""
         idx, self._hold_idx = self._hold_idx, []
+        self._held_sigma = None
         if not idx:
             return
         if self._fast is not None:
@@ -707,9 +714,11 @@ class FixedLagSmoother:
             # reported sigma: see below
             sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
                 if self._inflation else sg_all
+            if self._held_sigma is not None:
+                sh_all = self._held_sigma
             sg_l = sg_all.tolist()
             values = dict(zip(names, th.tolist()))
-            sigma = dict(zip(names, sh_all.tolist() if self._inflation else sg_l))
+            sigma = dict(zip(names, sh_all.tolist() if sh_all is not sg_all else sg_l))
             nv, ns, nh = [th], [sg_all], [sh_all]
             self._raw_sigma.update(zip(names, sg_l))
         else:
@@ -728,6 +737,8 @@ class FixedLagSmoother:
             # honest sigma of the same data (the marginal assumes the model is right and
             # the window's noise; docs/independent-vehicle.md)
             sh = sg * np.array([self._inflation.get(n, 1.0) for n in lay.names[g]])
+            if self._held_sigma is not None:
+                sh = self._held_sigma[[lay.estimated.index(n) for n in lay.names[g]]]
             for n, a, b in zip(lay.names[g], v, sh):
                 values[n], sigma[n] = float(a), float(b)
             nv.append(v); ns.append(sg); nh.append(sh)
