@@ -58,7 +58,7 @@ def test_iteration_limit_is_flagged(asv):
 def test_sandwich_raises_a_variance_only_where_the_ratio_is_significant():
     """The sandwich is an estimate with dof degrees of freedom: a ratio a correct model
     reaches by chance keeps the Hessian variance, a significant one replaces it."""
-    from aqfg.fg.covariance import honest_covariance, significant_ratio
+    from aqfg.fg.covariance import honest_covariance, significant_ratio, t_tail_factor
     C = {1: np.diag([1.0, 4.0])}
     dof = 20
     thr = significant_ratio(dof)
@@ -66,5 +66,26 @@ def test_sandwich_raises_a_variance_only_where_the_ratio_is_significant():
     S = {1: np.diag([0.9 * thr, 4.0 * 3.0 * thr])}       # first not significant, second is
     out = honest_covariance(C, S, dof)[1]
     assert out[0, 0] == pytest.approx(1.0)
-    assert out[1, 1] == pytest.approx(4.0 * 3.0 * thr)
+    # the raised one is the sandwich's, widened for the dof it was estimated from
+    c = t_tail_factor(dof)
+    assert 1.05 < c < 1.2
+    assert out[1, 1] == pytest.approx(4.0 * 3.0 * thr * c ** 2)
     assert honest_covariance(C, S)[1][0, 0] == pytest.approx(0.9 * thr)   # no dof: max
+
+
+def test_t_tail_factor_keeps_the_three_sigma_coverage():
+    """A variance from dof blocks: (error / sigma) is Student-t, whose 3-sigma band covers
+    less than a normal's; the factor restores the coverage (checked by sampling)."""
+    from scipy.stats import norm
+    from aqfg.fg.covariance import t_tail_factor
+    assert t_tail_factor(None) == 1.0 and t_tail_factor(10_000) == pytest.approx(1.0, abs=1e-3)
+    assert t_tail_factor(8) == pytest.approx(1.43, abs=0.01)
+    rng = np.random.default_rng(0)
+    dof, n = 8, 400_000
+    err = rng.standard_normal(n)                              # true sigma 1
+    sig = np.sqrt(rng.chisquare(dof, n) / dof)                 # its estimate
+    plain = np.mean(np.abs(err) > 3 * sig)
+    wide = np.mean(np.abs(err) > 3 * sig * t_tail_factor(dof))
+    target = 2 * norm.sf(3.0)                                  # 0.27 %
+    assert plain > 4 * target                                  # 1.7 % without the factor
+    assert wide == pytest.approx(target, rel=0.15)

@@ -24,7 +24,8 @@ import gtsam
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
+from scipy.stats import t as student_t
 
 SANDWICH_ALPHA = 0.05
 
@@ -120,11 +121,14 @@ def honest_covariance(cov_model: dict[int, np.ndarray], cov_sw: dict[int, np.nda
                       dof: int | None = None) -> dict[int, np.ndarray]:
     """Model covariance with each variance raised to the sandwich's where that is larger
     and, given the sandwich's ``dof``, significantly so (``D C D``,
-    ``D = diag(max(1, sigma_sw / sigma_model))``: correlations kept, never smaller than the
-    model's)."""
+    ``D = diag(max(1, c sigma_sw / sigma_model))`` with ``c`` = :func:`t_tail_factor` of the
+    dof: correlations kept, never smaller than the model's)."""
     if not cov_sw:
         return dict(cov_model)
     thr = significant_ratio(dof) if dof is not None else 1.0
+    # a raised variance is the sandwich's, itself estimated from dof blocks: reported wider
+    # so that its 3-sigma band keeps a normal 3-sigma band's coverage (t_dof quantile)
+    tail = t_tail_factor(dof)
     out = {}
     for k, C in cov_model.items():
         S = cov_sw.get(k)
@@ -133,6 +137,17 @@ def honest_covariance(cov_model: dict[int, np.ndarray], cov_sw: dict[int, np.nda
             continue
         sm = np.sqrt(np.maximum(np.diag(C), 1e-300))
         ss = np.sqrt(np.maximum(np.diag(S), 0.0))
-        d = np.where((ss / sm) ** 2 > thr, np.maximum(1.0, ss / sm), 1.0)
+        d = np.where((ss / sm) ** 2 > thr, np.maximum(1.0, tail * ss / sm), 1.0)
         out[k] = C * np.outer(d, d)
     return out
+
+
+def t_tail_factor(dof: int | None, n_sigma: float = 3.0) -> float:
+    """How much wider a variance estimated with ``dof`` degrees of freedom must be reported
+    for its ``n_sigma`` band to cover what a known variance's covers: Student's t quantile
+    over the normal one at the same two-sided level (t_8: 4.4 / 3 = 1.47; 1 for large or
+    unknown dof)."""
+    if dof is None or dof <= 0:
+        return 1.0
+    p = float(norm.cdf(n_sigma))
+    return float(student_t.ppf(p, int(dof)) / n_sigma)
