@@ -127,7 +127,7 @@ class LagWindow:
         self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
-        self._relin_l, self._relin_th_l = self.relin.tolist(), self.relin_th.tolist()
+        self._relin_th_l = self.relin_th.tolist()
         self.set_mission(mission)
         self._wcache: dict = {}
         self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
@@ -355,7 +355,7 @@ class LagWindow:
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the parameters (marginal of the last step's linearisation)."""
-        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+        return np.sqrt(np.maximum(self.cov.diagonal(), 0.0))
 
     def group_values(self) -> dict[str, np.ndarray]:
         return {g: self.z[sl].copy() for g, sl in self.slices.items()}
@@ -527,10 +527,19 @@ class LagWindow:
                 self._set_fix(i)
         if not self.dyn:
             return
-        rl, rt, thl = self._relin_l, self._relin_th_l, th.tolist()
-        move = [i for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L, self.THL))
-                if any(abs(a - b) > r for a, b, r in zip(x, x0, rl))
-                or any(abs(a - b) > r for a, b, r in zip(thl, t0, rt))]
+        # a dynamics factor is exactly invariant to a move of its first knot's position
+        # (the model never reads it: x1 and the block shift with it), so only the velocity
+        # and the parameters are compared
+        rv, rt, thl = self.s.relin_vel, self._relin_th_l, th.tolist()
+        move = []
+        for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L, self.THL)):
+            if abs(x[3] - x0[3]) > rv or abs(x[4] - x0[4]) > rv or abs(x[5] - x0[5]) > rv:
+                move.append(i)
+                continue
+            for a, b, r in zip(thl, t0, rt):
+                if abs(a - b) > r:
+                    move.append(i)
+                    break
         if not move:
             return
         p = self.params_view()
