@@ -186,6 +186,20 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
 }
 
 // theta's kernel columns: P <= N_DYN indices into the N_DYN parameters.
+void check_cols(const char* fn, const InI64& cols, std::int64_t P);
+
+// The arguments linearise and linearise_into share: x0 (6,), theta (P,), cols (P,), W (6, 6).
+// Returns P.
+std::int64_t check_block_args(const char* fn, const InF64& x0, const InF64& theta,
+                              const InI64& cols, const InF64& W) {
+  check_shape(fn, "x0", x0, {6}, "(6,)");
+  check_shape(fn, "theta", theta, {ANY}, "(P,)");
+  const std::int64_t P = static_cast<std::int64_t>(theta.shape(0));
+  check_cols(fn, cols, P);
+  check_shape(fn, "W", W, {6, 6}, "(6, 6)");
+  return P;
+}
+
 void check_cols(const char* fn, const InI64& cols, std::int64_t P) {
   if (P > kn::N_DYN)
     throw nb::value_error((std::string(fn) + ": argument 'theta' must have at most N_DYN = " +
@@ -209,11 +223,7 @@ std::tuple<OutF64, OutF64, OutF64> py_linearise(const InF64& x0, const InF64& p,
                                                  nb::handle planar_obj) {
   const char* fn = "linearise";
   const bool planar = as_bool(fn, "planar", planar_obj);
-  check_shape(fn, "x0", x0, {6}, "(6,)");
-  check_shape(fn, "theta", theta, {ANY}, "(P,)");
-  const std::int64_t P = static_cast<std::int64_t>(theta.shape(0));
-  check_cols(fn, cols, P);
-  check_shape(fn, "W", W, {6, 6}, "(6, 6)");
+  const std::int64_t P = check_block_args(fn, x0, theta, cols, W);
   Inputs in = check_inputs(fn, p, h, warm, R, dem, tm, dirs, side, planar);
   const std::size_t n = static_cast<std::size_t>(P + 12);
   double *x1, *H, *b;
@@ -234,11 +244,7 @@ OutF64 py_linearise_into(const InF64& x0, const InF64& p, const InF64& theta, co
                          const InF64& side, nb::handle planar_obj) {
   const char* fn = "linearise_into";
   const bool planar = as_bool(fn, "planar", planar_obj);
-  check_shape(fn, "x0", x0, {6}, "(6,)");
-  check_shape(fn, "theta", theta, {ANY}, "(P,)");
-  const std::int64_t P = static_cast<std::int64_t>(theta.shape(0));
-  check_cols(fn, cols, P);
-  check_shape(fn, "W", W, {6, 6}, "(6, 6)");
+  const std::int64_t P = check_block_args(fn, x0, theta, cols, W);
   check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
   const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
   check_shape(fn, "H", H, {N, N}, "(N, N)");
