@@ -15,6 +15,7 @@
 
 #include "ekf.hpp"
 #include "kernel.hpp"
+#include "window.hpp"
 
 namespace nb = nanobind;
 namespace kn = aqfg::kernel;
@@ -282,6 +283,53 @@ OutF64 py_linearise_into(const InF64& x0, const InF64& p, const InF64& theta, co
   return ax1;
 }
 
+// window.hpp gn_step: (ok, s (N,), C (P, P)); hold of length 0 means no hold priors.
+std::tuple<bool, OutF64, OutF64> py_window_step(const InF64& H, const InF64& b, const InF64& z,
+                                                const InF64& hold, const InF64& th0,
+                                                std::int64_t P) {
+  const char* fn = "window_step";
+  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
+  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
+  check_shape(fn, "H", H, {N, N}, "(N, N)");
+  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  check_shape(fn, "z", z, {N}, "(N,) with N = len(H)");
+  if (P < 0 || P > N)
+    throw nb::value_error(("window_step: argument 'P' must be in [0, N] = [0, " +
+                           std::to_string(N) + "], got " + std::to_string(P))
+                              .c_str());
+  const bool held = hold.shape(0) > 0;
+  if (held) check_shape(fn, "hold", hold, {P}, "(P,) or (0,)");
+  check_shape(fn, "th0", th0, {P}, "(P,)");
+  double *s, *C;
+  const std::size_t Ns = static_cast<std::size_t>(N), Ps = static_cast<std::size_t>(P);
+  OutF64 as = new_array({Ns}, s), aC = new_array({Ps, Ps}, C);
+  const bool ok = aqfg::window::gn_step(H.data(), b.data(), z.data(),
+                                        held ? hold.data() : nullptr, th0.data(),
+                                        static_cast<int>(N), static_cast<int>(P), s, C);
+  return {ok, as, aC};
+}
+
+// window.hpp schur_drop: (ok, Hn, bn).
+std::tuple<bool, OutF64, OutF64> py_schur_drop(const InF64& H, const InF64& b, std::int64_t a,
+                                               std::int64_t na) {
+  const char* fn = "schur_drop";
+  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
+  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
+  check_shape(fn, "H", H, {N, N}, "(N, N)");
+  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  if (na < 1 || a < 0 || a + na > N)
+    throw nb::value_error(("schur_drop: arguments 'a', 'na' must give 0 <= a, 1 <= na, a + na "
+                           "<= N = " + std::to_string(N) + "; got a = " + std::to_string(a) +
+                           ", na = " + std::to_string(na))
+                              .c_str());
+  const std::size_t M = static_cast<std::size_t>(N - na);
+  double *Hn, *bn;
+  OutF64 aH = new_array({M, M}, Hn), ab = new_array({M}, bn);
+  const bool ok = aqfg::window::schur_drop(H.data(), b.data(), static_cast<int>(N),
+                                           static_cast<int>(a), static_cast<int>(na), Hn, bn);
+  return {ok, aH, ab};
+}
+
 OutF64 py_rollout(const InF64& x0, const InF64& p, const InF64& h, const InU8& warm,
                   const InF64& R, const InF64& dem, const InF64& tm, const InF64& dirs,
                   const InF64& side, nb::handle planar_obj) {
@@ -384,6 +432,17 @@ NB_MODULE(_kernel, m) {
         "linearise, with the block swapped into the quadratic (H, b) in place: rows/columns "
         "[0, P) and [o, o+12) get (Hn - Hblk, bn - bblk), then Hblk, bblk = Hn, bn; nothing "
         "written when the prediction is not finite. Returns the prediction f(x0, p) (6,).");
+  m.def("window_step", &py_window_step, nb::arg("H"), nb::arg("b"), nb::arg("z"),
+        nb::arg("hold"), nb::arg("th0"), nb::arg("P"),
+        "The fixed-lag window's Gauss-Newton step (aqfg.fg.fastlag.LagWindow.step): with "
+        "A = H + diag(hold) and g = H z + b + hold (z - th0) on the first P variables "
+        "(hold of length 0: none), returns (ok, s (N,), C (P, P)) with A s = g and C the "
+        "first P rows and columns of A^-1; ok False when A is not positive definite or a "
+        "result is not finite.");
+  m.def("schur_drop", &py_schur_drop, nb::arg("H"), nb::arg("b"), nb::arg("a"), nb::arg("na"),
+        "Schur complement eliminating variables [a, a + na) of the quadratic (H, b): returns "
+        "(ok, Hn, bn) over the others, in order; ok False when H_aa is not positive "
+        "definite.");
   m.def("rollout", &py_rollout, nb::arg("x0"), nb::arg("p"), nb::arg("h"), nb::arg("warm"),
         nb::arg("R"), nb::arg("dem"), nb::arg("tm"), nb::arg("dirs"), nb::arg("side"),
         nb::arg("planar"),

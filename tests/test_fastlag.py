@@ -168,6 +168,45 @@ def test_cpp_block_matches_the_numpy_linearisation_and_swaps_in_place():
     assert np.allclose(a.missions[0].filtered.pos, b2.missions[0].filtered.pos, rtol=0, atol=1e-7)
 
 
+def test_cpp_window_step_and_schur_complement_match_numpy():
+    """kernel ``window_step`` (the Gauss-Newton step and the parameters' covariance) and
+    ``schur_drop`` (a knot marginalised) against numpy on a real window, held and released;
+    a system that is not positive definite is reported, not solved; bad arguments named."""
+    from aqfg.model.vehicle import compiled_kernel
+    cpp = compiled_kernel()
+    fl, eng = _engine(False, n_fix=9)
+    P = eng.P
+    z = eng.z + 0.01 * np.random.default_rng(3).standard_normal(len(eng.z))   # off the optimum
+    for hold in (None, np.full(P, 1e4)):
+        eng.hold_w = hold
+        H, g = eng.system(z)
+        ok, s, C = cpp.window_step(eng.H, eng.b, z, np.zeros(0) if hold is None else hold,
+                                   eng.th0, P)
+        assert ok
+        want = np.linalg.solve(H, g)
+        assert np.allclose(s, want, rtol=1e-9, atol=1e-11 * np.abs(want).max())
+        assert np.allclose(C, np.linalg.inv(H)[:P, :P], rtol=1e-8, atol=1e-14)
+    H, b = eng.H, eng.b
+    N = len(b)
+    ok, Hn, bn = cpp.schur_drop(H, b, P, 6)
+    r = np.r_[0:P, P + 6:N]
+    a = np.r_[P:P + 6]
+    X = np.linalg.solve(H[np.ix_(a, a)], np.column_stack([H[np.ix_(a, r)], b[a]]))
+    assert ok
+    assert np.allclose(Hn, H[np.ix_(r, r)] - H[np.ix_(a, r)].T @ X[:, :-1], rtol=1e-10,
+                       atol=1e-10 * np.abs(H).max())
+    assert np.allclose(bn, b[r] - H[np.ix_(a, r)].T @ X[:, -1], rtol=1e-10,
+                       atol=1e-10 * np.abs(b).max())
+    bad = -np.eye(N)
+    assert not cpp.window_step(bad, b, eng.z, np.zeros(0), eng.th0, P)[0]
+    assert not cpp.schur_drop(bad, b, P, 6)[0]
+    with pytest.raises(ValueError, match="'b'"):
+        cpp.window_step(H, b[:-1], eng.z, np.zeros(0), eng.th0, P)
+    with pytest.raises(ValueError, match="'a', 'na'"):
+        cpp.schur_drop(H, b, N - 3, 6)
+    assert eng._cwin is not None                       # the engine uses them
+
+
 def test_system_gradient_is_the_cost_derivative_and_marginalisation_is_exact():
     fl, eng = _engine(False, n_fix=9)
     rng = np.random.default_rng(0)

@@ -79,8 +79,10 @@ class FGSettings:
         factor's error from a held linearisation is second order in the parameters' move:
         0.025 rad on an 8-s interval is ~1.5 % of its noise sigma; docs/speed.md).
     fast_cpp_block: the numpy engine linearises a dynamics factor into its Gauss-Newton
-        block in one C++ call (kernel ``linearise``); False: numpy products of the kernel's
-        Jacobians (the reference the C++ is tested against; same result to rounding).
+        block in one C++ call (kernel ``linearise_into``) and solves and marginalises its
+        window in C++ (``window_step``, ``schur_drop``); False: numpy products of the
+        kernel's Jacobians and LAPACK (the reference the C++ is tested against; the same
+        results to rounding).
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised

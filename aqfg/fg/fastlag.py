@@ -41,6 +41,22 @@ from aqfg.model.measurements import range_bearing
 from aqfg.model.vehicle import compiled_kernel
 
 
+class _WindowKernel:
+    """The compiled kernel's window functions, looked up per call (a module object cannot
+    be deep-copied with the window)."""
+
+    @staticmethod
+    def window_step(*args):
+        return compiled_kernel().window_step(*args)   # type: ignore[union-attr]
+
+    @staticmethod
+    def schur_drop(*args):
+        return compiled_kernel().schur_drop(*args)    # type: ignore[union-attr]
+
+
+_EMPTY = np.zeros(0)
+
+
 def _kernel_factory(geometry, cols):
     """A function ``steps -> f`` building :meth:`LagWindow._propagator`'s kernel calls with
     the geometry's arrays converted once (a plain function: the window stays
@@ -138,6 +154,11 @@ class LagWindow:
         self._kern: Callable | None = None     # steps -> kernel calls (_kernel_factory)
         # kernel columns of theta for the C++ block (kernel.hpp ``linearise``); None: numpy
         cpp = compiled_kernel()
+        # the window's solve and Schur complement in C++ (kernel window_step, schur_drop;
+        # the numpy code below is their reference); the module itself is not held, so that
+        # the window stays deep-copyable: a stand-in looks it up per call
+        self._cwin = (_WindowKernel() if cpp is not None and hasattr(cpp, "window_step")
+                      and self.s.fast_cpp_block else None)
         self._lcols = (np.ascontiguousarray(self.jcols, np.int64)
                        if self.jcols is not None and P and cpp is not None
                        and hasattr(cpp, "linearise_into") and self.s.fast_cpp_block else None)
@@ -563,8 +584,21 @@ class LagWindow:
         older than the lag are marginalised. Raises ``np.linalg.LinAlgError`` when the
         system is not positive definite (the estimate is left as it was)."""
         self._relinearise()
-        H, g = self.system()
         P = self.P
+        cw = self._cwin
+        if cw is not None:            # kernel window_step: the same solve in one C++ call
+            ok, step, cov = cw.window_step(self.H, self.b, self.z,
+                                           _EMPTY if self.hold_w is None else self.hold_w,
+                                           self.th0, P)
+            if not ok:
+                raise np.linalg.LinAlgError("the window's system is not positive definite")
+            z = self.z - step
+            z[:P] = np.minimum(np.maximum(z[:P], self.lo), self.hi)
+            self.z = z
+            self.cov = cov
+            self._marginalise()
+            return
+        H, g = self.system()
         N = len(g)
         rhs = self._rhs.get(N)
         if rhs is None:
@@ -597,15 +631,21 @@ class LagWindow:
             if keep is None:
                 k = np.concatenate([np.arange(P), np.arange(P + 6, N)])
                 keep = self._keep[N] = (k, (k[:, None] * N + k[None, :]).ravel())
-            Har = H[P:P + 6].take(keep[0], axis=1)                            # (6, N-6)
-            rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
-            _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)          # H_aa^-1 [H_ar, b_a]
-            if info != 0:
-                raise np.linalg.LinAlgError("a marginalised knot's information is singular")
-            Hn = H.take(keep[1]).reshape(N - 6, N - 6)
-            Hn -= Har.T @ sol[:, :-1]
-            self.H = Hn
-            self.b = b.take(keep[0]) - Har.T @ sol[:, -1]
+            if self._cwin is not None:           # kernel schur_drop: one C++ call
+                ok, Hn, bn = self._cwin.schur_drop(H, b, P, 6)
+                if not ok:
+                    raise np.linalg.LinAlgError("a marginalised knot's information is singular")
+                self.H, self.b = Hn, bn
+            else:
+                Har = H[P:P + 6].take(keep[0], axis=1)                        # (6, N-6)
+                rhs = np.concatenate([Har, b[P:P + 6, None]], axis=1)
+                _, sol, info = _posv(H[P:P + 6, P:P + 6], rhs, lower=1)      # H_aa^-1 [H_ar, b_a]
+                if info != 0:
+                    raise np.linalg.LinAlgError("a marginalised knot's information is singular")
+                Hn = H.take(keep[1]).reshape(N - 6, N - 6)
+                Hn -= Har.T @ sol[:, :-1]
+                self.H = Hn
+                self.b = b.take(keep[0]) - Har.T @ sol[:, -1]
             self.z = z.take(keep[0])
             self.n -= 1
             self.kt.pop(0)
