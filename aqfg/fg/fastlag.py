@@ -23,6 +23,10 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   relinearised at every step. The system is a few knots x 6 + P: one dense Cholesky; the
   parameters' marginal covariance is the inverse's parameter block. The parameters are
   projected into the layout's bounds after each step (as the batch LM).
+* with the compiled kernel, a dynamics factor's linearisation and swap into the quadratic
+  (``linearise_into``), the step (``window_step``) and the marginalisation
+  (``schur_drop``) are one C++ call each; the numpy code here is their reference
+  (``FGSettings.fast_cpp_block=False``; docs/speed.md).
 
 :meth:`LagWindow.unsupported` says why a configuration needs the GTSAM engine
 (measurement effects such as a lever arm or USBL distortions, a Cauchy loss, random-walk
