@@ -144,7 +144,6 @@ class LagWindow:
         self.k_usbl = (None if sn.robust == "none" or "usbl" not in sn.robust_on
                        else sn.robust_k)
         self.surf_w = 1.0 / np.asarray(s.surface_sigma, float) ** 2
-        self.relin = np.array([s.relin_pos] * 3 + [s.relin_vel] * 3)
         self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
         self._relin_th_l = self.relin_th.tolist()
