@@ -186,6 +186,16 @@ std::tuple<OutF64, OutF64, OutF64> py_propagate_many(const InF64& X0, const InF6
   return {a1, a2, a3};
 }
 
+// A quadratic's H (N, N) and b (N,): returns N.
+template <class Arr>
+std::int64_t check_quadratic(const char* fn, const Arr& H, const Arr& b) {
+  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
+  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
+  check_shape(fn, "H", H, {N, N}, "(N, N)");
+  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  return N;
+}
+
 // theta's kernel columns: P <= N_DYN indices into the N_DYN parameters.
 void check_cols(const char* fn, const InI64& cols, std::int64_t P);
 
@@ -246,10 +256,7 @@ OutF64 py_linearise_into(const InF64& x0, const InF64& p, const InF64& theta, co
   const char* fn = "linearise_into";
   const bool planar = as_bool(fn, "planar", planar_obj);
   const std::int64_t P = check_block_args(fn, x0, theta, cols, W);
-  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
-  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
-  check_shape(fn, "H", H, {N, N}, "(N, N)");
-  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  const std::int64_t N = check_quadratic(fn, H, b);
   const std::int64_t n = P + 12;
   check_shape(fn, "Hblk", Hblk, {n, n}, "(P+12, P+12) with P = len(theta)");
   check_shape(fn, "bblk", bblk, {n}, "(P+12,) with P = len(theta)");
@@ -288,10 +295,7 @@ std::tuple<bool, OutF64, OutF64> py_window_step(const InF64& H, const InF64& b, 
                                                 const InF64& hold, const InF64& th0,
                                                 std::int64_t P) {
   const char* fn = "window_step";
-  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
-  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
-  check_shape(fn, "H", H, {N, N}, "(N, N)");
-  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  const std::int64_t N = check_quadratic(fn, H, b);
   check_shape(fn, "z", z, {N}, "(N,) with N = len(H)");
   if (P < 0 || P > N)
     throw nb::value_error(("window_step: argument 'P' must be in [0, N] = [0, " +
@@ -313,10 +317,7 @@ std::tuple<bool, OutF64, OutF64> py_window_step(const InF64& H, const InF64& b, 
 std::tuple<bool, OutF64, OutF64> py_schur_drop(const InF64& H, const InF64& b, std::int64_t a,
                                                std::int64_t na) {
   const char* fn = "schur_drop";
-  check_shape(fn, "H", H, {ANY, ANY}, "(N, N)");
-  const std::int64_t N = static_cast<std::int64_t>(H.shape(0));
-  check_shape(fn, "H", H, {N, N}, "(N, N)");
-  check_shape(fn, "b", b, {N}, "(N,) with N = len(H)");
+  const std::int64_t N = check_quadratic(fn, H, b);
   if (na < 1 || a < 0 || a + na > N)
     throw nb::value_error(("schur_drop: arguments 'a', 'na' must give 0 <= a, 1 <= na, a + na "
                            "<= N = " + std::to_string(N) + "; got a = " + std::to_string(a) +
