@@ -45,17 +45,12 @@ from aqfg.model.measurements import range_bearing
 from aqfg.model.vehicle import compiled_kernel
 
 
-class _WindowKernel:
-    """The compiled kernel's window functions, looked up per call (a module object cannot
-    be deep-copied with the window)."""
-
-    @staticmethod
-    def window_step(*args):
-        return compiled_kernel().window_step(*args)   # type: ignore[union-attr]
-
-    @staticmethod
-    def schur_drop(*args):
-        return compiled_kernel().schur_drop(*args)    # type: ignore[union-attr]
+def _kernel():
+    """The compiled kernel module (the caller checked that it is built; looked up per use,
+    not held, so that a window stays deep-copyable)."""
+    cpp = compiled_kernel()
+    assert cpp is not None
+    return cpp
 
 
 _EMPTY = np.zeros(0)
@@ -72,8 +67,7 @@ def _kernel_factory(geometry, cols):
     nd = N_DYN
 
     def make(steps):
-        cpp = compiled_kernel()
-        assert cpp is not None
+        cpp = _kernel()
         kernel = cpp.propagate
         args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
                 np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
@@ -158,10 +152,9 @@ class LagWindow:
         # kernel columns of theta for the C++ block (kernel.hpp ``linearise``); None: numpy
         cpp = compiled_kernel()
         # the window's solve and Schur complement in C++ (kernel window_step, schur_drop;
-        # the numpy code below is their reference); the module itself is not held, so that
-        # the window stays deep-copyable: a stand-in looks it up per call
-        self._cwin = (_WindowKernel() if cpp is not None and hasattr(cpp, "window_step")
-                      and self.s.fast_cpp_block else None)
+        # the numpy code below is their reference)
+        self._cwin = (cpp is not None and hasattr(cpp, "window_step")
+                      and self.s.fast_cpp_block)
         self._lcols = (np.ascontiguousarray(self.jcols, np.int64)
                        if self.jcols is not None and P and cpp is not None
                        and hasattr(cpp, "linearise_into") and self.s.fast_cpp_block else None)
@@ -588,34 +581,27 @@ class LagWindow:
         system is not positive definite (the estimate is left as it was)."""
         self._relinearise()
         P = self.P
-        cw = self._cwin
-        if cw is not None:            # kernel window_step: the same solve in one C++ call
-            ok, step, cov = cw.window_step(self.H, self.b, self.z,
-                                           _EMPTY if self.hold_w is None else self.hold_w,
-                                           self.th0, P)
-            if not ok:
-                raise np.linalg.LinAlgError("the window's system is not positive definite")
-            z = self.z - step
-            z[:P] = np.minimum(np.maximum(z[:P], self.lo), self.hi)
-            self.z = z
-            self.cov = cov
-            self._marginalise()
-            return
-        H, g = self.system()
-        N = len(g)
-        rhs = self._rhs.get(N)
-        if rhs is None:
-            rhs = self._rhs[N] = np.zeros((N, P + 1))
-            rhs[self._rhs_cols] = 1.0
-        rhs = rhs.copy()
-        rhs[:, 0] = g
-        # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step, and
-        # the parameters' columns of H^-1
-        _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
-        if info != 0 or not np.isfinite(sol).all():
+        if self._cwin:                # kernel window_step: the same solve in one C++ call
+            ok, step, cov = _kernel().window_step(
+                self.H, self.b, self.z, _EMPTY if self.hold_w is None else self.hold_w,
+                self.th0, P)
+        else:
+            H, g = self.system()
+            N = len(g)
+            rhs = self._rhs.get(N)
+            if rhs is None:
+                rhs = self._rhs[N] = np.zeros((N, P + 1))
+                rhs[self._rhs_cols] = 1.0
+            rhs = rhs.copy()
+            rhs[:, 0] = g
+            # Cholesky solve (LAPACK posv: fails when H is not positive definite): the step,
+            # and the parameters' columns of H^-1
+            _, sol, info = _posv(H, rhs, lower=1, overwrite_a=1, overwrite_b=1)
+            ok = info == 0 and bool(np.isfinite(sol).all())
+            step, cov = sol[:, 0], sol[:P, 1:]
+        if not ok:
             raise np.linalg.LinAlgError("the window's system is not positive definite")
-        z = self.z - sol[:, 0]
-        cov = sol[:P, 1:]
+        z = self.z - step
         z[:P] = np.minimum(np.maximum(z[:P], self.lo), self.hi)
         self.z = z
         self.cov = cov
@@ -634,8 +620,8 @@ class LagWindow:
             if keep is None:
                 k = np.concatenate([np.arange(P), np.arange(P + 6, N)])
                 keep = self._keep[N] = (k, (k[:, None] * N + k[None, :]).ravel())
-            if self._cwin is not None:           # kernel schur_drop: one C++ call
-                ok, Hn, bn = self._cwin.schur_drop(H, b, P, 6)
+            if self._cwin:                       # kernel schur_drop: one C++ call
+                ok, Hn, bn = _kernel().schur_drop(H, b, P, 6)
                 if not ok:
                     raise np.linalg.LinAlgError("a marginalised knot's information is singular")
                 self.H, self.b = Hn, bn
