@@ -193,6 +193,7 @@ class FixedLagSmoother:
         replaying = getattr(self, "_replaying", False)
         if not replaying:
             self._next_reinit = s.online_init_after    # s after the start (see _reinit_due)
+            self._batch_tried = False              # no batch re-initialisation yet
         self._hold_idx: list[int] = []             # factor indices of the hold priors
         self._last_new_idx: list[int] = []
         self._last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
@@ -543,7 +544,7 @@ class FixedLagSmoother:
         s = self.settings
         el = t_fix - self.knots[0]
         # the first batch: after online_init_after s, or online_init_fixes fixes if sooner
-        first = (self._next_reinit == s.online_init_after and self.n_fix >= s.online_init_fixes
+        first = (not self._batch_tried and self.n_fix >= s.online_init_fixes
                  and not getattr(self, "_replaying", False))
         return (self._reinit_scheduled() and (el >= self._next_reinit or first)
                 and (el <= s.online_reinit_until or bool(self._hold_idx))
@@ -583,6 +584,7 @@ class FixedLagSmoother:
         from aqfg.fg.batch import BatchSmoother
         t_re = time.perf_counter()
         el = t_fix - self.knots[0]
+        self._batch_tried = True
         if not force:
             self._next_reinit = 2.0 * el
         view = _mission_until(self.mission, t_fix)
