@@ -135,6 +135,12 @@ class BuiltGraph:
         return [(k, 6) for p in self.parts for k in p.keys] + self.node_dims()
 
 
+def _high_sway(starts: list[Start]) -> list[Start]:
+    """The starts whose sway drag is at least ten times their surge drag: a hull there
+    does not slide on a held course whatever the exact value (the non-sliding starts)."""
+    return [s for s in starts if s.fixed["k_yz"] >= 10.0 * s.fixed["k_x"]]
+
+
 class BatchSmoother:
     """Batch MAP smoothing of missions of one vehicle sharing the fixed-parameter node.
 
@@ -507,7 +513,7 @@ class BatchSmoother:
                    self._start_values(bg, sts, implausible))
         searched = len(bg.starts[0]) > 1
         if implausible and searched and not user:
-            sway = [[s for s in st if s.fixed["k_yz"] >= 10.0 * s.fixed["k_x"]] for st in bg.starts]
+            sway = [_high_sway(st) for st in bg.starts]
             if all(sway):
                 sts = [w[0] for w in sway]
                 yield (f"high sway-drag start {np.degrees(sts[0].theta_e):.0f} deg",
@@ -524,7 +530,7 @@ class BatchSmoother:
         if not {"k_x", "k_yz"} <= set(lay.estimated) or "k_yz" in self.init \
                 or not bg.starts or not all(bg.starts):
             return None
-        sway = [s for s in bg.starts[0] if s.fixed["k_yz"] >= 10.0 * s.fixed["k_x"]]
+        sway = _high_sway(bg.starts[0])
         if not sway:
             return None
         st = sway[0]

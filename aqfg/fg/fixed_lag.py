@@ -822,9 +822,10 @@ class FixedLagSmoother:
         if len(self._innov) > 4 * s.adapt_window:         # a long stream keeps what it uses
             del self._innov[:-s.adapt_window]
         last = self._innov[-s.adapt_window:]
-        if sum(g[3] for g in last) <= 0.5 * noise.LR_CHI2_1:    # nominal_suffices, summed
+        if noise.gains_suffice(g[3] for g in last):
             self.q_scale = max(1.0, self._q_floor)
             return
+        # arrays: variance_factor's own nominal_suffices shortcut (lists) is known to fail
         ea, va, qa = (np.array(a) for a in list(zip(*last))[:3])
         self.q_scale = max(noise.variance_factor(ea, va, qa, s), self._q_floor)
 

@@ -15,6 +15,7 @@ it. The fixed-lag smoother (:mod:`aqfg.fg.fixed_lag`) uses its causal innovation
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 import numpy.typing as npt
@@ -79,12 +80,18 @@ def nominal_suffices(e2: list[float], var: list[float], q_pos: list[float]) -> b
     ``u / 2 + log v`` by at most ``g(u) = u / 2 - 1 - log(u / 2)`` (at r = u / 2, for
     u > 2, else 0), u at q = 1; the bound sums these, Huberisation ignored (it only lowers
     the gain)."""
-    gain = 0.0
+    gains = []
     for a, r, q in zip(e2, var, q_pos):
         if not (math.isfinite(a) and math.isfinite(r) and q > 0):
             return False
-        gain += lr_gain(a, r, q)
-    return gain <= 0.5 * LR_CHI2_1
+        gains.append(lr_gain(a, r, q))
+    return gains_suffice(gains)
+
+
+def gains_suffice(gains: Iterable[float]) -> bool:
+    """:func:`nominal_suffices` from its per-fix terms (:func:`lr_gain`), for a caller that
+    keeps them as the fixes arrive."""
+    return sum(gains) <= 0.5 * LR_CHI2_1
 
 
 def lr_gain(e2: float, var: float, q_pos: float) -> float:
