@@ -104,3 +104,21 @@ def test_fit_bad_input(missions, tmp_path, capsys):
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--params-from",
                  str(tmp_path / "missing.json")]) == 3
     assert not (tmp_path / "o").exists()
+
+
+def test_fit_online_says_which_usbl_fixes_the_gate_left_out(tmp_path, capsys):
+    import dataclasses
+    m, tr = simulate("asv", seed=3, duration=150.0, usbl=True, usbl_outlier_rate=0.0,
+                     gnss_period=8.0)
+    rng = m.usbl.range.copy()
+    rng[15] += 12.0                       # one range outlier (80 sigma)
+    m = dataclasses.replace(m, usbl=dataclasses.replace(m.usbl, range=rng))
+    d = tmp_path / "m"
+    save_mission(m, d, truth=tr)
+    fixed = tmp_path / "fixed.json"
+    fixed.write_text(json.dumps({"parameters": {n: {"value": tr.params[n], "sigma": 0.0}
+                                                for n in ("k", "k_x", "k_yz")}}))
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--mode", "online",
+                 "--params-from", str(fixed), "--no-plots", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert f"1 USBL fixes left out by the innovation gate (at {m.usbl.t[15]:.1f} s)" in out

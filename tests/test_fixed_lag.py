@@ -158,3 +158,29 @@ def test_random_walk_online_follows_heading_drift():
     assert abs(err[-1]) < 3 * sig[-1] and np.sqrt(np.mean(err[30:] ** 2)) < 0.06
     err_c, sig_c = errs["constant"]
     assert abs(err_c[-1]) > 3 * sig_c[-1]
+
+
+def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out():
+    """A USBL fix whose range/bearing innovation is beyond the chi-square(2) gate is left
+    out (the EKF's rule); with the correct model and clean fixes none is; after
+    ``online_max_rejects`` in a row the next is taken whatever it says."""
+    import dataclasses
+    m, tr = simulate("auv", seed=4, duration=300.0, usbl=True, usbl_outlier_rate=0.0,
+                     gnss_period=None)
+    fixed = fixed_truth(tr)
+    clean = fit_fg([m], mode="online", init=fixed)
+    assert clean.info["rejected_usbl"] == []
+    u = m.usbl
+    rng = u.range.copy()
+    bad = [20, 40, 41, 42, 43, 44]              # one outlier, then a run of five
+    rng[bad] += 12.0                            # 80 sigma of range
+    mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
+    res = fit_fg([mo], mode="online", init=fixed)
+    out = res.info["rejected_usbl"]
+    assert out == [float(u.t[i]) for i in (20, 40, 41, 42, 44)], out
+    # the gate is what keeps the track: without it the outliers pull it off
+    raw = fit_fg([mo], mode="online", init=fixed,
+                 settings=FGSettings(online_gate_usbl=float("inf")))
+    assert raw.info["rejected_usbl"] == []
+    g, r = (track_rmse(x.missions[0].track, tr) for x in (res, raw))
+    assert g < 0.5 * r, f"corrected track {g:.2f} m with the gate, {r:.2f} m without"

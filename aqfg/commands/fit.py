@@ -159,5 +159,9 @@ def run(args) -> int:
     if t.get("update"):
         import numpy as np
         print(f"online: {len(t['update'])} updates, median {1e3 * np.median(t['update']):.2f} ms")
+    gated = result.info.get("rejected_usbl") or []
+    if gated:
+        print(f"online: {len(gated)} USBL fixes left out by the innovation gate (at "
+              f"{', '.join(f'{x:.1f}' for x in gated[:8])}{', ...' if len(gated) > 8 else ''} s)")
     print(f"wrote {', '.join(shown)} to {out}")
     return 0

@@ -63,6 +63,14 @@ class FGSettings:
         comes before ``online_init_after`` (dense fixes: with 1-s GNSS a held heading 30 deg
         off dragged the causal track 5 m RMS off the fixes for 14 s; the held model's error
         over 1-s intervals is beyond what the adaptive process noise allows).
+    online_gate_usbl, online_max_rejects: online, a USBL fix whose range/bearing innovation
+        against the model's prediction is beyond this chi-square(2) quantile (13.8:
+        p = 0.999, the EKF's gate, :class:`aqfg.ekf.history.EkfConfig`) under the process
+        noise in use is left out, unless the ``online_max_rejects`` USBL fixes before it
+        were left out too (a track that is off must not reject every fix). The Huber loss
+        bounds an outlier's pull while the dynamics are stiff; once the adaptive process
+        noise has loosened them (a wrong model), a 15-m range outlier moved the smoothed
+        track 14 m (docs/independent-vehicle.md). ``inf``: no gate.
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     fast_lm: batch LM on the numpy form of the graph (:mod:`aqfg.fg.fastlm`) where the
@@ -97,6 +105,8 @@ class FGSettings:
     online_reinit_until: float = 960.0
     adapt_window: int = 10
     adapt_max: float = 256.0
+    online_gate_usbl: float = 13.8
+    online_max_rejects: int = 3
     process: fc.ProcessNoise = field(default_factory=fc.ProcessNoise)
     sensors: fc.SensorNoise = field(default_factory=fc.SensorNoise)
     prior_scale: float = 3.0
@@ -223,22 +233,25 @@ def robust_fixes(mission: Mission) -> tuple[np.ndarray, np.ndarray]:
 
 
 def robust_fix_table(mission: Mission, settings: FGSettings
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fix times, horizontal NED positions (n, 2) and their per-axis variance (m^2) (GNSS
-    sigma, or the USBL tangential sigma at the fix's range), for innovation statistics."""
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fix times, horizontal NED positions (n, 2), their per-axis variance (m^2) (GNSS
+    sigma, or the USBL tangential sigma at the fix's range) and whether each is a USBL fix,
+    for innovation statistics."""
     t, p = retrace.fixes(mission)
-    var = np.full(len(t), settings.sensors.gnss_sigma ** 2)
-    if mission.usbl is not None and len(mission.usbl.t):
-        sn = settings.sensors
-        rng = np.interp(t, mission.usbl.t, mission.usbl.range)
-        tang = np.hypot(sn.usbl_range_sigma, rng * sn.usbl_bearing_sigma)
-        is_u = np.isin(t, mission.usbl.t)
-        var[is_u] = tang[is_u] ** 2
-    if mission.gnss is not None and mission.gnss.sigma is not None and len(mission.gnss.t):
-        is_g = np.isin(t, mission.gnss.t)
-        sg = np.interp(t, mission.gnss.t, np.nan_to_num(mission.gnss.sigma, nan=settings.sensors.gnss_sigma))
-        var[is_g] = sg[is_g] ** 2
-    return t, p[:, :2], var
+    g, u, sn = mission.gnss, mission.usbl, settings.sensors
+    # retrace.fixes' order: GNSS then USBL, stably sorted by time
+    gt = g.t if g is not None else np.zeros(0)
+    ut = u.t if u is not None else np.zeros(0)
+    order = np.argsort(np.concatenate([gt, ut]), kind="stable")
+    is_u = np.concatenate([np.zeros(len(gt), bool), np.ones(len(ut), bool)])[order]
+    var = np.full(len(t), sn.gnss_sigma ** 2)
+    if u is not None and len(ut):
+        rng = np.interp(t, ut, u.range)
+        var[is_u] = np.hypot(sn.usbl_range_sigma, rng[is_u] * sn.usbl_bearing_sigma) ** 2
+    if g is not None and len(gt) and g.sigma is not None:
+        sg = np.interp(t, gt, np.nan_to_num(g.sigma, nan=sn.gnss_sigma))
+        var[~is_u] = sg[~is_u] ** 2
+    return t, p[:, :2], var, is_u
 
 
 def initial_states(mission: Mission, knots: np.ndarray) -> np.ndarray:

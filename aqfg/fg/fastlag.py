@@ -219,13 +219,16 @@ class LagWindow:
         self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
         self.station = None if m.station is None else np.asarray(m.station, float)
 
-    def _take_fixes(self, t_lo: float, t_hi: float) -> None:
-        """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate."""
+    def _take_fixes(self, t_lo: float, t_hi: float, usbl: bool = True) -> None:
+        """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate
+        (``usbl`` False: its GNSS fixes only)."""
         gt, gz, gs = self.tab_g
         lo, hi = t_lo + 1e-9, t_hi + 1e-9
         a, b = int(gt.searchsorted(lo)), int(gt.searchsorted(hi))
         ut, uz, us = self.tab_u
         c, d = int(ut.searchsorted(lo)), int(ut.searchsorted(hi))
+        if not usbl:
+            d = c
         if b <= a and d <= c:
             self.fx.append(None)
             self.FXL.append([math.nan] * 3)
@@ -474,10 +477,12 @@ class LagWindow:
         self.X0L[i] = x0.tolist()
         self.THL[i] = th.tolist()
 
-    def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
+    def add(self, t: float, kid: int, steps, q_scale: float, take_fixes: bool = True
+            ) -> np.ndarray:
         """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
-        ``steps`` linearised at the current estimate and the fixes in between; returns the
-        model's prediction there (the knot's initial value)."""
+        ``steps`` linearised at the current estimate and the fixes in between (``take_fixes``
+        False: the caller adds them with :meth:`take_fixes`, once); returns the model's
+        prediction there (the knot's initial value)."""
         P, n = self.P, self.n
         t_last = self.kt[-1]
         x0 = self.z[-6:].copy()
@@ -502,8 +507,14 @@ class LagWindow:
         self.z = np.concatenate([self.z, x1])
         if not ok:              # a diverged model: relinearised at the next step
             self.X0L[-1] = [math.inf] * 6
-        self._take_fixes(t_last, float(t))
+        if take_fixes:
+            self._take_fixes(t_last, float(t))
         return np.array(x1)
+
+    def take_fixes(self, usbl: bool = True) -> None:
+        """The fixes since the knot before the newest onto the newest (after
+        ``add(..., take_fixes=False)``); ``usbl`` False leaves its USBL fixes out."""
+        self._take_fixes(self.kt[-2], self.kt[-1], usbl)
 
     def release(self) -> None:
         """Remove the hold priors on the parameters."""

@@ -206,6 +206,10 @@ class FixedLagSmoother:
         # fix innovations (e2, R, Q_pos, noise.lr_gain of them)
         self._innov: list[tuple[float, float, float, float]] = []
         self._fixes = robust_fix_table(mission, s)
+        self._usbl_tab = self._gate_table(mission)
+        self._rejects = 0                          # consecutive USBL fixes left out (_gate)
+        if not replaying:
+            self._rejected: dict[float, bool] = {}   # USBL fix time -> left out (_gate)
         self.warming = s.warmup_tol > 0
         self._plan: tuple[np.ndarray, dict[float, int], Any, np.ndarray] | None = None
         if plan:
@@ -357,6 +361,7 @@ class FixedLagSmoother:
             self.fix_t = np.unique(mission.fix_times())
             self._plan = None                      # inputs may have changed: no plan
             self._fixes = robust_fix_table(mission, self.settings)
+            self._usbl_tab = self._gate_table(mission)
             if self._fast is not None:
                 self._fast.set_mission(mission)
         if t_fix is None:
@@ -439,9 +444,14 @@ class FixedLagSmoother:
             self.filtered.append(x.copy())
         self.pred_t.append(float(t_fix))
         self.pred_x.append(x.copy())
+        drop_usbl = self._gate(t_fix, float(t_fix - t_last), x)
         if s.adapt_process:
             self._adapt(t_fix, float(t_fix - t_last), x)
         meas = Measurements.of(self.mission, s, t_last + 1e-6, t_fix)
+        if drop_usbl:
+            keep = np.abs(meas.usbl_t - t_fix) > 1e-6
+            meas = replace(meas, usbl_t=meas.usbl_t[keep], usbl_z=meas.usbl_z[keep],
+                           usbl_sigma=meas.usbl_sigma[keep], usbl_R=meas.usbl_R[keep])
         local = np.asarray(all_t)
         for f in measurement_factors(self.model, lay, meas, local,
                                      lambda i: self.keys[i0 - 1 + i],
@@ -476,7 +486,8 @@ class FixedLagSmoother:
             self._pending.append((i0, all_t, eng.z[-6:].copy(), eng.params_view()))
             self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
-                        self.q_scale)
+                        self.q_scale, take_fixes=False)
+        eng.take_fixes(usbl=not self._gate(t_fix, float(t_fix - t_last), x_fix))
         if not eng.last_ok:
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
@@ -794,6 +805,59 @@ class FixedLagSmoother:
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
     # ---------------------------------------------------------------- robustness
+    def _gate_table(self, mission: Mission) -> dict:
+        """Per USBL fix time (rounded to the microsecond): range, bearing, range variance,
+        bearing sigma, the previous fix's per-axis variance and the station, for
+        :meth:`_gate` (in Python floats: it runs at every USBL update). Empty without
+        USBL or with the gate off."""
+        u, s = mission.usbl, self.settings
+        if u is None or not len(u.t) or not math.isfinite(s.online_gate_usbl):
+            return {}
+        t, _, var, _ = self._fixes
+        st = tuple(float(c) for c in np.asarray(mission.usbl_station, float)[:3])
+        out = {}
+        for k in range(len(u.t)):
+            i = int(t.searchsorted(u.t[k] - 1e-6))
+            sr, sb = s.sensors.usbl_sigmas(float(u.range[k]))
+            out[round(float(u.t[k]), 6)] = (float(u.range[k]), float(u.bearing[k]),
+                                            float(sr) ** 2, float(sb),
+                                            float(var[i - 1]) if i > 0
+                                            else s.sensors.gnss_sigma ** 2, st)
+        return out
+
+    def _gate(self, t_fix: float, dt: float, x_pred: np.ndarray) -> bool:
+        """True when the USBL fix at ``t_fix`` is to be left out: its range and bearing
+        innovation against the model's prediction ``x_pred`` is beyond
+        ``settings.online_gate_usbl`` (chi-square(2)), and fewer than
+        ``online_max_rejects`` USBL fixes in a row were left out before it (the EKF's rule,
+        :mod:`aqfg.ekf.window`). Recorded in ``info["rejected_usbl"]``.
+
+        The prediction's per-axis variance is that of the process noise in use over the
+        interval plus the previous fix's (GNSS sigma^2, or a USBL fix's tangential one: an
+        upper bound along its range); the range and the tangential innovation each add it
+        to their own sensor variance. In range and bearing, not as a position: the USBL
+        outliers are mostly in range (7-16 m on a 0.15-m range sigma), which a position's
+        isotropic tangential variance (2.6 m at 100 m) hides."""
+        s = self.settings
+        row = self._usbl_tab.get(round(float(t_fix), 6))
+        if row is None or dt <= 0:
+            return False
+        z_r, z_b, sr2, sb, v_prev, (n0, e0, d0) = row
+        key = round(dt, 9)
+        q = self._noise.get(key)
+        if q is None:
+            q = self._noise[key] = float(s.process.cov(dt, self.mission.planar)[0, 0])
+        pv = self.q_scale * q + v_prev
+        dn, de, dd = float(x_pred[0]) - n0, float(x_pred[1]) - e0, float(x_pred[2]) - d0
+        rh = math.hypot(dn, de)
+        er = z_r - math.sqrt(rh * rh + dd * dd)
+        et = math.remainder(z_b - math.atan2(de, dn), 2.0 * math.pi) * rh
+        m2 = er * er / (sr2 + pv) + et * et / ((rh * sb) ** 2 + pv)
+        out = self._rejects < s.online_max_rejects and m2 > s.online_gate_usbl
+        self._rejects = self._rejects + 1 if out else 0
+        self._rejected[float(t_fix)] = out
+        return out
+
     def _adapt(self, t_fix: float, dt: float, x_pred: np.ndarray) -> None:
         """Adapt the process-noise variance factor to how well the model predicts the fixes:
         :func:`aqfg.fg.noise.variance_factor` of the last ``adapt_window`` fix
@@ -803,7 +867,7 @@ class FixedLagSmoother:
         wrong model then costs accuracy gracefully, towards a kinematic smoother, instead
         of dragging the track off the fixes)."""
         s = self.settings
-        t, pos, var = self._fixes
+        t, pos, var, _ = self._fixes
         i = int(t.searchsorted(t_fix - 1e-6))
         if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6 or dt <= 0:
             return
@@ -1074,6 +1138,8 @@ class FixedLagSmoother:
                             "events": list(self.events),
                             "warnings": list(getattr(self, "warnings", [])),
                             "process_noise_scale": float(self.q_scale),
+                            "rejected_usbl": sorted(t for t, out in self._rejected.items()
+                                                    if out),
                             "sigma_inflation": dict(self._inflation),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
                             "engine": getattr(self, "engine", "gtsam"),

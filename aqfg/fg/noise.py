@@ -97,8 +97,15 @@ def gains_suffice(gains: Iterable[float]) -> bool:
 def lr_gain(e2: float, var: float, q_pos: float) -> float:
     """One fix's term of :func:`nominal_suffices`' bound (finite inputs, ``q_pos > 0``): the
     most its likelihood term can fall by raising its variance."""
-    u = e2 / (q_pos + 2.0 * var)
+    u = innovation_u(e2, var, q_pos)
     return 0.5 * u - 1.0 - math.log(0.5 * u) if u > 2.0 else 0.0
+
+
+def innovation_u(e2: float, var: float, q_pos: float) -> float:
+    """A fix's normalised squared innovation ``e2 / (q_pos + 2 var)``, chi-square with 2
+    degrees of freedom under the noise model (:func:`variance_factor`'s ``u``; ``q_pos``
+    already scaled by the variance factor in use)."""
+    return e2 / (q_pos + 2.0 * var)
 
 
 def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
