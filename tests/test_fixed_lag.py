@@ -184,3 +184,30 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     assert raw.info["rejected_usbl"] == []
     g, r = (track_rmse(x.missions[0].track, tr) for x in (res, raw))
     assert g < 0.5 * r, f"corrected track {g:.2f} m with the gate, {r:.2f} m without"
+
+
+def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch):
+    """The gate cannot tell a range outlier from a prediction that is off; once later
+    fixes are in, a left-out fix that agrees with its knot's smoothed estimate joins the
+    window (numpy engine), and the run ends as if it had never been left out."""
+    m, tr = simulate("asv", seed=4, duration=300.0, usbl=True, usbl_outlier_rate=0.0,
+                     gnss_period=None)
+    fixed = fixed_truth(tr)
+    clean = fit_fg([m], mode="online", init=fixed)
+    target = float(m.usbl.t[30])
+    gate = FixedLagSmoother._gate
+    seen = []
+
+    def off_prediction(self, t_fix, dt, x_pred):      # the prediction 12 m off at one fix
+        if abs(t_fix - target) < 1e-9:
+            x_pred = x_pred + np.array([12.0, 0, 0, 0, 0, 0])
+            seen.append(gate(self, t_fix, dt, x_pred))
+            return seen[-1]
+        return gate(self, t_fix, dt, x_pred)
+    monkeypatch.setattr(FixedLagSmoother, "_gate", off_prediction)
+    res = fit_fg([m], mode="online", init=fixed)
+    assert res.info["engine"] == "numpy"
+    assert seen and seen[0], "the shifted prediction should have been gated"
+    assert res.info["rejected_usbl"] == []
+    a, b = res.missions[0].track, clean.missions[0].track
+    assert np.max(np.abs(a.pos - b.pos)) < 0.2      # it joined one update late

@@ -511,6 +511,25 @@ class LagWindow:
             self._take_fixes(t_last, float(t))
         return np.array(x1)
 
+    def readmit_usbl(self, t: float) -> bool:
+        """Add the USBL fixes at time ``t`` to their knot (one left out by the caller's gate,
+        still in the window); False when the knot has left the window."""
+        i = next((j for j, tk in enumerate(self.kt) if abs(tk - t) < 1e-9), None)
+        if i is None:
+            return False
+        ut, uz, us = self.tab_u
+        c, d = int(ut.searchsorted(t - 1e-9)), int(ut.searchsorted(t + 1e-9))
+        if d <= c:
+            return False
+        f = self.fx[i]
+        if f is None:
+            gz, gs = self.tab_g[1], self.tab_g[2]
+            self.fx[i] = [gz[0:0], gs[0:0], uz[c:d], us[c:d], None, None]
+        else:
+            f[2], f[3] = uz[c:d], us[c:d]
+        self._set_fix(i)
+        return True
+
     def take_fixes(self, usbl: bool = True) -> None:
         """The fixes since the knot before the newest onto the newest (after
         ``add(..., take_fixes=False)``); ``usbl`` False leaves its USBL fixes out."""
