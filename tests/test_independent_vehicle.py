@@ -389,9 +389,7 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
     gross = set(u.t[(np.abs(e_r) > 1.5) | (np.abs(e_b) > 15 * DEG)].tolist())
     out = set(fg.info["rejected_usbl"])
     assert len(gross) >= 5
-    # (one may pass: the gate stands down while the prediction has just missed a fix,
-    # here a GNSS fix 0.5 s after a USBL fix whose bearing left the track 5 m off)
-    assert len(gross - out) <= 1, f"outliers kept: {sorted(gross - out)}"
+    assert gross <= out, f"outliers kept: {sorted(gross - out)}"
     assert len(out - gross) <= 2, f"good fixes left out: {sorted(out - gross)}"
 
 
@@ -409,3 +407,20 @@ def test_the_fix_of_a_re_initialisation_reports_the_re_initialised_estimate():
     assert abs(h.values[k - 1, i]) < 1e-3 and h.sigma[k - 1, i] > 1.0   # held, said so
     assert abs(h.values[k, i]) > 0.1 and h.sigma[k, i] < 0.5
     assert abs(wrap(h.values[k, i] - truth.params["theta_e"])) < 3 * h.sigma[k, i]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, start, every", [("otter-dev-calm-a", 300.0, 4.0),
+                                                ("otter-dev-current-weakprop", 150.0, 8.0)])
+def test_the_usbl_gate_stands_down_when_the_track_is_off(name, start, every):
+    """Crops where the model fails with the process noise still nominal, with the paper's
+    constants: the gate left out the good fixes that held the track (causal RMSE 3.39 ->
+    11.3 m on the first, 2.22 -> 3.45 m on the second). It stands down until the model has
+    shown what it is (noise adapted up, or fixes explained); then it costs the causal
+    track nothing."""
+    from aqfg.data.mission import between
+    full, truth = load_mission(data_path(name)), load_truth(data_path(name))
+    m = with_gnss_every(between(full, start, float(full.imu.t[-1])), every)
+    gated = fit_fg([m], mode="online")
+    plain = fit_fg([m], mode="online", settings=FGSettings(online_gate_usbl=np.inf))
+    assert causal_rmse(gated, truth) <= causal_rmse(plain, truth) + 0.1

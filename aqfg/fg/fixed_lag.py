@@ -208,7 +208,6 @@ class FixedLagSmoother:
         self._fixes = robust_fix_table(mission, s)
         self._usbl_tab = self._gate_table(mission)
         self._under_review: list[float] = []       # USBL fixes left out, still in the window
-        self._ref_ok = True                        # the last fix taken was explained (_gate)
         self._taken_m2: list[float] = []           # _gate's statistic of the fixes taken
         self._rejects = 0                          # consecutive USBL fixes left out (_gate)
         if not replaying:
@@ -877,20 +876,17 @@ class FixedLagSmoother:
 
         No gate while the parameters are held at their start values (before the first
         batch): the prediction of a model whose heading is not known yet is 7-22 m off on
-        a crop of `otter-dev-calm-b`, and good fixes were left out. Nor when the
-        prediction missed the last fix it took (GNSS or USBL, the same statistic): a track
-        that is running off is no reference (on a crop of `otter-dev-calm-a` the released
-        constants ran off at 440 s with the process noise still nominal; the gate left out
-        the good USBL fixes that had held it, and the causal track ran 250 m off). A track
-        can be off without that too (a turn the model gets wrong): the fixes left out are
+        a crop of `otter-dev-calm-b`, and good fixes were left out. A track can be off
+        after that too (a turn the model gets wrong): the fixes left out are
         seen again by :meth:`_review_left_out` once later fixes are in. And only where the
         model has shown what it is: the process noise adapted up (the model fails, the
         dynamics are loose, and the Huber loss no longer bounds an outlier's pull), or the
         last fixes taken all within the 99 % quantile (the model holds; a burst of
         outliers would drag it). With the noise still nominal while a model starts to
-        fail (the adaptation lags), good fixes 5-14 m from the prediction were left out on
+        fail (the adaptation lags), good fixes 5-22 m from the prediction were left out on
         Otter crops and the causal track suffered (`otter-dev-current-weakprop` from 150 s:
-        2.22 -> 3.45 m)."""
+        2.22 -> 3.45 m; `otter-dev-calm-a` from 300 s, whose released constants ran off:
+        3.39 -> 11.3 m)."""
         s = self.settings
         if not self._usbl_tab or dt <= 0:
             return False
@@ -901,29 +897,25 @@ class FixedLagSmoother:
         usbl = round(float(t_fix), 6) in self._usbl_tab
         if usbl:
             m2 = self._gate_m2(t_fix, x_pred, self.q_scale * q)
-        else:                                      # a GNSS fix: the same test, as a position
+        else:                 # a GNSS fix (never left out): its statistic, as a position
             t, pos, var, _ = self._fixes
             i = int(t.searchsorted(t_fix - 1e-6))
             if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6:
                 return False
             e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 \
                 + (float(pos[i, 1]) - float(x_pred[1])) ** 2
-            # the adaptation's statistic (noise.innovation_u: the previous state as
-            # uncertain as this fix): not the previous fix's variance, which after a USBL
-            # fix is its tangential one and let a 10-m GNSS miss pass as explained
+            # the adaptation's (noise.innovation_u: the previous state as uncertain as
+            # this fix)
             m2 = noise.innovation_u(e2, float(var[i]), self.q_scale * q)
         # the model has shown it fails (the process noise adapted up) or that it does not
         # (the last fixes taken were all within the 99 % quantile)
         recent = self._taken_m2[-s.adapt_window:]
         known = self.q_scale > 1.0 or (len(recent) >= 3 and max(recent) <= 9.21)
-        gating = (usbl and self._ref_ok and known
+        gating = (usbl and known
                   and not (self._hold_idx and not getattr(self, "_replaying", False)))
         forced = gating and self._rejects >= s.online_max_rejects
         out = gating and not forced and m2 > s.online_gate_usbl
-        if not out and not forced:
-            # the prediction is a reference for the next fix only if it explained this one
-            # (a fix taken by the rejection count says nothing about that)
-            self._ref_ok = m2 <= s.online_gate_usbl
+        if not out and not forced:          # (a fix taken by the count says nothing)
             self._taken_m2.append(m2)
             if len(self._taken_m2) > 4 * s.adapt_window:
                 del self._taken_m2[:-s.adapt_window]
