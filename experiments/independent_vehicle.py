@@ -95,7 +95,7 @@ def online_row(method: str, m, truth, init: dict) -> dict:
     h = r.history
     i = list(h.names).index("theta_e")
     th = h.values[:, i]
-    k10 = min(10, len(th) - 1)
+    k10 = min(9, len(th) - 1)            # the 10th fix (the 1st is the start, t0)
     mr = r.missions[0]
     causal = mr.filtered if mr.filtered is not None else mr.track
     s10 = float(np.degrees(h.sigma[k10, i])) if h.sigma is not None else float("nan")
