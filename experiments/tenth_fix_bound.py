@@ -20,20 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).parent))
+from independent_vehicle import DATA, EVERY, MISSIONS, RESULTS  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
 from aqfg.fg.common import FGSettings  # noqa: E402
 from aqfg.model.retrace import fixes  # noqa: E402
 
-DATA = ROOT / "tests" / "data"
-RESULTS = Path(__file__).resolve().parent / "results"
-MISSIONS = ("otter-example", "otter-dev-calm-a", "otter-dev-calm-b",
-            "otter-dev-current-weakprop", "otter-dev-yawdrift")
-EVERY = (1.0, 4.0, 8.0)
 N_FIX = 10
 
 
