@@ -910,7 +910,7 @@ class FixedLagSmoother:
         # the model has shown it fails (the process noise adapted up) or that it does not
         # (the last fixes taken were all within the 99 % quantile)
         recent = self._taken_m2[-s.adapt_window:]
-        known = self.q_scale > 1.0 or (len(recent) >= 3 and max(recent) <= 9.21)
+        known = self.q_scale > 1.0 or (len(recent) >= 3 and max(recent) <= noise.CHI2_2_99)
         gating = (usbl and known
                   and not (self._hold_idx and not getattr(self, "_replaying", False)))
         forced = gating and self._rejects >= s.online_max_rejects

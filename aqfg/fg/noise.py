@@ -24,6 +24,7 @@ from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 
 LR_CHI2_1 = 3.841           # chi-square(1) 95 % quantile
+CHI2_2_99 = 9.21            # chi-square(2) 99 % quantile
 
 
 def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
@@ -54,7 +55,7 @@ def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
     grid = 2.0 ** (np.arange(n) / 2.0)
     v = grid[:, None] * qa[None, :] + 2.0 * va[None, :]
     u = ea[None, :] / v
-    k = 9.21                                   # chi-square(2) 99 % quantile
+    k = CHI2_2_99
     # a fix that not even the largest factor explains is an outlier of the fix, not the
     # model's error: left out (Huberised, a few outlying USBL fixes on a simulated AUV
     # raised q to the bound; clipped, large model errors kept q at 1) -- when they are a
