@@ -233,3 +233,35 @@ def test_cli_fleet_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
     assert "Nothing missing" in (out / "fleet.html").read_text()
     assert main(["fleet", str(p), "--out", str(out), "--workers", "1"]) == 2
     assert "refusing to overwrite" in capsys.readouterr().err
+
+
+def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):
+    """A worker the scheduler dropped under load is restarted by its nanny: a round that
+    finds none waits for one to (re)join instead of failing at once."""
+    from aqfg.fleet import solve
+
+    class FakeClient:
+        def __init__(self):
+            self.calls = 0
+            self.waited = None
+
+        def scheduler_info(self, n_workers=-1):
+            self.calls += 1
+            return {"workers": {} if self.calls == 1 else {"tcp://w1": {}}}
+
+        def wait_for_workers(self, n, timeout=None):
+            self.waited = (n, timeout)
+
+    c = FakeClient()
+    assert solve._alive_workers(c, wait=5.0) == ["tcp://w1"]
+    assert c.waited == (1, 5.0)
+
+    class NoneComes(FakeClient):
+        def scheduler_info(self, n_workers=-1):
+            return {"workers": {}}
+
+        def wait_for_workers(self, n, timeout=None):
+            raise TimeoutError("none")
+    assert solve._alive_workers(NoneComes(), wait=0.1) == []
+    with pytest.raises(solve.FleetError, match="no Dask worker"):
+        solve._least_loaded([], {})

@@ -23,6 +23,8 @@ from aqfg.fleet.manifest import Manifest
 from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, release
 from aqfg.result import Result
 
+WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
+
 
 class FleetError(ValueError):
     """A fleet run that cannot go on; the message names the vehicle and mission."""
@@ -113,7 +115,7 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     while pending:
         stats["rounds"] += 1
         t_round = time.perf_counter()
-        alive = _workers(client)
+        alive = _alive_workers(client)
         chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
         for v, reqs in pending.items():
             for spec, (op, args) in zip(specs[v], reqs):
@@ -207,6 +209,21 @@ def _diagnose(client, specs, timeout) -> dict:
 
 def _workers(client) -> list[str]:
     return sorted(client.scheduler_info(n_workers=-1)["workers"])
+
+
+def _alive_workers(client, wait: float = WORKER_WAIT) -> list[str]:
+    """The workers now; if there is none, those that (re)join within ``wait`` s. A worker
+    the scheduler dropped under load (missed heartbeats) is restarted by its nanny: on a
+    loaded 2-core machine a one-worker run once found none between two rounds and
+    failed."""
+    alive = _workers(client)
+    if not alive:
+        try:
+            client.wait_for_workers(1, timeout=wait)
+        except Exception:  # noqa: BLE001 - none came: _least_loaded says so
+            return []
+        alive = _workers(client)
+    return alive
 
 
 def _least_loaded(alive: list[str], where: dict) -> str:
