@@ -477,12 +477,11 @@ class LagWindow:
         self.X0L[i] = x0.tolist()
         self.THL[i] = th.tolist()
 
-    def add(self, t: float, kid: int, steps, q_scale: float, take_fixes: bool = True
-            ) -> np.ndarray:
+    def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
         """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
-        ``steps`` linearised at the current estimate and the fixes in between (``take_fixes``
-        False: the caller adds them with :meth:`take_fixes`, once); returns the model's
-        prediction there (the knot's initial value)."""
+        ``steps`` linearised at the current estimate; returns the model's prediction there
+        (the knot's initial value). The caller then adds the fixes in between with
+        :meth:`take_fixes`, once (after gating them against the prediction)."""
         P, n = self.P, self.n
         t_last = self.kt[-1]
         x0 = self.z[-6:].copy()
@@ -507,14 +506,16 @@ class LagWindow:
         self.z = np.concatenate([self.z, x1])
         if not ok:              # a diverged model: relinearised at the next step
             self.X0L[-1] = [math.inf] * 6
-        if take_fixes:
-            self._take_fixes(t_last, float(t))
         return np.array(x1)
+
+    def index_at(self, t: float) -> int | None:
+        """Window index of the knot at time ``t`` (None: not in the window)."""
+        return next((j for j, tk in enumerate(self.kt) if abs(tk - t) < 1e-9), None)
 
     def readmit_usbl(self, t: float) -> bool:
         """Add the USBL fixes at time ``t`` to their knot (one left out by the caller's gate,
         still in the window); False when the knot has left the window."""
-        i = next((j for j, tk in enumerate(self.kt) if abs(tk - t) < 1e-9), None)
+        i = self.index_at(t)
         if i is None:
             return False
         ut, uz, us = self.tab_u

@@ -205,8 +205,9 @@ class FixedLagSmoother:
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
         # fix innovations (e2, R, Q_pos, noise.lr_gain of them)
         self._innov: list[tuple[float, float, float, float]] = []
-        self._fixes = robust_fix_table(mission, s)
-        self._usbl_tab = self._gate_table(mission)
+        if not replaying:                          # a replay has the same mission
+            self._fixes = robust_fix_table(mission, s)
+            self._usbl_tab = self._gate_table(mission)
         self._under_review: list[float] = []       # USBL fixes left out, still in the window
         self._taken_m2: list[float] = []           # _gate's statistic of the fixes taken
         self._rejects = 0                          # consecutive USBL fixes left out (_gate)
@@ -488,7 +489,7 @@ class FixedLagSmoother:
             self._pending.append((i0, all_t, eng.z[-6:].copy(), eng.params_view()))
             self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
-                        self.q_scale, take_fixes=False)
+                        self.q_scale)
         eng.take_fixes(usbl=not self._gate(t_fix, float(t_fix - t_last), x_fix))
         if not eng.last_ok:
             if not self.events or self.events[-1].get("event") != "prediction diverged":
@@ -517,10 +518,10 @@ class FixedLagSmoother:
             if t >= t_fix - 1e-9:
                 keep.append(t)
                 continue
-            x = next((eng.z[eng.P + 6 * i:eng.P + 6 * i + 6] for i, tk in enumerate(eng.kt)
-                      if abs(tk - t) < 1e-9), None)
-            if x is None:
+            i = eng.index_at(t)
+            if i is None:
                 continue                           # left the window: stays out
+            x = eng.z[eng.P + 6 * i:eng.P + 6 * i + 6]
             if self._gate_m2(t, x, 0.0) <= self.settings.online_gate_usbl \
                     and eng.readmit_usbl(t):
                 self._rejected[t] = False
@@ -840,6 +841,27 @@ class FixedLagSmoother:
         return UpdateInfo(float(t_fix), dt, values, sigma, n_new)
 
     # ---------------------------------------------------------------- robustness
+    def _innovation(self, t_fix: float, x_pred: np.ndarray) -> tuple[float, float] | None:
+        """Squared horizontal innovation (m^2) of the fix at ``t_fix`` (the first, GNSS
+        before USBL) against ``x_pred``, and its per-axis variance; None: no fix there. In
+        scalars: this runs at every update (numpy calls cost microseconds each)."""
+        t, pos, var, _ = self._fixes
+        i = int(t.searchsorted(t_fix - 1e-6))
+        if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6:
+            return None
+        p0, p1 = pos[i, :2].tolist()
+        x0, x1 = x_pred[:2].tolist()
+        return (p0 - x0) ** 2 + (p1 - x1) ** 2, float(var[i])
+
+    def _q_pos(self, dt: float) -> float:
+        """The nominal process noise's per-axis position variance over ``dt`` s (m^2),
+        cached per interval."""
+        key = round(dt, 9)
+        q = self._noise.get(key)
+        if q is None:
+            q = self._noise[key] = float(self.settings.process.cov(dt, self.mission.planar)[0, 0])
+        return q
+
     def _gate_table(self, mission: Mission) -> dict:
         """Per USBL fix time (rounded to the microsecond): range, bearing, range variance,
         bearing sigma, the previous fix's per-axis variance and the station, for
@@ -890,23 +912,17 @@ class FixedLagSmoother:
         s = self.settings
         if not self._usbl_tab or dt <= 0:
             return False
-        key = round(dt, 9)
-        q = self._noise.get(key)
-        if q is None:
-            q = self._noise[key] = float(s.process.cov(dt, self.mission.planar)[0, 0])
+        q = self._q_pos(dt)
         usbl = round(float(t_fix), 6) in self._usbl_tab
         if usbl:
             m2 = self._gate_m2(t_fix, x_pred, self.q_scale * q)
         else:                 # a GNSS fix (never left out): its statistic, as a position
-            t, pos, var, _ = self._fixes
-            i = int(t.searchsorted(t_fix - 1e-6))
-            if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6:
+            inn = self._innovation(t_fix, x_pred)
+            if inn is None:
                 return False
-            e2 = (float(pos[i, 0]) - float(x_pred[0])) ** 2 \
-                + (float(pos[i, 1]) - float(x_pred[1])) ** 2
             # the adaptation's (noise.innovation_u: the previous state as uncertain as
             # this fix)
-            m2 = noise.innovation_u(e2, float(var[i]), self.q_scale * q)
+            m2 = noise.innovation_u(inn[0], inn[1], self.q_scale * q)
         # the model has shown it fails (the process noise adapted up) or that it does not
         # (the last fixes taken were all within the 99 % quantile)
         recent = self._taken_m2[-s.adapt_window:]
@@ -947,19 +963,11 @@ class FixedLagSmoother:
         wrong model then costs accuracy gracefully, towards a kinematic smoother, instead
         of dragging the track off the fixes)."""
         s = self.settings
-        t, pos, var, _ = self._fixes
-        i = int(t.searchsorted(t_fix - 1e-6))
-        if i >= len(t) or abs(float(t[i]) - t_fix) > 1e-6 or dt <= 0:
+        inn = self._innovation(t_fix, x_pred)
+        if inn is None or dt <= 0:
             return
-        # in scalars: this runs at every update (numpy calls cost microseconds each)
-        p0, p1 = pos[i, :2].tolist()
-        x0, x1 = x_pred[:2].tolist()
-        e2 = (p0 - x0) ** 2 + (p1 - x1) ** 2
-        key = round(dt, 9)
-        q = self._noise.get(key)
-        if q is None:
-            q = self._noise[key] = float(s.process.cov(dt, self.mission.planar)[0, 0])
-        v = float(var[i])
+        e2, v = inn
+        q = self._q_pos(dt)
         if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
         self._innov.append((e2, v, q, noise.lr_gain(e2, v, q)))
