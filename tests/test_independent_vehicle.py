@@ -133,19 +133,37 @@ def test_online_random_walk_survives_failed_releases():
     otter-dev-calm-b at 8-s fixes: a failed release after the 80-s batch used to end in a
     Python error (a walk segment's node inserted twice by the restart), and once fixed, in
     skipped fixes whose causal track ran to 1e7 m. Troubled updates now re-initialise from
-    a batch of the fixes so far. (Without the USBL gate, which now keeps this run out of
-    trouble: the test is of what happens when it is in trouble.)"""
+    a batch of the fixes so far. (Without the USBL gate.) The run no longer gets into
+    trouble by itself (the heading search of the re-initialisation batches), so a skipped
+    fix is also injected after the 80-s release: the next update must re-initialise."""
     from aqfg.fg.common import FGSettings
+
+    class Troubled(FixedLagSmoother):
+        injected = False
+
+        def _update(self, graph, vals, stamps, t_fix, n_new):
+            info = super()._update(graph, vals, stamps, t_fix, n_new)
+            if 100.0 <= t_fix and not Troubled.injected:
+                Troubled.injected = True
+                self.events.append({"t": float(t_fix), "event": "fix skipped",
+                                    "error": "injected by the test"})
+            return info
+
     m, truth = mission("otter-dev-calm-b", 8.0)
-    res = FixedLagSmoother(settings=FGSettings(walk_sigma={"theta_e": 0.0026},
-                                               online_gate_usbl=np.inf)).run(m)
-    f = res.missions[0].filtered
-    pt = np.column_stack([np.interp(f.t, truth.t, truth.pos[:, a]) for a in range(2)])
-    err = np.hypot(*(f.pos[:, :2] - pt).T)
-    print("causal RMSE", causal_rmse(res, truth), "knots > 100 m", int(np.sum(err > 100.0)))
-    assert np.mean(err > 100.0) < 0.01        # was 76 of 928 knots
-    assert any(e["event"].startswith("re-initialised") and e["t"] not in (20.0, 40.0, 80.0, 160.0)
-               for e in res.info["events"])   # a forced one
+    st = FGSettings(walk_sigma={"theta_e": 0.0026}, online_gate_usbl=np.inf)
+    for cls in (FixedLagSmoother, Troubled):
+        res = cls(settings=st).run(m)
+        f = res.missions[0].filtered
+        pt = np.column_stack([np.interp(f.t, truth.t, truth.pos[:, a]) for a in range(2)])
+        err = np.hypot(*(f.pos[:, :2] - pt).T)
+        print(cls.__name__, "causal RMSE", causal_rmse(res, truth),
+              "knots > 100 m", int(np.sum(err > 100.0)))
+        assert np.mean(err > 100.0) < 0.01        # was 76 of 928 knots
+        assert causal_rmse(res, truth) < 3.0
+    skipped = [e["t"] for e in res.info["events"] if e["event"] == "fix skipped"]
+    assert skipped
+    assert any(e["event"].startswith("re-initialised") and abs(e["t"] - skipped[0]) < 1e-6
+               for e in res.info["events"]), res.info["events"]   # a forced one
 
 
 def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
@@ -424,3 +442,22 @@ def test_the_usbl_gate_stands_down_when_the_track_is_off(name, start, every):
     gated = fit_fg([m], mode="online")
     plain = fit_fg([m], mode="online", settings=FGSettings(online_gate_usbl=np.inf))
     assert causal_rmse(gated, truth) <= causal_rmse(plain, truth) + 0.1
+
+
+@pytest.mark.parametrize("name,t0", [("otter-dev-calm-a", 320.0), ("otter-example", 40.0)])
+def test_a_short_batch_searches_the_heading_all_round(name, t0):
+    """24 s of an Otter mission at 8-s fixes with another mission's constants (an online
+    re-initialisation's batch): the closed form's start is poor on so little data and led
+    to a heading basin 104 deg (calm-a from 320 s, sigma 5.5 deg) and 178 deg (example
+    from 40 s) off; solving from the start turned by 90, 180 and 270 deg as well finds the
+    basin of lower cost, within its sigma of the truth."""
+    from aqfg.data.mission import between
+    other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
+    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
+    m, truth = mission(name, 8.0)
+    r = BatchSmoother(estimate=("theta_e", "s_x", "s_y"), init=init,
+                      settings=FGSettings(adapt_batch=True)).run([between(m, t0, t0 + 24.0)])
+    err = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
+    assert any(b["start"].startswith("turned heading start") for b in r.info["basins"])
+    assert err < np.radians(20.0) and err < 3.0 * r.sigma["theta_e"], (np.degrees(err),
+                                                                      r.info["basins"])

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import gtsam
@@ -207,8 +207,11 @@ class BatchSmoother:
                 a, b = int(ii[0]), int(ii[-1]) + 1
                 slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
             keys = [fc.state_key(mi, i) for i in range(len(knots))]
+            ps = s.prior_sigma or {}
+            cur_sig = ((float(ps["s_x"]), float(ps["s_y"]))
+                       if "s_x" in ps and "s_y" in ps else None)
             starts = candidate_starts(model, m, knots, layout.base, search=grid,
-                                      steps=(steps, off))
+                                      steps=(steps, off), current_sigma=cur_sig)
             if starts:
                 guess = starts[0]
                 X0 = start_states(guess, m, knots)
@@ -351,7 +354,7 @@ class BatchSmoother:
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
-        for label, alt in [*self._alternatives(bg, verdicts), *self._given_start(bg)]:
+        for label, alt in [*self._alternatives(bg, verdicts, short), *self._given_start(bg)]:
             o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
             v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
@@ -488,13 +491,17 @@ class BatchSmoother:
             vals.update(key, bg.layout.project(g, v))
         yield "given start", vals
 
-    def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility]):
+    def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility], short: bool = False):
         """Other starts worth solving from: other heading basins of the closed form, when
         the first solution is implausible or another basin explained the fixes almost as
-        well (robust misfit within 25 %); and, when it is implausible and the constants
-        were searched, the best start with a sway drag at least ten times the surge drag
-        (an implausible solution slides sideways with k_yz near zero; on a 7.5-min crop of
-        an Otter mission every heading start slid into it, docs/independent-vehicle.md)."""
+        well (robust misfit within 25 %); on data too ``short`` for the sandwich, also the
+        closed form's start turned by 90, 180 and 270 deg, where no basin was tried (a
+        global search in the heading: over the first 20 s of a slow leg the closed form
+        is poor, and the heading basin it led to was 134 deg off while one 7 deg off had
+        the lower cost, docs/independent-vehicle.md); and, when it is implausible and the
+        constants were searched, the best start with a sway drag at least ten times the
+        surge drag (an implausible solution slides sideways with k_yz near zero; on a
+        7.5-min crop of an Otter mission every heading start slid into it)."""
         if not bg.starts or not all(bg.starts) or "variable" not in bg.layout.names \
                 or "theta_e" not in bg.layout.names["variable"]:
             return
@@ -502,6 +509,7 @@ class BatchSmoother:
         implausible = not all(v.plausible for v in verdicts)
         n_alt = max(len(h) for h in heads)
         user = "theta_e" in self.init
+        tried = [h[0].theta_e for h in heads[:1]]
         for j in range(0 if user else 1, min(n_alt, 3)):
             if user and not implausible:
                 break
@@ -509,8 +517,18 @@ class BatchSmoother:
             if not (implausible or close):
                 continue
             sts = [h[j] if len(h) > j else h[0] for h in heads]
+            tried.append(sts[0].theta_e)
             yield (f"alternative heading start {np.degrees(sts[0].theta_e):.0f} deg",
                    self._start_values(bg, sts, implausible))
+        if short and not user:
+            for turn in np.radians([90.0, 180.0, 270.0]):
+                th = heads[0][0].theta_e + turn
+                if any(abs(np.angle(np.exp(1j * (th - t)))) < np.radians(30.0) for t in tried):
+                    continue
+                sts = [replace(h[0], theta_e=float(h[0].theta_e + turn), current=np.zeros(2))
+                       for h in heads]
+                yield (f"turned heading start {np.degrees(th):.0f} deg",
+                       self._start_values(bg, sts, implausible))
         searched = len(bg.starts[0]) > 1
         if implausible and searched and not user:
             sway = [_high_sway(st) for st in bg.starts]

@@ -584,8 +584,16 @@ class FixedLagSmoother:
     def _reinit_due(self, t_fix: float) -> bool:
         s = self.settings
         el = t_fix - self.knots[0]
-        # the first batch: after online_init_after s, or online_init_fixes fixes if sooner
-        first = (not self._batch_tried and self.n_fix >= s.online_init_fixes
+        # the first batch: after online_init_after s, or online_init_fixes fixes if sooner,
+        # or, before that, at every fix while the held model fails: its process noise
+        # adapted to the bound, or its last two fixes beyond the USBL gate's quantile (a
+        # held heading 149 deg off ran the causal track 43 m off the fixes in the 15 s
+        # before the 20-s batch, docs/independent-vehicle.md)
+        recent = self._taken_m2[-2:]
+        failing = (bool(self._hold_idx) and el < s.online_init_after
+                   and (self.q_scale >= s.adapt_max
+                        or (len(recent) == 2 and min(recent) > s.online_gate_usbl)))
+        first = (((not self._batch_tried and self.n_fix >= s.online_init_fixes) or failing)
                  and not getattr(self, "_replaying", False))
         return (self._reinit_scheduled() and (el >= self._next_reinit or first)
                 and (el <= s.online_reinit_until or bool(self._hold_idx))

@@ -40,10 +40,12 @@ class Start:
     p0: np.ndarray             # (2,) fitted start position
 
 
-def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: int = 8
-                ) -> tuple[np.ndarray, np.ndarray, float]:
+def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: int = 8,
+                prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Huber-weighted (IRLS) least squares of 2-D residual pairs with one free offset per
     window: ``y[a] = off[win, a] + C[a] @ c`` for the north (a = 0) and east (a = 1) rows.
+    ``prior``: per coefficient, the sigma of a zero-mean prior on it (``inf``: none),
+    weighed against the residuals' robust scale of the previous step (from the second).
 
     ``C`` is (2, n, m), ``y`` (2, n). The offsets are eliminated in closed form (weighted
     means within each window), so each IRLS step solves an m-unknown problem instead of a
@@ -58,14 +60,19 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
     onehot = np.zeros((nw, n))
     onehot[win, np.arange(n)] = 1.0
     V = np.column_stack([y[0], y[1], C[0], C[1]])          # (n, 2 + 2m)
-    for _ in range(iters):
+    for it in range(iters):
         wsum = np.maximum(onehot @ wf, 1e-300)
         Vc = V - ((onehot @ (wf[:, None] * V)) / wsum[:, None])[win]
         yc = np.stack([Vc[:, 0], Vc[:, 1]])
         Cc = np.stack([Vc[:, 2:2 + m], Vc[:, 2 + m:]])
         sw = np.sqrt(wf)
         A = (Cc * sw[None, :, None]).reshape(2 * n, -1)
-        c = np.linalg.lstsq(A, (yc * sw).reshape(-1), rcond=None)[0]
+        b = (yc * sw).reshape(-1)
+        if prior is not None and it > 0:
+            lam = (1.4826 * np.median(res) + 1e-3) / np.asarray(prior, float)
+            A = np.vstack([A, np.diag(lam)])
+            b = np.concatenate([b, np.zeros(m)])
+        c = np.linalg.lstsq(A, b, rcond=None)[0]
         r = yc - Cc @ c
         res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
@@ -79,14 +86,19 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
 
 
 def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray,
-                window: float | None = None
+                window: float | None = None, current_sigma: tuple[float, float] | None = None
                 ) -> tuple[float, np.ndarray, float, np.ndarray, float] | None:
     """Theta, current, rho, start position and robust misfit that best map the model track
     ``W`` (at ``knots``, theta = 0, no current) onto the fixes ``(tf, pf)``.
 
     With ``window`` (s), every window of that length gets its own position offset, so the
     misfit measures how well the model predicts motion over a window rather than how far
-    the roll-out of the whole mission has drifted. None if ill-posed.
+    the roll-out of the whole mission has drifted. ``current_sigma`` (m/s, north and east):
+    the current's prior, as in the batch (``FGSettings.prior_sigma``). On a straight leg
+    at constant speed the model track and the current's drift are the same direction in
+    time, and without it the split between them, so theta, is arbitrary: a 20-s start of
+    an Otter mission came out 177 deg off, the "current" 2 m/s (docs/independent-vehicle.md).
+    None if ill-posed.
     """
     t_a = float(knots[0])
     sel = (tf >= t_a - 1e-9) & (tf <= knots[-1] + 1e-9)
@@ -109,7 +121,9 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     z = np.zeros(n)
     C = np.stack([np.column_stack([dt, z, Wf[:, 0], -Wf[:, 1]]),
                   np.column_stack([z, dt, Wf[:, 1], Wf[:, 0]])])
-    c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw)
+    prior = (None if current_sigma is None else
+             np.array([current_sigma[0], current_sigma[1], np.inf, np.inf]))
+    c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw, prior=prior)
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(off))):
         return None
     theta = float(np.arctan2(c[3], c[2]))
@@ -123,13 +137,14 @@ _SCALES = np.logspace(-2.0, 1.0, 10)
 
 def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.ndarray,
                      scales=_SCALES, ratios=(0.1, 1.0, 10.0),
-                     search: bool = True, steps=None) -> list[Start]:
+                     search: bool = True, steps=None,
+                     current_sigma: tuple[float, float] | None = None) -> list[Start]:
     """Candidate starts, best (lowest misfit) first.
 
     ``p`` is the full parameter vector whose k, k_x, k_yz define the grid centre (the
     nominal values, or the user's); with ``search=False`` only that point is used (the
     user fixed the constants). ``steps``: the kernel steps of ``knots`` (``model.steps``),
-    when the caller has them.
+    when the caller has them. ``current_sigma``: the current's prior (:func:`closed_form`).
     """
     tf, pf = retrace.fixes(mission)
     t_a = float(knots[0])
@@ -155,7 +170,7 @@ def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.nd
             X = np.column_stack([tr.pos, tr.vel])      # starts with the state at t_a
         if not np.all(np.isfinite(X)):
             continue
-        cf = closed_form(X[:, :3], knots, tf, pf, window)
+        cf = closed_form(X[:, :3], knots, tf, pf, window, current_sigma)
         if cf is None:
             continue
         theta, cur, rho, p0, misfit = cf
