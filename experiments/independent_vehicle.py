@@ -12,7 +12,10 @@ For every mission and GNSS fix interval (1, 4, 8 s; USBL every 4.5 s throughout)
   RMSE of both methods.
 
 Writes experiments/results/independent_vehicle.md. Run: ``python experiments/independent_vehicle.py``
-(``--quick``: one mission, 8-s fixes).
+(``--quick``: one mission, 8-s fixes). ``--data DIR``: every mission under DIR with a
+``[truth]`` table instead (a lab's own, or freshly simulated ones), each with the next one
+in name order as its donor; ``--out FILE`` then names the table. The table ends with the
+issue's acceptance checks, counted over all runs.
 """
 from __future__ import annotations
 
@@ -119,22 +122,22 @@ def all6_row(m, truth) -> dict:
 
 
 def one(args) -> dict:
-    name, every = args
+    data, name, donor_name, every = args
     from aqfg.fg import fit_fg
-    m = with_gnss_every(load_mission(DATA / name), every)
-    truth = load_truth(DATA / name)
-    donor = fit_fg([load_mission(DATA / DONOR[name])])
+    m = with_gnss_every(load_mission(data / name), every)
+    truth = load_truth(data / name)
+    donor = fit_fg([load_mission(data / donor_name)])
     init = {n: donor.values[n] for n in ("k", "k_x", "k_yz")}
-    out = {"mission": name, "every": every}
+    out = {"mission": name, "every": every, "donor": donor_name}
     if "heading_drift.rate" in truth.params:
         try:
             out["batch_fg_drift"] = batch_row("fg", m, truth, effects=("heading_drift",))
         except Exception as exc:
             out["batch_fg_drift"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
     for meth in ("fg", "update-error"):
-        for key, row in (("batch", lambda: batch_row(meth, m, truth)),
-                         ("online", lambda: online_row(meth, m, truth, init)),
-                         ("default", lambda: online_row(meth, m, truth, {}))):
+        for key, row in (("batch", lambda meth=meth: batch_row(meth, m, truth)),
+                         ("online", lambda meth=meth: online_row(meth, m, truth, init)),
+                         ("default", lambda meth=meth: online_row(meth, m, truth, {}))):
             try:
                 out[f"{key}_{meth}"] = row()
             except Exception as exc:          # a method failing is a result, not a crash
@@ -195,9 +198,50 @@ def table(rows: list[dict]) -> str:
               "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         d = r["all6_fg"]
-        lines.append(f"| {r['mission']} | {r['every']:.0f} s | {'no: ' + d['error'] if 'error' in d else 'yes'} | "
+        done = "no: " + d["error"] if "error" in d else "yes"
+        lines.append(f"| {r['mission']} | {r['every']:.0f} s | {done} | "
                      f"{fmt(d, 'theta_end', '{:.1f}')} | {fmt(d, 'causal')} | "
                      f"{fmt(d, 'events', '{:.0f}')} | {fmt(d, 'seconds', '{:.1f}')} |")
+    return "\n".join(lines) + "\n"
+
+
+def checks(rows: list[dict]) -> str:
+    """The issue's done-when, counted: batch fg theta_e within 3 deg (a drifting offset: the
+    heading_drift fit's, or the mission mean), current within 0.05 m/s, |error|/sigma <= 3;
+    online fg with a donor: theta_e within 5 deg after the 10th fix, causal RMSE <= 3 m;
+    default constants: fg causal RMSE no worse than the update-error method's; all six
+    parameters online completes."""
+    def ok(d: dict, key: str, test) -> bool:
+        return "error" not in d and d.get(key) is not None and bool(test(d[key]))
+    crit: dict[str, list[str]] = {k: [] for k in (
+        "batch fg θe within 3°", "batch fg current within 0.05 m/s", "batch fg abs(err)/σ ≤ 3",
+        "online fg (donor) θe within 5° after the 10th fix", "online fg (donor) causal ≤ 3 m",
+        "online default constants: fg causal ≤ update-error's", "online all six completes")}
+    for r in rows:
+        run = f"{r['mission']} {r['every']:.0f} s"
+        b = r.get("batch_fg_drift") if "batch_fg_drift" in r and "error" not in r["batch_fg_drift"] \
+            and abs(r["batch_fg_drift"]["theta_err"]) < abs(r["batch_fg"].get("theta_err", 1e9)) \
+            else r["batch_fg"]
+        fails = {
+            "batch fg θe within 3°": not ok(b, "theta_err", lambda v: abs(v) <= 3.0),
+            "batch fg current within 0.05 m/s": not ok(b, "cur_err", lambda v: v <= 0.05),
+            "batch fg abs(err)/σ ≤ 3": not ok(b, "z_max", lambda v: v <= 3.0),
+            "online fg (donor) θe within 5° after the 10th fix":
+                not ok(r["online_fg"], "theta_10", lambda v: abs(v) <= 5.0),
+            "online fg (donor) causal ≤ 3 m": not ok(r["online_fg"], "causal", lambda v: v <= 3.0),
+            "online default constants: fg causal ≤ update-error's":
+                "error" in r["default_fg"] or not (
+                    "error" in r["default_update-error"]
+                    or r["default_fg"]["causal"] <= r["default_update-error"]["causal"]),
+            "online all six completes": "error" in r["all6_fg"]}
+        for k, bad in fails.items():
+            if bad:
+                crit[k].append(run)
+    n = len(rows)
+    lines = ["", "## Acceptance checks (issue 10's done-when)", "",
+             "| check | runs met | not met |", "| --- | --- | --- |"]
+    for k, bad in crit.items():
+        lines.append(f"| {k} | {n - len(bad)} of {n} | {', '.join(bad) or '–'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -205,10 +249,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--data", type=Path, default=None,
+                    help="a folder of missions with [truth] (default: the Otter missions in "
+                         "tests/data)")
+    ap.add_argument("--out", type=Path, default=None, help="where to write the table")
     args = ap.parse_args()
-    jobs = [(n, e) for n in MISSIONS for e in EVERY]
+    if args.data is not None and args.out is None:
+        sys.exit("independent_vehicle: with --data, name the table with --out "
+                 "(the committed one is for tests/data)")
+    if args.data is None:
+        data, names, donors = DATA, list(MISSIONS), dict(DONOR)
+    else:
+        data = args.data.resolve()
+        names = sorted(p.name for p in data.iterdir()
+                       if (p / "mission.toml").is_file() and (p / "truth.csv").is_file())
+        if len(names) < 2:
+            sys.exit(f"independent_vehicle: {data} needs at least two missions with truth "
+                     "(each is another's donor)")
+        donors = {n: names[(i + 1) % len(names)] for i, n in enumerate(names)}
+    jobs = [(data, n, donors[n], e) for n in names for e in EVERY]
     if args.quick:
-        jobs = [("otter-dev-calm-a", 8.0)]
+        jobs = [(data, "otter-dev-calm-a", donors["otter-dev-calm-a"], 8.0)] \
+            if args.data is None else jobs[2:3]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as ex:
         rows = list(ex.map(one, jobs))
@@ -218,10 +280,20 @@ def main() -> None:
             "mean of its drifting offset (batch), the offset at t = 0 (batch with the "
             "`heading_drift` effect) or the offset at that time (online). The update-error "
             "method's online σ is NaN where its 3-fix window does not determine θe.\n\n")
-    RESULTS.mkdir(exist_ok=True)
-    name = "independent_vehicle_quick.md" if args.quick else "independent_vehicle.md"
-    (RESULTS / name).write_text(head + table(rows))
-    print(head + table(rows))
+    if args.data is not None:
+        head += f"Missions: {data.name}/; donors: " + ", ".join(
+            f"{n} ← {donors[n]}" for n in names) + ".\n\n"
+    text = head + table(rows) + checks(rows)
+    if args.out is not None:
+        out = args.out
+    else:
+        RESULTS.mkdir(exist_ok=True)
+        out = RESULTS / ("independent_vehicle_quick.md" if args.quick
+                         else "independent_vehicle.md")
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(out)
+    print(text)
 
 
 if __name__ == "__main__":
