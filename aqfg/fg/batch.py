@@ -358,9 +358,11 @@ class BatchSmoother:
             o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
             v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
+            # (lower by more than round-off: a start that ends in the same basin keeps the
+            # first solution and its iterates)
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
                     (all(x.plausible for x in v) == all(x.plausible for x in verdicts)
-                     and o.cost < out.cost):
+                     and o.cost < out.cost - 1e-6 * max(abs(out.cost), 1.0)):
                 out, verdicts = o, v
         slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
         held = None
@@ -494,13 +496,15 @@ class BatchSmoother:
     def _alternatives(self, bg: BuiltGraph, verdicts: list[Plausibility], short: bool = False):
         """Other starts worth solving from: other heading basins of the closed form, when
         the first solution is implausible or another basin explained the fixes almost as
-        well (robust misfit within 25 %); on data too ``short`` for the sandwich, also the
-        closed form's start turned by 90, 180 and 270 deg, where no basin was tried (a
-        global search in the heading: over the first 20 s of a slow leg the closed form
-        is poor, and the heading basin it led to was 134 deg off while one 7 deg off had
-        the lower cost, docs/independent-vehicle.md); and, when it is implausible and the
-        constants were searched, the best start with a sway drag at least ten times the
-        surge drag (an implausible solution slides sideways with k_yz near zero; on a
+        well (robust misfit within 25 %); on data too ``short`` for the sandwich with the
+        constants given (one closed-form start), also that start turned by 90, 180 and
+        270 deg (a global search in the heading: over the first 20 s of a slow leg the
+        closed form is poor, and the heading basin it led to was 134 deg off while one
+        7 deg off had the lower cost, docs/independent-vehicle.md; with the constants
+        searched, the grid's starts cover the heading, and a turned start found a sliding
+        basin 0.2 % lower in cost on a mission whose model lacks an effect); and, when it
+        is implausible and the constants were searched, the best start with a sway drag
+        at least ten times the surge drag (an implausible solution slides sideways with k_yz near zero; on a
         7.5-min crop of an Otter mission every heading start slid into it)."""
         if not bg.starts or not all(bg.starts) or "variable" not in bg.layout.names \
                 or "theta_e" not in bg.layout.names["variable"]:
@@ -520,7 +524,7 @@ class BatchSmoother:
             tried.append(sts[0].theta_e)
             yield (f"alternative heading start {np.degrees(sts[0].theta_e):.0f} deg",
                    self._start_values(bg, sts, implausible))
-        if short and not user:
+        if short and not user and all(len(st) == 1 for st in bg.starts):
             for turn in np.radians([90.0, 180.0, 270.0]):
                 th = heads[0][0].theta_e + turn
                 if any(abs(np.angle(np.exp(1j * (th - t)))) < np.radians(30.0) for t in tried):
