@@ -188,6 +188,9 @@ class BatchSmoother:
         free = set(layout.names.get("fixed", ()))
         grid = {"k", "k_x", "k_yz"} <= free
         search = grid and not ({"k", "k_x", "k_yz"} & set(self.init))
+        ps = s.prior_sigma or {}            # the closed form's current prior: the batch's
+        cur_sig = ((float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps
+                   else None)
         for mi, (m, model) in enumerate(zip(missions, models)):
             knots = knot_times(m, s.knot_spacing)
             steps, off = model.steps(m, knots)
@@ -207,9 +210,6 @@ class BatchSmoother:
                 a, b = int(ii[0]), int(ii[-1]) + 1
                 slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
             keys = [fc.state_key(mi, i) for i in range(len(knots))]
-            ps = s.prior_sigma or {}
-            cur_sig = ((float(ps["s_x"]), float(ps["s_y"]))
-                       if "s_x" in ps and "s_y" in ps else None)
             starts = candidate_starts(model, m, knots, layout.base, search=grid,
                                       steps=(steps, off), current_sigma=cur_sig)
             if starts:
@@ -513,7 +513,7 @@ class BatchSmoother:
         implausible = not all(v.plausible for v in verdicts)
         n_alt = max(len(h) for h in heads)
         user = "theta_e" in self.init
-        tried = [h[0].theta_e for h in heads[:1]]
+        tried = [heads[0][0].theta_e]
         for j in range(0 if user else 1, min(n_alt, 3)):
             if user and not implausible:
                 break

@@ -57,6 +57,7 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
     c = np.zeros(m)
     off = np.zeros((nw, 2))
     res = np.zeros(n)
+    scale = 1e-3                     # the robust scale of res (used from the second step)
     onehot = np.zeros((nw, n))
     onehot[win, np.arange(n)] = 1.0
     V = np.column_stack([y[0], y[1], C[0], C[1]])          # (n, 2 + 2m)
@@ -69,7 +70,7 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
         A = (Cc * sw[None, :, None]).reshape(2 * n, -1)
         b = (yc * sw).reshape(-1)
         if prior is not None and it > 0:
-            lam = (1.4826 * np.median(res) + 1e-3) / np.asarray(prior, float)
+            lam = scale / np.asarray(prior, float)
             A = np.vstack([A, np.diag(lam)])
             b = np.concatenate([b, np.zeros(m)])
         c = np.linalg.lstsq(A, b, rcond=None)[0]

@@ -28,13 +28,9 @@ import time
 
 import numpy as np
 
-# Fossen's Python Vehicle Simulator (MIT licence, not on PyPI): its src/ folder, from
-# PVS_SRC or experiments/heldout/pvs/src (see experiments/heldout/README.md)
-_PVS = os.environ.get("PVS_SRC") or os.path.join(os.path.dirname(os.path.abspath(__file__)), "pvs", "src")
-if not os.path.isdir(os.path.join(_PVS, "python_vehicle_simulator")):
-    sys.exit(f"{os.path.basename(__file__)}: Fossen's Python Vehicle Simulator not found at {_PVS}; "
-             "clone https://github.com/cybergalactic/PythonVehicleSimulator and set PVS_SRC to its src/")
-sys.path.insert(0, _PVS)
+import _pvs  # noqa: E402,F401  (the simulator on sys.path)
+from aqfg.model.frames import wrap_angle as wrap  # noqa: E402
+from aqfg.model.vehicle import euler_to_quat  # noqa: E402
 from python_vehicle_simulator.lib.gnc import Rzyx, Smtrx, attitudeEuler, crossFlowDrag, m2c, sat  # noqa: E402
 from python_vehicle_simulator.vehicles.otter import otter  # noqa: E402
 
@@ -105,17 +101,6 @@ class Otter(otter):
         return nu, np.array(n, float)
 
 
-def wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
-
-def euler_to_quat(phi, theta, psi):
-    """ZYX Euler -> quaternion (w, x, y, z), body -> NED; arrays ok."""
-    cp, sp = np.cos(phi / 2), np.sin(phi / 2)
-    ct, st = np.cos(theta / 2), np.sin(theta / 2)
-    cy, sy = np.cos(psi / 2), np.sin(psi / 2)
-    return (cp * ct * cy + sp * st * sy, sp * ct * cy - cp * st * sy,
-            cp * st * cy + sp * ct * sy, cp * ct * sy - sp * st * cy)
 
 
 # ------------------------------------------------------------------ waypoint controller
@@ -333,7 +318,7 @@ def write_mission(out: str, name: str, d: dict, sim: dict, end_idx: int):
     phi = im[:, 1] + rng.normal(0, SIG_RP, n)
     theta = im[:, 2] + rng.normal(0, SIG_RP, n)
     psi = im[:, 3] - th + rng.normal(0, SIG_YAW, n)
-    qw, qx, qy, qz = euler_to_quat(phi, theta, psi)
+    qw, qx, qy, qz = euler_to_quat(phi, theta, psi).T
     w = im[:, 4:7] + rng.normal(0, SIG_GYRO, (n, 3))
     w[:, 2] -= d["rate"]
     a = im[:, 7:10] + rng.normal(0, SIG_ACC, (n, 3))

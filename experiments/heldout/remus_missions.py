@@ -27,13 +27,9 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-# Fossen's Python Vehicle Simulator (MIT licence, not on PyPI): its src/ folder, from
-# PVS_SRC or experiments/heldout/pvs/src (see experiments/heldout/README.md)
-_PVS = os.environ.get("PVS_SRC") or os.path.join(os.path.dirname(os.path.abspath(__file__)), "pvs", "src")
-if not os.path.isdir(os.path.join(_PVS, "python_vehicle_simulator")):
-    sys.exit(f"{os.path.basename(__file__)}: Fossen's Python Vehicle Simulator not found at {_PVS}; "
-             "clone https://github.com/cybergalactic/PythonVehicleSimulator and set PVS_SRC to its src/")
-sys.path.insert(0, _PVS)
+import _pvs  # noqa: E402,F401  (the simulator on sys.path)
+from aqfg.model.frames import wrap_angle as wrap  # noqa: E402
+from aqfg.model.vehicle import euler_to_quat  # noqa: E402
 from python_vehicle_simulator.lib.gnc import Rzyx, attitudeEuler, ssa  # noqa: E402
 from python_vehicle_simulator.vehicles.remus100 import remus100  # noqa: E402
 
@@ -45,20 +41,6 @@ N_MAX = 1525.0
 D2R = math.pi / 180
 
 
-def wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
-
-def quat_from_euler(phi, theta, psi):
-    """ZYX Euler -> quaternion (w, x, y, z), body -> ground."""
-    cr, sr = np.cos(phi / 2), np.sin(phi / 2)
-    cp, sp = np.cos(theta / 2), np.sin(theta / 2)
-    cy, sy = np.cos(psi / 2), np.sin(psi / 2)
-    qw = cr * cp * cy + sr * sp * sy
-    qx = sr * cp * cy - cr * sp * sy
-    qy = cr * sp * cy + sr * cp * sy
-    qz = cr * cp * sy - sr * sp * cy
-    return qw, qx, qy, qz
 
 
 # --------------------------------------------------------------------------- plan
@@ -237,7 +219,7 @@ def write_mission(out, name, plan, sim, rng):
     phi = eta[idx50, 3] + rng.normal(0, 0.5 * D2R, n50)
     th = eta[idx50, 4] + rng.normal(0, 0.5 * D2R, n50)
     ps = eta[idx50, 5] - plan["theta_e"] + rng.normal(0, 0.3 * D2R, n50)
-    qw, qx, qy, qz = quat_from_euler(phi, th, ps)
+    qw, qx, qy, qz = euler_to_quat(phi, th, ps).T
     qn = np.sqrt(qw ** 2 + qx ** 2 + qy ** 2 + qz ** 2)
     with open(f"{out}/imu.csv", "w") as f:
         f.write("t,qw,qx,qy,qz,ax,ay,az,wx,wy,wz\n")
