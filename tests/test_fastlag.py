@@ -222,6 +222,7 @@ def test_system_gradient_is_the_cost_derivative_and_marginalisation_is_exact():
     red = copy.deepcopy(eng)
     red.z = z.copy()
     red.lag = red.kt[-1] - red.kt[2] + 1e-3          # knots 0 and 1 leave
+    red._walk_idx = red._walk_idx[:0]                # the current's walk (tested below) off
     red._marginalise()
     assert red.n == eng.n - 2
     Hr, gr = red.system()
@@ -234,8 +235,10 @@ def test_system_gradient_is_the_cost_derivative_and_marginalisation_is_exact():
 def test_numpy_engine_agrees_with_gtsam_engine_and_truth(usbl, seed):
     m, truth, init = _mission(seed, usbl)
     window = 15.0 if usbl else 24.0
+    # (the GTSAM engine holds the current constant: the numpy one too, here)
     runs = {e: FixedLagSmoother(init=init, window=window,
-                                settings=FGSettings(online_engine=e)).run(m)
+                                settings=FGSettings(online_engine=e,
+                                                    online_current_walk=0.0)).run(m)
             for e in ("numpy", "gtsam")}
     a, b = runs["numpy"], runs["gtsam"]
     assert a.info["engine"] == "numpy" and b.info["engine"] == "gtsam"
@@ -292,3 +295,68 @@ def test_a_failed_step_is_recovered_and_recorded(monkeypatch):
     assert any(e["event"].startswith("restarted") for e in res.info["events"])
     assert np.all(np.isfinite(res.missions[0].track.pos))
     assert np.all(np.isfinite(res.history.values[-1]))
+
+
+def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
+    """``LagWindow._walk`` (the marginal's current moved by a first-order Gauss-Markov step:
+    an affine map and Woodbury) against the same process written out: the marginal's
+    current as its own variable ``c``, joined to the window's by the factor
+    ``z - th0 - a (c - th0) ~ N(0, S (1 - a^2))``, then eliminated (Schur complement)."""
+    m, _, init = _mission(4, False)
+    sw = 0.02
+    fl = FixedLagSmoother(init=init, window=30.0, settings=FGSettings(online_current_walk=sw))
+    fl.start(m, plan=True)
+    while fl.n_fix < 14:                  # ~100 s of 8-s fixes: knots have left the window
+        fl.update()
+    eng = fl._fast
+    w = eng._walk_idx
+    assert [eng.names[j] for j in w] == ["s_x", "s_y"]
+    P, N = eng.P, len(eng.b)
+    # the window's own dynamics factors, placed; the rest of the held quadratic is the marginal
+    Hw, bw = np.zeros((N, N)), np.zeros(N)
+    for i, d in enumerate(eng.dyn):
+        r = np.concatenate([np.arange(P), P + 6 * i + np.arange(12)])
+        Hw[np.ix_(r, r)] += d[2]
+        bw[r] += d[3]
+    Hm, bm = eng.H - Hw, eng.b - bw
+    assert np.abs(Hm[np.ix_(w, w)]).max() > 0          # the past has informed the current
+    for dt, stat in ((8.0, 0.3 ** 2), (8.0, np.inf)):   # Gauss-Markov, and a plain walk
+        k = len(w)
+        if np.isfinite(stat):
+            tau = 2 * stat / sw ** 2
+            a, q = np.exp(-dt / tau), stat * (1 - np.exp(-2 * dt / tau))
+        else:
+            a, q = 1.0, sw ** 2 * dt
+        # explicit: variables [z (the window's current), c (the past's current)]
+        A = np.zeros((N + k, N + k))
+        v = np.zeros(N + k)
+        mv = np.arange(N)
+        mv[w] = N + np.arange(k)                       # the marginal reads c, not z[w]
+        A[np.ix_(mv, mv)] += Hm
+        v[mv] += bm
+        A[:N, :N] += Hw
+        v[:N] += bw
+        for j, c in zip(w, N + np.arange(k)):           # (z_j - a c - k0)^2 / q
+            k0 = (1 - a) * eng.th0[j]
+            A[j, j] += 1 / q
+            A[c, c] += a * a / q
+            A[j, c] -= a / q
+            A[c, j] -= a / q
+            v[j] -= k0 / q
+            v[c] += a * k0 / q
+        c = N + np.arange(k)
+        Ac = np.linalg.solve(A[np.ix_(c, c)], np.column_stack([A[c, :N], v[c]]))
+        H_ref = A[:N, :N] - A[:N, c] @ Ac[:, :N]
+        b_ref = v[:N] - A[:N, c] @ Ac[:, N]
+        e = copy.deepcopy(eng)
+        e._walk_stat = np.full(k, stat)
+        e._walk(dt)
+        assert np.allclose(e.H, H_ref, rtol=0, atol=1e-9 * np.abs(eng.H).max())
+        assert np.allclose(e.b, b_ref, rtol=0, atol=1e-9 * np.abs(eng.b).max())
+        # the information on the current fell; nothing untied to the marginal's current moved
+        assert np.all(np.diag(e.H)[w] < np.diag(eng.H)[w])
+        tied = np.abs(Hm[:, w]).sum(axis=1) > 1e-9 * np.abs(eng.H).max()
+        other = np.flatnonzero(~tied)
+        assert len(other) > N // 2
+        assert np.allclose(e.H[np.ix_(other, other)], eng.H[np.ix_(other, other)],
+                           rtol=0, atol=1e-12 * np.abs(eng.H).max())

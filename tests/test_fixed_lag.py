@@ -59,12 +59,20 @@ def test_fixed_lag_end_agrees_with_batch(vehicle, usbl, seed):
     m, tr = simulate(vehicle, seed=seed, duration=600.0, usbl=usbl)
     m = without_gnss(m) if usbl else with_gnss_every(m, 8.0)
     init = fixed_truth(tr)
-    fl = FixedLagSmoother(init=init, window=24.0).run(m)
+    # the batch's model: one constant current (the online default lets it move)
+    fl = FixedLagSmoother(init=init, window=24.0,
+                          settings=FGSettings(online_current_walk=0.0)).run(m)
     b = BatchSmoother(init=init, estimate=VAR).run([m])
     for n in VAR:
         assert abs(fl.values[n] - b.values[n]) < 2 * b.sigma[n], (n, fl.values[n], b.values[n],
                                                                  b.sigma[n])
         assert 0.5 * b.sigma[n] < fl.sigma[n] < 2 * b.sigma[n], n    # same information
+    # the default, the current a Gauss-Markov process: the same truth, less certain of it
+    fw = FixedLagSmoother(init=init, window=24.0).run(m)
+    for n in VAR:
+        assert abs(fw.values[n] - tr.params[n]) < 3 * fw.sigma[n], (n, fw.values[n])
+    if fw.info["engine"] == "numpy":
+        assert fw.sigma["s_x"] > 1.2 * fl.sigma["s_x"]
     assert fl.info["kernel"] == "cpp" and np.isfinite(fl.info["warmup_end"])
     assert len(fl.timings["update"]) == fl.info["n_updates"] == len(np.unique(m.fix_times()))
 
@@ -158,6 +166,33 @@ def test_random_walk_online_follows_heading_drift():
     assert abs(err[-1]) < 3 * sig[-1] and np.sqrt(np.mean(err[30:] ** 2)) < 0.06
     err_c, sig_c = errs["constant"]
     assert abs(err_c[-1]) > 3 * sig_c[-1]
+
+
+def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
+    """A current changing by 0.15 m/s over the mission (the diagnosis's current_drift case):
+    the online smoother's current (a Gauss-Markov process between the window and its past,
+    ``online_current_walk``, on by default) ends near the final current, within 3 sigma,
+    and the causal track follows the fixes; held constant, the current ends between the
+    start and end values with a sigma that claims otherwise."""
+    from aqfg.sim.cases import simulate_case
+    m, tr = simulate_case("current_drift", 2)
+    P = tr.params
+    end = np.array([P["s_x"] + P["current_drift.ds_x"] * m.t1,
+                    P["s_y"] + P["current_drift.ds_y"] * m.t1])
+    assert FGSettings().online_current_walk > 0
+    out = {}
+    for name, st in (("walk", FGSettings()), ("constant", FGSettings(online_current_walk=0.0))):
+        r = FixedLagSmoother(init=fixed_truth(tr), settings=st).run(m)
+        e = np.array([r.values["s_x"], r.values["s_y"]]) - end
+        z = np.abs(e) / np.array([r.sigma["s_x"], r.sigma["s_y"]])
+        f = r.missions[0].filtered
+        ref = np.column_stack([np.interp(f.t, tr.t, tr.pos[:, k]) for k in range(2)])
+        out[name] = (np.hypot(*e), z.max(),
+                     np.sqrt(np.mean(np.sum((f.pos[:, :2] - ref) ** 2, axis=1))))
+    (e_w, z_w, c_w), (e_c, z_c, c_c) = out["walk"], out["constant"]
+    assert e_w < 0.05 and z_w <= 3.0, out
+    assert e_c > 2 * e_w and z_c > 3.0, out
+    assert c_w < 0.7 * c_c, out
 
 
 def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out():

@@ -187,6 +187,16 @@ class LagWindow:
         self.fx: list[list | None] = []
         self.FXL: list[list[float]] = []
         self.cov = np.full((P, P), np.nan)
+        # random walk of the current (FGSettings.online_current_walk): variance per second
+        # of each estimated parameter that walks (theta indices and m^2/s^3... per s)
+        cw = float(s.online_current_walk)
+        wv = [j for j, n in enumerate(layout.estimated)
+              if cw > 0 and n in ("s_x", "s_y") and n in layout.names.get("variable", ())]
+        self._walk_idx = np.array(wv, int)
+        self._walk_var = np.full(len(wv), cw * cw)
+        # its stationary variance: the current's prior (s.prior_sigma), inf: a plain walk
+        self._walk_stat = np.array([float(s.prior_sigma.get(layout.estimated[j], math.inf))
+                                    ** 2 for j in wv])
         self._take_fixes(float(t0) - 1e-6, float(t0))
 
     # ------------------------------------------------------------------ configuration
@@ -646,6 +656,7 @@ class LagWindow:
             z = self.z
             N = len(z)
             H, b = self.H, self.b
+            t_gone = self.kt[0]
             # [theta, x0, rest] -> [theta, rest]: x0 eliminated (flat indices: one take)
             keep = self._keep.get(N)
             if keep is None:
@@ -674,6 +685,61 @@ class LagWindow:
             del self.X0L[0], self.THL[0]
             self.fx.pop(0)
             del self.FXL[0]
+            if len(self._walk_idx):
+                self._walk(self.kt[0] - t_gone)
+
+    def _walk(self, dt: float) -> None:
+        """The current of the information that has left the window moves before it meets the
+        window's data: a first-order Gauss-Markov process (the INS bias model) around the
+        start value ``th0``, ``s' - th0 = a (s - th0) + w``, diffusing as a random walk of
+        ``online_current_walk`` m/s per sqrt(s) over short times and with the current's
+        prior (``FGSettings.prior_sigma``) as its stationary sigma, so that the prior does
+        not wash out over a long mission (``a = exp(-dt / tau)``, ``tau = 2 S / sigma^2``,
+        ``var(w) = S (1 - a^2)``).
+
+        Applied to the marginal ``H_m`` only -- the held quadratic less the window's own
+        dynamics factors (the only other terms on the parameters): the affine map, then the
+        covariance grown by ``var(w)`` (Woodbury: ``H_m' = H_m - C M^-1 C^T``,
+        ``C = H_m E S``, ``M = I + S E^T H_m E S``, the mean kept). Within the window the
+        parameters stay one value: the walk acts between the past and the window."""
+        if not dt > 0:
+            return
+        P = self.P
+        w = self._walk_idx
+        stat = self._walk_stat
+        gm = np.isfinite(stat)
+        tau = 2.0 * np.where(gm, stat, 1.0) / self._walk_var
+        a = np.where(gm, np.exp(-dt / tau), 1.0)
+        q = np.where(gm, np.where(gm, stat, 0.0) * (1.0 - a * a), self._walk_var * dt)
+        Cm = self.H[:, w].copy()                     # (N, k): the marginal's columns
+        bw = self.b[w].copy()
+        for i, d in enumerate(self.dyn):             # less the window's dynamics factors
+            Hi, bi = d[2], d[3]
+            o = P + 6 * i
+            Cm[:P] -= Hi[:P, w]
+            Cm[o:o + 12] -= Hi[P:, w]
+            bw -= bi[w]
+        if np.any(a < 1.0):          # the mean reversion: z_w = (z_w' - c) / a on H_m, b_m
+            f = 1.0 / a
+            c = (1.0 - a) * self.th0[w]
+            Ct = Cm * f[None, :]
+            Ct[w] *= f[:, None]
+            D = Ct - Cm
+            self.H[:, w] += D
+            self.H[w, :] += D.T
+            self.H[np.ix_(w, w)] -= D[w]
+            bt = bw * f
+            self.b[w] += bt - bw
+            self.b -= Ct @ c
+            bw = bt - Ct[w] @ c
+            Cm = Ct
+        sd = np.sqrt(q)
+        C = Cm * sd[None, :]
+        M = np.eye(len(w)) + sd[:, None] * Cm[w] * sd[None, :]
+        L = np.linalg.cholesky(M)                    # M >= I
+        G = np.linalg.solve(L, C.T)                  # L^-1 C^T  (k, N)
+        self.H -= G.T @ G
+        self.b -= G.T @ np.linalg.solve(L, sd * bw)
 
     # ------------------------------------------------------------------ tests
     def cost(self, z: np.ndarray) -> float:

@@ -232,6 +232,9 @@ class FixedLagSmoother:
                   LagWindow.unsupported(self.model, self.layout, mission, s))
         self.engine = "gtsam" if reason else "numpy"
         self.engine_note = reason
+        if reason and s.online_current_walk > 0:
+            self.engine_note += ("; the current is held constant in the window's past "
+                                 "(online_current_walk needs the numpy engine)")
         self._fast: LagWindow | None = None
         if not reason:
             return self._start_fast(mission, t0, x0, hold, replaying)
