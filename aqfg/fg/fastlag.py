@@ -16,7 +16,8 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   USBL range/bearing fixes with GTSAM's Huber reweighting, parameter priors, removable
   "hold" priors on the parameters, and the marginal of the knots that left the window (a
   dense Gaussian on ``[theta, oldest knot]``, a Schur complement, linearised where the
-  knot left, as GTSAM's linear container factor);
+  knot left, as GTSAM's linear container factor), whose current moves by a Gauss-Markov
+  step as each knot leaves (``FGSettings.online_current_walk``, :meth:`LagWindow._walk`);
 * per update one Gauss-Newton step (as one ISAM2 iteration): each dynamics factor keeps
   its linearisation (prediction and Jacobians at ``(x0_lin, theta_lin)``) until its first
   knot or the parameters moved past ``FGSettings.relin_*`` from it; the fixes (cheap) are
