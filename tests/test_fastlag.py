@@ -349,7 +349,7 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
         H_ref = A[:N, :N] - A[:N, c] @ Ac[:, :N]
         b_ref = v[:N] - A[:N, c] @ Ac[:, N]
         e = copy.deepcopy(eng)
-        e._walk_stat = np.full(k, stat)
+        e._walk_stat, e._walk_cache = np.full(k, stat), {}
         e._walk(dt)
         assert np.allclose(e.H, H_ref, rtol=0, atol=1e-9 * np.abs(eng.H).max())
         assert np.allclose(e.b, b_ref, rtol=0, atol=1e-9 * np.abs(eng.b).max())

@@ -17,7 +17,8 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   "hold" priors on the parameters, and the marginal of the knots that left the window (a
   dense Gaussian on ``[theta, oldest knot]``, a Schur complement, linearised where the
   knot left, as GTSAM's linear container factor), whose current moves by a Gauss-Markov
-  step as each knot leaves (``FGSettings.online_current_walk``, :meth:`LagWindow._walk`);
+  step as knots leave (every ``WALK_EVERY`` s of them; ``FGSettings.online_current_walk``,
+  :meth:`LagWindow._walk`);
 * per update one Gauss-Newton step (as one ISAM2 iteration): each dynamics factor keeps
   its linearisation (prediction and Jacobians at ``(x0_lin, theta_lin)``) until its first
   knot or the parameters moved past ``FGSettings.relin_*`` from it; the fixes (cheap) are
@@ -55,6 +56,9 @@ def _kernel():
 
 
 _EMPTY = np.zeros(0)
+# s: the current's walk is applied to the marginal in steps of at least this (one step
+# costs ~90 us; its correlation time is minutes, FGSettings.online_current_walk)
+WALK_EVERY = 10.0
 
 
 def _kernel_factory(geometry, cols):
@@ -198,6 +202,8 @@ class LagWindow:
         # its stationary variance: the current's prior (s.prior_sigma), inf: a plain walk
         self._walk_stat = np.array([float(s.prior_sigma.get(layout.estimated[j], math.inf))
                                     ** 2 for j in wv])
+        self._walk_cache: dict = {}
+        self._walk_due = 0.0           # s of the marginal's time not walked yet
         self._take_fixes(float(t0) - 1e-6, float(t0))
 
     # ------------------------------------------------------------------ configuration
@@ -686,8 +692,25 @@ class LagWindow:
             del self.X0L[0], self.THL[0]
             self.fx.pop(0)
             del self.FXL[0]
-            if len(self._walk_idx):
-                self._walk(self.kt[0] - t_gone)
+            self._walk_due += self.kt[0] - t_gone
+        if len(self._walk_idx) and self._walk_due >= WALK_EVERY:
+            self._walk(self._walk_due)
+            self._walk_due = 0.0
+
+    def _walk_step(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The Gauss-Markov step over ``dt`` s of each walking parameter: its factor ``a``
+        and the variance ``var(w)`` (:meth:`_walk`; a plain walk where the stationary
+        variance is infinite), cached per interval."""
+        key = round(dt, 9)
+        out = self._walk_cache.get(key)
+        if out is None:
+            stat = self._walk_stat
+            gm = np.isfinite(stat)
+            tau = 2.0 * np.where(gm, stat, 1.0) / self._walk_var
+            a = np.where(gm, np.exp(-dt / tau), 1.0)
+            q = np.where(gm, np.where(gm, stat, 0.0) * (1.0 - a * a), self._walk_var * dt)
+            out = self._walk_cache[key] = (a, q)
+        return out
 
     def _walk(self, dt: float) -> None:
         """The current of the information that has left the window moves before it meets the
@@ -707,40 +730,40 @@ class LagWindow:
             return
         P = self.P
         w = self._walk_idx
-        stat = self._walk_stat
-        gm = np.isfinite(stat)
-        tau = 2.0 * np.where(gm, stat, 1.0) / self._walk_var
-        a = np.where(gm, np.exp(-dt / tau), 1.0)
-        q = np.where(gm, np.where(gm, stat, 0.0) * (1.0 - a * a), self._walk_var * dt)
-        Cm = self.H[:, w].copy()                     # (N, k): the marginal's columns
-        bw = self.b[w].copy()
-        for i, d in enumerate(self.dyn):             # less the window's dynamics factors
-            Hi, bi = d[2], d[3]
-            o = P + 6 * i
-            Cm[:P] -= Hi[:P, w]
-            Cm[o:o + 12] -= Hi[P:, w]
-            bw -= bi[w]
+        a, q = self._walk_step(dt)
+        # the marginal lives on [theta, oldest knot] (each Schur complement links the
+        # eliminated knot's neighbours only): everything below acts on that leading block
+        L = P + 6
+        H, b = self.H, self.b
+        Cm = H[:L, w].copy()                         # (L, k): the marginal's columns
+        bw = b[w].copy()
+        if self.dyn:                                 # less the window's dynamics factors
+            # (stacked, one numpy call each: this runs at every knot that leaves)
+            S = np.array([d[2] for d in self.dyn])[:, :L, w]    # (n - 1, L, k)
+            Cm[:P] -= S[:, :P].sum(axis=0)
+            Cm[P:] -= S[0, P:]                       # factor 0 is the one on the oldest knot
+            bw -= np.array([d[3] for d in self.dyn])[:, w].sum(axis=0)
         if np.any(a < 1.0):          # the mean reversion: z_w = (z_w' - c) / a on H_m, b_m
             f = 1.0 / a
             c = (1.0 - a) * self.th0[w]
             Ct = Cm * f[None, :]
             Ct[w] *= f[:, None]
             D = Ct - Cm
-            self.H[:, w] += D
-            self.H[w, :] += D.T
-            self.H[np.ix_(w, w)] -= D[w]
+            H[:L, w] += D
+            H[w, :L] += D.T
+            H[np.ix_(w, w)] -= D[w]
             bt = bw * f
-            self.b[w] += bt - bw
-            self.b -= Ct @ c
+            b[w] += bt - bw
+            b[:L] -= Ct @ c
             bw = bt - Ct[w] @ c
             Cm = Ct
         sd = np.sqrt(q)
         C = Cm * sd[None, :]
-        M = np.eye(len(w)) + sd[:, None] * Cm[w] * sd[None, :]
-        L = np.linalg.cholesky(M)                    # M >= I
-        G = np.linalg.solve(L, C.T)                  # L^-1 C^T  (k, N)
-        self.H -= G.T @ G
-        self.b -= G.T @ np.linalg.solve(L, sd * bw)
+        M = np.eye(len(w)) + sd[:, None] * Cm[w] * sd[None, :]      # >= I
+        Mi = _small_inv(M)
+        CM = C @ Mi
+        H[:L, :L] -= CM @ C.T
+        b[:L] -= CM @ (sd * bw)
 
     # ------------------------------------------------------------------ tests
     def cost(self, z: np.ndarray) -> float:
@@ -755,6 +778,19 @@ class LagWindow:
 
 _MINUS_I6 = -np.eye(6)
 _ZERO6 = np.zeros(6)
+
+
+def _small_inv(M: np.ndarray) -> np.ndarray:
+    """Inverse of a small symmetric positive-definite matrix (closed form for 1x1 and 2x2:
+    LAPACK's call overhead is ~10 us, the walk of the current runs at every knot that
+    leaves the window)."""
+    if M.shape == (1, 1):
+        return 1.0 / M
+    if M.shape == (2, 2):
+        a, c, d = float(M[0, 0]), float(M[0, 1]), float(M[1, 1])
+        det = a * d - c * c
+        return np.array([[d, -c], [-c, a]]) / det
+    return np.linalg.inv(M)
 
 
 def _huber(r: np.ndarray, k: float | None) -> np.ndarray:
