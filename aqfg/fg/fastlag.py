@@ -57,8 +57,8 @@ def _kernel():
 
 _EMPTY = np.zeros(0)
 # s: the current's walk is applied to the marginal in steps of at least this (one step
-# costs ~90 us; its correlation time is minutes, FGSettings.online_current_walk)
-WALK_EVERY = 10.0
+# costs ~90-170 us; its correlation time is minutes, FGSettings.online_current_walk)
+WALK_EVERY = 30.0
 
 
 def _kernel_factory(geometry, cols):
