@@ -614,6 +614,13 @@ class FixedLagSmoother:
                 self._fast_step(t_fix)
             self.events.append({"t": float(t_fix), "event": "parameters released"})
             return
+        # only hold priors still on a parameter node in the window: a hold prior on a walk
+        # segment's node that has left the window was marginalised, and ISAM2 reuses its
+        # slot (removing that index removed a marginal factor)
+        fg = self.smoother.getFactors()
+        nodes = {self._node(g) for g in self.layout.groups}
+        idx = [i for i in idx if fg.exists(i) and isinstance(fg.at(i), gtsam.PriorFactorVector)
+               and set(fg.at(i).keys()) <= nodes]
         try:
             self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, idx)
             for _ in range(2):
@@ -1074,8 +1081,14 @@ class FixedLagSmoother:
     def _restart(self, t_fix: float, hard: bool = False) -> None:
         """A fresh smoother holding the last knot and the parameter nodes at their current
         estimates, each with a prior from its marginal (inflated x4 in variance, or a
-        broad one where the marginal is unavailable)."""
+        broad one where the marginal is unavailable). Parameters still held keep their
+        start (or replay) prior and get new hold priors: the old ones' factor indices mean
+        nothing in the new smoother (removing them at the release removed the knot's prior:
+        every later update was indeterminate), and a marginal taken under a hold prior
+        would hold them for good."""
         s = self.settings
+        held = bool(self._hold_idx)
+        hold_pos: list[int] = []
         last = self.keys[self._n_committed - 1]     # the newest knot the smoother holds
         keys = [last] + [self._node(g) for g in self.layout.groups]
         est: dict[int, np.ndarray | None] = {}
@@ -1111,6 +1124,17 @@ class FixedLagSmoother:
                 broad = np.array([s.prior_scale * self.model.spec(n).scale
                                   for n in self.layout.names[g]])
                 graph.add(fc.bound_factor(self.layout, g, k))
+                if held:
+                    sig = dict(s.prior_sigma)
+                    if getattr(self, "_replaying", False):
+                        sig.update(getattr(self, "_prior_override", {}))
+                    graph.add(fc.param_prior(self.layout, g, k, s.prior_scale, sigma=sig))
+                    hold_pos.append(graph.size())
+                    graph.add(fc.param_prior(self.layout, g, k, 1.0, sigma={
+                        n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]}))
+                    vals.insert(k, np.asarray(x, float))
+                    stamps[k] = float(t_fix)
+                    continue
             C = cov[k]
             noise: gtsam.noiseModel.Base
             if C is None or not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
@@ -1123,6 +1147,10 @@ class FixedLagSmoother:
         if self.mission.planar:
             graph.add(fc.surface_factor(last, *s.surface_sigma))
         self.smoother.update(graph, vals, stamps)
+        if held:
+            new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+            self._hold_idx = ([int(new_idx[i]) for i in hold_pos]
+                              if len(new_idx) == graph.size() else [])
 
     # ---------------------------------------------------------------- past-trajectory correction
     def corrected_track(self, p: np.ndarray | None = None, t_end: float | None = None) -> Track:
