@@ -193,6 +193,7 @@ class FixedLagSmoother:
         replaying = getattr(self, "_replaying", False)
         if not replaying:
             self._next_reinit = s.online_init_after    # s after the start (see _reinit_due)
+            self._rescue = False                       # the batch due is brought forward
             self._batch_tried = False              # no batch re-initialisation yet
         self._hold_idx: list[int] = []             # factor indices of the hold priors
         self._last_new_idx: list[int] = []
@@ -588,19 +589,36 @@ class FixedLagSmoother:
         s = self.settings
         el = t_fix - self.knots[0]
         # the first batch: after online_init_after s, or online_init_fixes fixes if sooner,
-        # or, before that, at every fix while the held model fails: its process noise
-        # adapted to the bound, or its last two fixes beyond the USBL gate's quantile (a
-        # held heading 149 deg off ran the causal track 43 m off the fixes in the 15 s
-        # before the 20-s batch, docs/independent-vehicle.md)
-        recent = self._taken_m2[-2:]
-        failing = (bool(self._hold_idx) and el < s.online_init_after
+        # or at every fix from the 4th while the held model fails: its process noise
+        # adapted to the bound, its last two fixes beyond the USBL gate's quantile, or two
+        # of its last three beyond chi-square(2)'s 99 % one -- not their sum, which one
+        # USBL outlier decides (a held heading 127-150 deg off ran the causal track 27-43
+        # m off the fixes while the first batch waited for six fixes; a batch of 6.5 s
+        # whose last fix was a 34-m outlier came out 100 deg off, sigma 3 deg;
+        # docs/independent-vehicle.md)
+        recent = self._taken_m2[-3:]
+        failing = (bool(self._hold_idx)
                    and (self.q_scale >= s.adapt_max
-                        or (len(recent) == 2 and min(recent) > s.online_gate_usbl)))
+                        or (len(recent) >= 2 and min(recent[-2:]) > s.online_gate_usbl)
+                        or (len(recent) == 3 and sorted(recent)[1] > noise.CHI2_2_99)))
         first = (((not self._batch_tried and self.n_fix >= s.online_init_fixes) or failing)
                  and not getattr(self, "_replaying", False))
-        return (self._reinit_scheduled() and (el >= self._next_reinit or first)
-                and (el <= s.online_reinit_until or bool(self._hold_idx))
-                and self.n_fix >= 6)
+        due = (self._reinit_scheduled() and (el >= self._next_reinit or first)
+               and (el <= s.online_reinit_until or bool(self._hold_idx))
+               and self.n_fix >= (4 if failing and self._constants_given else 6))
+        # (from the 4th fix only with the thrust/drag constants given: with all six free,
+        # a batch of the first 8 s of heldout-32 came out 60 deg off and the released
+        # estimates ran the causal track 545 m off)
+        # a batch brought forward because the held model fails is a rescue: the schedule
+        # of checks stays (moved with it, the later batches of heldout-06 at 4 s fell where
+        # a free fit slides)
+        self._rescue = due and failing and el < self._next_reinit
+        return due
+
+    @property
+    def _constants_given(self) -> bool:
+        """No thrust/drag constant is estimated (given by ``init`` or held fixed)."""
+        return not any(n in self.layout.estimated for n in ("k", "k_x", "k_yz"))
 
     def _release(self, t_fix: float) -> None:
         """Remove the hold priors: the parameters follow the data from here."""
@@ -645,7 +663,7 @@ class FixedLagSmoother:
         el = t_fix - self.knots[0]
         self._batch_tried = True
         if not force:
-            self._next_reinit = 2.0 * el
+            self._next_reinit = self._next_reinit if self._rescue else 2.0 * el
         view = _mission_until(self.mission, t_fix)
         p = self.params()
         try:
