@@ -59,6 +59,7 @@ from aqfg.fg.common import (
     robust_fix_table,
 )
 from aqfg.fg.fastlag import LagWindow
+from aqfg.model.params import FIXED_BASE
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
@@ -157,6 +158,8 @@ class FixedLagSmoother:
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
         # per-update constants of the layout (its properties build tuples on each call)
         self._theta_est = "theta_e" in self.layout.estimated
+        # no thrust/drag constant estimated (given by init, or held fixed)
+        self._constants_given = not any(n in self.layout.estimated for n in FIXED_BASE)
         self._scales = np.array([self.model.spec(n).scale for n in self.layout.estimated])
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
@@ -193,7 +196,6 @@ class FixedLagSmoother:
         replaying = getattr(self, "_replaying", False)
         if not replaying:
             self._next_reinit = s.online_init_after    # s after the start (see _reinit_due)
-            self._rescue = False                       # the batch due is brought forward
             self._batch_tried = False              # no batch re-initialisation yet
         self._hold_idx: list[int] = []             # factor indices of the hold priors
         self._last_new_idx: list[int] = []
@@ -250,9 +252,7 @@ class FixedLagSmoother:
         for g in self.layout.groups:
             k = self._node(g)
             vals.insert(k, self.layout.initial(g))
-            sig = dict(s.prior_sigma)
-            sig.update(getattr(self, "_prior_override", {}) if replaying else {})
-            graph.add(fc.param_prior(self.layout, g, k, s.prior_scale, sigma=sig))
+            graph.add(self._start_prior(g, k, replaying))
             graph.add(fc.bound_factor(self.layout, g, k))
             if hold:
                 # held at their start values (or at the batch's, replaying) until the batch
@@ -260,8 +260,7 @@ class FixedLagSmoother:
                 # determine the heading offset and the constants, and single incremental
                 # Gauss-Newton steps on them run off (by 100 deg and more)
                 hold_pos.append(graph.size())
-                graph.add(fc.param_prior(self.layout, g, k, 1.0, sigma={
-                    n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]}))
+                graph.add(self._hold_prior(g, k))
         self.knots.append(t0)
         self.keys.append(k0)
         self.filtered.append(x0.copy())
@@ -275,6 +274,18 @@ class FixedLagSmoother:
         if hold_pos and len(self._last_new_idx) == graph.size():
             self._hold_idx = [int(self._last_new_idx[i]) for i in hold_pos]
         return info
+
+    def _start_prior(self, g: str, k: int, replaying: bool) -> gtsam.PriorFactorVector:
+        """The weak prior of parameter group ``g`` at node ``k`` in a fresh smoother: the
+        settings' sigmas, or a replay's batch sigmas (``_prior_override``)."""
+        sig = dict(self.settings.prior_sigma)
+        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
+        return fc.param_prior(self.layout, g, k, self.settings.prior_scale, sigma=sig)
+
+    def _hold_prior(self, g: str, k: int) -> gtsam.PriorFactorVector:
+        """The removable prior that holds group ``g`` at its start values (1e-3 x scale)."""
+        return fc.param_prior(self.layout, g, k, 1.0, sigma={
+            n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]})
 
     def _prior_sigmas(self, replaying: bool) -> tuple[np.ndarray, np.ndarray]:
         """Sigmas of the parameter priors (as :func:`fc.param_prior`) and of the hold
@@ -387,8 +398,9 @@ class FixedLagSmoother:
         new_t = all_t[1:]
         step = self._update_fast if self._fast is not None else self._update_gtsam
         info = step(t_fix, t_last, new_t, all_t)
-        if self._reinit_due(t_fix):
-            info = self._reinitialise(t_fix) or info
+        due = self._reinit_due(t_fix)
+        if due:
+            info = self._reinitialise(t_fix, rescue=due == "rescue") or info
         elif self._troubled(t_fix):
             info = self._reinitialise(t_fix, force=True) or info
         return info
@@ -585,7 +597,9 @@ class FixedLagSmoother:
         return (self.settings.online_init_after > 0 and self._theta_est
                 and "theta_e" not in self.init)
 
-    def _reinit_due(self, t_fix: float) -> bool:
+    def _reinit_due(self, t_fix: float) -> str:
+        """"" (no batch re-initialisation due at this fix), "scheduled", or "rescue": one
+        brought forward because the held model fails, which keeps the schedule of checks."""
         s = self.settings
         el = t_fix - self.knots[0]
         # the first batch: after online_init_after s, or online_init_fixes fixes if sooner,
@@ -612,13 +626,9 @@ class FixedLagSmoother:
         # a batch brought forward because the held model fails is a rescue: the schedule
         # of checks stays (moved with it, the later batches of heldout-06 at 4 s fell where
         # a free fit slides)
-        self._rescue = due and failing and el < self._next_reinit
-        return due
-
-    @property
-    def _constants_given(self) -> bool:
-        """No thrust/drag constant is estimated (given by ``init`` or held fixed)."""
-        return not any(n in self.layout.estimated for n in ("k", "k_x", "k_yz"))
+        if not due:
+            return ""
+        return "rescue" if failing and el < self._next_reinit else "scheduled"
 
     def _release(self, t_fix: float) -> None:
         """Remove the hold priors: the parameters follow the data from here."""
@@ -649,7 +659,8 @@ class FixedLagSmoother:
                                 "error": (str(exc).strip().splitlines() or [""])[0]})
             self._restart(t_fix)
 
-    def _reinitialise(self, t_fix: float, force: bool = False) -> UpdateInfo | None:
+    def _reinitialise(self, t_fix: float, force: bool = False, rescue: bool = False
+                      ) -> UpdateInfo | None:
         """Solve the fixes so far as a batch (global heading start, :mod:`aqfg.fg.batch`).
         If its heading offset disagrees with the smoother's by more than 3 of the batch's
         sigmas (within 1-10 deg; 1 deg while the parameters are still held at their start
@@ -657,13 +668,14 @@ class FixedLagSmoother:
         solution: replay the fixes so far with the parameters held at the batch's values
         and their batch marginals (x4 in variance) as priors, then release them. Otherwise
         release them where they are. An incremental solver cannot leave a wrong heading
-        basin by itself; the batch of the data so far does not start in one."""
+        basin by itself; the batch of the data so far does not start in one. A ``rescue``
+        (:meth:`_reinit_due`) leaves the schedule of later checks where it was."""
         from aqfg.fg.batch import BatchSmoother
         t_re = time.perf_counter()
         el = t_fix - self.knots[0]
         self._batch_tried = True
         if not force:
-            self._next_reinit = self._next_reinit if self._rescue else 2.0 * el
+            self._next_reinit = self._next_reinit if rescue else 2.0 * el
         view = _mission_until(self.mission, t_fix)
         p = self.params()
         try:
@@ -1143,13 +1155,9 @@ class FixedLagSmoother:
                                   for n in self.layout.names[g]])
                 graph.add(fc.bound_factor(self.layout, g, k))
                 if held:
-                    sig = dict(s.prior_sigma)
-                    if getattr(self, "_replaying", False):
-                        sig.update(getattr(self, "_prior_override", {}))
-                    graph.add(fc.param_prior(self.layout, g, k, s.prior_scale, sigma=sig))
+                    graph.add(self._start_prior(g, k, getattr(self, "_replaying", False)))
                     hold_pos.append(graph.size())
-                    graph.add(fc.param_prior(self.layout, g, k, 1.0, sigma={
-                        n: 1e-3 * self.model.spec(n).scale for n in self.layout.names[g]}))
+                    graph.add(self._hold_prior(g, k))
                     vals.insert(k, np.asarray(x, float))
                     stamps[k] = float(t_fix)
                     continue
