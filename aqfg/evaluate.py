@@ -9,6 +9,8 @@ the 3-D distance.
   (the paper's "error in estimated position", Fig. 10);
 * :func:`rmse`, :func:`inertial_rmse` -- RMS of that distance; the latter on the paper's
   inertial trajectory (model only from the first fix, Table II);
+* :func:`dead_reckoning_error` -- the model alone over a horizon from the true state: what
+  a vehicle dead-reckons through between fixes;
 * :func:`time_since_fix`, :func:`error_between_fixes` -- how the error grows between
   absolute fixes;
 * :func:`percentile` -- e.g. the 95th-percentile error of Fig. 10;
@@ -91,6 +93,25 @@ def inertial_rmse(model, mission: Mission, p: np.ndarray, truth: Truth, rate: fl
     from aqfg.model.retrace import inertial_track
     tr = inertial_track(model, mission, np.asarray(p, float), rate=rate)
     return rmse(tr, truth, horizontal=horizontal)
+
+
+def dead_reckoning_error(model, mission: Mission, p: np.ndarray, truth: Truth,
+                         horizon: float = 60.0, every: float = 30.0) -> float:
+    """Median horizontal error (m) of the model alone (parameters ``p``) ``horizon`` s after
+    starting from the true state, started every ``every`` s (NaN for a mission shorter than
+    the horizon). Unlike :func:`inertial_rmse` (the whole mission from the first fix) it
+    measures the gap between fixes, not the accumulated drift of a whole mission."""
+    from aqfg.model.retrace import rollout
+    if truth.vel is None:
+        raise ValueError("dead_reckoning_error needs the true velocity (truth.csv vn, ve, vd)")
+    errs = []
+    for t0 in np.arange(truth.t[0] + 10.0, truth.t[-1] - horizon, every):
+        i = int(np.searchsorted(truth.t, t0))
+        x0 = np.concatenate([truth.pos[i], truth.vel[i]])
+        tr = rollout(model, mission, p, x0, truth.t[i], np.array([truth.t[i] + horizon]))
+        j = int(np.searchsorted(truth.t, truth.t[i] + horizon))
+        errs.append(float(np.hypot(*(tr.pos[-1, :2] - truth.pos[j, :2]))))
+    return float(np.median(errs)) if errs else float("nan")
 
 
 def time_since_fix(t: np.ndarray, fix_t: np.ndarray) -> np.ndarray:

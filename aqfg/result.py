@@ -193,9 +193,34 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     per = result.info.get("per_mission")
     if per and len(result.missions) > 1:
         doc["per_mission"] = per
+    dr = result.info.get("dead_reckoning")
+    if dr and dr.get("segments"):
+        doc["dead_reckoning"] = dead_reckoning_document(dr)
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
+
+
+def dead_reckoning_document(dr: dict) -> dict:
+    """The ``dead_reckoning`` entry of ``parameters.json``: whether the thrust/drag
+    constants were refined by prediction error (:mod:`aqfg.fg.dead_reckoning`), the
+    smoother's own values, and the prediction errors before and after."""
+    sig_fg = dr.get("sigma_before", {})
+    out = {"horizon_s": dr["horizon_s"], "applied": bool(dr["applied"]),
+           "smoother": {n: {"value": v, "sigma": _finite_or_none(sig_fg.get(n))}
+                        for n, v in dr.get("before", {}).items()},
+           "prediction_error_m": {"median_before": dr.get("median_abs_before_m"),
+                                  "median_after": dr.get("median_abs_after_m")},
+           "wald": _finite_or_none(dr.get("wald")), "wald_threshold": dr.get("wald_threshold")}
+    if not dr["applied"]:
+        out["refined"] = {n: {"value": v, "sigma": _finite_or_none(dr.get("sigma_after", {}).get(n))}
+                          for n, v in dr.get("after", {}).items()}
+        out["reason"] = dr.get("reason")
+    return out
+
+
+def _finite_or_none(x) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def read_parameter_values(doc: dict) -> dict[str, float]:

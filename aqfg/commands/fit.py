@@ -152,6 +152,12 @@ def run(args) -> int:
             written += plot_fit(result, missions, stage)
         shown = sorted({str(p.relative_to(stage)) for p in written})
     print(parameter_table(result))
+    dr = result.info.get("dead_reckoning") or {}
+    if dr.get("applied"):
+        print(f"thrust/drag constants refined for dead reckoning over {dr['horizon_s']:.0f} s "
+              f"(median prediction error {dr['median_abs_before_m']:.2f} -> "
+              f"{dr['median_abs_after_m']:.2f} m); the smoother's: "
+              + ", ".join(f"{n} {v:.4g}" for n, v in dr["before"].items()))
     t = result.timings
     if "batch" in t:
         n_it = "?" if result.iterations is None else result.iterations

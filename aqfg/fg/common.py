@@ -80,6 +80,13 @@ class FGSettings:
         1-s fixes stayed 3-5 m off the fixes for 20 s at a time and the current's sigma
         claimed 0.006 m/s against an error of 0.06 on a drifting current
         (docs/independent-vehicle.md). 0: the current is one constant.
+    dr_horizon: s, the batch fit (:func:`aqfg.fg.fit.fit_fg`) re-estimates the estimated
+        fixed parameters (thrust/drag constants) by the error of the model's own
+        prediction over this horizon from the smoothed states, where that differs
+        significantly from the smoother's (:mod:`aqfg.fg.dead_reckoning`): the constants a
+        vehicle dead-reckons with between fixes. On the Otter the smoother's own constants
+        dead-reckoned 2-5x worse than the update-error method's (docs/independent-vehicle.md).
+        0: the smoother's constants.
     max_iterations, rel_tol, abs_tol: batch Levenberg-Marquardt stops when an accepted step
         lowers the cost (0.5 chi-square) by less than max(rel_tol x cost, abs_tol).
     fast_lm: batch LM on the numpy form of the graph (:mod:`aqfg.fg.fastlm`) where the
@@ -126,6 +133,7 @@ class FGSettings:
     surface_sigma: tuple[float, float] = (0.01, 0.01)
     init_vel_sigma: float = 1.0
     init_pos_sigma: float = 20.0
+    dr_horizon: float = 60.0
     max_iterations: int = 60
     fast_lm: bool = True
     rel_tol: float = 1e-6

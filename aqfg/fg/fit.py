@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from aqfg.data.mission import Mission
+from aqfg.fg import dead_reckoning
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
@@ -42,8 +43,12 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     if mode == "batch":
-        return BatchSmoother(model, effects=effects, estimate=estimate, init=init,
-                             settings=settings, progress=progress).run(missions)
+        res = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
+                            settings=settings, progress=progress).run(missions)
+        # the constants to dead-reckon with: multi-step prediction error where it differs
+        # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning)
+        horizon = (settings or FGSettings()).dr_horizon
+        return dead_reckoning.refine(res, list(missions), horizon) if horizon > 0 else res
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]
