@@ -474,7 +474,11 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
         f, u = (track_rmse(getattr(r.missions[0], kind), truth) for r in (fg, ue))
         assert f <= u, f"{kind}: factor graph {f:.2f} m, update-error method {u:.2f} m"
     # the fixes left out are the gross outliers (from the truth: range or bearing more
-    # than 10 sigma off), all of them
+    # than 10 sigma off), all but at most one: with the process noise at its bound (q = 256
+    # here) the prediction over 4.5 s is about 1.8 m per axis, so a 6.7-m range outlier
+    # (380 s) sits at the gate's 99.9 % quantile and is left out or not by the replay's
+    # held values (left out with the 640-s batch's evidence-chosen noise, taken with the
+    # nominal noise that batch now keeps; the tracks' RMSE above either way)
     u = m.usbl
     d = np.column_stack([np.interp(u.t, truth.t, truth.pos[:, a]) for a in range(3)]) \
         - np.asarray(m.usbl_station)
@@ -483,7 +487,10 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
     gross = set(u.t[(np.abs(e_r) > 1.5) | (np.abs(e_b) > 15 * DEG)].tolist())
     out = set(fg.info["rejected_usbl"])
     assert len(gross) >= 5
-    assert gross <= out, f"outliers kept: {sorted(gross - out)}"
+    assert len(gross - out) <= 1, f"outliers kept: {sorted(gross - out)}"
+    e_gross = np.maximum(np.abs(e_r) / 0.15, np.abs(e_b) / (1.5 * DEG))
+    kept = [t for t in gross - out if e_gross[int(np.argmin(np.abs(u.t - t)))] > 60.0]
+    assert not kept, f"outliers beyond 60 sigma kept: {kept}"
     assert len(out - gross) <= 2, f"good fixes left out: {sorted(out - gross)}"
 
 
@@ -537,3 +544,29 @@ def test_a_short_batch_searches_the_heading_all_round(name, t0):
     assert any(b["start"].startswith("turned heading start") for b in r.info["basins"])
     assert err < np.radians(20.0) and err < 3.0 * r.sigma["theta_e"], (np.degrees(err),
                                                                       r.info["basins"])
+
+
+@pytest.mark.slow
+def test_long_reinit_batch_keeps_the_nominal_noise_and_the_right_basin():
+    """otter-heldout-46 (a held-out Otter mission, offset +146 deg), all six parameters online
+    at 8-s fixes: the 640-s re-initialisation batch, solved with the process noise chosen by
+    the evidence, slid into a hull sliding sideways 44 deg off and replaced a right online
+    estimate, which ended 44 deg off with sigma 7.5 deg. A batch long enough for the
+    sandwich (n_p + 2 blocks of 60 s) now keeps the nominal noise, as the whole-mission batch
+    does; it still measures the factor by the evidence, which stays the floor of the online
+    noise."""
+    m, truth = mission("otter-heldout-46", 8.0)
+    r = fit_fg([m], mode="online", estimate=("theta_e", "s_x", "s_y", "k", "k_x", "k_yz"))
+    batches = r.info["reinit_batches"]
+    n_p = 6
+    long_ = [b for b in batches if b["t"] - m.t0 >= 60.0 * (n_p + 2)]
+    short = [b for b in batches if b["t"] - m.t0 < 60.0 * (n_p + 1)]
+    assert long_ and short
+    assert all(not b["noise_by_evidence"] and b["process_noise_scale"] == 1.0 for b in long_)
+    assert all(b["noise_by_evidence"] for b in short)
+    assert all(b["process_noise_measured"] is not None for b in batches)
+    assert r.info["process_noise_scale"] >= batches[-1]["process_noise_measured"]
+    i = list(r.history.names).index("theta_e")
+    err = abs(wrap(r.history.values[-1, i] - truth.params["theta_e"]))
+    assert err < 5 * DEG, np.degrees(err)
+    assert err <= 3 * r.history.sigma[-1, i]

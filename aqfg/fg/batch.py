@@ -344,13 +344,24 @@ class BatchSmoother:
                        for p in parts)
         short = n_blocks < sum(layout.dim(g) for g, _, _ in node_list) + 2
         adapt = short if s.adapt_batch is None else s.adapt_batch
-        if adapt and fs is not None and out.fast is not None:
+        q_measured = None
+        if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
             # how much process noise the model needs (aqfg.fg.noise): a model that is not
-            # the vehicle's bends the parameters under the nominal noise
+            # the vehicle's bends the parameters under the nominal noise; measured only
+            # (measure_noise), the solution stays the nominal one
             X0, th0 = fs.from_values(out.values)
-            q_scale, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
-            if q_scale != 1.0:
-                out = _finish_fast(fs, out, Xq, thq, s)
+            q_ev, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
+            q_measured = q_ev
+            if adapt:
+                q_scale = q_ev
+                if q_scale != 1.0:
+                    out = _finish_fast(fs, out, Xq, thq, s)
+            else:
+                # back to the nominal noise and its solution (the search leaves the system
+                # at the factor it chose; one converged LM pass refreshes the evaluation)
+                q_tried = {}
+                fs.set_process_scale(1.0)
+                out = _finish_fast(fs, out, X0, th0, s)
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
@@ -454,6 +465,7 @@ class BatchSmoother:
             for w in res.info["warnings"]:
                 log.warning("fg: %s", w)
         res.info["process_noise_scale"] = q_scale
+        res.info["process_noise_measured"] = q_measured
         res.info["process_noise_evidence"] = q_tried
         res.info.update({"iterations": n_it, "trials": n_trials, "converged": converged,
                          "cost": float(err), "n_states": sum(len(p.keys) for p in parts),

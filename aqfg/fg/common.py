@@ -46,13 +46,19 @@ class FGSettings:
     adapt_batch: the batch chooses the process-noise variance factor by its evidence
         (:func:`aqfg.fg.noise.evidence_search`): True, False, or None (default) for
         only where the data are too short for the sandwich (below). Over a whole mission the
-        nominal noise gave the better estimates and a larger one freed degenerate solutions;
-        on for the online re-initialisations, which solve a short stretch of data where the
-        tight noise turned the model's error into a confident heading error; and, by
-        default, for data too short for the sandwich's time blocks (fewer than the
-        parameters + 2), where the Hessian sigma alone was 6-15 times too small on Otter
-        crops of 2.5-5 min (docs/independent-vehicle.md). The diagnosis sets False: a noise
-        chosen to explain the fixes would hide the misfit it is there to show.
+        nominal noise gave the better estimates and a larger one freed degenerate solutions
+        (so also for the online re-initialisations once the fixes so far are that long: a
+        640-s one slid 44 deg off); on where the data are short (the default rule, the
+        early re-initialisations among them), where the tight noise turned the model's error
+        into a confident heading error; that is, for data too short for the sandwich's
+        time blocks (fewer than the parameters + 2), where the Hessian sigma alone was
+        6-15 times too small on Otter crops of 2.5-5 min (docs/independent-vehicle.md).
+        The diagnosis sets False: a noise chosen to explain the fixes would hide the misfit
+        it is there to show.
+    measure_noise: the batch also measures the process-noise factor by the evidence where
+        it does not adopt it (``info["process_noise_measured"]``; the solution stays the
+        nominal noise's): the online re-initialisations take it as the floor of the online
+        noise while solving a long stretch with the nominal noise.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -116,6 +122,7 @@ class FGSettings:
     sandwich_block: float = 60.0
     adapt_process: bool = True
     adapt_batch: bool | None = None
+    measure_noise: bool = False
     online_init_after: float = 20.0
     online_init_fixes: int = 10
     online_reinit_until: float = 960.0

@@ -40,6 +40,7 @@ from aqfg.result import Result
 HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction errors
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
 MIN_BLOCKS = 3         # fewer time blocks than parameters + this: not refined
+STRIDE_DIV = 4.0      # starts at least horizon / STRIDE_DIV s apart
 
 
 @dataclass
@@ -58,7 +59,7 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
               ) -> list[_Segment]:
     """Starts at fixes at least ``horizon / 4`` s apart, each predicting the fixes within
     ``horizon`` s after it."""
-    stride = horizon / 4.0
+    stride = horizon / STRIDE_DIV
     out: list[_Segment] = []
     for i, (m, mr) in enumerate(zip(missions, result.missions)):
         tf, pf = fixes(m, mr.p)
@@ -133,13 +134,13 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     r0 = residuals(x0)
     scale = max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
     sol = least_squares(residuals, x0, bounds=(lo, hi), loss="huber",
-                        f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-4, max_nfev=100)
+                        f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-3, ftol=1e-5, max_nfev=100)
     r1 = residuals(sol.x)
     s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
     if abs(s1 / scale - 1.0) > 0.2:
         scale = s1
         sol = least_squares(residuals, sol.x, bounds=(lo, hi), loss="huber",
-                            f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-4, max_nfev=100)
+                            f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-3, ftol=1e-5, max_nfev=100)
         r1 = residuals(sol.x)
     x, r = sol.x, r1
     # Jacobian (forward differences) and Huber weights at the solution

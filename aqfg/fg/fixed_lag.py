@@ -197,6 +197,7 @@ class FixedLagSmoother:
         if not replaying:
             self._next_reinit = s.online_init_after    # s after the start (see _reinit_due)
             self._batch_tried = False              # no batch re-initialisation yet
+            self.reinit_batches: list[dict] = []   # every re-initialisation batch solved
         self._hold_idx: list[int] = []             # factor indices of the hold priors
         self._last_new_idx: list[int] = []
         self._last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
@@ -681,6 +682,10 @@ class FixedLagSmoother:
         try:
             if len(np.unique(view.fix_times())) < 4:
                 raise ValueError("too few fixes")
+            # the process noise by the evidence only where the fixes so far are too short for
+            # the sandwich (the batch's default rule): over 640 s of an Otter mission the
+            # evidence-chosen noise freed a hull sliding sideways, theta_e 44 deg off, which
+            # replaced a right online estimate (docs/independent-vehicle.md)
             # solved from the closed-form start and from the smoother's own estimate (once
             # released): the lower cost wins, so a batch of part of the data that lands in
             # a wrong basin cannot pull a good online estimate into it
@@ -689,7 +694,7 @@ class FixedLagSmoother:
             bs = BatchSmoother(self.base_model, effects=self.effects,
                                estimate=self.layout.estimated, init=self.init,
                                settings=replace(self.settings, online_init_after=0.0,
-                                                adapt_batch=True),
+                                                adapt_batch=None, measure_noise=True),
                                also_start=own)
             bs.log_warnings = False
             bres = bs.run([view])
@@ -710,9 +715,21 @@ class FixedLagSmoother:
             if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
                 self._release(t_fix)
             return None
-        # the process noise this model needs, measured on all the fixes so far, is the
-        # floor of the online factor from here (aqfg.fg.noise)
-        self._q_floor = float(bres.info.get("process_noise_scale", 1.0))
+        # the process noise this model needs, measured on all the fixes so far by the
+        # evidence, is the floor of the online factor from here (aqfg.fg.noise); a batch
+        # long enough for the sandwich is solved with the nominal noise (above) and only
+        # measures it (with the floor reset to 1 by such a batch, a 6.7-m USBL range
+        # outlier passed the gate in the replay of otter-dev-yawdrift)
+        q_meas = bres.info.get("process_noise_measured")
+        self._q_floor = float(q_meas if q_meas is not None
+                              else bres.info.get("process_noise_scale", 1.0))
+        self.reinit_batches.append({
+            "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
+            "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
+            "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
+            "process_noise_measured": None if q_meas is None else float(q_meas),
+            "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
+            "cost": float(bres.info.get("cost", np.nan))})
         # the online marginal's sigma against the batch's honest one, on the same data:
         # the factor by which the online sigma is reported from here
         self._inflation = {}
@@ -1294,6 +1311,7 @@ class FixedLagSmoother:
                             "rejected_usbl": sorted(t for t, out in self._rejected.items()
                                                     if out),
                             "sigma_inflation": dict(self._inflation),
+                            "reinit_batches": list(self.reinit_batches),
                             "kernel": "cpp" if self.model.uses_cpp else "numpy",
                             "engine": getattr(self, "engine", "gtsam"),
                             "engine_note": getattr(self, "engine_note", ""),
