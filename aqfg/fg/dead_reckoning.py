@@ -95,13 +95,16 @@ def _rms(q: np.ndarray) -> float:
 def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     """Re-estimate the estimated fixed parameters of a batch ``result`` by ``horizon``-s
     prediction error (module docstring); ``result`` is updated in place and returned, with
-    ``info["dead_reckoning"]`` saying what was done and why."""
+    ``info["dead_reckoning"]`` saying what was done and why (``horizon`` <= 0: the result as
+    it is, with no such entry)."""
+    if horizon <= 0:
+        return result
     t_start = time.perf_counter()
     model = result.model
     names = [n for n in result.estimated if model is not None and model.spec(n).group == "fixed"]
     info: dict = {"horizon_s": float(horizon), "names": names, "applied": False}
     result.info["dead_reckoning"] = info
-    if model is None or not names or horizon <= 0:
+    if model is None or not names:
         info["reason"] = "no thrust/drag constant estimated"
         return result
     segs = _segments(model, missions, result, horizon)

@@ -47,8 +47,7 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
                             settings=settings, progress=progress).run(missions)
         # the constants to dead-reckon with: multi-step prediction error where it differs
         # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning)
-        horizon = (settings or FGSettings()).dr_horizon
-        return dead_reckoning.refine(res, list(missions), horizon) if horizon > 0 else res
+        return dead_reckoning.refine(res, list(missions), (settings or FGSettings()).dr_horizon)
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]

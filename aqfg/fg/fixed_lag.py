@@ -682,15 +682,15 @@ class FixedLagSmoother:
         try:
             if len(np.unique(view.fix_times())) < 4:
                 raise ValueError("too few fixes")
-            # the process noise by the evidence only where the fixes so far are too short for
-            # the sandwich (the batch's default rule): over 640 s of an Otter mission the
-            # evidence-chosen noise freed a hull sliding sideways, theta_e 44 deg off, which
-            # replaced a right online estimate (docs/independent-vehicle.md)
             # solved from the closed-form start and from the smoother's own estimate (once
             # released): the lower cost wins, so a batch of part of the data that lands in
             # a wrong basin cannot pull a good online estimate into it
             own = (None if self._hold_idx else
                    {n: float(p[self.model.index(n)]) for n in self.layout.estimated})
+            # the process noise by the evidence only where the fixes so far are too short for
+            # the sandwich (the batch's default rule), else measured only: over 640 s of an
+            # Otter mission the evidence-chosen noise freed a hull sliding sideways, theta_e
+            # 44 deg off, which replaced a right online estimate (docs/independent-vehicle.md)
             bs = BatchSmoother(self.base_model, effects=self.effects,
                                estimate=self.layout.estimated, init=self.init,
                                settings=replace(self.settings, online_init_after=0.0,
@@ -723,13 +723,6 @@ class FixedLagSmoother:
         q_meas = bres.info.get("process_noise_measured")
         self._q_floor = float(q_meas if q_meas is not None
                               else bres.info.get("process_noise_scale", 1.0))
-        self.reinit_batches.append({
-            "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
-            "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
-            "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
-            "process_noise_measured": None if q_meas is None else float(q_meas),
-            "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
-            "cost": float(bres.info.get("cost", np.nan))})
         # the online marginal's sigma against the batch's honest one, on the same data:
         # the factor by which the online sigma is reported from here
         self._inflation = {}
@@ -756,9 +749,13 @@ class FixedLagSmoother:
                     for v in bres.info.get("plausibility", {}).values()), default=0.0)
         if not held and slip > plausibility.SUSPECT_SLIP and np.isfinite(sb):
             tol = max(tol, 3.0 * sb)
-        self.reinit_batches[-1].update({"slip_deg": float(slip), "gap": float(gap),
-                                        "tolerance": float(tol),
-                                        "restarted": bool(force or gap >= tol)})
+        self.reinit_batches.append({
+            "t": float(t_fix), "theta_e": float(th_b), "sigma_theta_e": sb,
+            "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
+            "process_noise_measured": None if q_meas is None else float(q_meas),
+            "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
+            "cost": float(bres.info.get("cost", np.nan)), "slip_deg": float(slip),
+            "gap": float(gap), "tolerance": float(tol), "restarted": bool(force or gap >= tol)})
         if force:
             self._forced_at = float(t_fix)
         elif gap < tol:
