@@ -51,6 +51,7 @@ from aqfg.fg.common import (
     default_estimate,
     first_knot_prior,
     initial_states,
+    knot_times,
     measurement_factors,
     mission_model,
     piecewise_inertial,
@@ -68,6 +69,10 @@ log = logging.getLogger(__name__)
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
 # system, a key missing from the Bayes tree after marginalisation, ...)
 GTSAM_ERRORS = (RuntimeError, IndexError, ValueError)
+
+# a held heading offset this far from the closed-form one of the fixes so far is re-seeded
+# while the held model fails (FixedLagSmoother._reseed)
+RESEED_GAP = np.radians(20.0)
 
 
 @dataclass
@@ -404,6 +409,8 @@ class FixedLagSmoother:
             info = self._reinitialise(t_fix, rescue=due == "rescue") or info
         elif self._troubled(t_fix):
             info = self._reinitialise(t_fix, force=True) or info
+        if self._held_failing() and not getattr(self, "_replaying", False):
+            info = self._reseed(t_fix) or info
         return info
 
     def _update_gtsam(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
@@ -611,11 +618,7 @@ class FixedLagSmoother:
         # m off the fixes while the first batch waited for six fixes; a batch of 6.5 s
         # whose last fix was a 34-m outlier came out 100 deg off, sigma 3 deg;
         # docs/independent-vehicle.md)
-        recent = self._taken_m2[-3:]
-        failing = (bool(self._hold_idx)
-                   and (self.q_scale >= s.adapt_max
-                        or (len(recent) >= 2 and min(recent[-2:]) > s.online_gate_usbl)
-                        or (len(recent) == 3 and sorted(recent)[1] > noise.CHI2_2_99)))
+        failing = self._held_failing()
         first = (((not self._batch_tried and self.n_fix >= s.online_init_fixes) or failing)
                  and not getattr(self, "_replaying", False))
         due = (self._reinit_scheduled() and (el >= self._next_reinit or first)
@@ -630,6 +633,60 @@ class FixedLagSmoother:
         if not due:
             return ""
         return "rescue" if failing and el < self._next_reinit else "scheduled"
+
+    def _held_failing(self) -> bool:
+        """The parameters are held and the held model fails: its process noise adapted to
+        the bound, its last two fixes beyond the USBL gate's quantile, or two of its last
+        three beyond chi-square(2)'s 99 % one (see :meth:`_reinit_due`)."""
+        s = self.settings
+        recent = self._taken_m2[-3:]
+        return (bool(self._hold_idx)
+                and (self.q_scale >= s.adapt_max
+                     or (len(recent) >= 2 and min(recent[-2:]) > s.online_gate_usbl)
+                     or (len(recent) == 3 and sorted(recent)[1] > noise.CHI2_2_99)))
+
+    def _reseed(self, t_fix: float) -> UpdateInfo | None:
+        """While the parameters are held and the held model fails before a batch can take
+        over: re-hold the heading offset and the current at the closed-form start of the
+        fixes so far (:func:`aqfg.fg.init.candidate_starts` at the held constants, global in
+        theta_e) and replay, if it differs from the held heading by more than
+        ``RESEED_GAP``. The batch needs more fixes than the closed form (six with the
+        constants free); in between, a held heading 160 deg off ran the causal track 25-40
+        m off the fixes (docs/independent-vehicle.md)."""
+        from aqfg.fg.init import candidate_starts
+        t_re = time.perf_counter()
+        if (getattr(self, "_replaying", False) or not self._hold_idx
+                or "theta_e" not in self.layout.estimated or self.n_fix < 4):
+            return None
+        view = _mission_until(self.mission, t_fix)
+        knots = knot_times(view, self.settings.knot_spacing)
+        p = self.params()
+        ps = self.settings.prior_sigma or {}
+        cur_sig = ((float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps
+                   else None)
+        try:
+            starts = candidate_starts(self.model, view, knots, p, search=False,
+                                      current_sigma=cur_sig)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            starts = []
+        if not starts:
+            return None
+        st = starts[0]
+        th0 = float(p[self.model.index("theta_e")])
+        gap = abs(float(np.angle(np.exp(1j * (st.theta_e - th0)))))
+        if gap < RESEED_GAP:
+            return None
+        new_init = {n: float(p[self.model.index(n)]) for n in self.layout.estimated}
+        new_init.update(self.init)
+        new_init["theta_e"] = float(st.theta_e)
+        for n, v in zip(("s_x", "s_y"), st.current):
+            if n in self.layout.estimated and n not in self.init:
+                new_init[n] = float(v)
+        # held with their start priors (the settings'), as at the start
+        return self._replay(t_fix, new_init, {}, {
+            "t": float(t_fix), "event": "held heading re-seeded from the fixes so far",
+            "theta_e_before": th0, "theta_e_after": float(st.theta_e),
+            "misfit_m": float(st.misfit)}, t_re)
 
     def _release(self, t_fix: float) -> None:
         """Remove the hold priors: the parameters follow the data from here."""
@@ -770,9 +827,20 @@ class FixedLagSmoother:
             sg = bres.sigma.get(n)
             if sg is not None and np.isfinite(sg) and sg > 0:
                 prior[n] = 2.0 * float(sg)
-        events = list(self.events) + [{
+        info = self._replay(t_fix, new_init, prior, {
             "t": float(t_fix), "event": "re-initialised from a batch solve of the fixes so far",
-            "theta_e_before": float(p[self.model.index("theta_e")]), "theta_e_after": float(th_b)}]
+            "theta_e_before": float(p[self.model.index("theta_e")]), "theta_e_after": float(th_b)},
+            t_re)
+        self._release(t_fix)
+        return info
+
+    def _replay(self, t_fix: float, new_init: dict[str, float], prior: dict[str, float],
+                event: dict, t_re: float) -> UpdateInfo | None:
+        """Restart the smoother and replay the fixes up to ``t_fix`` with the parameters held
+        at ``new_init`` (``prior``: their start priors' sigmas); what was reported causally
+        before stays as it was reported. The parameters stay held (the caller releases
+        them or not). ``t_re``: when the restart began (``time.perf_counter``)."""
+        events = list(self.events) + [event]
         timings = {k: list(v) for k, v in self.timings.items()}
         self._materialise()
         # what was reported causally before the restart stays as it was reported
@@ -803,9 +871,8 @@ class FixedLagSmoother:
             self.filtered[:n_kept] = causal[3]
             self._pending = [q for q in self._pending if q[0] >= n_kept]
             self.pred_t, self.pred_x = causal[4], causal[5]
-        self._release(t_fix)
         # per-update timings stay aligned with the (replayed) history; the updates before
-        # the restart and the restart itself (batch + replay) are kept apart
+        # the restart and the restart itself (solve + replay) are kept apart
         self.timings["before_reinit"] = timings.get("before_reinit", []) + timings.get("update", [])
         self.timings["reinit"] = timings.get("reinit", []) + [time.perf_counter() - t_re]
         return info
