@@ -579,15 +579,18 @@ def test_a_sliding_batch_does_not_replace_the_online_heading_within_its_own_sigm
     with theta_e 46 deg off the truth and a sigma of 22 deg; the online heading is 13 deg
     off. The restart tolerance was capped at 10 deg, so that batch replaced it and the run
     ended 44 deg off. A sliding batch (slip above plausibility.SUSPECT_SLIP) now restarts
-    the smoother only beyond its own 3 sigma."""
+    the smoother only beyond its own 3 sigma, or, where it names a non-sliding alternative
+    (as this one does), beyond the alternative's."""
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-44", 8.0)
     r = fit_fg([m], mode="online")
     sliding = [b for b in r.info["reinit_batches"]
-               if b.get("slip_deg", 0.0) > plausibility.SUSPECT_SLIP and b["gap"] > 10 * DEG]
+               if b.get("slip_deg", 0.0) > plausibility.SUSPECT_SLIP and b["t"] > 600.0]
     assert sliding, r.info["reinit_batches"]
     for b in sliding:
-        assert not b["restarted"] and b["tolerance"] >= 3 * b["sigma_theta_e"]
+        # judged by its non-sliding alternative where it names one, else by its own 3 sigma
+        assert not b["restarted"] and (b["reference"] == "non-sliding alternative"
+                                       or b["tolerance"] >= 3 * b["sigma_theta_e"])
     i = list(r.history.names).index("theta_e")
     t_end = r.history.t[-1]
     th_true = truth.params["theta_e"] + truth.params["heading_drift.rate"] * t_end
@@ -612,3 +615,22 @@ def test_a_failing_held_heading_is_reseeded_from_the_fixes():
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
     assert np.sqrt(np.mean(e ** 2)) < 4.0, np.sqrt(np.mean(e ** 2))
+
+
+def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternative():
+    """otter-heldout-52-300s (the first 300 s of a held-out mission, 1-s GNSS), online with
+    the default constants: the 256-s re-initialisation batch slides 16 deg off the thrust
+    axis with theta_e 53 deg off and sigma 3 deg, and names a non-sliding alternative (the
+    sway drag held high) that explains the fixes almost as well. Restarted to the sliding
+    batch, the online heading ran 55 deg off; the alternative is now the reference."""
+    from aqfg.fg import plausibility
+    m, truth = mission("otter-heldout-52-300s", 0.0)
+    r = FixedLagSmoother().run(m)
+    sliding = [b for b in r.info["reinit_batches"] if b["slip_deg"] > plausibility.SUSPECT_SLIP]
+    assert sliding and all(b["reference"] == "non-sliding alternative" for b in sliding), \
+        r.info["reinit_batches"]
+    h = r.history
+    i = list(h.names).index("theta_e")
+    th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
+    err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
+    assert np.max(err[h.t >= sliding[0]["t"]]) < 15 * DEG, np.degrees(err[h.t >= sliding[0]["t"]])

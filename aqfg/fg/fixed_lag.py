@@ -788,31 +788,42 @@ class FixedLagSmoother:
             if np.isfinite(raw) and np.isfinite(ref) and raw > 0 and ref > raw:
                 self._inflation[n] = float(ref / raw)
         self.q_scale = max(self.q_scale, self._q_floor)
-        th_b = bres.values["theta_e"]
-        gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         held = bool(self._hold_idx)
+        slip = max((v.get("slip_deg") or 0.0
+                    for v in bres.info.get("plausibility", {}).values()), default=0.0)
+        # a batch sliding off its thrust axis (plausibility.SUSPECT_SLIP) that names a
+        # non-sliding alternative explaining the fixes almost as well (the sway drag held
+        # high): the alternative is the reference. A 256-s batch of heldout-52 slid 16 deg
+        # with theta_e 53 deg off and sigma 3 deg; its alternative was 9 deg off, and the
+        # restart to the sliding one ran the causal track up to 6 m off for 250 s
+        alt = bres.info.get("alternative_held_sway") \
+            if slip > plausibility.SUSPECT_SLIP else None
+        ref_v, ref_s = (alt["values"], alt["sigma"]) if alt else (bres.values, bres.sigma)
+        th_b = ref_v["theta_e"]
+        gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         # released: restart when the online heading is outside the batch's 3 sigma (its
         # honest sigma; at least 1 deg) -- the smoother's marginal priors, linearised when
         # the heading was still uncertain, keep it biased by 3-5 deg on the Otter, where a
         # batch of the same data is within 1 deg
-        sb = float(bres.sigma.get("theta_e", np.nan))
+        sb = float(ref_s.get("theta_e", np.nan))
         tol = np.radians(1.0) if held else float(np.clip(3.0 * sb if np.isfinite(sb) else np.inf,
                                                           np.radians(1.0), np.radians(10.0)))
-        # a batch sliding off its thrust axis (plausibility.SUSPECT_SLIP) restarts a released
-        # smoother only where its heading differs by more than its own 3 sigma: the 10-deg
-        # cap let sliding 640-s batches (k_yz 0.005-0.015, sigma 22 deg) replace online
-        # headings 13-44 deg closer to the truth on two fresh missions
-        slip = max((v.get("slip_deg") or 0.0
-                    for v in bres.info.get("plausibility", {}).values()), default=0.0)
-        if not held and slip > plausibility.SUSPECT_SLIP and np.isfinite(sb):
+        # a sliding batch without such an alternative restarts a released smoother only
+        # where its heading differs by more than its own 3 sigma: the 10-deg cap let
+        # sliding 640-s batches (k_yz 0.005-0.015, sigma 22 deg) replace online headings
+        # 13-44 deg closer to the truth on two fresh missions
+        if not held and not alt and slip > plausibility.SUSPECT_SLIP and np.isfinite(sb):
             tol = max(tol, 3.0 * sb)
         self.reinit_batches.append({
-            "t": float(t_fix), "theta_e": float(th_b), "sigma_theta_e": sb,
+            "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
+            "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
             "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
             "process_noise_measured": None if q_meas is None else float(q_meas),
             "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
             "cost": float(bres.info.get("cost", np.nan)), "slip_deg": float(slip),
-            "gap": float(gap), "tolerance": float(tol), "restarted": bool(force or gap >= tol)})
+            "gap": float(gap), "tolerance": float(tol), "restarted": bool(force or gap >= tol),
+            "reference": "non-sliding alternative" if alt else "batch",
+            "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb})
         if force:
             self._forced_at = float(t_fix)
         elif gap < tol:
@@ -823,8 +834,8 @@ class FixedLagSmoother:
         for n in self.layout.estimated:
             if n in self.init:
                 continue
-            new_init[n] = float(bres.values[n])
-            sg = bres.sigma.get(n)
+            new_init[n] = float(ref_v[n])
+            sg = ref_s.get(n)
             if sg is not None and np.isfinite(sg) and sg > 0:
                 prior[n] = 2.0 * float(sg)
         info = self._replay(t_fix, new_init, prior, {
