@@ -13,7 +13,7 @@ import numpy as np
 from scipy import stats
 
 from aqfg.fleet.solve import FleetResult
-from aqfg.result import PARAMETERS_FORMAT, Result, write_result
+from aqfg.result import PARAMETERS_FORMAT, Result, dead_reckoning_document, write_result
 
 
 def fixed_names(res: Result) -> tuple[str, ...]:
@@ -117,12 +117,16 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
             vdir.mkdir(parents=True, exist_ok=True)
             entry = table["vehicles"][v.name]
             prov = provenance(method="fg", mode="fleet", inputs=[m.path for m in v.missions])
-            write_json(vdir / "parameters.json", {
+            doc = {
                 "format": PARAMETERS_FORMAT, "method": "fg", "mode": "fleet",
                 "parameters": {n: {"value": e["value"], "sigma": e["sigma"],
                                    "unit": _unit(res, n)}
                                for n, e in entry["parameters"].items()},
-                "provenance": prov})
+                "provenance": prov}
+            dr = res.info.get("dead_reckoning")
+            if dr and dr.get("segments"):
+                doc["dead_reckoning"] = dead_reckoning_document(dr)
+            write_json(vdir / "parameters.json", doc)
             written.append(out / v.name / "parameters.json")
             names_f = fixed_names(res)
             for m, mres in zip(v.missions, res.missions):

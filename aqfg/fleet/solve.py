@@ -20,7 +20,7 @@ import numpy as np
 from aqfg.fg.common import FGSettings
 from aqfg.fg.schur import Solution, combine, joint_lm
 from aqfg.fleet.manifest import Manifest
-from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, release
+from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, refine_op, release
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
@@ -46,7 +46,8 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
               init: dict | None = None, gnss_every: float = 0.0, diagnose: bool = False,
               progress=None, timeout: float | None = None) -> FleetResult:
     """Fit every vehicle of ``manifest`` (its fixed parameters shared by its missions)
-    on Dask; equal to ``BatchSmoother(...).run(missions)`` per vehicle.
+    on Dask; equal to ``fit_fg(missions)`` per vehicle (``BatchSmoother(...).run`` and the
+    dead-reckoning refinement of the constants, ``settings.dr_horizon``).
 
     ``client``: a ``dask.distributed.Client``; without one, a client of the scheduler at
     ``scheduler`` or of a new ``LocalCluster`` of ``workers`` processes (one thread each)
@@ -184,6 +185,26 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     stats["workers"] = len(_workers(client))
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
+    if settings.dr_horizon > 0:
+        # the constants to dead-reckon with, per vehicle over its missions, as aqfg fit
+        # does (aqfg.fg.dead_reckoning): one task per vehicle
+        show(0.99, f"dead-reckoning constants of {len(results)} vehicles")
+        t_dr = time.perf_counter()
+        futs = {client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
+                              key=f"aqfg-{run}-refine-{i}"): v
+                for i, v in enumerate(results)}
+        try:
+            for fut in as_completed(list(futs), timeout=timeout):
+                v = futs[fut]
+                try:
+                    results[v] = fut.result()
+                except Exception as e:             # re-raised with context
+                    raise FleetError(f"vehicle {v!r}: the dead-reckoning refinement failed: "
+                                     f"{type(e).__name__}: {e}") from e
+        except TimeoutError:
+            raise FleetError(f"the dead-reckoning refinement took longer than {timeout} s"
+                             ) from None
+        stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     diag = {}
     if diagnose:
         show(0.99, f"diagnosing {n_total} missions")

@@ -80,6 +80,17 @@ def missions_op(items: list) -> list[dict]:
     return out
 
 
+def refine_op(specs: list[MissionSpec], result):
+    """A vehicle's joint fit with its thrust/drag constants re-estimated by prediction error
+    over its missions (:func:`aqfg.fg.dead_reckoning.refine`, as ``aqfg fit`` does); the
+    missions are read on the worker."""
+    from aqfg.fg import dead_reckoning
+    from aqfg.fg.common import mission_model
+    missions = [load(spec) for spec in specs]
+    result.model = mission_model(None, missions[0], specs[0].effects)
+    return dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
+
+
 def diagnose_op(spec: MissionSpec) -> dict:
     """The diagnosis verdict of one mission alone (``aqfg diagnose``'s workflow)."""
     from aqfg.diagnose.workflow import diagnose
