@@ -66,6 +66,11 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
         if len(tf) < 3:
             continue
         tr = mr.track
+        # the kernel steps between all fixes at once, sliced per segment (a segment's knots
+        # are consecutive fixes; building them per segment took 40 % of the refinement);
+        # with a lookback (warm-up steps) each segment builds its own
+        u = np.unique(tf)
+        whole = model.steps(m, u) if model.lookback <= 0 else None
         last = -np.inf
         for t0 in tf:
             if t0 - last < stride or t0 < tr.t[0] or t0 > tr.t[-1]:
@@ -77,7 +82,14 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
             x0 = np.array([np.interp(t0, tr.t, tr.pos[:, c]) for c in range(3)]
                           + [np.interp(t0, tr.t, tr.vel[:, c]) for c in range(3)])
             knots = np.concatenate([[t0], np.unique(tf[js])])
-            steps, off = model.steps(m, knots)
+            if whole is not None:
+                a = int(np.searchsorted(u, t0 - 1e-9))
+                b = a + len(knots) - 1
+                off_all = whole[1]
+                steps = whole[0].slice(int(off_all[a]), int(off_all[b]))
+                off = off_all[a:b + 1] - off_all[a]
+            else:
+                steps, off = model.steps(m, knots)
             rows = np.searchsorted(knots, tf[js] - 1e-9)
             out.append(_Segment(i, float(t0), x0, steps, off, rows, pf[js, :2]))
     return out
