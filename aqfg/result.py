@@ -163,6 +163,10 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
             "computed none")
 
 
+# the online fit's record kept in parameters.json (format doc, "Outputs")
+ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
+
+
 def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     """The content of ``parameters.json`` (format doc, "Outputs"): the estimated parameters
     (value, 1-sigma, unit), the fixed parameters the model used (value, unit), per-mission
@@ -196,6 +200,10 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     dr = result.info.get("dead_reckoning")
     if dr and dr.get("segments"):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
+    if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
+        # what the online run did besides its updates: re-initialisations, re-seeds,
+        # recoveries, fixes left out (docs/independent-vehicle.md)
+        doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
     if provenance is not None:
         doc["provenance"] = provenance
     return doc

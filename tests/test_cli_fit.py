@@ -59,7 +59,7 @@ def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
     assert not (out / "map.png").exists()          # --force replaced the whole set
 
 
-def test_fit_online_and_two_missions(missions, tmp_path):
+def test_fit_online_and_two_missions(missions, tmp_path, capsys):
     (d1, tr1), (d2, _) = missions
     out = tmp_path / "online"
     fixed = tmp_path / "fixed.json"
@@ -69,6 +69,13 @@ def test_fit_online_and_two_missions(missions, tmp_path):
                  "--gnss-every", "8", "--params-from", str(fixed)]) == 0
     doc = json.loads((out / "parameters.json").read_text())
     assert set(doc["parameters"]) == {"theta_e", "s_x", "s_y"}
+    # the online run's record: its batch re-initialisations (the heading was not given)
+    rec = doc["online"]
+    assert rec["reinit_batches"] and all({"t", "theta_e", "restarted", "reference"} <= set(b)
+                                         for b in rec["reinit_batches"])
+    assert any(e["event"].startswith("re-initialised") for e in rec["events"])
+    assert rec["process_noise_scale"] >= 1.0
+    assert "online: re-initialised from a batch solve of the fixes so far: " in capsys.readouterr().out
     assert {n: e["value"] for n, e in doc["fixed"].items()} == \
         {n: tr1.params[n] for n in ("k", "k_x", "k_yz")}      # the fixed values it used
     assert (out / "parameters.png").stat().st_size > 10_000

@@ -165,6 +165,13 @@ def run(args) -> int:
     if t.get("update"):
         import numpy as np
         print(f"online: {len(t['update'])} updates, median {1e3 * np.median(t['update']):.2f} ms")
+    seen: dict[str, list[float]] = {}
+    for e in result.info.get("events") or []:
+        if e.get("event") != "parameters released":
+            seen.setdefault(str(e.get("event")), []).append(float(e.get("t", float("nan"))))
+    for name, ts in seen.items():
+        print(f"online: {name}: {len(ts)}x (at {', '.join(f'{x:.1f}' for x in ts[:6])}"
+              f"{', ...' if len(ts) > 6 else ''} s)")
     gated = result.info.get("rejected_usbl") or []
     if gated:
         print(f"online: {len(gated)} USBL fixes left out by the innovation gate (at "
