@@ -218,6 +218,7 @@ class FixedLagSmoother:
             self._fixes = robust_fix_table(mission, s)
             self._usbl_tab = self._gate_table(mission)
         self._under_review: list[float] = []       # USBL fixes left out, still in the window
+        self._under_review_g: list[tuple[float, int]] = []   # the same, GTSAM engine: (t, key)
         self._taken_m2: list[float] = []           # _gate's statistic of the fixes taken
         self._rejects = 0                          # consecutive USBL fixes left out (_gate)
         if not replaying:
@@ -475,10 +476,12 @@ class FixedLagSmoother:
         if s.adapt_process:
             self._adapt(t_fix, float(t_fix - t_last), x)
         meas = Measurements.of(self.mission, s, t_last + 1e-6, t_fix)
+        self._review_left_out_gtsam(graph, t_fix)
         if drop_usbl:
             keep = np.abs(meas.usbl_t - t_fix) > 1e-6
             meas = replace(meas, usbl_t=meas.usbl_t[keep], usbl_z=meas.usbl_z[keep],
                            usbl_sigma=meas.usbl_sigma[keep], usbl_R=meas.usbl_R[keep])
+            self._under_review_g.append((float(t_fix), int(self.keys[-1])))
         local = np.asarray(all_t)
         for f in measurement_factors(self.model, lay, meas, local,
                                      lambda i: self.keys[i0 - 1 + i],
@@ -552,6 +555,40 @@ class FixedLagSmoother:
                 continue
             keep.append(t)
         self._under_review = keep
+
+    def _review_left_out_gtsam(self, graph: gtsam.NonlinearFactorGraph, t_fix: float) -> None:
+        """:meth:`_review_left_out` on the GTSAM engine: a USBL fix the gate left out whose
+        knot is still in the window and whose smoothed estimate now agrees with it (the
+        same gate, without the prediction's process noise) gets its factor in this update
+        (``graph``); one whose knot has been marginalised stays out."""
+        if not self._under_review_g:
+            return
+        s, lay = self.settings, self.layout
+        keep = []
+        for t, k in self._under_review_g:
+            if t >= t_fix - 1e-9:
+                keep.append((t, k))
+                continue
+            try:
+                x = np.asarray(self.smoother.calculateEstimateVector(k), float)
+            except GTSAM_ERRORS:
+                continue                           # left the window: stays out
+            if x.shape != (6,) or not np.all(np.isfinite(x)):
+                continue
+            if self._gate_m2(t, x, 0.0) > s.online_gate_usbl:
+                keep.append((t, k))
+                continue
+            m = Measurements.of(self.mission, s, t - 1e-6, t + 1e-6)
+            m = replace(m, gnss_t=m.gnss_t[:0], gnss_z=m.gnss_z[:0], gnss_sigma=m.gnss_sigma[:0],
+                        gnss_R=m.gnss_R[:0], depth_t=m.depth_t[:0], depth_z=m.depth_z[:0])
+            def knot_key(_i: int, k: int = k) -> int:
+                return k
+            for f in measurement_factors(self.model, lay, m, np.array([t]), knot_key,
+                                         lambda stream, tt: self._node_keys(
+                                             lay.meas_groups(stream)), s):
+                graph.add(f)
+            self._rejected[t] = False
+        self._under_review_g = keep
 
     def _interval_steps(self, all_t: np.ndarray):
         """Kernel steps from ``all_t[0]`` to ``all_t[-1]`` in one piece (the numpy engine's
