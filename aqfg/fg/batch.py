@@ -158,6 +158,10 @@ class BatchSmoother:
         as for the heading basins."""
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # info["warnings"] also to the log (WARNING)
+        # the model-only re-trace of each mission in the result; False: left empty where
+        # one parameter vector serves the mission, for a caller that changes the parameters
+        # and re-traces itself (fit_fg after the dead-reckoning refinement)
+        self.inertial = True
         self.model = model
         self.effects = tuple(effects)
         self.estimate = None if estimate is None else tuple(estimate)
@@ -639,7 +643,9 @@ class BatchSmoother:
                 return p_segments[j]
             X = np.array([values.atVector(k) for k in part.keys])
             track = Track(part.knots.copy(), X[:, :3], X[:, 3:])
-            inertial = piecewise_inertial(part.model, part.mission, p_segments, part.seg_starts)
+            inertial = (piecewise_inertial(part.model, part.mission, p_segments, part.seg_starts)
+                        if self.inertial or nseg > 1 else
+                        Track(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))))
             res = residuals(part.model, part.mission, track, p_at, s)
             res["dynamics"] = _dynamics_residuals(part, X, p_segments, s)
             mres.append(MissionResult(part.mission.name, track, inertial, p_segments[-1], res))

@@ -20,8 +20,9 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import dead_reckoning
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings, check_missions
+from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
+from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
@@ -43,11 +44,18 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     if mode == "batch":
-        res = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
-                            settings=settings, progress=progress).run(missions)
+        horizon = (settings or FGSettings()).dr_horizon
+        bs = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
+                           settings=settings, progress=progress)
+        bs.inertial = horizon <= 0         # re-traced once, with the final constants (below)
+        res = bs.run(missions)
         # the constants to dead-reckon with: multi-step prediction error where it differs
         # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning)
-        return dead_reckoning.refine(res, list(missions), (settings or FGSettings()).dr_horizon)
+        res = dead_reckoning.refine(res, list(missions), horizon)
+        for m, mr in zip(missions, res.missions):
+            if not len(mr.inertial.t):
+                mr.inertial = inertial_track(mission_model(model, m, effects), m, mr.p)
+        return res
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]
