@@ -793,21 +793,18 @@ class FixedLagSmoother:
             bs.log_warnings = False
             bres = bs.run([view])
         except (ValueError, *GTSAM_ERRORS) as exc:
-            self.events.append({"t": float(t_fix), "event": "batch re-initialisation failed",
-                                "error": (str(exc).strip().splitlines() or [""])[0]})
-            if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
-                self._release(t_fix)
+            self._batch_not_used(t_fix, {
+                "event": "batch re-initialisation failed",
+                "error": (str(exc).strip().splitlines() or [""])[0]})
             return None
         if not bres.info.get("plausible", True):
             # a batch of a short stretch with the constants free can land on a vehicle no
             # hull is (thrust 500x, currents at their bounds on a 40-s crop of an Otter
             # mission); replayed with such values held, every prediction diverged
-            self.events.append({"t": float(t_fix), "event": "batch re-initialisation "
-                                "implausible: not used",
-                                "reasons": [r for v in bres.info.get("plausibility", {}).values()
-                                            for r in v.get("reasons", [])]})
-            if self._hold_idx and 2.0 * el > self.settings.online_reinit_until:
-                self._release(t_fix)
+            self._batch_not_used(t_fix, {
+                "event": "batch re-initialisation implausible: not used",
+                "reasons": [r for v in bres.info.get("plausibility", {}).values()
+                            for r in v.get("reasons", [])]})
             return None
         if self._hold_idx and not self._constants_given \
                 and float(bres.info.get("process_noise_scale", 1.0)) >= self.settings.adapt_max:
@@ -817,10 +814,9 @@ class FixedLagSmoother:
             # 70 deg off, sigma 19 deg; released, the causal track ran 33 m off); still
             # held. (Not with the constants given: there it made more runs worse than it
             # mended, docs/independent-vehicle.md)
-            self.events.append({"t": float(t_fix), "event": "batch re-initialisation "
-                                "explains no fix (process noise at its bound): not used"})
-            if 2.0 * el > self.settings.online_reinit_until:
-                self._release(t_fix)
+            self._batch_not_used(t_fix, {
+                "event": "batch re-initialisation explains no fix (process noise at its "
+                         "bound): not used"})
             return None
         # the process noise this model needs, measured on all the fixes so far by the
         # evidence, is the floor of the online factor from here (aqfg.fg.noise); a batch
@@ -894,6 +890,14 @@ class FixedLagSmoother:
             t_re)
         self._release(t_fix)
         return info
+
+    def _batch_not_used(self, t_fix: float, event: dict) -> None:
+        """A re-initialisation batch that failed or is not used: recorded (``event``); the
+        parameters stay as they are, and held ones are released once the schedule of
+        batches has passed half its length (none would come to release them)."""
+        self.events.append({"t": float(t_fix), **event})
+        if self._hold_idx and 2.0 * (t_fix - self.knots[0]) > self.settings.online_reinit_until:
+            self._release(t_fix)
 
     def _replay(self, t_fix: float, new_init: dict[str, float], prior: dict[str, float],
                 event: dict, t_re: float) -> UpdateInfo | None:
