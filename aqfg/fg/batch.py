@@ -46,7 +46,13 @@ from aqfg.fg.common import (
 )
 from aqfg.fg.covariance import block_sandwich, honest_covariance
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
-from aqfg.fg.init import Start, candidate_starts, distinct_headings, start_states
+from aqfg.fg.init import (
+    Start,
+    candidate_starts,
+    current_prior,
+    distinct_headings,
+    start_states,
+)
 from aqfg.fg.plausibility import Plausibility
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
@@ -192,9 +198,7 @@ class BatchSmoother:
         free = set(layout.names.get("fixed", ()))
         grid = {"k", "k_x", "k_yz"} <= free
         search = grid and not ({"k", "k_x", "k_yz"} & set(self.init))
-        ps = s.prior_sigma or {}            # the closed form's current prior: the batch's
-        cur_sig = ((float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps
-                   else None)
+        cur_sig = current_prior(s.prior_sigma)
         for mi, (m, model) in enumerate(zip(missions, models)):
             knots = knot_times(m, s.knot_spacing)
             steps, off = model.steps(m, knots)

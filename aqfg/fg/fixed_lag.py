@@ -690,7 +690,7 @@ class FixedLagSmoother:
         ``RESEED_GAP``. The batch needs more fixes than the closed form (six with the
         constants free); in between, a held heading 160 deg off ran the causal track 25-40
         m off the fixes (docs/independent-vehicle.md)."""
-        from aqfg.fg.init import candidate_starts
+        from aqfg.fg.init import candidate_starts, current_prior
         t_re = time.perf_counter()
         if (getattr(self, "_replaying", False) or not self._hold_idx
                 or "theta_e" not in self.layout.estimated or self.n_fix < 4):
@@ -698,12 +698,9 @@ class FixedLagSmoother:
         view = _mission_until(self.mission, t_fix)
         knots = knot_times(view, self.settings.knot_spacing)
         p = self.params()
-        ps = self.settings.prior_sigma or {}
-        cur_sig = ((float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps
-                   else None)
         try:
             starts = candidate_starts(self.model, view, knots, p, search=False,
-                                      current_sigma=cur_sig)
+                                      current_sigma=current_prior(self.settings.prior_sigma))
         except (ValueError, FloatingPointError, np.linalg.LinAlgError):
             starts = []
         if not starts:

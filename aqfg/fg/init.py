@@ -132,6 +132,13 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     return theta, c[:2].copy(), rho, off[0].copy(), misfit
 
 
+def current_prior(prior_sigma: dict | None) -> tuple[float, float] | None:
+    """The closed form's current prior (m/s, north and east): the batch's
+    (``FGSettings.prior_sigma``), None without one on both components."""
+    ps = prior_sigma or {}
+    return (float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps else None
+
+
 # the misfit grid's scales of the nominal k, k_x, k_yz (see candidate_starts)
 _SCALES = np.logspace(-2.0, 1.0, 10)
 
