@@ -652,3 +652,38 @@ def test_a_first_batch_that_explains_no_fix_is_not_used():
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
     assert np.sqrt(np.mean(e ** 2)) < 6.5 and e.max() < 20.0, (np.sqrt(np.mean(e ** 2)), e.max())
+
+
+def test_a_run_of_unexplained_fixes_raises_the_held_models_noise():
+    """otter-heldout-66-90s (the first 90 s of a held-out mission, offset +153 deg), 4-s
+    GNSS, all six parameters free from the defaults: while held (re-seeded at 11 s; its
+    batches explain no fix until 40 s) the paper's constants run the model at 2 m/s
+    against the Otter's 1.2. The process noise stayed nominal while the fixes the largest
+    factor could not explain were a minority of the last ten, and the causal track ran
+    5-10 m off the fixes for 17 s (7.8 m RMS over the first 60 s). Two such fixes among the
+    last three are the model failing (aqfg.fg.noise.variance_factor)."""
+    m, truth = mission("otter-heldout-66-90s", 4.0)
+    r = FixedLagSmoother().run(m)
+    c = r.missions[0].filtered
+    pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
+    e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 60.0]
+    assert np.sqrt(np.mean(e ** 2)) < 6.0, np.sqrt(np.mean(e ** 2))
+
+
+def test_an_ambiguous_batch_keeps_the_basin_of_the_online_estimate():
+    """otter-heldout-73-170s (the first 170 s of a held-out mission whose offset drifts by
+    +0.03 deg/s), 4-s GNSS, the default constants: the 160-s re-initialisation batch's best
+    basin is 46 deg off the truth, and the solve from the online estimate (2 deg off) ends
+    in a basin only 2.0 higher in cost -- within the batch's ambiguity margin. Restarted to
+    the best, the online heading ran 41-46 deg off; the data do not decide between the two,
+    and the solution from the online estimate is the reference."""
+    m, truth = mission("otter-heldout-73-170s", 4.0)
+    r = FixedLagSmoother().run(m)
+    own = [b for b in r.info["reinit_batches"] if b["reference"].startswith("solution from")]
+    assert own, r.info["reinit_batches"]
+    h = r.history
+    i = list(h.names).index("theta_e")
+    th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
+    err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
+    after = h.t >= own[0]["t"]
+    assert np.max(err[after]) < 10 * DEG, np.degrees(err[after])

@@ -39,6 +39,19 @@ def test_an_outlying_fix_does_not_raise_it():
     assert variance_factor(e2, R, Q, S) == 1.0
 
 
+def test_a_run_of_unexplained_fixes_is_the_model_failing():
+    """Two of the last three fixes beyond what the largest factor explains: the model
+    fails (a fix's outliers come alone), and the factor is the bound, though most of the
+    window's fixes are explained. One such fix among the last three is still an outlier."""
+    rng = np.random.default_rng(4)
+    e2, R, Q = innovations(rng, 1.0)
+    e2[-1] = e2[-3] = 1e4
+    assert variance_factor(e2, R, Q, S) == S.adapt_max
+    e2, R, Q = innovations(rng, 1.0)
+    e2[-2] = 1e4
+    assert variance_factor(e2, R, Q, S) == 1.0
+
+
 def test_too_few_fixes_keep_the_nominal_noise():
     assert variance_factor([1e3, 1e3], [1.0, 1.0], [0.01, 0.01], S) == 1.0
 

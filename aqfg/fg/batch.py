@@ -439,7 +439,7 @@ class BatchSmoother:
         ok = [b for b in basins if b["plausible"]]
         best = min((b["cost"] for b in ok), default=None)
         res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
-                                 and b["cost"] - best < max(2.0, 0.01 * best)
+                                 and b["cost"] - best < ambiguity_margin(best)
                                  and _heading_gap(b, basins[0]) > np.radians(10.0)]
         res.info["plausible"] = all(v.plausible for v in verdicts)
         res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
@@ -802,7 +802,13 @@ def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
         for n in bg.nodes:
             if n.group == "variable" and n.mission is not None:
                 th.setdefault(bg.parts[n.mission].mission.name, float(out.values.atVector(n.key)[i]))
-    return {"start": label, "cost": out.cost, "theta_e": th, "converged": out.converged,
+    # the parameter values of the first mission (and the shared ones), by name
+    vals: dict[str, float] = {}
+    for n in bg.nodes:
+        if n.mission in (None, 0):
+            vals.update(zip(bg.layout.names[n.group], map(float, out.values.atVector(n.key))))
+    return {"start": label, "cost": out.cost, "theta_e": th, "values": vals,
+            "converged": out.converged,
             "iterations": out.iterations,
             "plausible": all(v.plausible for v in verdicts),
             "checks": {bg.parts[i].mission.name: v.as_dict() for i, v in enumerate(verdicts)}}
@@ -901,6 +907,13 @@ def _sigma_by_name(layout, node_list, cov) -> dict:
         for n, c in zip(layout.names[g], np.sqrt(np.maximum(np.diag(cov[k]), 0.0))):
             out.setdefault(n, c)
     return out
+
+
+def ambiguity_margin(best_cost: float) -> float:
+    """Cost (1/2 chi-square) within which another basin explains the fixes as well as the
+    best one: 2 (a likelihood ratio of e^2), or 1 % of the cost when the model misses
+    physics and the cost is large."""
+    return max(2.0, 0.01 * float(best_cost))
 
 
 def _heading_gap(a: dict, b: dict) -> float:
