@@ -299,8 +299,8 @@ def test_a_failed_step_is_recovered_and_recorded(monkeypatch):
 
 def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
     """``LagWindow._walk`` (the marginal's current moved by a first-order Gauss-Markov step:
-    an affine map and Woodbury) against the same process written out: the marginal's
-    current as its own variable ``c``, joined to the window's by the factor
+    an affine map and Woodbury; the heading offset with its own variance) against the same
+    process written out: the marginal's current as its own variable ``c``, joined to the window's by the factor
     ``z - th0 - a (c - th0) ~ N(0, S (1 - a^2))``, then eliminated (Schur complement)."""
     m, _, init = _mission(4, False)
     sw = 0.02
@@ -310,7 +310,8 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
         fl.update()
     eng = fl._fast
     w = eng._walk_idx
-    assert [eng.names[j] for j in w] == ["s_x", "s_y"]
+    # the heading offset walks too (FGSettings.online_heading_walk, a plain walk)
+    assert [eng.names[j] for j in w] == ["theta_e", "s_x", "s_y"]
     P, N = eng.P, len(eng.b)
     # the window's own dynamics factors, placed; the rest of the held quadratic is the marginal
     Hw, bw = np.zeros((N, N)), np.zeros(N)
@@ -322,11 +323,12 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
     assert np.abs(Hm[np.ix_(w, w)]).max() > 0          # the past has informed the current
     for dt, stat in ((8.0, 0.3 ** 2), (8.0, np.inf)):   # Gauss-Markov, and a plain walk
         k = len(w)
+        var = eng._walk_var                             # per walking parameter, per s
         if np.isfinite(stat):
-            tau = 2 * stat / sw ** 2
-            a, q = np.exp(-dt / tau), stat * (1 - np.exp(-2 * dt / tau))
+            tau = 2 * stat / var
+            a_all, q_all = np.exp(-dt / tau), stat * (1 - np.exp(-2 * dt / tau))
         else:
-            a, q = 1.0, sw ** 2 * dt
+            a_all, q_all = np.ones(k), var * dt
         # explicit: variables [z (the window's current), c (the past's current)]
         A = np.zeros((N + k, N + k))
         v = np.zeros(N + k)
@@ -336,7 +338,7 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
         v[mv] += bm
         A[:N, :N] += Hw
         v[:N] += bw
-        for j, c in zip(w, N + np.arange(k)):           # (z_j - a c - k0)^2 / q
+        for j, c, a, q in zip(w, N + np.arange(k), a_all, q_all):   # (z_j - a c - k0)^2 / q
             k0 = (1 - a) * eng.th0[j]
             A[j, j] += 1 / q
             A[c, c] += a * a / q

@@ -59,9 +59,11 @@ def test_fixed_lag_end_agrees_with_batch(vehicle, usbl, seed):
     m, tr = simulate(vehicle, seed=seed, duration=600.0, usbl=usbl)
     m = without_gnss(m) if usbl else with_gnss_every(m, 8.0)
     init = fixed_truth(tr)
-    # the batch's model: one constant current (the online default lets it move)
+    # the batch's model: one constant current and heading offset (the online default lets
+    # them move)
     fl = FixedLagSmoother(init=init, window=24.0,
-                          settings=FGSettings(online_current_walk=0.0)).run(m)
+                          settings=FGSettings(online_current_walk=0.0,
+                                              online_heading_walk=0.0)).run(m)
     b = BatchSmoother(init=init, estimate=VAR).run([m])
     for n in VAR:
         assert abs(fl.values[n] - b.values[n]) < 2 * b.sigma[n], (n, fl.values[n], b.values[n],
@@ -152,13 +154,16 @@ def test_fit_fg_online_several_missions_and_bad_input():
 
 def test_random_walk_online_follows_heading_drift():
     """A heading offset drifting at 0.03 rad/min: with the variable parameters as a random
-    walk the online estimate keeps up; a constant node lags far behind, overconfident."""
+    walk the online estimate keeps up; a constant node lags far behind, overconfident. The
+    default (the heading offset of the window's past walking, online_heading_walk) stays
+    consistent."""
     rate = 5e-4
     m, tr = simulate("asv", seed=3, duration=600.0, effects={"heading_drift": rate})
     m = with_gnss_every(m, 8.0)
     st = FGSettings(walk_sigma={"theta_e": 0.004, "s_x": 1e-4, "s_y": 1e-4}, walk_segment=60.0)
     errs = {}
-    for name, s in (("walk", st), ("constant", FGSettings())):
+    for name, s in (("walk", st), ("constant", FGSettings(online_heading_walk=0.0)),
+                    ("default", FGSettings())):
         h = FixedLagSmoother(init=fixed_truth(tr), settings=s).run(m).history
         err = h.values[:, 0] - (tr.params["theta_e"] + rate * (h.t - m.t0))
         errs[name] = (err, h.sigma[:, 0])
@@ -166,6 +171,9 @@ def test_random_walk_online_follows_heading_drift():
     assert abs(err[-1]) < 3 * sig[-1] and np.sqrt(np.mean(err[30:] ** 2)) < 0.06
     err_c, sig_c = errs["constant"]
     assert abs(err_c[-1]) > 3 * sig_c[-1]
+    err_d, sig_d = errs["default"]
+    assert abs(err_d[-1]) < 3 * sig_d[-1] and abs(err_d[-1]) < 0.75 * abs(err_c[-1]), \
+        (err_d[-1], sig_d[-1], err_c[-1])
 
 
 def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():

@@ -86,6 +86,13 @@ class FGSettings:
         1-s fixes stayed 3-5 m off the fixes for 20 s at a time and the current's sigma
         claimed 0.006 m/s against an error of 0.06 on a drifting current
         (docs/independent-vehicle.md). 0: the current is one constant.
+    online_heading_walk: online (numpy engine), the heading offset the window's past has
+        informed moves as a random walk before it meets the window's data, rad per
+        sqrt(s) (0.003: 1.7 deg over 5 min). An AHRS heading offset is not a constant
+        (a gyro's unreferenced yaw drifts, a compass's offset changes with the motors'
+        currents); with one constant the online heading of a mission drifting by
+        0.03 deg/s ended 14-16 deg behind, with the walk 7 (docs/independent-vehicle.md).
+        0: one heading offset per mission.
     dr_horizon: s, the batch fit (:func:`aqfg.fg.fit.fit_fg`) re-estimates the estimated
         fixed parameters (thrust/drag constants) by the error of the model's own
         prediction over this horizon from the smoothed states, where that differs
@@ -130,6 +137,7 @@ class FGSettings:
     adapt_max: float = 256.0
     online_gate_usbl: float = 13.8
     online_current_walk: float = 0.03
+    online_heading_walk: float = 0.003
     online_max_rejects: int = 3
     process: fc.ProcessNoise = field(default_factory=fc.ProcessNoise)
     sensors: fc.SensorNoise = field(default_factory=fc.SensorNoise)

@@ -17,7 +17,8 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   "hold" priors on the parameters, and the marginal of the knots that left the window (a
   dense Gaussian on ``[theta, oldest knot]``, a Schur complement, linearised where the
   knot left, as GTSAM's linear container factor), whose current moves by a Gauss-Markov
-  step as knots leave (every ``WALK_EVERY`` s of them; ``FGSettings.online_current_walk``,
+  step and whose heading offset by a random-walk step as knots leave (every
+  ``WALK_EVERY`` s of them; ``FGSettings.online_current_walk``, ``online_heading_walk``,
   :meth:`LagWindow._walk`);
 * per update one Gauss-Newton step (as one ISAM2 iteration): each dynamics factor keeps
   its linearisation (prediction and Jacobians at ``(x0_lin, theta_lin)``) until its first
@@ -192,13 +193,15 @@ class LagWindow:
         self.fx: list[list | None] = []
         self.FXL: list[list[float]] = []
         self.cov = np.full((P, P), np.nan)
-        # random walk of the current (FGSettings.online_current_walk): variance per second
-        # of each estimated parameter that walks (theta indices and m^2/s^3... per s)
+        # random walk of the current and the heading offset (FGSettings.online_current_walk,
+        # online_heading_walk): variance per second of each estimated parameter that walks
         cw = float(s.online_current_walk)
+        hw = float(s.online_heading_walk)
+        rate = {"s_x": cw, "s_y": cw, "theta_e": hw}
         wv = [j for j, n in enumerate(layout.estimated)
-              if cw > 0 and n in ("s_x", "s_y") and n in layout.names.get("variable", ())]
+              if rate.get(n, 0.0) > 0 and n in layout.names.get("variable", ())]
         self._walk_idx = np.array(wv, int)
-        self._walk_var = np.full(len(wv), cw * cw)
+        self._walk_var = np.array([rate[layout.estimated[j]] ** 2 for j in wv])
         # its stationary variance: the current's prior (s.prior_sigma), inf: a plain walk
         self._walk_stat = np.array([float(s.prior_sigma.get(layout.estimated[j], math.inf))
                                     ** 2 for j in wv])
@@ -713,8 +716,10 @@ class LagWindow:
         return out
 
     def _walk(self, dt: float) -> None:
-        """The current of the information that has left the window moves before it meets the
-        window's data: a first-order Gauss-Markov process (the INS bias model) around the
+        """The current (and the heading offset: a plain random walk of
+        ``online_heading_walk`` rad per sqrt(s)) of the information that has left the window
+        moves before it meets the window's data: a first-order Gauss-Markov process (the
+        INS bias model) around the
         start value ``th0``, ``s' - th0 = a (s - th0) + w``, diffusing as a random walk of
         ``online_current_walk`` m/s per sqrt(s) over short times and with the current's
         prior (``FGSettings.prior_sigma``) as its stationary sigma, so that the prior does

@@ -248,6 +248,9 @@ class FixedLagSmoother:
         if reason and s.online_current_walk > 0:
             self.engine_note += ("; the current is held constant in the window's past "
                                  "(online_current_walk needs the numpy engine)")
+        if reason and s.online_heading_walk > 0:
+            self.engine_note += ("; the heading offset is one constant "
+                                 "(online_heading_walk needs the numpy engine)")
         self._fast: LagWindow | None = None
         if not reason:
             return self._start_fast(mission, t0, x0, hold, replaying)
