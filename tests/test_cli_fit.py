@@ -129,3 +129,18 @@ def test_fit_online_says_which_usbl_fixes_the_gate_left_out(tmp_path, capsys):
                  "--params-from", str(fixed), "--no-plots", "-q"]) == 0
     out = capsys.readouterr().out
     assert f"1 USBL fixes left out by the innovation gate (at {m.usbl.t[15]:.1f} s)" in out
+
+
+def test_fit_online_says_what_the_gtsam_engine_leaves_out(tmp_path, capsys):
+    """An AUV with depth readings runs on the GTSAM engine, which keeps the current and the
+    heading offset constant in the window's past: the command says so."""
+    m, tr = simulate("auv", seed=6, duration=60.0, usbl=True, gnss_period=8.0)
+    d = tmp_path / "m"
+    save_mission(m, d, truth=tr)
+    fixed = tmp_path / "fixed.json"
+    fixed.write_text(json.dumps({"parameters": {n: {"value": tr.params[n], "sigma": 0.0}
+                                                for n in ("k", "k_x", "k_yz")}}))
+    assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--mode", "online",
+                 "--params-from", str(fixed), "--no-plots", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "online: GTSAM engine" in out and "online_heading_walk needs the numpy engine" in out

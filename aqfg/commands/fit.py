@@ -165,6 +165,9 @@ def run(args) -> int:
     if t.get("update"):
         import numpy as np
         print(f"online: {len(t['update'])} updates, median {1e3 * np.median(t['update']):.2f} ms")
+        if result.info.get("engine") == "gtsam" and result.info.get("engine_note"):
+            # what the GTSAM engine leaves out (the walks of the current and heading offset)
+            print(f"online: GTSAM engine (the numpy engine does not take: {result.info['engine_note']})")
     seen: dict[str, list[float]] = {}
     for e in result.info.get("events") or []:
         if e.get("event") != "parameters released":
