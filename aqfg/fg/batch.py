@@ -439,8 +439,7 @@ class BatchSmoother:
         ok = [b for b in basins if b["plausible"]]
         best = min((b["cost"] for b in ok), default=None)
         res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
-                                 and b["cost"] - best < ambiguity_margin(best)
-                                 and _heading_gap(b, basins[0]) > np.radians(10.0)]
+                                 and as_good_a_basin(b, best, basins[0])]
         res.info["plausible"] = all(v.plausible for v in verdicts)
         res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                     for i, v in enumerate(verdicts)}
@@ -909,11 +908,23 @@ def _sigma_by_name(layout, node_list, cov) -> dict:
     return out
 
 
+# rad: solutions this far apart in heading are different basins
+AMBIGUOUS_GAP = np.radians(10.0)
+
+
 def ambiguity_margin(best_cost: float) -> float:
     """Cost (1/2 chi-square) within which another basin explains the fixes as well as the
     best one: 2 (a likelihood ratio of e^2), or 1 % of the cost when the model misses
     physics and the cost is large."""
     return max(2.0, 0.01 * float(best_cost))
+
+
+def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
+    """Basin ``b`` (``info["basins"]`` entry) explains the fixes as well as the best cost
+    (:func:`ambiguity_margin`) and is another heading basin than ``other`` (more than
+    ``AMBIGUOUS_GAP`` apart)."""
+    return (b["cost"] - best_cost < ambiguity_margin(best_cost)
+            and _heading_gap(b, other) > AMBIGUOUS_GAP)
 
 
 def _heading_gap(a: dict, b: dict) -> float:

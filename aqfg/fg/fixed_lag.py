@@ -73,9 +73,6 @@ GTSAM_ERRORS = (RuntimeError, IndexError, ValueError)
 # a held heading offset this far from the closed-form one of the fixes so far is re-seeded
 # while the held model fails (FixedLagSmoother._reseed)
 RESEED_GAP = np.radians(20.0)
-# rad: two solutions of a re-initialisation batch this far apart in heading are different
-# basins (the batch's ambiguity test, aqfg.fg.batch)
-AMBIGUOUS_GAP = np.radians(10.0)
 
 
 @dataclass
@@ -768,7 +765,7 @@ class FixedLagSmoother:
         release them where they are. An incremental solver cannot leave a wrong heading
         basin by itself; the batch of the data so far does not start in one. A ``rescue``
         (:meth:`_reinit_due`) leaves the schedule of later checks where it was."""
-        from aqfg.fg.batch import BatchSmoother, ambiguity_margin
+        from aqfg.fg.batch import BatchSmoother, as_good_a_basin
         t_re = time.perf_counter()
         el = t_fix - self.knots[0]
         self._batch_tried = True
@@ -857,15 +854,13 @@ class FixedLagSmoother:
         # (docs/independent-vehicle.md)
         own_b = next((b for b in bres.info.get("basins", ()) if b["start"] == "given start"),
                      None)
-        own_ref = False
-        if own is not None and own_b is not None and own_b["plausible"] and not alt:
-            c_best = float(bres.info.get("cost", np.inf))
-            th_own = float(own_b["values"].get("theta_e", bres.values["theta_e"]))
-            own_ref = bool(own_b["cost"] - c_best < ambiguity_margin(c_best)
-                           and abs(np.angle(np.exp(1j * (th_own - bres.values["theta_e"]))))
-                           > AMBIGUOUS_GAP)
-            if own_ref:
-                ref_v = {**bres.values, **own_b["values"]}
+        own_ref = bool(own is not None and own_b is not None and own_b["plausible"]
+                       and not alt and as_good_a_basin(
+                           own_b, float(bres.info.get("cost", np.inf)),
+                           {"theta_e": dict.fromkeys(own_b["theta_e"], bres.values["theta_e"])}))
+        if own_ref:
+            assert own_b is not None
+            ref_v = {**bres.values, **own_b["values"]}
         th_b = ref_v["theta_e"]
         gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         # released: restart when the online heading is outside the batch's 3 sigma (its
