@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings
-from aqfg.fg.fastlm import FastSystem
+from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.fit import fit_fg
 from aqfg.sim.simulator import simulate
 
@@ -105,6 +105,48 @@ def test_process_scale_and_evidence(missions):
     n_q = 4 * len(fs.d0)
     assert fs.log_evidence(ev) == pytest.approx(-ev["cost"] - 0.5 * n_q * np.log(q) - 0.5 * ld,
                                                 rel=1e-9)
+
+
+def test_held_parameters_and_the_states_evidence(missions):
+    """``hold_params`` moves the states alone to their optimum given the parameters; the
+    parts' evidence of their states given the parameters sums to the evidence without the
+    parameters' block of log det H and their priors' cost, and follows each part's own
+    process-noise factor."""
+    st = FGSettings()
+    bg = BatchSmoother(settings=st).build(missions)
+    fs = FastSystem.build(bg, st)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    ev0 = fs.evaluate(X, th)
+    X1, th1, cost1, ev1, *_ = levenberg_marquardt_fast(fs, None, st, start=(X, th),
+                                                       hold_params=True)
+    assert np.array_equal(th1, th)
+    assert cost1 < ev0["cost"]
+    _, _, _, _, gs0, _ = fs.normal(ev0)
+    D, E, Hsp, Hpp, gs, gp = fs.normal(ev1)
+    assert np.linalg.norm(gs) < 1e-3 * np.linalg.norm(gs0)      # the states' optimum
+    assert np.linalg.norm(gp) > 1e3 * np.linalg.norm(gs)         # not the parameters'
+    H = dense(fs, D, E, Hsp, Hpp)
+    Ns = 6 * fs.N
+    ld_all, ld_states = np.linalg.slogdet(H)[1], np.linalg.slogdet(H[:Ns, :Ns])[1]
+    parts = fs.part_log_evidence(ev1)
+    assert len(parts) == 2
+    assert np.sum(parts) - fs.log_evidence(ev1) == \
+        pytest.approx(0.5 * (ld_all - ld_states) + 0.5 * ev1["lin_p"] @ ev1["lin_p"], rel=1e-7)
+    # a factor on the second part alone changes the second part's evidence alone: by the
+    # log det of its scaled process noise, its cost and its states' log det H
+    fs.set_process_scale(1.0, per_part=np.array([1.0, 4.0]))
+    ev4 = fs.evaluate(X1, th1)
+    parts4 = fs.part_log_evidence(ev4)
+    assert parts4[0] == pytest.approx(parts[0], rel=1e-12)
+    D4, E4, *_ = fs.normal(ev4)
+    H4 = dense(fs, D4, E4, Hsp, Hpp)
+    o = fs.part_off[1]
+    k2 = fs.d0 >= o
+    sl = slice(6 * o, Ns)
+    want = -0.5 * (fs.q_axes[k2].sum() * np.log(4.0)) - ev4["state_cost"][o:].sum() \
+        - 0.5 * np.linalg.slogdet(H4[sl, sl])[1]
+    assert parts4[1] == pytest.approx(want, rel=1e-9)
 
 
 def test_same_fit_as_gtsam_path(missions):

@@ -53,6 +53,40 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     assert any("does not explain the fixes" in w for w in res.info["warnings"])
 
 
+def track_rmse(track, truth) -> float:
+    pt = np.column_stack([np.interp(track.t, truth.t, truth.pos[:, a]) for a in range(2)])
+    return float(np.sqrt(np.mean(np.sum((track.pos[:, :2] - pt) ** 2, axis=1))))
+
+
+def test_the_batch_track_follows_the_fixes_where_the_model_is_not_the_vehicle():
+    """The parameters come from the nominal process noise, the track from the noise the
+    evidence chooses given them: with the track at the nominal noise the smoothed track
+    was 1.4 m RMS from the truth between 8-s fixes, following the model's error."""
+    m, truth = mission("otter-dev-calm-a", 8.0)
+    st = FGSettings(dr_horizon=0.0)                 # the smoother's own constants
+    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
+    assert on.info["track_noise_scale"][m.name] > 1.0
+    assert "track_noise_scale" not in off.info
+    for n in on.estimated:
+        assert on.values[n] == off.values[n] and on.sigma[n] == off.sigma[n], n
+    e_on, e_off = track_rmse(on.missions[0].track, truth), track_rmse(off.missions[0].track, truth)
+    assert e_on < 0.6 * e_off, (e_on, e_off)
+    # the residuals are the reported track's: the fixes are closer to it
+    r_on = on.missions[0].residuals["gnss"].raw
+    r_off = off.missions[0].residuals["gnss"].raw
+    assert np.sqrt(np.mean(r_on ** 2)) < np.sqrt(np.mean(r_off ** 2))
+
+
+def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
+    from aqfg.sim.simulator import simulate
+    m, _ = simulate("asv", seed=4, duration=300.0, usbl=True)
+    m = with_gnss_every(m, 8.0)
+    st = FGSettings(dr_horizon=0.0)
+    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
+    assert on.info["track_noise_scale"] == {m.name: 1.0}
+    assert np.array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
+
+
 @pytest.mark.slow
 def test_heading_drift_recovered_on_the_otter():
     m, truth = mission("otter-dev-yawdrift", 8.0)

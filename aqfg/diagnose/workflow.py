@@ -465,7 +465,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     missions = check_missions(missions)
     # the nominal process noise: a noise chosen to explain the fixes would hide the
     # misfit the diagnosis is there to show (adapt_batch None would choose it on short data)
-    settings = (settings or FGSettings()).with_(adapt_batch=False)
+    settings = (settings or FGSettings()).with_(adapt_batch=False, adapt_track=False)
     effects = tuple(resolve(e) for e in effects)
     jobs = default_jobs() if jobs is None else max(1, int(jobs))
     timings: dict = {}

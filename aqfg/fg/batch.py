@@ -168,6 +168,11 @@ class BatchSmoother:
         # one parameter vector serves the mission, for a caller that changes the parameters
         # and re-traces itself (fit_fg after the dead-reckoning refinement)
         self.inertial = True
+        # True: run() leaves the tracks at the nominal noise and the caller smooths them
+        # (smooth_tracks) after using the fit's states (fit_fg's dead-reckoning refinement,
+        # as the fleet's joint solve, whose tracks stay the nominal fit's)
+        self.defer_track = False
+        self._track_job: tuple | None = None
         self.model = model
         self.effects = tuple(effects)
         self.estimate = None if estimate is None else tuple(estimate)
@@ -333,6 +338,7 @@ class BatchSmoother:
     def _run(self, missions) -> Result:
         missions = check_missions(missions)
         s = self.settings
+        self._track_job = None
         t_start = time.perf_counter()
         self.progress(0.0, "building the graph")
         bg = self.build(missions)
@@ -391,7 +397,7 @@ class BatchSmoother:
                 if self.log_warnings:
                     for x in held.info["warnings"]:
                         log.warning("fg: %s", x)
-                return held
+                return held if self.defer_track else self.smooth_tracks(held)
         elif slips and max(slips) > plausibility.SUSPECT_SLIP:
             held = self._hold_sway(missions, bg, basins, verdicts)
         values, err, gfg = out.values, out.cost, out.gfg
@@ -478,7 +484,39 @@ class BatchSmoother:
                          "cost": float(err), "n_states": sum(len(p.keys) for p in parts),
                          "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp
                          else "numpy", "settings": s})
+        self._track_job = None
+        if s.adapt_track and q_scale == 1.0 and fs is not None and out.fast is not None:
+            self._track_job = (fs, out, layout, parts, node_list, cov)
+        if not self.defer_track:
+            self.smooth_tracks(res)
         self.progress(1.0, f"done: {n_it} iterations, {t_end - t_start:.2f} s")
+        return res
+
+    def smooth_tracks(self, res: Result) -> Result:
+        """:attr:`FGSettings.adapt_track`: the tracks and their residuals of the result
+        ``res`` of the last :meth:`run` (in place) from the states smoothed again with the
+        parameters held at the fit, under the process-noise factor of the largest evidence
+        of the states given them; ``res`` as it is where that does not apply (the setting
+        off, the GTSAM path, a noise already chosen by the evidence)."""
+        job, self._track_job = self._track_job, None
+        if job is None:
+            return res
+        fs, out, layout, parts, node_list, cov = job
+        s = self.settings
+        t0 = time.perf_counter()
+        X0, th = fs.from_values(out.values)
+        q, tried = noise.track_noise_search(fs, X0, th, out.fast, s)
+        res.info["track_noise_scale"] = {p.mission.name: float(v) for p, v in zip(parts, q)}
+        res.info["track_noise_evidence"] = tried
+        if np.any(q != 1.0):
+            fs.set_process_scale(1.0, per_part=q)
+            X, *_ = levenberg_marquardt_fast(fs, None, s, start=(X0, th), hold_params=True)
+            fs.set_process_scale(1.0)
+            tracked = self.make_result(layout, fs.to_values(X, th, out.values), parts,
+                                       node_list, cov)
+            for mr, mt in zip(res.missions, tracked.missions):
+                mr.track, mr.residuals = mt.track, mt.residuals
+        res.timings["track"] = [time.perf_counter() - t0]
         return res
 
     # ---------------------------------------------------------------- basins
@@ -580,9 +618,11 @@ class BatchSmoother:
                            estimate=tuple(n for n in lay.estimated if n != "k_yz"), init=init,
                            settings=self.settings)
         sm.log_warnings = False
+        sm.defer_track = True
         res = sm.run(missions)
         if not res.info.get("plausible"):
             return None
+        self._track_job = sm._track_job
         slip = max((v.slip_deg or 0.0) for v in verdicts)
         w = (f"the free fit slid sideways through the water ({slip:.0f} deg off the thrust axis "
              f"on held courses), which no hull does: k_yz held at {st.fixed['k_yz']:.3g} "

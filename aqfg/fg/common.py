@@ -59,6 +59,14 @@ class FGSettings:
         it does not adopt it (``info["process_noise_measured"]``; the solution stays the
         nominal noise's): the online re-initialisations take it as the floor of the online
         noise while solving a long stretch with the nominal noise.
+    adapt_track: the batch's tracks (and their residuals) are smoothed once more, the
+        parameters held at the fit, under the process-noise factor the evidence chooses for
+        the states given them (``info["track_noise_scale"]``). The parameters come from the
+        nominal noise (above); the track then follows the fixes where the model is not the
+        vehicle instead of the model's error: on Otter missions 2-5x closer to the truth,
+        on a vehicle that is the model the same track (factor 1; docs/independent-vehicle.md).
+        The diagnosis and the online re-initialisations set False: they need the nominal
+        fit's states.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -130,6 +138,7 @@ class FGSettings:
     adapt_process: bool = True
     adapt_batch: bool | None = None
     measure_noise: bool = False
+    adapt_track: bool = True
     online_init_after: float = 20.0
     online_init_fixes: int = 10
     online_reinit_until: float = 960.0

@@ -71,6 +71,7 @@ class FastSystem:
     W0: np.ndarray                # (K, 6, 6) nominal dynamics whitening per interval
     W: np.ndarray                 # (K, 6, 6) the same, process-noise factor q applied
     q: float
+    q_k: np.ndarray               # (K,) the factor of each interval (q, or its part's)
     q_axes: np.ndarray            # (K, 6) 1 where q scales the noise
     WtW: np.ndarray               # (K, 6, 6) ``W^T W``
     d0: np.ndarray                # (K,) state index of each interval's first knot
@@ -104,6 +105,8 @@ class FastSystem:
             self.part_off.append(c)
             c += len(part.keys)
         self.N = c
+        self.part_of_state = np.repeat(np.arange(len(bg.parts)),
+                                       [len(part.keys) for part in bg.parts]).astype(np.int64)
         self.state_index = {k: self.part_off[i] + j for i, part in enumerate(bg.parts)
                             for j, k in enumerate(part.keys)}
 
@@ -151,8 +154,8 @@ class FastSystem:
         # (its vertical axis is held by the surface constraint), all of others
         self.q_axes = np.ones((len(idx0), 6))
         self.q_axes[np.array(hz, bool)[:, None] & (np.arange(6) % 3 == 2)[None, :]] = 0.0
-        self.set_process_scale(1.0)
         self.d0 = np.array(idx0, int)
+        self.set_process_scale(1.0)
         self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
         self.ncols = ncols
         # ---- measurements
@@ -262,13 +265,36 @@ class FastSystem:
             if bg.nodes else np.zeros(0)
         return self
 
-    def set_process_scale(self, q: float) -> None:
+    def set_process_scale(self, q: float, per_part: np.ndarray | None = None) -> None:
         """Every dynamics factor's process-noise variance times ``q`` on the scaled axes
         (:mod:`aqfg.fg.noise`): ``W = W0 D^-1`` with ``D = diag(sqrt q)`` there, so
-        ``W^T W = (D Q D)^-1``."""
+        ``W^T W = (D Q D)^-1``. ``per_part``: one factor per mission part instead (``q``
+        is then only recorded)."""
         self.q = float(q)
-        self.W = self.W0 * (self.q ** (-0.5 * self.q_axes))[:, None, :]
+        q_k = np.full(len(self.d0), self.q) if per_part is None else \
+            np.asarray(per_part, float)[self.part_of_state[self.d0]]
+        self.q_k = q_k
+        self.W = self.W0 * (q_k[:, None] ** (-0.5 * self.q_axes))[:, None, :]
         self.WtW = np.einsum("kji,kjl->kil", self.W, self.W)
+
+    def part_log_evidence(self, ev: dict) -> np.ndarray:
+        """:meth:`log_evidence` of each mission part's states given the parameters (the
+        parts are independent then: the terms of the cost, of log det(q Q) and of the
+        states' log det H split by part). -inf everywhere when H is not positive
+        definite."""
+        D, E, Hsp, Hpp, _, _ = self.normal(ev)
+        n = len(self.part_off)
+        try:
+            cb = sla.cholesky_banded(self._band(D, E), lower=True, check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            return np.full(n, -np.inf)
+        ld_state = 2.0 * np.log(cb[0]).reshape(self.N, 6).sum(axis=1)
+        part = self.part_of_state
+        ld = np.bincount(part, ld_state, minlength=n)
+        cost = np.bincount(part, ev["state_cost"], minlength=n)
+        nq = np.bincount(part[self.d0], np.sum(self.q_axes, axis=1) * np.log(self.q_k),
+                         minlength=n)
+        return -cost - 0.5 * nq - 0.5 * ld
 
     def log_evidence(self, ev: dict) -> float:
         """Laplace approximation of the log marginal likelihood of the measurements at the
@@ -283,8 +309,8 @@ class FastSystem:
                 ld += 2.0 * float(np.sum(np.log(np.diag(np.linalg.cholesky(S)))))
         except (np.linalg.LinAlgError, ValueError):
             return -np.inf
-        n_q = float(np.sum(self.q_axes))
-        return -ev["cost"] - 0.5 * n_q * np.log(self.q) - 0.5 * ld
+        n_q = float(np.sum(self.q_axes * np.log(self.q_k)[:, None]))
+        return -ev["cost"] - 0.5 * n_q - 0.5 * ld
 
     # ------------------------------------------------------------------ values
     def from_values(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
@@ -347,6 +373,10 @@ class FastSystem:
         rd = np.matmul(self.W, (X[d0 + 1] - pred)[:, :, None])[:, :, 0]
         out["dyn_r"] = rd
         cost = 0.5 * float(np.sum(rd * rd))
+        # each factor's cost at a state of its own (the later knot of a dynamics factor):
+        # the parts' costs (part_log_evidence)
+        sc = np.zeros(len(X))
+        sc[d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
         out["Jx"] = np.concatenate(Jxs) if Jxs else np.zeros((0, 6, 6))
         out["Jp"] = np.concatenate(Jps) if Jps else np.zeros((0, 6, self.ncols))
         # measurements
@@ -374,11 +404,13 @@ class FastSystem:
             dist = np.sqrt(np.sum(r * r, axis=1))
             if m.k is None:
                 w = np.ones(len(r))
-                cost += 0.5 * float(np.sum(dist ** 2))
+                c_i = 0.5 * dist ** 2
             else:
                 big = dist > m.k
                 w = np.where(big, m.k / np.maximum(dist, 1e-300), 1.0)
-                cost += float(np.sum(np.where(big, m.k * (dist - 0.5 * m.k), 0.5 * dist ** 2)))
+                c_i = np.where(big, m.k * (dist - 0.5 * m.k), 0.5 * dist ** 2)
+            cost += float(np.sum(c_i))
+            np.add.at(sc, m.idx, c_i)
             mres.append((r, J, w))
         out["meas"] = mres
         # linear factors
@@ -386,12 +418,14 @@ class FastSystem:
         for mm, (si, A, b) in self.lin_s.items():
             r = np.einsum("nij,nj->ni", A, X[si]) - b
             cost += 0.5 * float(np.sum(r * r))
+            np.add.at(sc, si, 0.5 * np.sum(r * r, axis=1))
             lres[mm] = r
         out["lin_s"] = lres
         rp = self._param_residuals(nv)
         cost += 0.5 * float(rp @ rp)
         out["lin_p"] = rp
         out["cost"] = cost
+        out["state_cost"] = sc
         return out
 
     def _param_residuals(self, nv: dict) -> np.ndarray:
@@ -455,7 +489,7 @@ class FastSystem:
         E[d0] += np.matmul(A0t, W)
         Hsp[d0] += np.matmul(A0t, Ap)
         Hsp[d0 + 1] += np.matmul(Wt, Ap)
-        Apf = Ap.reshape(-1, P)
+        Apf = Ap.reshape(Ap.shape[0] * Ap.shape[1], P)   # (P = 0: nothing estimated)
         Hpp = self.Hpp_const + Apf.T @ Apf
         gs[d0] += np.matmul(A0t, rd[:, :, None])[:, :, 0]
         gs[d0 + 1] += np.matmul(Wt, rd[:, :, None])[:, :, 0]
@@ -606,13 +640,14 @@ def _propagator(model, sl):
 
 def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, progress=None,
                              start: tuple[np.ndarray, np.ndarray] | None = None,
-                             max_iterations: int | None = None):
+                             max_iterations: int | None = None, hold_params: bool = False):
     """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
     (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
     accepted step and x10 after a rejected one, the active set of the parameter bounds, the
     same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
     iteration times). ``start``: (X, th) instead of ``values``; ``max_iterations``: instead
-    of the settings'."""
+    of the settings'; ``hold_params``: the states alone move, the parameters stay at
+    ``th``."""
     import time
     if start is not None:
         X, th = start
@@ -624,6 +659,7 @@ def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, pro
     lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
     converged = False
     key_slices = [(o, d) for o, d in fs.node_off.values()]
+    held = {j: 0.0 for j in range(fs.P)} if hold_params else None
     for it in range(s.max_iterations if max_iterations is None else max_iterations):
         t_it = time.perf_counter()
         D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
@@ -642,7 +678,7 @@ def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, pro
             Hppd = Hpp + np.diag(lam * hp)
             try:
                 fac = fs.factor(Dd, E, Hsp, Hppd)
-                dX, dth = fs.solve(fac, gs, gp)
+                dX, dth = fs.solve(fac, gs, gp, held)
                 new = th + dth
                 hit = (new < fs.lo) | (new > fs.hi)
                 if np.any(hit):

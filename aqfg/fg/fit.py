@@ -48,10 +48,13 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
         bs = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
                            settings=settings, progress=progress)
         bs.inertial = horizon <= 0         # re-traced once, with the final constants (below)
+        bs.defer_track = True
         res = bs.run(missions)
         # the constants to dead-reckon with: multi-step prediction error where it differs
-        # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning)
+        # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning), from
+        # the nominal fit's states (as the fleet's)
         res = dead_reckoning.refine(res, list(missions), horizon)
+        res = bs.smooth_tracks(res)
         for m, mr in zip(missions, res.missions):
             if not len(mr.inertial.t):
                 mr.inertial = inertial_track(mission_model(model, m, effects), m, mr.p)

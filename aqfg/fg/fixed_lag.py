@@ -788,7 +788,8 @@ class FixedLagSmoother:
             bs = BatchSmoother(self.base_model, effects=self.effects,
                                estimate=self.layout.estimated, init=self.init,
                                settings=replace(self.settings, online_init_after=0.0,
-                                                adapt_batch=None, measure_noise=True),
+                                                adapt_batch=None, measure_noise=True,
+                                                adapt_track=False),
                                also_start=own)
             bs.log_warnings = False
             bres = bs.run([view])
