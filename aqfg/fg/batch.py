@@ -505,12 +505,12 @@ class BatchSmoother:
         s = self.settings
         t0 = time.perf_counter()
         X0, th = fs.from_values(out.values)
-        q, tried = noise.track_noise_search(fs, X0, th, out.fast, s)
+        q, Xq, tried = noise.track_noise_search(fs, X0, th, out.fast, s)
         res.info["track_noise_scale"] = {p.mission.name: float(v) for p, v in zip(parts, q)}
         res.info["track_noise_evidence"] = tried
         if np.any(q != 1.0):
             fs.set_process_scale(1.0, per_part=q)
-            X, *_ = levenberg_marquardt_fast(fs, None, s, start=(X0, th), hold_params=True)
+            X, *_ = levenberg_marquardt_fast(fs, None, s, start=(Xq, th), hold_params=True)
             fs.set_process_scale(1.0)
             tracked = self.make_result(layout, fs.to_values(X, th, out.values), parts,
                                        node_list, cov)

@@ -146,22 +146,24 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
 
 def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
                        settings: FGSettings, iterations: int = 5
-                       ) -> tuple[np.ndarray, dict[float, list[float]]]:
+                       ) -> tuple[np.ndarray, np.ndarray, dict[float, list[float]]]:
     """Each mission part's process-noise factor for its track given the parameters ``th``
     (:attr:`FGSettings.adapt_track`): the largest log evidence of its states
     (:meth:`FastSystem.part_log_evidence`) over q = 1, 4, 16, ... (at most
     ``settings.adapt_max``), each solved by a few LM iterations with the parameters held,
     warm-started from the previous one; a part's search stops when its evidence falls.
 
-    ``(X, th, ev)`` is the solution at factor 1. Returns the factor per part and the
-    evidence per part for each factor tried; the system is left at factor 1.
+    ``(X, th, ev)`` is the solution at factor 1. Returns the factor per part, the states
+    at each part's factor (not fully converged: the caller finishes them) and the evidence
+    per part for each factor tried; the system is left at factor 1.
     """
     fs.set_process_scale(1.0)
     le = fs.part_log_evidence(ev)
     best_le, best_q = le.copy(), np.ones(len(le))
     active = np.isfinite(le)
     tried = {1.0: le.tolist()}
-    q, Xq = 1.0, X
+    q, Xq, X_best = 1.0, X, X.copy()
+    rows = fs.part_of_state
     while q * 4.0 <= settings.adapt_max and active.any():
         q *= 4.0
         fs.set_process_scale(q)
@@ -171,5 +173,7 @@ def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
         tried[q] = le.tolist()
         active &= le > best_le
         best_le[active], best_q[active] = le[active], q
+        better = active[rows]
+        X_best[better] = Xq[better]
     fs.set_process_scale(1.0)
-    return best_q, tried
+    return best_q, X_best, tried
