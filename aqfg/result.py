@@ -200,6 +200,11 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     dr = result.info.get("dead_reckoning")
     if dr and dr.get("segments"):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
+    tq = result.info.get("track_noise_scale")
+    if result.mode == "batch" and tq:
+        # the process-noise factor each mission's trajectory was smoothed with
+        # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
+        doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

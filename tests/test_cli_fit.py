@@ -48,6 +48,9 @@ def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
     assert (out / "map.png").stat().st_size > 10_000
     printed = capsys.readouterr().out
     assert "theta_e" in printed and "sigma" in printed and "map.png" in printed
+    # the simulated vehicle is the model: its track keeps the nominal process noise
+    assert list(doc["track"]["process_noise_scale"].values()) == [1.0]
+    assert "trajectory smoothed with the process noise" not in printed
     # existing outputs are not replaced without --force
     assert main(["fit", str(d), "--out", str(out)]) == 2
     assert "refusing to overwrite" in capsys.readouterr().err
@@ -143,3 +146,22 @@ def test_fit_online_says_what_the_gtsam_engine_leaves_out(tmp_path, capsys):
     m, tr = simulate("auv", seed=6, duration=60.0, usbl=True, gnss_period=8.0)
     out = fit_online_with_true_constants(m, tr, tmp_path, capsys)
     assert "online: GTSAM engine" in out and "online_heading_walk needs the numpy engine" in out
+
+
+def test_fit_batch_says_the_track_needed_more_process_noise(tmp_path, capsys):
+    """On an Otter mission (not the model) the trajectory is smoothed with the process noise
+    the evidence chooses, recorded in parameters.json and said."""
+    from conftest import data_path
+    from aqfg.data import load_truth
+    d = data_path("otter-dev-calm-a")
+    out = tmp_path / "fit"
+    assert main(["fit", str(d), "--out", str(out), "--gnss-every", "8", "--no-plots"]) == 0
+    doc = json.loads((out / "parameters.json").read_text())
+    q = doc["track"]["process_noise_scale"]["otter-dev-calm-a"]
+    assert q > 1.0
+    assert f"trajectory smoothed with the process noise x{q:g} (otter-dev-calm-a)" in \
+        capsys.readouterr().out
+    traj, truth = read_track(out / "trajectory.csv"), load_truth(d)
+    e = np.hypot(*(traj[:, 1:3] - np.column_stack([np.interp(traj[:, 0], truth.t, truth.pos[:, a])
+                                                   for a in range(2)])).T)
+    assert np.sqrt(np.mean(e ** 2)) < 1.0          # 1.4 m with the nominal noise

@@ -154,6 +154,10 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         _assert_joint(fr.results[v.name], ref)
         d, e = fr.results[v.name].info["dead_reckoning"], ref.info["dead_reckoning"]
         assert d["applied"] == e["applied"] and d["blocks"] == e["blocks"], (d, e)
+        # the tracks under the noise each mission's evidence chooses, as fit_fg's
+        assert fr.results[v.name].info["track_noise_scale"] == ref.info["track_noise_scale"]
+        for a, b in zip(fr.results[v.name].missions, ref.missions):
+            assert np.max(np.abs(a.track.pos - b.track.pos)) < 0.05, a.name
     # outputs: per vehicle, per mission, fleet table with a test per vehicle, report
     out = tmp_path / "out"
     save_fleet(fr, out)

@@ -87,6 +87,48 @@ def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
     assert np.array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
 
 
+def test_ambiguity_variance_is_the_spread_of_the_basins():
+    from aqfg.fg.batch import ambiguity_variance
+    chosen = {"theta_e": 0.1, "s_x": 0.0, "k": 1.0}
+    # one basin across the wrap, as good: half the weight at 0.2 rad
+    same = [{"values": {"theta_e": 2 * np.pi - 0.1, "s_x": 0.4}, "cost": 10.0}]
+    v = ambiguity_variance(chosen, same, 10.0)
+    assert v["theta_e"] == pytest.approx(0.5 * 0.2 ** 2) and v["s_x"] == pytest.approx(0.5 * 0.16)
+    assert "k" not in v                                 # not in the basins' values
+    # worse by ln 3: a quarter of the weight
+    worse = [{"values": {"theta_e": 1.1, "s_x": 0.0}, "cost": 10.0 + np.log(3.0)}]
+    assert ambiguity_variance(chosen, worse, 10.0)["theta_e"] == pytest.approx(0.25)
+
+
+CONSTANTS_94 = {"k": 0.396, "k_x": 0.166, "k_yz": 31.8}    # a batch fit of seed 94
+
+
+def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
+    """20 s of seed 93 at 8-s fixes with another mission's constants: four heading basins
+    fit as well; the chosen one, 142 deg off, had sigma 17 deg."""
+    m, truth = mission("otter-heldout-93-40s", 8.0)
+    from aqfg.data.mission import between
+    res = fit_fg([between(m, -np.inf, 20.0)], estimate=("theta_e", "s_x", "s_y"),
+                 init=CONSTANTS_94)
+    assert len(res.info["ambiguous"]) >= 2
+    e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
+    assert e > 3 * res.info["sigma_unimodal"]["theta_e"]        # one basin's sigma
+    assert e <= 3 * res.sigma["theta_e"]
+    assert any("the sigmas cover the basins" in w for w in res.info["warnings"])
+
+
+def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
+    m, truth = mission("otter-heldout-93-40s", 8.0)
+    res = fit_fg([m], mode="online", init=CONSTANTS_94)
+    h = res.history
+    i = list(h.names).index("theta_e")
+    k10 = 9                                       # the tenth fix (24.5 s)
+    e = abs(wrap(h.values[k10, i] - truth.params["theta_e"]))
+    first = res.info["reinit_batches"][0]
+    assert first["t"] == 20.0 and e > 3 * first["reference_sigma_theta_e"]
+    assert e <= 3 * h.sigma[k10, i]
+
+
 @pytest.mark.slow
 def test_heading_drift_recovered_on_the_otter():
     m, truth = mission("otter-dev-yawdrift", 8.0)

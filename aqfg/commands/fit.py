@@ -158,6 +158,12 @@ def run(args) -> int:
               f"(median prediction error {dr['median_abs_before_m']:.2f} -> "
               f"{dr['median_abs_after_m']:.2f} m); the smoother's: "
               + ", ".join(f"{n} {v:.4g}" for n, v in dr["before"].items()))
+    tq = {n: q for n, q in (result.info.get("track_noise_scale") or {}).items() if q > 1.0}
+    if tq and result.mode == "batch":
+        print("trajectory smoothed with the process noise x"
+              + ", x".join(f"{q:g} ({n})" for n, q in tq.items())
+              + ": the model does not explain the motion between fixes (the parameters are "
+                "the nominal noise's fit; `aqfg diagnose` looks for the missing physics)")
     t = result.timings
     if "batch" in t:
         n_it = "?" if result.iterations is None else result.iterations

@@ -446,6 +446,22 @@ class BatchSmoother:
         best = min((b["cost"] for b in ok), default=None)
         res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
                                  and as_good_a_basin(b, best, basins[0])]
+        if res.info["ambiguous"]:
+            # the sigma of a multimodal fit: the chosen basin's, widened by the spread of
+            # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
+            # 130 deg off: docs/independent-vehicle.md)
+            extra = ambiguity_variance(res.values, res.info["ambiguous"], float(err))
+            res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
+            res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
+                              for n, v in res.info["sigma_unimodal"].items()})
+            for name, pm in res.info["per_mission"].items():
+                th = pm.get("theta_e")
+                if th is not None and len(parts) > 1:
+                    d2 = _spread({"theta_e": th["value"]},
+                                 [({"theta_e": b["theta_e"][name]}, b["cost"])
+                                  for b in res.info["ambiguous"] if name in b["theta_e"]],
+                                 float(err))["theta_e"]
+                    th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
         res.info["plausible"] = all(v.plausible for v in verdicts)
         res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                     for i, v in enumerate(verdicts)}
@@ -466,6 +482,7 @@ class BatchSmoother:
                     abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
                 res.info["alternative_held_sway"] = {
                     "values": dict(held.values), "sigma": dict(held.sigma),
+                    "sigma_unimodal": {**held.sigma, **held.info.get("sigma_unimodal", {})},
                     "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
                 res.info["warnings"].append(
                     f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
@@ -967,6 +984,49 @@ def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
             and _heading_gap(b, other) > AMBIGUOUS_GAP)
 
 
+def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None, effects=(),
+                 settings: FGSettings | None = None) -> tuple[Track, dict, float]:
+    """The track of ``mission`` smoothed with every parameter held at the full vector ``p``
+    under the process noise its evidence chooses (:attr:`FGSettings.adapt_track`, as the
+    batch's own tracks), for a fit whose states came from elsewhere (the fleet's joint
+    solve). Returns the track, its residuals and the process-noise factor."""
+    s = (settings or FGSettings()).with_(adapt_track=True, adapt_batch=False, sandwich_block=0.0)
+    names = mission_model(model, mission, effects).all_names
+    bs = BatchSmoother(model, effects=effects, estimate=(), settings=s,
+                       init={n: float(v) for n, v in zip(names, p)})
+    bs.inertial = False
+    bs.log_warnings = False
+    res = bs.run([mission])
+    mr = res.missions[0]
+    return mr.track, mr.residuals, float(res.info.get("track_noise_scale", {}).get(mission.name, 1.0))
+
+
+def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: float
+                       ) -> dict[str, float]:
+    """Variance to add to each parameter's sigma when other basins (``info["ambiguous"]``
+    entries) explain the fixes as well as the chosen solution (``chosen`` values, cost
+    ``cost``): the second moment about the chosen value of the mixture of the solutions,
+    weighted by their likelihood ratios ``exp(cost - cost_b)`` (the chosen one weight 1);
+    angles (theta_e) wrapped. Names: those of the basins' ``values`` (the first mission's
+    and the shared parameters)."""
+    return _spread(chosen, [(b["values"], b["cost"]) for b in ambiguous], cost)
+
+
+def _spread(chosen: dict[str, float], others: list[tuple[dict[str, float], float]],
+            cost: float) -> dict[str, float]:
+    w = np.array([1.0] + [np.exp(min(cost - c, 50.0)) for _, c in others])
+    w /= w.sum()
+    out = {}
+    for n, v in chosen.items():
+        if not all(n in o for o, _ in others):
+            continue
+        d = np.array([float(o[n]) - float(v) for o, _ in others])
+        if n == "theta_e":
+            d = np.angle(np.exp(1j * d))
+        out[n] = float(np.sum(w[1:] * d ** 2))
+    return out
+
+
 def _heading_gap(a: dict, b: dict) -> float:
     """Largest heading difference (rad) between two basins' missions."""
     gaps = [abs(np.angle(np.exp(1j * (a["theta_e"][n] - b["theta_e"].get(n, a["theta_e"][n])))))
@@ -989,6 +1049,10 @@ def _warnings(info: dict, n_it: int) -> list[str]:
         th = ", ".join(f"{n} {np.degrees(v):.1f} deg" for n, v in b["theta_e"].items())
         out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
                    f"{b['cost']:.1f}): the heading offset is ambiguous")
+    if info.get("ambiguous") and "theta_e" in info.get("sigma_unimodal", {}):
+        out.append("the sigmas cover the basins that fit as well (theta_e's "
+                   f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
+                   "chosen basin)")
     for n, v in info.get("observability", {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")

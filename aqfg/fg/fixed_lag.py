@@ -209,6 +209,7 @@ class FixedLagSmoother:
         if not replaying:
             self._q_floor = 1.0                    # the last re-initialisation batch's factor
             self._inflation: dict[str, float] = {}   # sigma reported / marginal, per name
+            self._ambiguity: dict[str, float] = {}   # variance added: other basins, per name
             self._raw_sigma: dict[str, float] = {}   # the latest marginal sigma per name
             self._forced_at = -np.inf              # time of the last forced re-initialisation
         self.q_scale = self._q_floor               # process-noise variance factor (adaptive)
@@ -829,9 +830,14 @@ class FixedLagSmoother:
                               else bres.info.get("process_noise_scale", 1.0))
         # the online marginal's sigma against the batch's honest one, on the same data:
         # the factor by which the online sigma is reported from here
+        # (within the chosen basin; the spread of the basins that fit as well is added to
+        # the reported sigma until the next batch, the solve itself stays in one basin)
+        uni = {**bres.sigma, **bres.info.get("sigma_unimodal", {})}
+        self._ambiguity = {n: max(float(bres.sigma[n]) ** 2 - float(v) ** 2, 0.0)
+                           for n, v in bres.info.get("sigma_unimodal", {}).items()}
         self._inflation = {}
         for n in (() if self._hold_idx else self.layout.estimated):   # held: no marginal
-            raw, ref = self._raw_sigma.get(n, np.nan), bres.sigma.get(n, np.nan)
+            raw, ref = self._raw_sigma.get(n, np.nan), uni.get(n, np.nan)
             if np.isfinite(raw) and np.isfinite(ref) and raw > 0 and ref > raw:
                 self._inflation[n] = float(ref / raw)
         self.q_scale = max(self.q_scale, self._q_floor)
@@ -845,7 +851,8 @@ class FixedLagSmoother:
         # restart to the sliding one ran the causal track up to 6 m off for 250 s
         alt = bres.info.get("alternative_held_sway") \
             if slip > plausibility.SUSPECT_SLIP else None
-        ref_v, ref_s = (alt["values"], alt["sigma"]) if alt else (bres.values, bres.sigma)
+        ref_v, ref_s = (alt["values"], alt.get("sigma_unimodal", alt["sigma"])) if alt \
+            else (bres.values, uni)
         # the batch solved from the smoother's own estimate ends in another basin that
         # explains the fixes as well as the best (within the batch's ambiguity margin): the
         # data do not decide between them, and that solution is the reference. A 160-s
@@ -987,6 +994,8 @@ class FixedLagSmoother:
             # reported sigma: see below
             sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
                 if self._inflation else sg_all
+            if self._ambiguity:
+                sh_all = np.hypot(sh_all, np.sqrt([self._ambiguity.get(n, 0.0) for n in names]))
             if self._held_sigma is not None:
                 sh_all = self._held_sigma
             sg_l = sg_all.tolist()
@@ -1010,6 +1019,8 @@ class FixedLagSmoother:
             # honest sigma of the same data (the marginal assumes the model is right and
             # the window's noise; docs/independent-vehicle.md)
             sh = sg * np.array([self._inflation.get(n, 1.0) for n in lay.names[g]])
+            if self._ambiguity:
+                sh = np.hypot(sh, np.sqrt([self._ambiguity.get(n, 0.0) for n in lay.names[g]]))
             if self._held_sigma is not None:
                 sh = self._held_sigma[[lay.estimated.index(n) for n in lay.names[g]]]
             for n, a, b in zip(lay.names[g], v, sh):

@@ -185,10 +185,11 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     stats["workers"] = len(_workers(client))
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
-    if settings.dr_horizon > 0:
-        # the constants to dead-reckon with, per vehicle over its missions, as aqfg fit
-        # does (aqfg.fg.dead_reckoning): one task per vehicle
-        show(0.99, f"dead-reckoning constants of {len(results)} vehicles")
+    if settings.dr_horizon > 0 or settings.adapt_track:
+        # the constants to dead-reckon with, per vehicle over its missions, and the
+        # missions' tracks under the noise their evidence chooses, as aqfg fit does
+        # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): one task per vehicle
+        show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
         futs = {client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
                               key=f"aqfg-{run}-refine-{i}"): v
@@ -199,10 +200,10 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
                 try:
                     results[v] = fut.result()
                 except Exception as e:             # re-raised with context
-                    raise FleetError(f"vehicle {v!r}: the dead-reckoning refinement failed: "
+                    raise FleetError(f"vehicle {v!r}: the dead-reckoning constants or tracks failed: "
                                      f"{type(e).__name__}: {e}") from e
         except TimeoutError:
-            raise FleetError(f"the dead-reckoning refinement took longer than {timeout} s"
+            raise FleetError(f"the dead-reckoning constants and tracks took longer than {timeout} s"
                              ) from None
         stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     diag = {}

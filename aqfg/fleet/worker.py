@@ -88,7 +88,30 @@ def refine_op(specs: list[MissionSpec], result):
     from aqfg.fg.common import mission_model
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
-    return dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
+    result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
+    return smooth_tracks(specs, missions, result)
+
+
+def smooth_tracks(specs: list[MissionSpec], missions: list, result):
+    """Each mission's track (and residuals) of a vehicle's joint fit smoothed again with the
+    parameters held under the process noise its evidence chooses, as ``aqfg fit``'s batch
+    does (:attr:`aqfg.fg.common.FGSettings.adapt_track`): with the smoother's constants,
+    not those refined for dead reckoning."""
+    from aqfg.fg.batch import smooth_track
+    st = specs[0].settings
+    if not st.adapt_track or result.model is None:
+        return result
+    dr = result.info.get("dead_reckoning") or {}
+    before = dr.get("before", {}) if dr.get("applied") else {}
+    q = {}
+    for spec, m, mr in zip(specs, missions, result.missions):
+        p = mr.p.copy()
+        for n, v in before.items():
+            p[result.model.index(n)] = v
+        mr.track, mr.residuals, q[mr.name] = smooth_track(m, p, effects=spec.effects,
+                                                         settings=st)
+    result.info["track_noise_scale"] = q
+    return result
 
 
 def diagnose_op(spec: MissionSpec) -> dict:
