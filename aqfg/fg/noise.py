@@ -145,7 +145,7 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
 
 
 def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
-                       settings: FGSettings, iterations: int = 5
+                       settings: FGSettings, iterations: int = 2
                        ) -> tuple[np.ndarray, np.ndarray, dict[float, list[float]]]:
     """Each mission part's process-noise factor for its track given the parameters ``th``
     (:attr:`FGSettings.adapt_track`): the largest log evidence of its states
