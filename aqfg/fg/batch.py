@@ -169,8 +169,8 @@ class BatchSmoother:
         # and re-traces itself (fit_fg after the dead-reckoning refinement)
         self.inertial = True
         # True: run() leaves the tracks at the nominal noise and the caller smooths them
-        # (smooth_tracks) after using the fit's states (fit_fg's dead-reckoning refinement,
-        # as the fleet's joint solve, whose tracks stay the nominal fit's)
+        # (smooth_tracks) after using the fit's states (fit_fg's dead-reckoning refinement
+        # starts from them, as the fleet's does)
         self.defer_track = False
         self._track_job: tuple | None = None
         self.model = model
