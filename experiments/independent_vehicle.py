@@ -281,7 +281,13 @@ def main() -> None:
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as ex:
         rows = list(ex.map(one, jobs))
-    head = ("# Independent vehicle: Otter USV (Fossen's 6-DOF model)\n\n"
+    title = "Otter USV (Fossen's 6-DOF model)"
+    if args.data is not None:
+        # the vehicle the missions' truth names (the REMUS generator's are AUV missions)
+        src = str(load_truth(data / names[0]).params.get("source", ""))
+        title = src.split(" model of ")[0] + " (Fossen's 6-DOF model)" \
+            if " model of " in src else "missions of " + data.name
+    head = (f"# Independent vehicle: {title}\n\n"
             f"{len(rows)} runs, {time.perf_counter() - t0:.0f} s wall on a shared 2-core machine "
             "(timings are indicative). θe error for otter-dev-yawdrift: against the mission "
             "mean of its drifting offset (batch), the offset at t = 0 (batch with the "
