@@ -116,16 +116,16 @@ def test_fit_bad_input(missions, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-def fit_online_with_true_constants(m, tr, tmp_path, capsys) -> str:
+def fit_online_with_true_constants(m, tr, tmp_path, capsys, *extra: str) -> str:
     """``aqfg fit --mode online`` of ``m`` with its true thrust/drag constants
-    (``--params-from``); the printed output."""
+    (``--params-from``) and the ``extra`` arguments; the printed output."""
     d = tmp_path / "m"
     save_mission(m, d, truth=tr)
     fixed = tmp_path / "fixed.json"
     fixed.write_text(json.dumps({"parameters": {n: {"value": tr.params[n], "sigma": 0.0}
                                                 for n in ("k", "k_x", "k_yz")}}))
     assert main(["fit", str(d), "--out", str(tmp_path / "o"), "--mode", "online",
-                 "--params-from", str(fixed), "--no-plots", "-q"]) == 0
+                 "--params-from", str(fixed), "--no-plots", "-q", *extra]) == 0
     return capsys.readouterr().out
 
 
@@ -141,10 +141,10 @@ def test_fit_online_says_which_usbl_fixes_the_gate_left_out(tmp_path, capsys):
 
 
 def test_fit_online_says_what_the_gtsam_engine_leaves_out(tmp_path, capsys):
-    """An AUV with depth readings runs on the GTSAM engine, which keeps the current and the
-    heading offset constant in the window's past: the command says so."""
+    """A measurement effect (a lever arm) runs on the GTSAM engine, which keeps the current
+    and the heading offset constant in the window's past: the command says so."""
     m, tr = simulate("auv", seed=6, duration=60.0, usbl=True, gnss_period=8.0)
-    out = fit_online_with_true_constants(m, tr, tmp_path, capsys)
+    out = fit_online_with_true_constants(m, tr, tmp_path, capsys, "--effect", "lever_arm")
     assert "online: GTSAM engine" in out and "online_heading_walk needs the numpy engine" in out
 
 

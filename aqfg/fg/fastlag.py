@@ -33,7 +33,8 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
 
 :meth:`LagWindow.unsupported` says why a configuration needs the GTSAM engine
 (measurement effects such as a lever arm or USBL distortions, a Cauchy loss, random-walk
-parameters, a thrust lag, depth readings of a non-planar vehicle).
+parameters, a thrust lag). Depth readings of a non-planar vehicle: the reading nearest to
+each knot, as the batch's (:meth:`LagWindow._depth`).
 """
 from __future__ import annotations
 
@@ -225,8 +226,6 @@ class LagWindow:
             return "measurement effects"
         if model.lookback > 0:
             return "thrust lag (warm-up steps between knots)"
-        if not mission.planar and mission.depth is not None and len(mission.depth.t):
-            return "depth readings"
         if not model.uses_cpp:
             return "no compiled kernel for this model"
         return ""
@@ -237,11 +236,34 @@ class LagWindow:
         m = Measurements.of(mission, self.s)
         self.tab_g = (m.gnss_t, m.gnss_z, m.gnss_sigma)
         self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
+        self.tab_d = (m.depth_t, m.depth_z)
         self.station = None if m.station is None else np.asarray(m.station, float)
+
+    def _depth(self, t_lo: float, t_hi: float) -> None:
+        """The depth reading nearest to the newest knot among those in (t_lo, t_hi] (one
+        per knot, as the batch's): ``down + vd * dt`` of the knot, the reading ``dt`` s
+        from it, its variance widened by the process noise's position variance over
+        ``dt``; linear, so added to the held quadratic once."""
+        dt_, dz = self.tab_d
+        if self.planar or not len(dt_):
+            return
+        a, b = int(dt_.searchsorted(t_lo + 1e-9)), int(dt_.searchsorted(t_hi + 1e-9))
+        if b <= a:
+            return
+        tk = self.kt[-1]
+        j = a + int(np.argmin(np.abs(dt_[a:b] - tk)))
+        e = float(dt_[j] - tk)
+        var = self.s.sensors.depth_sigma ** 2 + float(self.s.process.cov(abs(e))[2, 2])
+        o = self.P + 6 * (self.n - 1)
+        J = np.zeros(6)
+        J[2], J[5] = 1.0, e
+        self.H[o:o + 6, o:o + 6] += np.outer(J, J) / var
+        self.b[o:o + 6] -= (float(dz[j]) / var) * J
 
     def _take_fixes(self, t_lo: float, t_hi: float, usbl: bool = True) -> None:
         """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate
         (``usbl`` False: its GNSS fixes only)."""
+        self._depth(t_lo, t_hi)
         gt, gz, gs = self.tab_g
         lo, hi = t_lo + 1e-9, t_hi + 1e-9
         a, b = int(gt.searchsorted(lo)), int(gt.searchsorted(hi))

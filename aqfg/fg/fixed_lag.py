@@ -10,8 +10,8 @@ by ``FGSettings.online_engine``:
   the fixes only, one Gauss-Newton step per update on the window's dense normal equations,
   knots older than the window folded into a Gaussian prior by a Schur complement; no Python
   callback per factor;
-* "gtsam" (and the fallback: measurement effects, random-walk parameters, a thrust lag,
-  depth readings): GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath) on 1-s knots:
+* "gtsam" (and the fallback: measurement effects, random-walk parameters, a thrust
+  lag): GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 underneath) on 1-s knots:
   states older than the window are marginalised into a prior (a linear container factor),
   not forgotten; the parameter keys are re-stamped with the current time at every update
   so they never leave the window (gtsam-notes). Only the window's Values reach the
