@@ -144,7 +144,7 @@ def test_held_parameters_and_the_states_evidence(missions):
     o = fs.part_off[1]
     k2 = fs.d0 >= o
     sl = slice(6 * o, Ns)
-    want = -0.5 * (fs.q_axes[k2].sum() * np.log(4.0)) - ev4["state_cost"][o:].sum() \
+    want = -0.5 * (fs.q_axes[k2].sum() * np.log(4.0)) - fs.state_cost(ev4)[o:].sum() \
         - 0.5 * np.linalg.slogdet(H4[sl, sl])[1]
     assert parts4[1] == pytest.approx(want, rel=1e-9)
 

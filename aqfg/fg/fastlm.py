@@ -49,6 +49,14 @@ class _Meas:
     extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
 
 
+def _robust_cost(dist: np.ndarray, k: float | None) -> np.ndarray:
+    """Per-factor cost of whitened residual norms ``dist``: Huber with threshold ``k``, or
+    ``dist^2 / 2`` (``k`` None)."""
+    if k is None:
+        return 0.5 * dist ** 2
+    return np.where(dist > k, k * (dist - 0.5 * k), 0.5 * dist ** 2)
+
+
 def _plain_sensors(p: np.ndarray) -> bool:
     """True when the measurement effects at ``p`` are null (no lever arm, no USBL
     distortion), so a fix measures the knot position itself."""
@@ -291,7 +299,7 @@ class FastSystem:
         ld_state = 2.0 * np.log(cb[0]).reshape(self.N, 6).sum(axis=1)
         part = self.part_of_state
         ld = np.bincount(part, ld_state, minlength=n)
-        cost = np.bincount(part, ev["state_cost"], minlength=n)
+        cost = np.bincount(part, self.state_cost(ev), minlength=n)
         nq = np.bincount(part[self.d0], np.sum(self.q_axes, axis=1) * np.log(self.q_k),
                          minlength=n)
         return -cost - 0.5 * nq - 0.5 * ld
@@ -373,10 +381,6 @@ class FastSystem:
         rd = np.matmul(self.W, (X[d0 + 1] - pred)[:, :, None])[:, :, 0]
         out["dyn_r"] = rd
         cost = 0.5 * float(np.sum(rd * rd))
-        # each factor's cost at a state of its own (the later knot of a dynamics factor):
-        # the parts' costs (part_log_evidence)
-        sc = np.zeros(len(X))
-        sc[d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
         out["Jx"] = np.concatenate(Jxs) if Jxs else np.zeros((0, 6, 6))
         out["Jp"] = np.concatenate(Jps) if Jps else np.zeros((0, 6, self.ncols))
         # measurements
@@ -402,15 +406,9 @@ class FastSystem:
                 J[:, 0, 2] = 1.0 / m.sigma[:, 0]
                 J[:, 0, 5] = m.extra / m.sigma[:, 0]
             dist = np.sqrt(np.sum(r * r, axis=1))
-            if m.k is None:
-                w = np.ones(len(r))
-                c_i = 0.5 * dist ** 2
-            else:
-                big = dist > m.k
-                w = np.where(big, m.k / np.maximum(dist, 1e-300), 1.0)
-                c_i = np.where(big, m.k * (dist - 0.5 * m.k), 0.5 * dist ** 2)
-            cost += float(np.sum(c_i))
-            np.add.at(sc, m.idx, c_i)
+            w = np.ones(len(r)) if m.k is None else \
+                np.where(dist > m.k, m.k / np.maximum(dist, 1e-300), 1.0)
+            cost += float(np.sum(_robust_cost(dist, m.k)))
             mres.append((r, J, w))
         out["meas"] = mres
         # linear factors
@@ -418,15 +416,27 @@ class FastSystem:
         for mm, (si, A, b) in self.lin_s.items():
             r = np.einsum("nij,nj->ni", A, X[si]) - b
             cost += 0.5 * float(np.sum(r * r))
-            np.add.at(sc, si, 0.5 * np.sum(r * r, axis=1))
             lres[mm] = r
         out["lin_s"] = lres
         rp = self._param_residuals(nv)
         cost += 0.5 * float(rp @ rp)
         out["lin_p"] = rp
         out["cost"] = cost
-        out["state_cost"] = sc
         return out
+
+    def state_cost(self, ev: dict) -> np.ndarray:
+        """(N,) the cost of an evaluation's state factors, each at a state of its own (a
+        dynamics factor at its later knot); the parameter priors left out. The parts' costs
+        of :meth:`part_log_evidence` (computed there, not at every evaluation)."""
+        sc = np.zeros(self.N)
+        rd = ev["dyn_r"]
+        sc[self.d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
+        for m, (r, _, _) in zip(self.meas, ev["meas"]):
+            np.add.at(sc, m.idx, _robust_cost(np.sqrt(np.sum(r * r, axis=1)), m.k))
+        for mm, (si, _, _) in self.lin_s.items():
+            r = ev["lin_s"][mm]
+            np.add.at(sc, si, 0.5 * np.sum(r * r, axis=1))
+        return sc
 
     def _param_residuals(self, nv: dict) -> np.ndarray:
         """Whitened residuals of the linear factors on parameter nodes (priors, walks)."""

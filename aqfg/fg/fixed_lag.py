@@ -991,11 +991,7 @@ class FixedLagSmoother:
             for g, sl in eng.slices.items():
                 self._last_params[g] = th[sl]
             names = eng.names
-            # reported sigma: see below
-            sh_all = sg_all * np.array([self._inflation.get(n, 1.0) for n in names]) \
-                if self._inflation else sg_all
-            if self._ambiguity:
-                sh_all = np.hypot(sh_all, np.sqrt([self._ambiguity.get(n, 0.0) for n in names]))
+            sh_all = self._reported_sigma(names, sg_all)
             if self._held_sigma is not None:
                 sh_all = self._held_sigma
             sg_l = sg_all.tolist()
@@ -1015,12 +1011,7 @@ class FixedLagSmoother:
             sg = self._marginal_sigma(k, len(v))
             if np.all(np.isfinite(v)):
                 self._last_params[g] = lay.project(g, v)
-            # reported sigma: the marginal scaled to the last re-initialisation batch's
-            # honest sigma of the same data (the marginal assumes the model is right and
-            # the window's noise; docs/independent-vehicle.md)
-            sh = sg * np.array([self._inflation.get(n, 1.0) for n in lay.names[g]])
-            if self._ambiguity:
-                sh = np.hypot(sh, np.sqrt([self._ambiguity.get(n, 0.0) for n in lay.names[g]]))
+            sh = self._reported_sigma(lay.names[g], sg)
             if self._held_sigma is not None:
                 sh = self._held_sigma[[lay.estimated.index(n) for n in lay.names[g]]]
             for n, a, b in zip(lay.names[g], v, sh):
@@ -1283,6 +1274,18 @@ class FixedLagSmoother:
             if x is not None and np.all(np.isfinite(x)):
                 return np.asarray(x, float)
         return np.zeros(6)
+
+    def _reported_sigma(self, names, sg: np.ndarray) -> np.ndarray:
+        """The sigma reported for the parameters ``names`` from their marginal ``sg``: scaled
+        to the last re-initialisation batch's honest sigma of the same data (the marginal
+        assumes the model is right and the window's noise), and widened by the spread of
+        the basins that batch found fitting as well (docs/independent-vehicle.md); ``sg``
+        itself where neither applies."""
+        sh = sg * np.array([self._inflation.get(n, 1.0) for n in names]) \
+            if self._inflation else sg
+        if self._ambiguity:
+            sh = np.hypot(sh, np.sqrt([self._ambiguity.get(n, 0.0) for n in names]))
+        return sh
 
     def _marginal_sigma(self, key: int, dim: int) -> np.ndarray:
         """1-sigma of a node from the smoother's marginal; NaN (recorded) if GTSAM cannot
