@@ -81,7 +81,8 @@ class FGSettings:
         against the model's prediction is beyond this chi-square(2) quantile (13.8:
         p = 0.999, the EKF's gate, :class:`aqfg.ekf.history.EkfConfig`) under the process
         noise in use is left out, unless the ``online_max_rejects`` USBL fixes before it
-        were left out too (a track that is off must not reject every fix). The Huber loss
+        were left out too (a track that is off must not reject every fix; such a fix
+        enters with its sigmas scaled to put it at the Huber threshold). The Huber loss
         bounds an outlier's pull while the dynamics are stiff; once the adaptive process
         noise has loosened them (a wrong model), a 15-m range outlier moved the smoothed
         track 14 m (docs/independent-vehicle.md). ``inf``: no gate.

@@ -260,9 +260,10 @@ class LagWindow:
         self.H[o:o + 6, o:o + 6] += np.outer(J, J) / var
         self.b[o:o + 6] -= (float(dz[j]) / var) * J
 
-    def _take_fixes(self, t_lo: float, t_hi: float, usbl: bool = True) -> None:
+    def _take_fixes(self, t_lo: float, t_hi: float, usbl: bool = True,
+                    usbl_scale: float = 1.0) -> None:
         """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate
-        (``usbl`` False: its GNSS fixes only)."""
+        (``usbl`` False: its GNSS fixes only; ``usbl_scale`` multiplies its USBL sigmas)."""
         self._depth(t_lo, t_hi)
         gt, gz, gs = self.tab_g
         lo, hi = t_lo + 1e-9, t_hi + 1e-9
@@ -275,7 +276,8 @@ class LagWindow:
             self.fx.append(None)
             self.FXL.append([math.nan] * 3)
             return
-        self.fx.append([gz[a:b], gs[a:b], uz[c:d], us[c:d], None, None])
+        self.fx.append([gz[a:b], gs[a:b], uz[c:d],
+                        us[c:d] if usbl_scale == 1.0 else us[c:d] * usbl_scale, None, None])
         self.FXL.append([0.0] * 3)
         self._set_fix(self.n - 1)
 
@@ -573,10 +575,11 @@ class LagWindow:
         self._set_fix(i)
         return True
 
-    def take_fixes(self, usbl: bool = True) -> None:
+    def take_fixes(self, usbl: bool = True, usbl_scale: float = 1.0) -> None:
         """The fixes since the knot before the newest onto the newest (after
-        ``add(..., take_fixes=False)``); ``usbl`` False leaves its USBL fixes out."""
-        self._take_fixes(self.kt[-2], self.kt[-1], usbl)
+        ``add(..., take_fixes=False)``); ``usbl`` False leaves its USBL fixes out,
+        ``usbl_scale`` multiplies their sigmas."""
+        self._take_fixes(self.kt[-2], self.kt[-1], usbl, usbl_scale)
 
     def release(self) -> None:
         """Remove the hold priors on the parameters."""

@@ -222,6 +222,7 @@ class FixedLagSmoother:
         self._under_review_g: list[tuple[float, int]] = []   # the same, GTSAM engine: (t, key)
         self._taken_m2: list[float] = []           # _gate's statistic of the fixes taken
         self._rejects = 0                          # consecutive USBL fixes left out (_gate)
+        self._forced_scale = 1.0                   # _gate's sigma factor of a forced fix
         if not replaying:
             self._rejected: dict[float, bool] = {}   # USBL fix time -> left out (_gate)
         self.warming = s.warmup_tol > 0
@@ -481,6 +482,11 @@ class FixedLagSmoother:
             self._adapt(t_fix, float(t_fix - t_last), x)
         meas = Measurements.of(self.mission, s, t_last + 1e-6, t_fix)
         self._review_left_out_gtsam(graph, t_fix)
+        if self._forced_scale != 1.0:
+            here = np.abs(meas.usbl_t - t_fix) <= 1e-6
+            sig = meas.usbl_sigma.copy()
+            sig[here] *= self._forced_scale
+            meas = replace(meas, usbl_sigma=sig)
         if drop_usbl:
             keep = np.abs(meas.usbl_t - t_fix) > 1e-6
             meas = replace(meas, usbl_t=meas.usbl_t[keep], usbl_z=meas.usbl_z[keep],
@@ -521,7 +527,8 @@ class FixedLagSmoother:
             self.filtered.extend([None] * (n_new - 1))      # type: ignore[list-item]
         x_fix = eng.add(float(t_fix), i0 + n_new - 1, self._interval_steps(all_t),
                         self.q_scale)
-        eng.take_fixes(usbl=not self._gate(t_fix, float(t_fix - t_last), x_fix))
+        eng.take_fixes(usbl=not self._gate(t_fix, float(t_fix - t_last), x_fix),
+                       usbl_scale=self._forced_scale)
         if not eng.last_ok:
             if not self.events or self.events[-1].get("event") != "prediction diverged":
                 self.events.append({"t": float(t_fix), "event": "prediction diverged"})
@@ -1079,6 +1086,13 @@ class FixedLagSmoother:
         x0, x1 = x_pred[:2].tolist()
         return (p0 - x0) ** 2 + (p1 - x1) ** 2, float(var[i])
 
+    def _left_out(self, t_fix: float) -> bool:
+        """The fix :meth:`_innovation` reads at ``t_fix`` is a USBL fix the gate left out."""
+        t, _, _, is_u = self._fixes
+        i = int(t.searchsorted(t_fix - 1e-6))
+        return (i < len(t) and bool(is_u[i])
+                and bool(self._rejected.get(float(t_fix), False)))
+
     def _q_pos(self, dt: float) -> float:
         """The nominal process noise's per-axis position variance over ``dt`` s (m^2),
         cached per interval."""
@@ -1157,6 +1171,18 @@ class FixedLagSmoother:
                   and not (self._hold_idx and not getattr(self, "_replaying", False)))
         forced = gating and self._rejects >= s.online_max_rejects
         out = gating and not forced and m2 > s.online_gate_usbl
+        # a fix taken by the count enters at the robust loss's edge: its sigmas scaled so
+        # that its whitened residual at the prediction is the Huber threshold, a pull
+        # falling with the residual (k^2 / |r|). The Huber loss bounds a fix's pull
+        # (k / sigma), not how far it moves a track loosened by the fixes left out before
+        # it: a 12-m range outlier forced after three moved the numpy engine's track 9 m
+        # and its current 0.5 m/s, and the good fixes after it were left out
+        # (docs/independent-vehicle.md). A track that is off gets to the fixes too: by the
+        # adaptation (the forced fixes' innovations) and the review of those left out.
+        self._forced_scale = 1.0
+        if forced and m2 > s.online_gate_usbl:
+            k = s.sensors.robust_k if s.sensors.robust != "none" else 1.0
+            self._forced_scale = max(1.0, math.sqrt(self._sensor_m2(t_fix, x_pred)) / k)
         if not out and not forced:          # (a fix taken by the count says nothing)
             self._taken_m2.append(m2)
             if len(self._taken_m2) > 4 * s.adapt_window:
@@ -1180,6 +1206,15 @@ class FixedLagSmoother:
         et = math.remainder(z_b - math.atan2(de, dn), 2.0 * math.pi) * rh
         return er * er / (sr2 + pv) + et * et / ((rh * sb) ** 2 + pv)
 
+    def _sensor_m2(self, t_fix: float, x: np.ndarray) -> float:
+        """The squared whitened residual (range and bearing, the sensor's sigmas alone) of
+        the USBL fix at ``t_fix`` at the state ``x``."""
+        z_r, z_b, sr2, sb, _, (n0, e0, d0) = self._usbl_tab[round(float(t_fix), 6)]
+        dn, de, dd = float(x[0]) - n0, float(x[1]) - e0, float(x[2]) - d0
+        er = z_r - math.sqrt(dn * dn + de * de + dd * dd)
+        eb = math.remainder(z_b - math.atan2(de, dn), 2.0 * math.pi)
+        return er * er / sr2 + eb * eb / (sb * sb)
+
     def _adapt(self, t_fix: float, dt: float, x_pred: np.ndarray) -> None:
         """Adapt the process-noise variance factor to how well the model predicts the fixes:
         :func:`aqfg.fg.noise.variance_factor` of the last ``adapt_window`` fix
@@ -1187,10 +1222,12 @@ class FixedLagSmoother:
         never below the last re-initialisation batch's factor. A model that explains the
         fixes keeps its nominal noise; one that does not lets the fixes pull the track (a
         wrong model then costs accuracy gracefully, towards a kinematic smoother, instead
-        of dragging the track off the fixes)."""
+        of dragging the track off the fixes). A USBL fix the gate left out is not counted:
+        the gate judged it an outlier of the fix, and counting a run of them as the model's
+        error raised the noise to its bound, which opened the gate to the rest of the run."""
         s = self.settings
         inn = self._innovation(t_fix, x_pred)
-        if inn is None or dt <= 0:
+        if inn is None or dt <= 0 or self._left_out(t_fix):
             return
         e2, v = inn
         q = self._q_pos(dt)
