@@ -69,3 +69,13 @@ def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
     assert main(["diagnose", str(mission_dir), "--effect", "usbl_range_scale",
                  "--out", str(tmp_path / "z")]) == 2
     assert "not applicable" in capsys.readouterr().err
+
+
+def test_diagnose_logs_the_base_fits_warnings_once(tmp_path, capsys):
+    """The base model's fit warns (here: sigma inflated, outliers down-weighted, on the
+    REMUS mission); the candidates' refits keep their warnings in their results instead
+    of repeating them (each said "run `aqfg diagnose`" seven times inside it)."""
+    from conftest import data_path
+    assert main(["diagnose", str(data_path("remus-dev-a")), "--out", str(tmp_path / "d")]) == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ": warning: fg:" in ln]
+    assert lines and len(lines) == len(set(lines)), lines

@@ -123,12 +123,14 @@ def _n_meas(res: Result) -> int:
 
 
 def fit_all(missions: list[Mission], model, effects, label: str, *, settings: FGSettings,
-            start: FitEval | None = None) -> FitEval:
+            start: FitEval | None = None, log_warnings: bool = True) -> FitEval:
     """The model (base + ``effects``) fitted to all fixes; ``start``: an evaluation of a
     related model (e.g. the base model when ``effects`` adds a candidate) whose fit starts
-    this one (:mod:`aqfg.diagnose.refit`)."""
+    this one (:mod:`aqfg.diagnose.refit`); ``log_warnings``: the fit's warnings to the log
+    too (always in its ``info["warnings"]``)."""
     sm = WarmBatchSmoother(model, effects=effects, settings=settings,
                            start=start.full if start is not None else None)
+    sm.log_warnings = log_warnings
     full = sm.run(missions)
     assert full.model is not None, "the batch smoother records its model"
     return FitEval(label, tuple(e.name for e in full.model.effects), full, None,
@@ -143,6 +145,7 @@ def add_heldout(ev: FitEval, splits: list[Split], model, effects, *, settings: F
     th = WarmBatchSmoother(model, effects=effects, settings=settings,
                            start=start.thin if start is not None and start.thin is not None
                            else ev.full)
+    th.log_warnings = False
     thin = th.run([s.fit for s in splits])
     ev.thin = thin
     ev.next_fix, ev.long = [], []
@@ -208,8 +211,11 @@ def _work(part: str) -> FitEval:
     smoother's global start (``"cold"``), without its model object (a user effect's
     callable need not pickle)."""
     a = _JOBS["args"]
+    # (a candidate's refits keep their warnings in info["warnings"]: logged, the base
+    # fit's misfit warning came seven times, each advising `aqfg diagnose`, inside it)
     ev = fit_all(a["missions"], a["model"], a["effects"], a["label"],
-                 settings=a["kw"]["settings"], start=a["start"] if part == "warm" else None)
+                 settings=a["kw"]["settings"], start=a["start"] if part == "warm" else None,
+                 log_warnings=False)
     ev.full.model = None
     return ev
 
