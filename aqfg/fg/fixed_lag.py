@@ -43,7 +43,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
-from aqfg.fg import noise, plausibility
+from aqfg.fg import noise, observability, plausibility
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -856,8 +856,17 @@ class FixedLagSmoother:
         # high): the alternative is the reference. A 256-s batch of heldout-52 slid 16 deg
         # with theta_e 53 deg off and sigma 3 deg; its alternative was 9 deg off, and the
         # restart to the sliding one ran the causal track up to 6 m off for 250 s
+        # ... unless the batch does not determine the heading offset (its observability
+        # verdict: one heading kept, so a heading offset and a cross current look alike):
+        # then its alternative has no more evidence than the sliding fit. A 160-s batch of
+        # heldout-111 (8-s fixes) that kept one heading named an alternative 146 deg off
+        # (sigma 41 deg); it replaced an online heading 23 deg off (the batch's own was 24
+        # deg off), and the causal track ran up to 15 m off for 160 s
+        # (docs/independent-vehicle.md)
+        undetermined = bres.info.get("observability", {}).get(
+            "theta_e", {}).get("verdict") == observability.NOT
         alt = bres.info.get("alternative_held_sway") \
-            if slip > plausibility.SUSPECT_SLIP else None
+            if slip > plausibility.SUSPECT_SLIP and not undetermined else None
         ref_v, ref_s = (alt["values"], alt.get("sigma_unimodal", alt["sigma"])) if alt \
             else (bres.values, uni)
         # the batch solved from the smoother's own estimate ends in another basin that
@@ -900,6 +909,7 @@ class FixedLagSmoother:
             "cost": float(bres.info.get("cost", np.nan)), "slip_deg": float(slip),
             "gap": float(gap), "tolerance": float(tol),
             "restarted": bool(force or gap >= tol),
+            "theta_e_determined": not undetermined,
             "reference": ("solution from the online estimate (as good a basin)" if own_ref
                           else "non-sliding alternative" if alt else "batch"),
             "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb})
