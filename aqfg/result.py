@@ -205,6 +205,15 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # the process-noise factor each mission's trajectory was smoothed with
         # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
+    st = result.info.get("sigma_structure")
+    if result.mode == "batch" and st:
+        # the shift of the variable parameters the missing effect the data call for most
+        # would cause, included in their sigma (FGSettings.structural_sigma)
+        doc["sigma_structure"] = {"effect": st["effect"],
+                                  "p_value_robust": float(st["p_value_robust"]),
+                                  "shift": {n: float(v) for n, v in st["shift"].items()},
+                                  "sigma_before": {n: float(v)
+                                                   for n, v in st["sigma_before"].items()}}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

@@ -165,3 +165,18 @@ def test_fit_batch_says_the_track_needed_more_process_noise(tmp_path, capsys):
     e = np.hypot(*(traj[:, 1:3] - np.column_stack([np.interp(traj[:, 0], truth.t, truth.pos[:, a])
                                                    for a in range(2)])).T)
     assert np.sqrt(np.mean(e ** 2)) < 1.0          # 1.4 m with the nominal noise
+
+
+def test_fit_batch_writes_and_says_the_structural_sigma(tmp_path, capsys):
+    """On the Otter (linear drag missing from the model) parameters.json carries the
+    effect the data call for, the shift and the sigma before it, and its sigma is the
+    combination; the warning names the effect and how to add it."""
+    from conftest import data_path
+    out = tmp_path / "fit"
+    assert main(["fit", str(data_path("otter-example")), "--out", str(out), "--no-plots"]) == 0
+    doc = json.loads((out / "parameters.json").read_text())
+    st = doc["sigma_structure"]
+    assert st["effect"] == "linear_drag" and st["p_value_robust"] < 1e-3
+    for n, d in st["shift"].items():
+        assert doc["parameters"][n]["sigma"] == pytest.approx(np.hypot(st["sigma_before"][n], d))
+    assert "try --effect linear_drag" in capsys.readouterr().err

@@ -122,11 +122,18 @@ def _sim_vehicle(root, seeds, k_scale, duration=240.0):
 
 def _assert_joint(fr_res, batch, tol=0.05):
     """Within tol x the batch's model sigma (stricter than its sandwich-inflated sigma),
-    fixed parameters and every mission's own; the same sigmas (model and inflated)."""
+    fixed parameters and every mission's own; the same sigmas (model and inflated; the
+    structural shift, linearised at the two solutions, within 2 %)."""
     sm = batch.info.get("sigma_model", batch.sigma)
+    st_f, st_b = (r.info.get("sigma_structure") for r in (fr_res, batch))
+    assert (st_f or {}).get("effect") == (st_b or {}).get("effect")
     for n in batch.estimated:
         assert abs(fr_res.values[n] - batch.values[n]) < tol * sm[n], \
             (n, fr_res.values[n], batch.values[n], sm[n])
+        if st_b and n in st_b["shift"]:
+            assert st_f["sigma_before"][n] == pytest.approx(st_b["sigma_before"][n], rel=1e-6)
+            assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
+            continue
         assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=1e-6), n
         assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=1e-6), n
     for m, pm in batch.info["per_mission"].items():

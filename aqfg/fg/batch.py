@@ -164,6 +164,7 @@ class BatchSmoother:
         as for the heading basins."""
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # info["warnings"] also to the log (WARNING)
+        self.fast_solution: tuple | None = None   # (FastSystem, evaluation) of the last run
         # the model-only re-trace of each mission in the result; False: left empty where
         # one parameter vector serves the mission, for a caller that changes the parameters
         # and re-traces itself (fit_fg after the dead-reckoning refinement)
@@ -502,6 +503,9 @@ class BatchSmoother:
                          "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp
                          else "numpy", "settings": s})
         self._track_job = None
+        # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
+        self.fast_solution = ((fs, out.fast) if q_scale == 1.0 and fs is not None
+                              and out.fast is not None else None)
         if s.adapt_track and q_scale == 1.0 and fs is not None and out.fast is not None:
             self._track_job = (fs, out, layout, parts, node_list, cov)
         if not self.defer_track:
@@ -967,6 +971,9 @@ def _sigma_by_name(layout, node_list, cov) -> dict:
 
 # rad: solutions this far apart in heading are different basins
 AMBIGUOUS_GAP = np.radians(10.0)
+# the honest sigma this many times the model's: the fixes are not explained as the noise
+# model says (warned; the structural sigma is looked for, aqfg.diagnose.structure)
+MISFIT_INFLATION = 3.0
 
 
 def ambiguity_margin(best_cost: float) -> float:
@@ -1057,7 +1064,7 @@ def _warnings(info: dict, n_it: int) -> list[str]:
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")
     infl = info.get("sigma_inflation", {})
-    big = {n: f for n, f in infl.items() if f > 3.0}
+    big = {n: f for n, f in infl.items() if f > MISFIT_INFLATION}
     if big:
         worst = max(big, key=lambda n: big[n])
         out.append(f"the model does not explain the fixes as its noise model says: sigma "

@@ -67,6 +67,11 @@ class FGSettings:
         on a vehicle that is the model the same track (factor 1; docs/independent-vehicle.md).
         The diagnosis and the online re-initialisations set False: they need the nominal
         fit's states.
+    structural_sigma: the batch fit (:func:`aqfg.fg.fit.fit_fg`) widens the sigma of the
+        heading offset and the current by the shift the best-supported missing effect
+        would cause, where the fixes are not explained and the data call for one
+        (:mod:`aqfg.diagnose.structure`; ``info["sigma_structure"]``): the sandwich covers
+        the model's error that varies over time, not a bias that holds all mission.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -140,6 +145,7 @@ class FGSettings:
     adapt_batch: bool | None = None
     measure_noise: bool = False
     adapt_track: bool = True
+    structural_sigma: bool = True
     online_init_after: float = 20.0
     online_init_fixes: int = 10
     online_reinit_until: float = 960.0

@@ -13,19 +13,24 @@ shared model, GNSS/USBL/depth factors, and parameter nodes (fixed / variable / s
 """
 from __future__ import annotations
 
+import logging
+import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import dead_reckoning
-from aqfg.fg.batch import BatchSmoother
+from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
+from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
+
+log = logging.getLogger(__name__)
 
 
 def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
@@ -50,6 +55,10 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
         bs.inertial = horizon <= 0         # re-traced once, with the final constants (below)
         bs.defer_track = True
         res = bs.run(missions)
+        if bs.fast_solution is not None:
+            fs, ev = bs.fast_solution
+            res = structural_sigma(res, list(missions), fs, ev, bs.settings,
+                                   log_warnings=bs.log_warnings)
         # the constants to dead-reckon with: multi-step prediction error where it differs
         # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning), from
         # the nominal fit's states (as the fleet's)
@@ -77,3 +86,42 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     r0.info["per_mission"] = {r.missions[0].name: {n: {"value": r.values[n], "sigma": r.sigma.get(n, np.nan)}
                                                    for n in r.estimated} for r in results}
     return r0
+
+
+def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: dict,
+                     settings: FGSettings, log_warnings: bool = True) -> Result:
+    """:attr:`FGSettings.structural_sigma`: where the batch fit ``res`` (nominal noise) does
+    not explain the fixes (its honest sigma more than ``MISFIT_INFLATION`` x the model's)
+    and the data call for a missing effect, the sigma of the heading offset and the
+    current widened by the shift that effect would cause
+    (:func:`aqfg.diagnose.structure.structural_shift`, on the batch's numpy system ``fs``
+    at its nominal-noise solution, evaluation ``ev``), in place; ``info["sigma_structure"]``
+    and a warning say which effect and how much."""
+    sm = res.info.get("sigma_model", {})
+    infl = res.info.get("sigma_inflation") or {
+        n: float(v) / float(sm[n]) for n, v in res.sigma.items() if sm.get(n, 0.0) > 0}
+    if (not settings.structural_sigma or settings.walk_sigma
+            or res.model is None or max(infl.values(), default=0.0) <= MISFIT_INFLATION):
+        return res
+    from aqfg.diagnose.structure import structural_shift
+    sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
+    if sh is None:
+        return res
+    before = {n: float(res.sigma[n]) for n in sh.shift if n in res.sigma}
+    for n, d in sh.shift.items():
+        if n in res.sigma:
+            res.sigma[n] = float(np.hypot(res.sigma[n], d))
+    res.info["sigma_structure"] = {**sh.to_json(), "sigma_before": before}
+    parts = []
+    if "theta_e" in sh.shift:
+        parts.append(f"theta_e by {np.degrees(sh.shift['theta_e']):.2g} deg")
+    cur = [sh.shift[n] for n in ("s_x", "s_y") if n in sh.shift]
+    if cur:
+        parts.append(f"the current by {math.sqrt(sum(c * c for c in cur)):.2g} m/s")
+    w = (f"the data call for the effect {sh.effect} (robust score test p = {sh.p_robust:.2g}): "
+         f"with it {' and '.join(parts) or 'the estimates'} would move; sigma includes that "
+         f"shift (try --effect {sh.effect}, or `aqfg diagnose`)")
+    res.info.setdefault("warnings", []).append(w)
+    if log_warnings:
+        log.warning("fg: %s", w)
+    return res

@@ -88,8 +88,41 @@ def refine_op(specs: list[MissionSpec], result):
     from aqfg.fg.common import mission_model
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
+    result = structural(specs, missions, result)
     result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
     return smooth_tracks(specs, missions, result)
+
+
+def structural(specs: list[MissionSpec], missions: list, result):
+    """The structural part of the sigma of a vehicle's joint fit, as ``aqfg fit``'s batch
+    (:func:`aqfg.fg.fit.structural_sigma`): its missions' graph built on the worker, the
+    numpy system evaluated at the joint solution (the smoothed states and each mission's
+    parameters)."""
+    import gtsam
+
+    from aqfg.fg.batch import BatchSmoother
+    from aqfg.fg.fastlm import FastSystem
+    from aqfg.fg.fit import structural_sigma
+    st = specs[0].settings
+    if not st.structural_sigma or result.model is None:
+        return result
+    bg = BatchSmoother(None, effects=specs[0].effects, estimate=result.estimated,
+                       settings=st).build(missions)
+    fs = FastSystem.build(bg, st)
+    if fs is None:
+        return result
+    values = gtsam.Values(bg.values)
+    for part, mr in zip(bg.parts, result.missions):
+        if len(part.knots) != len(mr.track.t) or \
+                np.max(np.abs(part.knots - mr.track.t)) > 1e-6:
+            return result                      # not the graph the joint fit solved
+        for k, x in zip(part.keys, np.column_stack([mr.track.pos, mr.track.vel])):
+            values.update(k, x)
+    lay = bg.layout
+    for node in bg.nodes:
+        values.update(node.key, result.missions[node.mission or 0].p[lay.idx[node.group]])
+    X, th = fs.from_values(values)
+    return structural_sigma(result, missions, fs, fs.evaluate(X, th), st)
 
 
 def smooth_tracks(specs: list[MissionSpec], missions: list, result):

@@ -1,0 +1,159 @@
+"""The bias a missing effect puts into the heading offset and the current: the structural
+part of an honest sigma.
+
+The batch's sandwich sigma (:mod:`aqfg.fg.covariance`) covers a model error that varies
+over the mission's time blocks. A missing effect that acts the same way all mission long
+(linear drag on the Otter) biases the estimates instead, and no resampling of the fixes
+shows it. Local misspecification (Copas & Eguchi 2005, "Local model uncertainty and
+incomplete-data bias"): if the model misses an effect with parameters ``gamma`` (null at
+``gamma_0``), the base estimates are off by about ``-(A^T A)^-1 A^T C delta``, with ``C`` the
+effect's columns of the linearised graph and ``delta`` its one-step estimate -- the same
+quantities as the diagnosis's score test (:mod:`aqfg.diagnose.score`), here from the batch's
+own numpy system for the catalogue's dynamics effects (the kernel's parameter Jacobian
+already has their columns at the null), which costs a few banded solves instead of a
+graph built and linearised again.
+
+Only an effect the data call for counts: of the candidates whose robust (sandwich)
+score-test p-value is below ``ALPHA`` after Holm's correction, the one with the largest
+score statistic.
+Only the variable parameters (heading offset, current) are widened: the thrust and drag
+constants change their meaning when an effect joins (a quadratic drag beside a linear
+one), so their shift is not a bias.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from aqfg.data.mission import Mission
+from aqfg.fg.fastlm import FastSystem
+from aqfg.model.effects import DemandLagTerm
+from aqfg.model.params import N_DYN
+from aqfg.model.vehicle import Model
+
+ALPHA = 1e-3          # Holm-adjusted robust score-test level for an effect to count
+
+
+@dataclass
+class StructuralShift:
+    """The effect the data call for most, and the shift of each variable parameter it
+    would cause (model units; largest over the missions)."""
+    effect: str
+    p_robust: float
+    shift: dict[str, float]
+    estimate: dict[str, float] = field(default_factory=dict)   # the effect's one-step values
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.effect, "p_value_robust": self.p_robust,
+                "shift": dict(self.shift), "effect_estimate": dict(self.estimate)}
+
+
+def _holm(p: np.ndarray) -> np.ndarray:
+    """Holm-adjusted p-values (NaN stays NaN)."""
+    out = np.full(len(p), np.nan)
+    ok = np.nonzero(np.isfinite(p))[0]
+    run = 0.0
+    for k, i in enumerate(ok[np.argsort(p[ok])]):
+        run = max(run, min(1.0, (len(ok) - k) * float(p[i])))
+        out[i] = run
+    return out
+
+
+def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
+                     estimated: tuple[str, ...]) -> StructuralShift | None:
+    """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
+    nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
+    candidates are the catalogue's dynamics effects the kernel already differentiates at
+    their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
+    and the test costs a few banded solves. None when no candidate is called for."""
+    from aqfg.diagnose.score import _box, _lm, _p_value, time_blocks
+    from aqfg.diagnose.workflow import candidate_effects
+
+    names = [n for n in estimated if model.spec(n).group == "variable"]
+    cands = [e for e in candidate_effects(missions, model.effects)
+             if not isinstance(e, DemandLagTerm)
+             and all(model.index(n) < N_DYN for n in e.params)]
+    if not names or not cands or fs.P == 0:
+        return None
+    dyn = list(model.dyn_columns())
+    cols = [n for e in cands for n in e.params]
+    with np.errstate(over="ignore", invalid="ignore"):
+        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+        try:
+            fac = fs.factor(D, E, Hsp, Hpp)
+        except np.linalg.LinAlgError:
+            return None
+    d0, W, A0, Ap, rd = fs.d0, fs.W, ev["A0"], ev["Ap"], ev["dyn_r"]
+    Jp = ev["Jp"]
+    # C: the candidates' columns of the whitened dynamics rows (K, 6, c), as Ap's
+    C = -np.matmul(W, Jp[:, :, [dyn.index(model.index(n)) for n in cols]])
+    # Z = H^-1 A^T C (fs.solve gives -H^-1 g)
+    Zs = np.zeros((fs.N, 6, len(cols)))
+    Zp = np.zeros((fs.P, len(cols)))
+    for j in range(len(cols)):
+        g_s = np.zeros((fs.N, 6))
+        g_s[d0] += np.einsum("kji,kj->ki", A0, C[:, :, j])
+        g_s[d0 + 1] += np.einsum("kji,kj->ki", W, C[:, :, j])
+        g_p = np.einsum("kji,kj->i", Ap, C[:, :, j])
+        dX, dth = fs.solve(fac, g_s, g_p)
+        Zs[:, :, j], Zp[:, j] = -dX, -dth
+    # projected columns C~ = C - A Z and residuals b~ = -r, row by row, with each row's time
+    t_state = np.concatenate([np.asarray(p.knots, float) for p in fs.bg.parts])
+    Ct_rows = [C - np.einsum("kab,kbc->kac", A0, Zs[d0]) - np.einsum("kab,kbc->kac", W, Zs[d0 + 1])
+               - np.einsum("kap,pc->kac", Ap, Zp)]
+    b_rows = [-rd]
+    t_rows = [np.repeat(t_state[d0 + 1], 6)]
+    for m, (r, J, w) in zip(fs.meas, ev["meas"]):
+        sw = np.sqrt(w)[:, None]
+        Jw = J * sw[:, :, None]
+        Ct_rows.append(-np.einsum("nab,nbc->nac", Jw, Zs[m.idx]))
+        b_rows.append(-(r * sw))
+        t_rows.append(np.repeat(t_state[m.idx], r.shape[1]))
+    Ct = np.concatenate([c.reshape(-1, len(cols)) for c in Ct_rows])
+    bt = np.concatenate([b.ravel() for b in b_rows])
+    rt = np.concatenate(t_rows)
+    blk = time_blocks(rt, 20)
+    nb = int(blk.max()) + 1 if len(blk) else 0
+    if nb < 4:
+        return None
+    tests = []
+    for e in cands:
+        ci = np.array([cols.index(n) for n in e.params])
+        Ce = Ct[:, ci]
+        g = Ce.T @ bt
+        S = Ce.T @ Ce
+        specs = [model.spec(n) for n in e.params]
+        null = np.array([sp.null for sp in specs])
+        dlo, dhi = _box(null, np.array([sp.lower for sp in specs]),
+                        np.array([sp.upper for sp in specs]))
+        one_sided = bool(np.any(dlo == 0) or np.any(dhi == 0))
+        d, lm = _lm(g, S, dlo, dhi)
+        gb = np.zeros((nb, len(ci)))
+        np.add.at(gb, blk, Ce * bt[:, None])
+        gc = gb - gb.mean(axis=0)
+        _, lmr = _lm(g, nb / (nb - 1) * gc.T @ gc, dlo, dhi)
+        pr, _ = _p_value(lmr, len(ci), one_sided)
+        tests.append((e, ci, d, float(lm), float(pr), null))
+    p = np.array([t[4] for t in tests])
+    adj = _holm(p)
+    ok = [i for i in range(len(tests)) if np.isfinite(adj[i]) and adj[i] < ALPHA]
+    if not ok:
+        return None
+    # of those, the one the data call for most: the largest score statistic (the
+    # diagnosis's ranking; the robust p-values of 20 time blocks saturate near each other)
+    e, ci, d, _, pr, null = max((tests[i] for i in ok), key=lambda t: t[3])
+    move = -(Zp[:, ci] @ d)
+    shift: dict[str, float] = {}
+    for node in fs.bg.nodes:
+        if node.group != "variable":
+            continue
+        o, _ = fs.node_off[node.key]
+        for j, n in enumerate(fs.layout.names["variable"]):
+            if n in names and math.isfinite(float(move[o + j])):
+                shift[n] = max(shift.get(n, 0.0), abs(float(move[o + j])))
+    if not shift:
+        return None
+    return StructuralShift(e.name, pr, shift, {n: float(v) for n, v in zip(e.params, null + d)})
