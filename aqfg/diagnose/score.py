@@ -75,9 +75,6 @@ class Projected:
     upper: np.ndarray
     dof: int                # m - n: residual degrees of freedom of the base fit
     cost: float             # ||b~||^2: the base fit's whitened cost
-    # (n, c): (A^T A)^-1 A^T C, how the base variables move with each candidate column
-    # (a step d of the candidates moves them by -Z d: aqfg.diagnose.structure)
-    Z: np.ndarray | None = None
 
 
 def factorise(N: sp.spmatrix):
@@ -107,7 +104,7 @@ def project(sys: LinearSystem, ridge: float = 1e-9) -> Projected:
     Ct = sys.C - AZ[:, :-1]
     bt = sys.b - AZ[:, -1]
     return Projected(Ct, bt, sys.names, sys.row_time, sys.null, sys.lower, sys.upper,
-                     int(m - n), float(bt @ bt), Z[:, :-1])
+                     int(m - n), float(bt @ bt))
 
 
 @dataclass
