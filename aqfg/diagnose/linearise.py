@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from aqfg.data.mission import Mission
 from aqfg.diagnose.score import LinearSystem
-from aqfg.fg.batch import BatchSmoother, BuiltGraph
+from aqfg.fg.batch import BatchSmoother, BuiltGraph, solution_values
 from aqfg.fg.common import FGSettings
 from aqfg.result import Result
 
@@ -47,25 +47,10 @@ def linear_system(missions: list[Mission], result: Result, candidates, *,
         bg = built
     else:
         bg = BatchSmoother(model, estimate=estimate, settings=settings).build(list(missions))
-    layout, values, parts, node_list = bg.layout, bg.values, bg.parts, bg.nodes
-    # states from the fitted tracks (the knots must match)
-    for part, mres in zip(parts, result.missions):
-        if len(part.knots) != len(mres.track.t) or np.max(np.abs(part.knots - mres.track.t)) > 1e-6:
-            raise ValueError(f"mission {part.mission.name!r}: the fit's knots differ from the "
-                             "rebuilt graph's (fit and diagnosis must use the same settings)")
-        X = np.column_stack([mres.track.pos, mres.track.vel])
-        for k, x in zip(part.keys, X):
-            values.update(k, x)
-    # parameter nodes from the fitted full vectors (candidates at their null value)
-    for g, k, mi in node_list:
-        p = result.missions[mi or 0].p
-        full = model.nominal()
-        full[:len(p)] = p
-        v = full[layout.idx[g]]
-        for j, n in enumerate(layout.names[g]):
-            if n in cand_names:
-                v[j] = model.spec(n).null
-        values.update(k, v)
+    layout, parts, node_list = bg.layout, bg.parts, bg.nodes
+    # states from the fitted tracks, parameter nodes from the fitted full vectors
+    # (candidates at their null value)
+    values = solution_values(bg, result, null=cand_names)
     gfg = bg.linearize(values)
 
     # columns: every state and node entry; candidate entries go to C

@@ -51,17 +51,6 @@ class StructuralShift:
                 "shift": dict(self.shift), "effect_estimate": dict(self.estimate)}
 
 
-def _holm(p: np.ndarray) -> np.ndarray:
-    """Holm-adjusted p-values (NaN stays NaN)."""
-    out = np.full(len(p), np.nan)
-    ok = np.nonzero(np.isfinite(p))[0]
-    run = 0.0
-    for k, i in enumerate(ok[np.argsort(p[ok])]):
-        run = max(run, min(1.0, (len(ok) - k) * float(p[i])))
-        out[i] = run
-    return out
-
-
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
                      estimated: tuple[str, ...]) -> StructuralShift | None:
     """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
@@ -69,8 +58,8 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     candidates are the catalogue's dynamics effects the kernel already differentiates at
     their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
     and the test costs a few banded solves. None when no candidate is called for."""
-    from aqfg.diagnose.score import _box, _lm, _p_value, time_blocks
-    from aqfg.diagnose.workflow import candidate_effects
+    from aqfg.diagnose.score import Projected, score_tests
+    from aqfg.diagnose.workflow import _holm_log, candidate_effects
 
     names = [n for n in estimated if model.spec(n).group == "variable"]
     cands = [e for e in candidate_effects(missions, model.effects)
@@ -115,37 +104,22 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     Ct = np.concatenate([c.reshape(-1, len(cols)) for c in Ct_rows])
     bt = np.concatenate([b.ravel() for b in b_rows])
     rt = np.concatenate(t_rows)
-    blk = time_blocks(rt, 20)
-    nb = int(blk.max()) + 1 if len(blk) else 0
-    if nb < 4:
-        return None
-    tests = []
-    for e in cands:
-        ci = np.array([cols.index(n) for n in e.params])
-        Ce = Ct[:, ci]
-        g = Ce.T @ bt
-        S = Ce.T @ Ce
-        specs = [model.spec(n) for n in e.params]
-        null = np.array([sp.null for sp in specs])
-        dlo, dhi = _box(null, np.array([sp.lower for sp in specs]),
-                        np.array([sp.upper for sp in specs]))
-        one_sided = bool(np.any(dlo == 0) or np.any(dhi == 0))
-        d, lm = _lm(g, S, dlo, dhi)
-        gb = np.zeros((nb, len(ci)))
-        np.add.at(gb, blk, Ce * bt[:, None])
-        gc = gb - gb.mean(axis=0)
-        _, lmr = _lm(g, nb / (nb - 1) * gc.T @ gc, dlo, dhi)
-        pr, _ = _p_value(lmr, len(ci), one_sided)
-        tests.append((e, ci, d, float(lm), float(pr), null))
-    p = np.array([t[4] for t in tests])
-    adj = _holm(p)
-    ok = [i for i in range(len(tests)) if np.isfinite(adj[i]) and adj[i] < ALPHA]
+    specs = [model.spec(n) for n in cols]
+    proj = Projected(Ct, bt, tuple(cols), rt, np.array([sp.null for sp in specs]),
+                     np.array([sp.lower for sp in specs]), np.array([sp.upper for sp in specs]),
+                     int(len(bt) - 6 * fs.N - fs.P), float(bt @ bt))
+    tests = score_tests(proj, {e.name: tuple(e.params) for e in cands})
+    # Holm over the robust p-values (NaN: too few time blocks for the sandwich, no test)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lp = np.log10(np.array([t.p_value_robust for t in tests]))
+    adj = _holm_log(np.where(np.isnan(lp), 0.0, lp))
+    ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
     if not ok:
         return None
     # of those, the one the data call for most: the largest score statistic (the
     # diagnosis's ranking; the robust p-values of 20 time blocks saturate near each other)
-    e, ci, d, _, pr, null = max((tests[i] for i in ok), key=lambda t: t[3])
-    move = -(Zp[:, ci] @ d)
+    t = max((tests[i] for i in ok), key=lambda t: t.statistic)
+    move = -(Zp[:, [cols.index(n) for n in t.params]] @ t.delta)
     shift: dict[str, float] = {}
     for node in fs.bg.nodes:
         if node.group != "variable":
@@ -156,4 +130,5 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                 shift[n] = max(shift.get(n, 0.0), abs(float(move[o + j])))
     if not shift:
         return None
-    return StructuralShift(e.name, pr, shift, {n: float(v) for n, v in zip(e.params, null + d)})
+    return StructuralShift(t.effect, t.p_value_robust, shift,
+                           {n: float(v) for n, v in zip(t.params, t.estimate)})

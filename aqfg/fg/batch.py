@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -44,7 +45,7 @@ from aqfg.fg.common import (
     progress_fn,
     residuals,
 )
-from aqfg.fg.covariance import block_sandwich, honest_covariance
+from aqfg.fg.covariance import block_sandwich, honest_covariance, sigma_inflation
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.init import (
     Start,
@@ -435,8 +436,7 @@ class BatchSmoother:
                        "iteration": it_times, "covariance": [t_end - t_cov]}
         res.info["sigma_model"] = {n: float(v) for n, v in
                                    _sigma_by_name(layout, node_list, cov_model).items()}
-        res.info["sigma_inflation"] = {n: float(v / max(res.info["sigma_model"].get(n, v), 1e-300))
-                                       for n, v in res.sigma.items()}
+        res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
         prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
                        for n in layout.estimated}
         res.info["observability"] = observability.verdicts(
@@ -506,7 +506,7 @@ class BatchSmoother:
         # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
         self.fast_solution = ((fs, out.fast) if q_scale == 1.0 and fs is not None
                               and out.fast is not None else None)
-        if s.adapt_track and q_scale == 1.0 and fs is not None and out.fast is not None:
+        if s.adapt_track and self.fast_solution is not None:
             self._track_job = (fs, out, layout, parts, node_list, cov)
         if not self.defer_track:
             self.smooth_tracks(res)
@@ -989,6 +989,35 @@ def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
     ``AMBIGUOUS_GAP`` apart)."""
     return (b["cost"] - best_cost < ambiguity_margin(best_cost)
             and _heading_gap(b, other) > AMBIGUOUS_GAP)
+
+
+def solution_values(bg: BuiltGraph, result: Result, null: Sequence[str] = ()) -> gtsam.Values:
+    """``bg``'s values at the batch solution ``result`` of the same missions and settings:
+    the knot states from its tracks, each parameter node from its mission's full
+    parameter vector (entries ``result``'s model lacks, such as an effect ``bg`` adds, at
+    the nominal of ``bg``'s model; the parameters named in ``null`` at their null value).
+    ValueError where the knots differ from the graph's."""
+    values = gtsam.Values(bg.values)
+    lay = bg.layout
+    model = lay.model
+    for part, mres in zip(bg.parts, result.missions):
+        if len(part.knots) != len(mres.track.t) or \
+                np.max(np.abs(part.knots - mres.track.t)) > 1e-6:
+            raise ValueError(f"mission {part.mission.name!r}: the fit's knots differ from the "
+                             "rebuilt graph's (the fit and this graph must use the same "
+                             "settings)")
+        for k, x in zip(part.keys, np.column_stack([mres.track.pos, mres.track.vel])):
+            values.update(k, x)
+    for node in bg.nodes:
+        p = result.missions[node.mission or 0].p
+        full = model.nominal()
+        full[:len(p)] = p
+        v = full[lay.idx[node.group]]
+        for j, n in enumerate(lay.names[node.group]):
+            if n in null:
+                v[j] = model.spec(n).null
+        values.update(node.key, v)
+    return values
 
 
 def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None, effects=(),

@@ -151,3 +151,9 @@ def t_tail_factor(dof: int | None, n_sigma: float = 3.0) -> float:
         return 1.0
     p = float(norm.cdf(n_sigma))
     return float(student_t.ppf(p, int(dof)) / n_sigma)
+
+
+def sigma_inflation(sigma: dict[str, float], sigma_model: dict[str, float]) -> dict[str, float]:
+    """Per parameter, the reported (honest) sigma over the model's (Hessian) one; 1 where
+    the model has none (``info["sigma_inflation"]`` of a batch result)."""
+    return {n: float(v / max(sigma_model.get(n, v), 1e-300)) for n, v in sigma.items()}

@@ -97,9 +97,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     (:func:`aqfg.diagnose.structure.structural_shift`, on the batch's numpy system ``fs``
     at its nominal-noise solution, evaluation ``ev``), in place; ``info["sigma_structure"]``
     and a warning say which effect and how much."""
-    sm = res.info.get("sigma_model", {})
-    infl = res.info.get("sigma_inflation") or {
-        n: float(v) / float(sm[n]) for n, v in res.sigma.items() if sm.get(n, 0.0) > 0}
+    infl = res.info.get("sigma_inflation", {})
     if (not settings.structural_sigma or settings.walk_sigma
             or res.model is None or max(infl.values(), default=0.0) <= MISFIT_INFLATION):
         return res

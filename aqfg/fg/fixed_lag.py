@@ -1160,6 +1160,7 @@ class FixedLagSmoother:
         2.22 -> 3.45 m; `otter-dev-calm-a` from 300 s, whose released constants ran off:
         3.39 -> 11.3 m)."""
         s = self.settings
+        self._forced_scale = 1.0
         if not self._usbl_tab or dt <= 0:
             return False
         q = self._q_pos(dt)
@@ -1189,10 +1190,9 @@ class FixedLagSmoother:
         # and its current 0.5 m/s, and the good fixes after it were left out
         # (docs/independent-vehicle.md). A track that is off gets to the fixes too: by the
         # adaptation (the forced fixes' innovations) and the review of those left out.
-        self._forced_scale = 1.0
         if forced and m2 > s.online_gate_usbl:
             k = s.sensors.robust_k if s.sensors.robust != "none" else 1.0
-            self._forced_scale = max(1.0, math.sqrt(self._sensor_m2(t_fix, x_pred)) / k)
+            self._forced_scale = max(1.0, math.sqrt(self._gate_m2(t_fix, x_pred, None)) / k)
         if not out and not forced:          # (a fix taken by the count says nothing)
             self._taken_m2.append(m2)
             if len(self._taken_m2) > 4 * s.adapt_window:
@@ -1204,26 +1204,18 @@ class FixedLagSmoother:
             self._under_review.append(float(t_fix))
         return out
 
-    def _gate_m2(self, t_fix: float, x: np.ndarray, q_pos: float) -> float:
+    def _gate_m2(self, t_fix: float, x: np.ndarray, q_pos: float | None) -> float:
         """The gate's statistic (chi-square(2)) of the USBL fix at ``t_fix`` against the
         state ``x``, whose per-axis variance is ``q_pos`` plus the previous fix's
-        (:meth:`_gate`)."""
+        (:meth:`_gate`); ``q_pos`` None: the state exact, the sensor's sigmas alone (the
+        fix's squared whitened residual at ``x``)."""
         z_r, z_b, sr2, sb, v_prev, (n0, e0, d0) = self._usbl_tab[round(float(t_fix), 6)]
-        pv = q_pos + v_prev
+        pv = 0.0 if q_pos is None else q_pos + v_prev
         dn, de, dd = float(x[0]) - n0, float(x[1]) - e0, float(x[2]) - d0
         rh = math.hypot(dn, de)
         er = z_r - math.sqrt(rh * rh + dd * dd)
         et = math.remainder(z_b - math.atan2(de, dn), 2.0 * math.pi) * rh
-        return er * er / (sr2 + pv) + et * et / ((rh * sb) ** 2 + pv)
-
-    def _sensor_m2(self, t_fix: float, x: np.ndarray) -> float:
-        """The squared whitened residual (range and bearing, the sensor's sigmas alone) of
-        the USBL fix at ``t_fix`` at the state ``x``."""
-        z_r, z_b, sr2, sb, _, (n0, e0, d0) = self._usbl_tab[round(float(t_fix), 6)]
-        dn, de, dd = float(x[0]) - n0, float(x[1]) - e0, float(x[2]) - d0
-        er = z_r - math.sqrt(dn * dn + de * de + dd * dd)
-        eb = math.remainder(z_b - math.atan2(de, dn), 2.0 * math.pi)
-        return er * er / sr2 + eb * eb / (sb * sb)
+        return er * er / (sr2 + pv) + et * et / max((rh * sb) ** 2 + pv, 1e-300)
 
     def _adapt(self, t_fix: float, dt: float, x_pred: np.ndarray) -> None:
         """Adapt the process-noise variance factor to how well the model predicts the fixes:

@@ -42,7 +42,7 @@ from aqfg.fg.batch import (
     hessian_diagonal,
 )
 from aqfg.fg.common import FGSettings, check_missions
-from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.covariance import honest_covariance, sigma_inflation
 from aqfg.result import Result
 
 FIXED = fc.node_key("fixed")
@@ -591,6 +591,7 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
         "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
         "sigma_model": sigma_model,
+        "sigma_inflation": sigma_inflation(sigma, sigma_model),
         "plausibility": plaus, "plausible": all(r.info.get("plausible", True) for r in results)}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,

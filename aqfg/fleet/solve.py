@@ -185,10 +185,11 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     stats["workers"] = len(_workers(client))
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
-    if settings.dr_horizon > 0 or settings.adapt_track:
-        # the constants to dead-reckon with, per vehicle over its missions, and the
-        # missions' tracks under the noise their evidence chooses, as aqfg fit does
-        # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): one task per vehicle
+    if settings.dr_horizon > 0 or settings.adapt_track or settings.structural_sigma:
+        # the constants to dead-reckon with, per vehicle over its missions, the missions'
+        # tracks under the noise their evidence chooses and the structural sigma, as aqfg
+        # fit does (aqfg.fg.dead_reckoning, FGSettings.adapt_track, structural_sigma): one
+        # task per vehicle
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
         futs = {client.submit(refine_op, specs[v], results[v], pure=False, retries=2,

@@ -98,9 +98,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     (:func:`aqfg.fg.fit.structural_sigma`): its missions' graph built on the worker, the
     numpy system evaluated at the joint solution (the smoothed states and each mission's
     parameters)."""
-    import gtsam
-
-    from aqfg.fg.batch import BatchSmoother
+    from aqfg.fg.batch import BatchSmoother, solution_values
     from aqfg.fg.fastlm import FastSystem
     from aqfg.fg.fit import structural_sigma
     st = specs[0].settings
@@ -111,16 +109,10 @@ def structural(specs: list[MissionSpec], missions: list, result):
     fs = FastSystem.build(bg, st)
     if fs is None:
         return result
-    values = gtsam.Values(bg.values)
-    for part, mr in zip(bg.parts, result.missions):
-        if len(part.knots) != len(mr.track.t) or \
-                np.max(np.abs(part.knots - mr.track.t)) > 1e-6:
-            return result                      # not the graph the joint fit solved
-        for k, x in zip(part.keys, np.column_stack([mr.track.pos, mr.track.vel])):
-            values.update(k, x)
-    lay = bg.layout
-    for node in bg.nodes:
-        values.update(node.key, result.missions[node.mission or 0].p[lay.idx[node.group]])
+    try:
+        values = solution_values(bg, result)
+    except ValueError:
+        return result                          # not the graph the joint fit solved
     X, th = fs.from_values(values)
     return structural_sigma(result, missions, fs, fs.evaluate(X, th), st)
 
