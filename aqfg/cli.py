@@ -143,7 +143,11 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--init", action="append", default=[], metavar="NAME=VALUE",
                            type=_effect_setting, help="initial/fixed value of a parameter")
             s.add_argument("--params-from", metavar="JSON",
-                           help="take fixed values from a previous parameters.json")
+                           help="take fixed values from a previous parameters.json (and "
+                                "the effects of its model)")
+            s.add_argument("--no-auto-effect", action="store_true",
+                           help="fg batch: fit the model as given, without adding the "
+                                "effect a structural test finds missing")
 
     s = sub.add_parser("fleet", help="calibrate every vehicle of a fleet from all its missions",
                        description="Each vehicle's joint fit over its missions (a TOML "

@@ -84,6 +84,15 @@ class Result:
     effects: tuple[str, ...] = ()
     model: Model | None = None         # the model used
 
+    def vehicle_constants(self) -> dict[str, float]:
+        """The fitted vehicle's constants (the model's "fixed" group, effects' included):
+        the ``init`` of an online run with this fit's model (the paper's protocol), to pass
+        with ``effects=result.effects`` (what ``--params-from`` does)."""
+        if self.model is None:
+            return {n: float(v) for n, v in self.values.items() if n in ("k", "k_x", "k_yz")}
+        return {n: float(self.values[n]) for n in self.model.active_names
+                if self.model.spec(n).group == "fixed"}
+
     # ---- typed views of the estimator-specific facts (stored in ``info``)
     @property
     def per_mission(self) -> dict[str, dict[str, Estimate]]:
@@ -214,6 +223,20 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
                                   "shift": {n: float(v) for n, v in st["shift"].items()},
                                   "sigma_before": {n: float(v)
                                                    for n, v in st["sigma_before"].items()}}
+    ae = result.info.get("auto_effect")
+    if result.mode == "batch" and ae:
+        # the effect the structural test named, whether the fit added it (FGSettings.
+        # auto_effect), and the heading offset and current of the model as given
+        b = ae["base"]
+        doc["auto_effect"] = {
+            "effect": ae["effect"], "adopted": bool(ae["adopted"]),
+            "p_value_robust": float(ae["p_value_robust"]),
+            "cost_before": float(ae["cost_before"]),
+            "cost_after": float(ae.get("cost_after", float("nan"))),
+            **({"reason": ae["reason"]} if "reason" in ae else {}),
+            "without_effect": {n: {"value": float(b["values"][n]),
+                                   "sigma": float(b["sigma"].get(n, float("nan")))}
+                               for n in ("theta_e", "s_x", "s_y") if n in b["values"]}}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

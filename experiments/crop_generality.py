@@ -38,7 +38,7 @@ def one(args) -> str:
     b = min(b, float(full.imu.t[-1]))
     m = with_gnss_every(between(full, a, b), ge)
     d = fit_fg([load_mission(DATA / iv.DONOR[name])])
-    init = {n: d.values[n] for n in ("k", "k_x", "k_yz")}
+    init, d_eff = d.vehicle_constants(), d.effects
     P = tr.params
     out = f"{name[6:]:20s} [{a:4.0f},{b:4.0f}] {ge:g}s"
     try:
@@ -51,7 +51,7 @@ def one(args) -> str:
     except Exception as ex:  # a failure is a result here
         out += f" | batch ERROR {type(ex).__name__}: {ex}"
     try:
-        r = fit_fg([m], mode="online", init=init)
+        r = fit_fg([m], mode="online", init=init, effects=d_eff)
         h = r.history
         i = list(h.names).index("theta_e")
         e = iv.wrap_deg(h.values[-1, i] - iv.theta_true(tr, h.t[-1]))

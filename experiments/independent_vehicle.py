@@ -66,16 +66,18 @@ def theta_true(truth, t: float | None = None) -> float:
     return th
 
 
-def batch_row(method: str, m, truth, effects=()) -> dict:
+def batch_row(method: str, m, truth, effects=(), settings=None) -> dict:
     """``effects``: fitted with these model effects (``heading_drift``: theta_e is then the
-    offset at t = 0 and is compared with the truth there)."""
+    offset at t = 0 and is compared with the truth there); ``settings``: the fg's."""
     from aqfg.ekf import fit_update_error
     from aqfg.fg import fit_fg
     t0 = time.perf_counter()
-    r = fit_fg([m], effects=effects) if method == "fg" else fit_update_error([m], mode="batch")
+    r = fit_fg([m], effects=effects, settings=settings) if method == "fg" else \
+        fit_update_error([m], mode="batch")
     dt = time.perf_counter() - t0
     P = truth.params
-    e_th = wrap_deg(r.values["theta_e"] - (theta_true(truth, 0.0) if "heading_drift" in effects
+    # (the effects of the fit: those given and the one the fit added, FGSettings.auto_effect)
+    e_th = wrap_deg(r.values["theta_e"] - (theta_true(truth, 0.0) if "heading_drift" in r.effects
                                            else theta_true(truth)))
     e_s = np.array([r.values["s_x"] - P.get("s_x", 0.0), r.values["s_y"] - P.get("s_y", 0.0)])
     sig = r.sigma
@@ -85,17 +87,19 @@ def batch_row(method: str, m, truth, effects=()) -> dict:
     inert = inertial_track(r.model, m, mr.p)
     return {"theta_err": e_th, "cur_err": float(np.hypot(*e_s)), "z_max": float(np.nanmax(z)),
             "rmse": track_rmse(mr.track, truth), "inertial": track_rmse(inert, truth),
-            "dr60": dead_reckoning_error(r.model, m, mr.p, truth), "seconds": dt}
+            "dr60": dead_reckoning_error(r.model, m, mr.p, truth), "seconds": dt,
+            "added": (r.info.get("auto_effect") or {}).get("effect")
+            if (r.info.get("auto_effect") or {}).get("adopted") else None}
 
 
-def online_row(method: str, m, truth, init: dict) -> dict:
+def online_row(method: str, m, truth, init: dict, effects: tuple = ()) -> dict:
     from aqfg.ekf import fit_update_error
     from aqfg.fg import fit_fg
     t0 = time.perf_counter()
     if method == "fg":
-        r = fit_fg([m], mode="online", init=init)
+        r = fit_fg([m], mode="online", init=init, effects=effects)
     else:
-        r = fit_update_error([m], mode="online", init=init)
+        r = fit_update_error([m], mode="online", init=init, effects=effects)
     dt = time.perf_counter() - t0
     h = r.history
     i = list(h.names).index("theta_e")
@@ -129,7 +133,9 @@ def one(args) -> dict:
     m = with_gnss_every(load_mission(data / name), every)
     truth = load_truth(data / name)
     donor = fit_fg([load_mission(data / donor_name)])
-    init = {n: donor.values[n] for n in ("k", "k_x", "k_yz")}
+    # the donor's vehicle constants, with the effects its fit added (as --params-from)
+    init = donor.vehicle_constants()
+    d_eff = tuple(donor.effects)
     out = {"mission": name, "every": every, "donor": donor_name}
     if "heading_drift.rate" in truth.params:
         try:
@@ -138,12 +144,20 @@ def one(args) -> dict:
             out["batch_fg_drift"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
     for meth in ("fg", "update-error"):
         for key, row in (("batch", lambda meth=meth: batch_row(meth, m, truth)),
-                         ("online", lambda meth=meth: online_row(meth, m, truth, init)),
+                         ("online", lambda meth=meth: online_row(meth, m, truth, init, d_eff)),
                          ("default", lambda meth=meth: online_row(meth, m, truth, {}))):
             try:
                 out[f"{key}_{meth}"] = row()
             except Exception as exc:          # a method failing is a result, not a crash
                 out[f"{key}_{meth}"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
+    if (out.get("batch_fg") or {}).get("added"):
+        # the model as given, beside the fit that added an effect (FGSettings.auto_effect)
+        from aqfg.fg import FGSettings
+        try:
+            out["batch_fg_given"] = batch_row("fg", m, truth,
+                                              settings=FGSettings(auto_effect=False))
+        except Exception as exc:
+            out["batch_fg_given"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
     try:
         out["all6_fg"] = all6_row(m, truth)
     except Exception as exc:
@@ -164,11 +178,14 @@ def table(rows: list[dict]) -> str:
              "| smoothed RMSE (m) | model-only RMSE (m) | 60-s dead reckoning (m) | time (s) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        for meth in ("fg", "fg_drift", "update-error"):
+        for meth in ("fg", "fg_given", "fg_drift", "update-error"):
             if f"batch_{meth}" not in r:
                 continue
             d = r[f"batch_{meth}"]
-            label = "fg + heading_drift" if meth == "fg_drift" else meth
+            label = {"fg_drift": "fg + heading_drift", "fg_given": "fg, model as given"}.get(
+                meth, meth)
+            if d.get("added"):
+                label += f" (added {d['added']})"
             lines.append(f"| {r['mission']} | {r['every']:.0f} s | {label} | {fmt(d, 'theta_err')} | "
                          f"{fmt(d, 'cur_err', '{:.3f}')} | {fmt(d, 'z_max', '{:.1f}')} | "
                          f"{fmt(d, 'rmse')} | {fmt(d, 'inertial')} | {fmt(d, 'dr60')} | "

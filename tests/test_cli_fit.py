@@ -173,8 +173,10 @@ def test_fit_batch_writes_and_says_the_structural_sigma(tmp_path, capsys):
     combination; the warning names the effect and how to add it."""
     from conftest import data_path
     out = tmp_path / "fit"
-    assert main(["fit", str(data_path("otter-example")), "--out", str(out), "--no-plots"]) == 0
+    assert main(["fit", str(data_path("otter-example")), "--out", str(out), "--no-plots",
+                 "--no-auto-effect"]) == 0
     doc = json.loads((out / "parameters.json").read_text())
+    assert "auto_effect" not in doc and doc["provenance"]["effects"] == []
     st = doc["sigma_structure"]
     assert st["effect"] == "linear_drag" and st["p_value_robust"] < 1e-3
     for n, d in st["shift"].items():

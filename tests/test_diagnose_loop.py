@@ -100,7 +100,8 @@ def test_loop_outputs_json_report_and_model_file(weakprop):
 def test_fit_with_the_learned_model_retraces_closer_to_the_truth(weakprop, tmp_path, capsys):
     _m, truth, _, d = weakprop
     mission = str(d / "mission")
-    assert main(["fit", mission, "--out", str(tmp_path / "bare"), "--no-plots"]) == 0
+    assert main(["fit", mission, "--out", str(tmp_path / "bare"), "--no-plots",
+                 "--no-auto-effect"]) == 0
     assert main(["fit", mission, "--model", str(d / "auto" / "model.json"),
                  "--out", str(tmp_path / "learned"), "--no-plots"]) == 0
     assert "thrust_asymmetry" in capsys.readouterr().err

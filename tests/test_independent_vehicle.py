@@ -170,9 +170,9 @@ def test_online_with_another_missions_fixed_parameters():
     """The paper's protocol: fixed parameters from an offline fit of another mission of the
     same vehicle, heading offset and current online."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
-    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
     m, truth = mission("otter-example", 8.0)
-    res = FixedLagSmoother(init=init).run(m)
+    # the other fit's constants with its effects (the linear drag its fit added)
+    res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
     f = res.missions[0].filtered
     pt = np.column_stack([np.interp(f.t, truth.t, truth.pos[:, a]) for a in range(2)])
@@ -194,9 +194,8 @@ def test_online_paper_protocol_causal_accuracy(name):
     batch fit of another mission, causal RMSE within 3 m and the heading offset within
     5 deg at the end (the missions with a constant offset)."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
-    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
     m, truth = mission(name, 8.0)
-    res = FixedLagSmoother(init=init).run(m)
+    res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
     assert causal_rmse(res, truth) <= 3.0
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e < 5 * DEG
@@ -404,9 +403,8 @@ def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data
     released, and the offset ends within 5 deg; the history before the restart is what
     was reported then (the start values), not the replay's."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
-    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
     m, truth = mission("otter-dev-calm-a", 8.0)
-    res = FixedLagSmoother(init=init).run(m)
+    res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
     ev = [e["event"] for e in res.info["events"]]
     assert "parameters released" in ev
     t_rel = min(e["t"] for e in res.info["events"] if e["event"] == "parameters released")
@@ -427,9 +425,8 @@ def test_dense_fixes_start_the_batch_by_their_count():
     off the fixes until the 20-s batch; the first batch now runs after
     ``online_init_fixes`` fixes when they come sooner, and the track follows the fixes."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
-    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
     m, truth = mission("otter-dev-calm-a", 1.0)
-    res = FixedLagSmoother(init=init).run(m)
+    res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
     first = min(e["t"] for e in res.info["events"] if "batch" in e["event"])
     assert first - m.fix_times().min() < 15.0
     f = res.missions[0].filtered
@@ -612,9 +609,9 @@ def test_a_short_batch_searches_the_heading_all_round(name, t0):
     basin of lower cost, within its sigma of the truth."""
     from aqfg.data.mission import between
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
-    init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
     m, truth = mission(name, 8.0)
-    r = BatchSmoother(estimate=("theta_e", "s_x", "s_y"), init=init,
+    r = BatchSmoother(estimate=("theta_e", "s_x", "s_y"), init=other.vehicle_constants(),
+                      effects=other.effects,
                       settings=FGSettings(adapt_batch=True)).run([between(m, t0, t0 + 24.0)])
     err = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
     assert any(b["start"].startswith("turned heading start") for b in r.info["basins"])

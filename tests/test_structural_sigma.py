@@ -12,6 +12,7 @@ from aqfg.fg import FGSettings, fit_fg
 from aqfg.sim.simulator import simulate
 
 VAR = ("theta_e", "s_x", "s_y")
+AS_GIVEN = FGSettings(auto_effect=False)     # the model as given: no effect added
 
 
 def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
@@ -20,7 +21,7 @@ def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
     matches the change a refit with the effect makes (within a factor 2), and the reported
     sigma is the sandwich's widened by that shift; with the setting off it is not."""
     m = load_mission(data_path("otter-example"))
-    res = fit_fg([m])
+    res = fit_fg([m], settings=AS_GIVEN)
     st = res.info["sigma_structure"]
     assert st["effect"] == "linear_drag" and st["p_value_robust"] < 1e-3
     off = fit_fg([m], settings=FGSettings(structural_sigma=False))
@@ -44,7 +45,7 @@ def test_a_heldout_otter_current_biased_by_the_missing_drag_is_within_its_sigma(
     d = data_path("otter-heldout-111")
     truth = load_truth(d)
     m = load_mission(d)
-    res = fit_fg([m])
+    res = fit_fg([m], settings=AS_GIVEN)
     off = fit_fg([m], settings=FGSettings(structural_sigma=False))
     assert res.info["sigma_structure"]["effect"] == "linear_drag"
     z_off = abs(off.values["s_x"] - truth.params["s_x"]) / off.sigma["s_x"]
@@ -62,3 +63,4 @@ def test_a_vehicle_that_is_the_model_gets_no_structural_sigma():
     m, _ = simulate("asv", seed=3, duration=400.0)
     res = fit_fg([m])
     assert "sigma_structure" not in res.info
+    assert "auto_effect" not in res.info and res.effects == ()

@@ -50,6 +50,23 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
     return out
 
 
+def effects_of_values(values: dict[str, float], where: str) -> tuple[str, ...]:
+    """The effects whose parameters ``values`` holds (``effect.param`` names), in order:
+    the effects a ``--params-from`` file's model had, without which its vehicle constants
+    mean something else (a quadratic drag fitted beside a linear one)."""
+    from aqfg.model.effects import BUILTIN
+    out: dict[str, None] = {}
+    for n in values:
+        if "." not in n:
+            continue
+        e = n.split(".", 1)[0]
+        if e not in BUILTIN:
+            raise UsageError(f"{where}: parameter {n!r} belongs to the effect {e!r}, which is "
+                             f"not built in (built-in effects: {', '.join(BUILTIN)})")
+        out[e] = None
+    return tuple(out)
+
+
 def parameter_table(result: Result) -> str:
     """The short table ``aqfg fit`` prints: name, value, 1-sigma (per mission for the
     per-mission parameters when several missions were fitted)."""
@@ -106,6 +123,15 @@ def run(args) -> int:
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
     effects = tuple(args.effect)
+    if args.params_from:
+        # the file's model: its effects join (their values are in init), as --model's do
+        from_file = effects_of_values(initial_values([], args.params_from),
+                                      f"--params-from {args.params_from}")
+        added = [e for e in from_file if e not in effects]
+        if added:
+            log.info("--params-from %s: its model has the effect(s) %s; they are added",
+                     args.params_from, ", ".join(added))
+        effects = tuple(dict.fromkeys(from_file + effects))
     model_path = getattr(args, "model", None)
     if model_path:
         # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial
@@ -127,6 +153,9 @@ def run(args) -> int:
         missions = [with_gnss_every(m, args.gnss_every) for m in missions]
     kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
           "window": args.window}
+    if args.method == "fg" and getattr(args, "no_auto_effect", False):
+        from aqfg.fg.common import FGSettings
+        kw["settings"] = FGSettings(auto_effect=False)
     log.info("%d mission(s), method %s, mode %s%s", len(missions), args.method, args.mode,
              f", model {model_path} ({' + '.join(effects) or 'no effects'})" if model_path
              else "")

@@ -72,6 +72,12 @@ class FGSettings:
         would cause, where the fixes are not explained and the data call for one
         (:mod:`aqfg.diagnose.structure`; ``info["sigma_structure"]``): the sandwich covers
         the model's error that varies over time, not a bias that holds all mission.
+    auto_effect: the batch fit with the default parameters (:func:`aqfg.fg.fit.fit_fg`,
+        no ``estimate``) runs the structural test even where the fixes are explained, and
+        where it names a missing effect fits again with that effect added, returning that
+        fit if it lowers the cost, is plausible and keeps the heading offset and current
+        within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``); False
+        fits the model as given.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -146,6 +152,7 @@ class FGSettings:
     measure_noise: bool = False
     adapt_track: bool = True
     structural_sigma: bool = True
+    auto_effect: bool = True
     online_init_after: float = 20.0
     online_init_fixes: int = 10
     online_reinit_until: float = 960.0

@@ -49,25 +49,17 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     if mode == "batch":
-        horizon = (settings or FGSettings()).dr_horizon
-        bs = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
-                           settings=settings, progress=progress)
-        bs.inertial = horizon <= 0         # re-traced once, with the final constants (below)
-        bs.defer_track = True
-        res = bs.run(missions)
-        if bs.fast_solution is not None:
-            fs, ev = bs.fast_solution
-            res = structural_sigma(res, list(missions), fs, ev, bs.settings,
-                                   log_warnings=bs.log_warnings)
-        # the constants to dead-reckon with: multi-step prediction error where it differs
-        # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning), from
-        # the nominal fit's states (as the fleet's)
-        res = dead_reckoning.refine(res, list(missions), horizon)
-        res = bs.smooth_tracks(res)
-        for m, mr in zip(missions, res.missions):
-            if not len(mr.inertial.t):
-                mr.inertial = inertial_track(mission_model(model, m, effects), m, mr.p)
-        return res
+        st = settings or FGSettings()
+        auto = st.auto_effect and estimate is None and st.structural_sigma
+        res, bs = _solve(missions, model, effects, estimate, init, settings, progress,
+                         log_warnings=not auto, test_always=auto)
+        if auto:
+            res = adopt_effect(res, bs, list(missions), model, effects, init, settings,
+                               progress)
+            for w in res.info.get("warnings", []):
+                log.warning("fg: %s", w)
+            return res
+        return _finish(res, bs, missions, model, effects)
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]
@@ -88,22 +80,158 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     return r0
 
 
+
+def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init, settings,
+           progress, log_warnings: bool = True,
+           test_always: bool = False) -> tuple[Result, BatchSmoother]:
+    """The batch solve of :func:`fit_fg` with the model as given, and its structural sigma;
+    :func:`_finish` completes it."""
+    bs = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
+                       settings=settings, progress=progress)
+    bs.log_warnings = log_warnings
+    bs.inertial = bs.settings.dr_horizon <= 0   # re-traced once, with the final constants
+    bs.defer_track = True
+    res = bs.run(missions)
+    if bs.fast_solution is not None:
+        fs, ev = bs.fast_solution
+        res = structural_sigma(res, list(missions), fs, ev, bs.settings,
+                               log_warnings=log_warnings, test_always=test_always)
+    return res, bs
+
+
+def _finish(res: Result, bs: BatchSmoother, missions: Sequence[Mission], model,
+            effects: Sequence) -> Result:
+    """The dead-reckoning constants, smoothed tracks and model-only re-traces of a solve."""
+    # the constants to dead-reckon with: multi-step prediction error where it differs
+    # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning), from
+    # the nominal fit's states (as the fleet's)
+    res = dead_reckoning.refine(res, list(missions), bs.settings.dr_horizon)
+    res = bs.smooth_tracks(res)
+    for m, mr in zip(missions, res.missions):
+        if not len(mr.inertial.t):
+            mr.inertial = inertial_track(mission_model(model, m, effects), m, mr.p)
+    return res
+
+
+def _variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:
+    """``{(mission or "", name): (value, sigma)}`` of the heading offset and the current:
+    per mission where a joint fit has them per mission, else the fit's."""
+    names = [n for n in ("theta_e", "s_x", "s_y") if n in res.estimated]
+    per = res.per_mission
+    out: dict[tuple[str, str], tuple[float, float]] = {}
+    for n in names:
+        rows = [(m, e[n]) for m, e in per.items() if n in e] if len(res.missions) > 1 else []
+        if rows:
+            out.update({(m, n): (e.value, e.sigma) for m, e in rows})
+        else:
+            out[("", n)] = (float(res.values[n]), float(res.sigma.get(n, np.nan)))
+    return out
+
+
+def _difference(name: str, a: float, b: float) -> float:
+    """``a - b``, wrapped to (-pi, pi] for the heading offset."""
+    return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
+
+
+def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
+                 effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
+    """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
+    names a missing effect (``info["structural_test"]``), the fit again with that effect
+    added; its result where it explains the fixes better (lower cost), is plausible, and
+    keeps the heading offset and the current within 3 sigma of ``res``'s honest sigma
+    (which includes the effect's predicted shift); otherwise ``res``, saying why.
+    ``info["auto_effect"]`` records the step and the base fit's estimates."""
+    st = res.info.get("structural_test")
+    if not st or st["effect"] in {getattr(e, "name", e) for e in effects}:
+        return _finish(res, bs, missions, model, effects)
+    name = st["effect"]
+    base = _variable_estimates(res)
+    start = dict(init or {})
+    start.update({n: v for n, v in st.get("effect_estimate", {}).items()
+                  if math.isfinite(v) and n not in start})
+    rec: dict = {"effect": name, "p_value_robust": float(st["p_value_robust"]),
+                 "fixes_explained": "sigma_structure" not in res.info,
+                 "cost_before": float(res.info.get("cost", np.nan)),
+                 "base": {"effects": list(res.effects),
+                          "values": {n: float(res.values[n]) for n in
+                                     (res.model.active_names if res.model is not None
+                                      else res.values)},
+                          "sigma": {n: float(v) for n, v in res.sigma.items()}}}
+    why = ""
+    try:
+        new, bs_new = _solve(missions, model, (*effects, name), None, start, settings,
+                             progress, log_warnings=False)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError) as e:   # a failed refit: the base
+        new, why = None, f"its fit failed ({type(e).__name__}: {e})"
+    if new is not None:
+        rec["cost_after"] = float(new.info.get("cost", np.nan))
+        after = _variable_estimates(new)
+
+        def label(m: str, n: str) -> str:
+            return f"{m}:{n}" if m else n
+        rec["moved"] = {label(m, n): _difference(n, after[m, n][0], v)
+                        for (m, n), (v, _) in base.items() if (m, n) in after}
+        # (a NaN sigma counts as far: nothing says the move is within it)
+        far = [label(m, n) for (m, n), (_, sg) in base.items()
+               if label(m, n) in rec["moved"] and not abs(rec["moved"][label(m, n)]) <= 3.0 * sg]
+        if not new.info.get("plausible", True):
+            why = "its fit is not plausible"
+        elif not rec["cost_after"] < rec["cost_before"]:
+            why = f"it does not lower the cost ({rec['cost_before']:.1f} -> {rec['cost_after']:.1f})"
+        elif far:
+            why = f"it moves {', '.join(far)} by more than 3 sigma of the fit without it"
+    rec["adopted"] = not why
+    if why:
+        rec["reason"] = why
+        res.info["auto_effect"] = rec
+        res.info.setdefault("warnings", []).append(
+            f"the effect {name} was not added ({why}): the model is fitted as given")
+        return _finish(res, bs, missions, model, effects)
+    assert new is not None
+    new = _finish(new, bs_new, missions, model, (*effects, name))
+    # the batch time is both solves'
+    rec["seconds_base"] = float(res.timings.get("batch", [0.0])[0])
+    new.timings["batch"] = [rec["seconds_base"] + float(new.timings.get("batch", [0.0])[0])]
+    new.info["auto_effect"] = rec
+    th = [abs(v) for k, v in rec["moved"].items() if k.endswith("theta_e")]
+    cur = [rec["moved"].get(k, 0.0) for k in rec["moved"] if k.endswith("s_x")]
+    cur_y = [rec["moved"].get(k.replace("s_x", "s_y"), 0.0) for k in rec["moved"]
+             if k.endswith("s_x")]
+    parts = []
+    if th:
+        parts.append(f"theta_e moved by {np.degrees(max(th)):.2g} deg")
+    if cur:
+        parts.append(f"the current by {max(math.hypot(a, b) for a, b in zip(cur, cur_y)):.2g} m/s")
+    new.info.setdefault("warnings", []).insert(
+        0, f"added the effect {name}, which the data call for (robust score test p = "
+           f"{rec['p_value_robust']:.2g}; cost {rec['cost_before']:.1f} -> "
+           f"{rec['cost_after']:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
+           f"--no-auto-effect fits the model as given")
+    return new
+
 def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: dict,
-                     settings: FGSettings, log_warnings: bool = True) -> Result:
+                     settings: FGSettings, log_warnings: bool = True,
+                     test_always: bool = False) -> Result:
     """:attr:`FGSettings.structural_sigma`: where the batch fit ``res`` (nominal noise) does
     not explain the fixes (its honest sigma more than ``MISFIT_INFLATION`` x the model's)
     and the data call for a missing effect, the sigma of the heading offset and the
     current widened by the shift that effect would cause
     (:func:`aqfg.diagnose.structure.structural_shift`, on the batch's numpy system ``fs``
     at its nominal-noise solution, evaluation ``ev``), in place; ``info["sigma_structure"]``
-    and a warning say which effect and how much."""
+    and a warning say which effect and how much. ``test_always``: the test also where the
+    fixes are explained (for :attr:`FGSettings.auto_effect`), its result in
+    ``info["structural_test"]`` (the sigma is widened only where they are not)."""
     infl = res.info.get("sigma_inflation", {})
-    if (not settings.structural_sigma or settings.walk_sigma
-            or res.model is None or max(infl.values(), default=0.0) <= MISFIT_INFLATION):
+    misfit = max(infl.values(), default=0.0) > MISFIT_INFLATION
+    if (not settings.structural_sigma or settings.walk_sigma or res.model is None
+            or not (misfit or test_always)):
         return res
     from aqfg.diagnose.structure import structural_shift
     sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
     if sh is None:
+        return res
+    res.info["structural_test"] = sh.to_json()
+    if not misfit:
         return res
     before = {n: float(res.sigma[n]) for n in sh.shift if n in res.sigma}
     for n, d in sh.shift.items():

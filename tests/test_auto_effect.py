@@ -1,0 +1,125 @@
+"""The batch fit adds the effect the structural test finds missing (FGSettings.auto_effect,
+aqfg.fg.fit.adopt_effect): on the Otter, whose linear surge drag the paper's model lacks,
+the heading offset and current come out right where the model as given biases them; on a
+vehicle that is the model nothing is added; a refit that would move the estimates beyond
+their honest sigma is refused; the CLI writes the step and --params-from carries the
+effect to an online run."""
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from conftest import data_path
+
+from aqfg.cli import main
+from aqfg.data import load_mission, load_truth
+from aqfg.data.mission import with_gnss_every
+from aqfg.fg import FGSettings, fit_fg
+from aqfg.fg import fit as fit_module
+
+VAR = ("theta_e", "s_x", "s_y")
+
+
+def _errors(res, truth) -> dict[str, float]:
+    out = {n: res.values[n] - truth.params[n] for n in VAR}
+    out["theta_e"] = float(np.angle(np.exp(1j * out["theta_e"])))
+    return out
+
+
+@pytest.fixture(scope="module")
+def heldout111():
+    d = data_path("otter-heldout-111")
+    m = with_gnss_every(load_mission(d), 8.0)
+    return m, load_truth(d), fit_fg([m]), fit_fg([m], settings=FGSettings(auto_effect=False))
+
+
+def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111):
+    """`otter-heldout-111` at 8-s fixes: the model as given puts the current 0.06 m/s off
+    (the issue allows 0.05); with the linear drag the structural test names, added by the
+    fit itself, the current is within 0.02 m/s and the heading offset within 1 deg, each
+    within 3 sigma, at a cost less than half the model-as-given's."""
+    _m, truth, res, given = heldout111
+    ae = res.info["auto_effect"]
+    assert ae["adopted"] and ae["effect"] == "linear_drag" and res.effects == ("linear_drag",)
+    assert ae["cost_after"] < 0.5 * ae["cost_before"]
+    assert "linear_drag.c_x" in res.estimated
+    e, e0 = _errors(res, truth), _errors(given, truth)
+    cur, cur0 = float(np.hypot(e["s_x"], e["s_y"])), float(np.hypot(e0["s_x"], e0["s_y"]))
+    assert cur0 > 0.05 and cur < 0.02, (cur0, cur)
+    assert abs(np.degrees(e["theta_e"])) < 1.0
+    for n in VAR:
+        assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
+    # the record keeps the model-as-given estimates, and the warning says what was added
+    assert ae["base"]["values"]["s_x"] == given.values["s_x"]
+    assert any(w.startswith("added the effect linear_drag") for w in res.info["warnings"])
+
+
+def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout111,
+                                                                        monkeypatch):
+    """The guard: the same data, but the model-as-given's sigma made 1000x smaller; the
+    refit's heading offset and current are then far outside it, so the fit keeps the
+    model as given and says why."""
+    m, _truth, _res, fitted = heldout111
+    given = copy.copy(fitted)                 # the fixture's result stays as it was
+    given.sigma, given.info = dict(fitted.sigma), dict(fitted.info)
+    given.info["warnings"] = list(fitted.info.get("warnings", []))
+    given.info["structural_test"] = dict(fitted.info["structural_test"])
+    for n in VAR:
+        given.sigma[n] *= 1e-3
+    calls = []
+
+    def finish(res, bs, missions, model, effects):    # completes the solve it is given
+        calls.append(effects)
+        return res
+    monkeypatch.setattr(fit_module, "_finish", finish)
+    out = fit_module.adopt_effect(given, object(), [m], None, (), None, None)
+    ae = out.info["auto_effect"]
+    assert out is given and not ae["adopted"] and "by more than 3 sigma" in ae["reason"]
+    assert calls[-1] == ()                    # the model as given was finished
+    assert any("was not added" in w for w in out.info["warnings"])
+
+
+def test_a_vehicle_that_is_the_model_gets_no_effect():
+    """aqfg's own simulator, the model exact: nothing is called for, nothing added."""
+    from aqfg.sim.simulator import simulate
+    m, _ = simulate("asv", seed=5, duration=300.0)
+    res = fit_fg([m])
+    assert res.effects == () and "auto_effect" not in res.info
+
+
+def test_cli_writes_the_step_and_params_from_carries_the_effect(tmp_path, capsys):
+    """parameters.json says what was added and keeps the model-as-given estimates; an
+    online fit `--params-from` it runs with the effect (its vehicle constants mean
+    nothing without it) and says so; `--no-auto-effect` fits the model as given."""
+    d = str(data_path("otter-heldout-111"))
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    assert main(["fit", d, "--gnss-every", "8", "--out", str(a), "--no-plots"]) == 0
+    doc = json.loads((a / "parameters.json").read_text())
+    assert doc["auto_effect"]["adopted"] and doc["auto_effect"]["effect"] == "linear_drag"
+    assert set(doc["auto_effect"]["without_effect"]) == set(VAR)
+    assert doc["provenance"]["effects"] == ["linear_drag"]
+    assert "linear_drag.c_x" in doc["parameters"]
+    assert "added the effect linear_drag" in capsys.readouterr().err
+    assert main(["fit", str(data_path("otter-example")), "--mode", "online", "--gnss-every",
+                 "8", "--params-from", str(a / "parameters.json"), "--out", str(b),
+                 "--no-plots"]) == 0
+    assert "its model has the effect(s) linear_drag" in capsys.readouterr().err
+    on = json.loads((b / "parameters.json").read_text())
+    assert on["provenance"]["effects"] == ["linear_drag"]
+    assert on["fixed"]["linear_drag.c_x"]["value"] == doc["parameters"]["linear_drag.c_x"]["value"]
+    assert main(["fit", d, "--gnss-every", "8", "--out", str(c), "--no-plots",
+                 "--no-auto-effect"]) == 0
+    off = json.loads((c / "parameters.json").read_text())
+    assert "auto_effect" not in off and off["provenance"]["effects"] == []
+
+
+def test_params_from_with_an_unknown_effects_parameter_is_a_clear_error(tmp_path, capsys):
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps({"parameters": {"k": {"value": 1.0}, "foo.bar": {"value": 2.0}}}))
+    rc = main(["fit", str(data_path("otter-example")), "--mode", "online", "--params-from",
+               str(p), "--out", str(tmp_path / "o"), "--no-plots"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "'foo.bar'" in err and "not built in" in err and "Traceback" not in err
