@@ -237,6 +237,12 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
             "without_effect": {n: {"value": float(b["values"][n]),
                                    "sigma": float(b["sigma"].get(n, float("nan")))}
                                for n in ("theta_e", "s_x", "s_y") if n in b["values"]}}
+        if b.get("per_mission"):
+            # a joint fit: the heading offset and current of each mission
+            doc["auto_effect"]["without_effect"]["per_mission"] = {
+                m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
+                    for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
+                for m, d in b["per_mission"].items()}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

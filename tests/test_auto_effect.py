@@ -123,3 +123,26 @@ def test_params_from_with_an_unknown_effects_parameter_is_a_clear_error(tmp_path
                str(p), "--out", str(tmp_path / "o"), "--no-plots"])
     err = capsys.readouterr().err
     assert rc != 0 and "'foo.bar'" in err and "not built in" in err and "Traceback" not in err
+
+
+def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
+    """Two Otter missions fitted jointly: the effect is added for the vehicle, and
+    parameters.json keeps each mission's heading offset and current of the model as given,
+    whose sigma carries the structural shift as the fit's top-level sigma does."""
+    from aqfg.result import parameters_document
+    names = ("otter-example", "otter-dev-calm-b")
+    ms = [with_gnss_every(load_mission(data_path(n)), 8.0) for n in names]
+    res = fit_fg(ms)
+    assert res.info["auto_effect"]["adopted"] and res.effects == ("linear_drag",)
+    per = parameters_document(res)["auto_effect"]["without_effect"]["per_mission"]
+    assert set(per) == set(names)
+    given = fit_fg(ms, settings=FGSettings(auto_effect=False))
+    plain = fit_fg(ms, settings=FGSettings(structural_sigma=False))
+    shift = given.info["sigma_structure"]["shift"]
+    for m in names:
+        g, o = given.per_mission[m], plain.per_mission[m]
+        for n in VAR:
+            assert per[m][n]["value"] == g[n].value
+            assert per[m][n]["sigma"] == pytest.approx(g[n].sigma)
+            # each mission's sigma widened by the shift, as the top-level one
+            assert g[n].sigma == pytest.approx(np.hypot(o[n].sigma, shift[n]))

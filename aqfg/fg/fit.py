@@ -156,7 +156,9 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                           "values": {n: float(res.values[n]) for n in
                                      (res.model.active_names if res.model is not None
                                       else res.values)},
-                          "sigma": {n: float(v) for n, v in res.sigma.items()}}}
+                          "sigma": {n: float(v) for n, v in res.sigma.items()},
+                          **({"per_mission": res.info["per_mission"]}
+                             if len(missions) > 1 and res.info.get("per_mission") else {})}}
     why = ""
     try:
         new, bs_new = _solve(missions, model, (*effects, name), None, start, settings,
@@ -237,6 +239,10 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     for n, d in sh.shift.items():
         if n in res.sigma:
             res.sigma[n] = float(np.hypot(res.sigma[n], d))
+        for e in (res.info.get("per_mission") or {}).values():
+            # a joint fit's per-mission values: the same shift (the largest over them)
+            if isinstance(e.get(n), dict) and "sigma" in e[n]:
+                e[n]["sigma"] = float(np.hypot(e[n]["sigma"], d))
     res.info["sigma_structure"] = {**sh.to_json(), "sigma_before": before}
     parts = []
     if "theta_e" in sh.shift:
