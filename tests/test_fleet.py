@@ -256,6 +256,14 @@ def test_cli_fleet_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
     assert "Nothing missing" in (out / "fleet.html").read_text()
     assert main(["fleet", str(p), "--out", str(out), "--workers", "1"]) == 2
     assert "refusing to overwrite" in capsys.readouterr().err
+    # the model's effects are in the outputs' provenance (the vehicle's and each mission's)
+    out2 = tmp_path / "out2"
+    assert main(["fleet", str(p), "--out", str(out2), "--workers", "1",
+                 "--effect", "linear_drag"]) == 0
+    veh = json.loads((out2 / "asv-a" / "parameters.json").read_text())
+    assert veh["provenance"]["effects"] == ["linear_drag"] and "linear_drag.c_x" in veh["parameters"]
+    mis = json.loads((out2 / "asv-a" / "sim-41" / "parameters.json").read_text())
+    assert mis["provenance"]["effects"] == ["linear_drag"]
 
 
 def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):

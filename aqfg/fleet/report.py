@@ -116,7 +116,8 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
             vdir = inside(stage, stage / v.name)
             vdir.mkdir(parents=True, exist_ok=True)
             entry = table["vehicles"][v.name]
-            prov = provenance(method="fg", mode="fleet", inputs=[m.path for m in v.missions])
+            prov = provenance(method="fg", mode="fleet", effects=res.effects,
+                              inputs=[m.path for m in v.missions])
             doc = {
                 "format": PARAMETERS_FORMAT, "method": "fg", "mode": "fleet",
                 "parameters": {n: {"value": e["value"], "sigma": e["sigma"],
@@ -139,7 +140,8 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
                 mdir = inside(vdir, vdir / m.name)
                 mdir.mkdir(parents=True, exist_ok=True)
                 write_result(Result("fg", "batch", est, vals, sig, [mres]), mdir,
-                             provenance=provenance(method="fg", mode="fleet", inputs=[m.path]))
+                             provenance=provenance(method="fg", mode="fleet",
+                                                   effects=res.effects, inputs=[m.path]))
                 written += [out / v.name / m.name / f for f in sorted(os.listdir(mdir))]
         write_json(stage / "fleet.json", table)
         (stage / "fleet.html").write_text(fleet_html(fr, table), encoding="utf-8")

@@ -185,6 +185,9 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     stats["workers"] = len(_workers(client))
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
+    effect_names = tuple(getattr(e, "name", e) for e in effects)
+    for r in results.values():
+        r.effects = effect_names               # the model's effects, for the outputs
     if settings.dr_horizon > 0 or settings.adapt_track or settings.structural_sigma:
         # the constants to dead-reckon with, per vehicle over its missions, the missions'
         # tracks under the noise their evidence chooses and the structural sigma, as aqfg
