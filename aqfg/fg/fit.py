@@ -80,7 +80,6 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     return r0
 
 
-
 def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init, settings,
            progress, log_warnings: bool = True,
            test_always: bool = False) -> tuple[Result, BatchSmoother]:
@@ -210,6 +209,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
            f"{rec['cost_after']:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
            f"--no-auto-effect fits the model as given")
     return new
+
 
 def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: dict,
                      settings: FGSettings, log_warnings: bool = True,
