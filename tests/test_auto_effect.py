@@ -146,3 +146,16 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
             assert per[m][n]["sigma"] == pytest.approx(g[n].sigma)
             # each mission's sigma widened by the shift, as the top-level one
             assert g[n].sigma == pytest.approx(np.hypot(o[n].sigma, shift[n]))
+
+
+def test_a_drift_of_the_current_is_named_but_not_added():
+    """aqfg's simulator with a hidden current drift: the structural test names it, but the
+    fit does not add it (nor heading_drift, which stands in for it): with a drift the
+    reported current would be the one at the start, not the mission's; the sigma still
+    carries its shift where the fixes are not explained."""
+    from aqfg.sim.cases import simulate_case
+    m, _ = simulate_case("current_drift", 1, 600.0)
+    res = fit_fg([with_gnss_every(m, 8.0)])
+    named = [c["effect"] for c in res.info["structural_test"]["called_for"]]
+    assert named[0] == "current_drift"
+    assert not {"current_drift", "heading_drift"} & set(res.effects)

@@ -45,10 +45,13 @@ class StructuralShift:
     p_robust: float
     shift: dict[str, float]
     estimate: dict[str, float] = field(default_factory=dict)   # the effect's one-step values
+    # every candidate the data call for, best first: {effect, p_value_robust, estimate}
+    called_for: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "p_value_robust": self.p_robust,
-                "shift": dict(self.shift), "effect_estimate": dict(self.estimate)}
+                "shift": dict(self.shift), "effect_estimate": dict(self.estimate),
+                "called_for": [dict(c) for c in self.called_for]}
 
 
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
@@ -118,7 +121,8 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
         return None
     # of those, the one the data call for most: the largest score statistic (the
     # diagnosis's ranking; the robust p-values of 20 time blocks saturate near each other)
-    t = max((tests[i] for i in ok), key=lambda t: t.statistic)
+    ranked = sorted((tests[i] for i in ok), key=lambda t: -t.statistic)
+    t = ranked[0]
     move = -(Zp[:, [cols.index(n) for n in t.params]] @ t.delta)
     shift: dict[str, float] = {}
     for node in fs.bg.nodes:
@@ -131,4 +135,7 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     if not shift:
         return None
     return StructuralShift(t.effect, t.p_value_robust, shift,
-                           {n: float(v) for n, v in zip(t.params, t.estimate)})
+                           {n: float(v) for n, v in zip(t.params, t.estimate)},
+                           [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
+                             "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)}}
+                            for x in ranked])

@@ -74,7 +74,8 @@ class FGSettings:
         the model's error that varies over time, not a bias that holds all mission.
     auto_effect: the batch fit with the default parameters (:func:`aqfg.fg.fit.fit_fg`,
         no ``estimate``) runs the structural test even where the fixes are explained, and
-        where it names a missing effect fits again with that effect added, returning that
+        where it names a missing effect of the vehicle's dynamics (not a drift of the
+        heading offset or the current) fits again with that effect added, returning that
         fit if it lowers the cost, is plausible and keeps the heading offset and current
         within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``); False
         fits the model as given.

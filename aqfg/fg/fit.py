@@ -25,6 +25,7 @@ from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
+from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
@@ -135,20 +136,28 @@ def _difference(name: str, a: float, b: float) -> float:
 def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                  effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
     """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
-    names a missing effect (``info["structural_test"]``), the fit again with that effect
-    added; its result where it explains the fixes better (lower cost), is plausible, and
+    names missing effects (``info["structural_test"]``), the fit again with the
+    best-supported one of the vehicle's dynamics (not a drift of the heading offset or the
+    current) added; its result where it explains the fixes better (lower cost), is plausible, and
     keeps the heading offset and the current within 3 sigma of ``res``'s honest sigma
     (which includes the effect's predicted shift); otherwise ``res``, saying why.
     ``info["auto_effect"]`` records the step and the base fit's estimates."""
     st = res.info.get("structural_test")
-    if not st or st["effect"] in {getattr(e, "name", e) for e in effects}:
+    have = {getattr(e, "name", e) for e in effects}
+    # the best-supported effect of the vehicle's dynamics: not a drift of the heading offset
+    # or the current, which would make the reported values those at the start (and the two
+    # drifts stand in for each other: docs/independent-vehicle.md)
+    pick = next((c for c in (st or {}).get("called_for", [])
+                 if c["effect"] not in have and not isinstance(resolve(c["effect"]),
+                                                               (HeadingTerm, CurrentTerm))), None)
+    if pick is None:
         return _finish(res, bs, missions, model, effects)
-    name = st["effect"]
+    name = pick["effect"]
     base = _variable_estimates(res)
     start = dict(init or {})
-    start.update({n: v for n, v in st.get("effect_estimate", {}).items()
+    start.update({n: v for n, v in pick.get("estimate", {}).items()
                   if math.isfinite(v) and n not in start})
-    rec: dict = {"effect": name, "p_value_robust": float(st["p_value_robust"]),
+    rec: dict = {"effect": name, "p_value_robust": float(pick["p_value_robust"]),
                  "fixes_explained": "sigma_structure" not in res.info,
                  "cost_before": float(res.info.get("cost", np.nan)),
                  "base": {"effects": list(res.effects),
