@@ -99,8 +99,11 @@ class Result:
         """Estimates per mission, ``{mission name: {parameter: Estimate}}``: the
         per-mission parameters of a joint fit, or each mission's when fitted one by one."""
         raw = self.info.get("per_mission") or {}
+
+        def num(v) -> float:           # a sigma the estimator could not give is None (null)
+            return float("nan") if v is None else float(v)
         return {m: {n: e if isinstance(e, Estimate) else
-                    Estimate(float(e["value"]), float(e.get("sigma", float("nan"))))
+                    Estimate(num(e["value"]), num(e.get("sigma")))
                     for n, e in d.items()} for m, d in raw.items()}
 
     @per_mission.setter

@@ -33,3 +33,14 @@ def test_typed_attributes_write_info():
     assert _result(history=h).histories == [h]
     r.histories = [h, h]
     assert r.info["histories"] == [h, h] and len(r.histories) == 2
+
+
+def test_per_mission_reads_a_sigma_the_estimator_could_not_give():
+    """The update-error method writes ``"sigma": None`` (JSON null) for a parameter its
+    window does not determine; the typed view reads it as NaN (it raised TypeError, which
+    ended `aqfg fit --method update-error` on a 40-s mission)."""
+    r = _result(info={"per_mission": {"a": {"s_y": {"value": -0.26, "sigma": None},
+                                             "k": {"value": 8.0, "sigma": 0.1}}}})
+    e = r.per_mission["a"]
+    assert math.isnan(e["s_y"].sigma) and e["s_y"].value == -0.26
+    assert e["k"].sigma == 0.1
