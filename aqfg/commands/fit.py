@@ -117,7 +117,8 @@ def run(args) -> int:
         estimate = [s.strip() for s in args.estimate.split(",") if s.strip()]
         if not estimate:
             raise UsageError("--estimate: no parameter names given")
-    init = initial_values(args.init, args.params_from)
+    from_file = initial_values([], args.params_from)
+    init = {**from_file, **initial_values(args.init, None)}
     missions = load_missions(args.missions, args.max_knots)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
@@ -125,13 +126,12 @@ def run(args) -> int:
     effects = tuple(args.effect)
     if args.params_from:
         # the file's model: its effects join (their values are in init), as --model's do
-        from_file = effects_of_values(initial_values([], args.params_from),
-                                      f"--params-from {args.params_from}")
-        added = [e for e in from_file if e not in effects]
+        file_effects = effects_of_values(from_file, f"--params-from {args.params_from}")
+        added = [e for e in file_effects if e not in effects]
         if added:
             log.info("--params-from %s: its model has the effect(s) %s; they are added",
                      args.params_from, ", ".join(added))
-        effects = tuple(dict.fromkeys(from_file + effects))
+        effects = tuple(dict.fromkeys(file_effects + effects))
     model_path = getattr(args, "model", None)
     if model_path:
         # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial

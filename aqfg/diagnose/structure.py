@@ -44,14 +44,13 @@ class StructuralShift:
     effect: str
     p_robust: float
     shift: dict[str, float]
-    estimate: dict[str, float] = field(default_factory=dict)   # the effect's one-step values
-    # every candidate the data call for, best first: {effect, p_value_robust, estimate}
+    # every candidate the data call for, best first (``effect`` the first):
+    # {effect, p_value_robust, estimate (its one-step values)}
     called_for: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "p_value_robust": self.p_robust,
-                "shift": dict(self.shift), "effect_estimate": dict(self.estimate),
-                "called_for": [dict(c) for c in self.called_for]}
+                "shift": dict(self.shift), "called_for": [dict(c) for c in self.called_for]}
 
 
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
@@ -135,7 +134,6 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     if not shift:
         return None
     return StructuralShift(t.effect, t.p_value_robust, shift,
-                           {n: float(v) for n, v in zip(t.params, t.estimate)},
                            [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
                              "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)}}
                             for x in ranked])

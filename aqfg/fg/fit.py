@@ -128,6 +128,11 @@ def _variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float
     return out
 
 
+def _label(mission: str, name: str) -> str:
+    """``name``, or ``mission:name`` for a joint fit's per-mission value."""
+    return f"{mission}:{name}" if mission else name
+
+
 def _difference(name: str, a: float, b: float) -> float:
     """``a - b``, wrapped to (-pi, pi] for the heading offset."""
     return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
@@ -168,6 +173,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                           **({"per_mission": res.info["per_mission"]}
                              if len(missions) > 1 and res.info.get("per_mission") else {})}}
     why = ""
+    moved: dict[tuple[str, str], float] = {}     # (mission or "", name) -> refit - base
     try:
         new, bs_new = _solve(missions, model, (*effects, name), None, start, settings,
                              progress, log_warnings=False)
@@ -176,14 +182,11 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     if new is not None:
         rec["cost_after"] = float(new.info.get("cost", np.nan))
         after = _variable_estimates(new)
-
-        def label(m: str, n: str) -> str:
-            return f"{m}:{n}" if m else n
-        rec["moved"] = {label(m, n): _difference(n, after[m, n][0], v)
-                        for (m, n), (v, _) in base.items() if (m, n) in after}
+        moved = {(m, n): _difference(n, after[m, n][0], v)
+                 for (m, n), (v, _) in base.items() if (m, n) in after}
+        rec["moved"] = {_label(m, n): d for (m, n), d in moved.items()}
         # (a NaN sigma counts as far: nothing says the move is within it)
-        far = [label(m, n) for (m, n), (_, sg) in base.items()
-               if label(m, n) in rec["moved"] and not abs(rec["moved"][label(m, n)]) <= 3.0 * sg]
+        far = [_label(m, n) for (m, n), d in moved.items() if not abs(d) <= 3.0 * base[m, n][1]]
         if not new.info.get("plausible", True):
             why = "its fit is not plausible"
         elif not rec["cost_after"] < rec["cost_before"]:
@@ -203,15 +206,15 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     rec["seconds_base"] = float(res.timings.get("batch", [0.0])[0])
     new.timings["batch"] = [rec["seconds_base"] + float(new.timings.get("batch", [0.0])[0])]
     new.info["auto_effect"] = rec
-    th = [abs(v) for k, v in rec["moved"].items() if k.endswith("theta_e")]
-    cur = [rec["moved"].get(k, 0.0) for k in rec["moved"] if k.endswith("s_x")]
-    cur_y = [rec["moved"].get(k.replace("s_x", "s_y"), 0.0) for k in rec["moved"]
-             if k.endswith("s_x")]
+    # the largest move over the missions
+    th = [abs(d) for (_, n), d in moved.items() if n == "theta_e"]
+    cur = [math.hypot(d, moved.get((m, "s_y"), 0.0)) for (m, n), d in moved.items()
+           if n == "s_x"]
     parts = []
     if th:
         parts.append(f"theta_e moved by {np.degrees(max(th)):.2g} deg")
     if cur:
-        parts.append(f"the current by {max(math.hypot(a, b) for a, b in zip(cur, cur_y)):.2g} m/s")
+        parts.append(f"the current by {max(cur):.2g} m/s")
     new.info.setdefault("warnings", []).insert(
         0, f"added the effect {name}, which the data call for (robust score test p = "
            f"{rec['p_value_robust']:.2g}; cost {rec['cost_before']:.1f} -> "
