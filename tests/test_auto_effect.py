@@ -159,3 +159,32 @@ def test_a_drift_of_the_current_is_named_but_not_added():
     named = [c["effect"] for c in res.info["structural_test"]["called_for"]]
     assert named[0] == "current_drift"
     assert not {"current_drift", "heading_drift"} & set(res.effects)
+
+
+def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatch):
+    """The test may call for one effect while another, of larger score statistic but short
+    of the test's level alone, explains the fixes far better (a weak-propeller Otter: the
+    wind drag called for, the linear drag first by its statistic). Given such a test
+    result on `otter-heldout-111`, the fit tries both and adds the one of lower cost, the
+    linear drag, and records both; the wind drag alone leaves the cost higher."""
+    m, truth, _res, given = heldout111
+    st = copy.deepcopy(given.info["structural_test"])
+    ld = next(c for c in st["ranked"] if c["effect"] == "linear_drag")
+    wd = next(c for c in st["ranked"] if c["effect"] == "wind_drag")
+    st["called_for"] = [wd]
+    st["ranked"] = [ld, wd]
+    base = copy.copy(given)
+    base.info = {**given.info, "structural_test": st,
+                 "warnings": list(given.info.get("warnings", []))}
+    base.sigma = dict(given.sigma)
+    monkeypatch.setattr(fit_module, "_finish", lambda res, bs, missions, model, effects: res)
+    out = fit_module.adopt_effect(base, object(), [m], None, (), None, None)
+    ae = out.info["auto_effect"]
+    assert ae["adopted"] and ae["effect"] == "linear_drag" and ae["called_for"] == "wind_drag"
+    costs = {t["effect"]: t["cost_after"] for t in ae["tried"]}
+    assert set(costs) == {"linear_drag", "wind_drag"}
+    assert costs["linear_drag"] < costs["wind_drag"] < ae["cost_before"]
+    assert out.effects == ("linear_drag",)
+    e = _errors(out, truth)
+    assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02
+    assert any("explains the fixes best" in w for w in out.info["warnings"])

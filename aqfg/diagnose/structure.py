@@ -47,10 +47,14 @@ class StructuralShift:
     # every candidate the data call for, best first (``effect`` the first):
     # {effect, p_value_robust, estimate (its one-step values)}
     called_for: list[dict[str, Any]] = field(default_factory=list)
+    # every candidate tested, called for or not, by its score statistic (largest first),
+    # as ``called_for``'s entries plus "statistic" and "called_for" (bool)
+    ranked: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "p_value_robust": self.p_robust,
-                "shift": dict(self.shift), "called_for": [dict(c) for c in self.called_for]}
+                "shift": dict(self.shift), "called_for": [dict(c) for c in self.called_for],
+                "ranked": [dict(c) for c in self.ranked]}
 
 
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
@@ -133,7 +137,12 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                 shift[n] = max(shift.get(n, 0.0), abs(float(move[o + j])))
     if not shift:
         return None
-    return StructuralShift(t.effect, t.p_value_robust, shift,
-                           [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
-                             "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)}}
-                            for x in ranked])
+
+    def entry(x) -> dict[str, Any]:
+        return {"effect": x.effect, "p_value_robust": float(x.p_value_robust),
+                "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)}}
+    called = {x.effect for x in ranked}
+    return StructuralShift(t.effect, t.p_value_robust, shift, [entry(x) for x in ranked],
+                           [{**entry(x), "statistic": float(x.statistic),
+                             "called_for": x.effect in called}
+                            for x in sorted(tests, key=lambda x: -x.statistic)])

@@ -75,10 +75,11 @@ class FGSettings:
     auto_effect: the batch fit with the default parameters (:func:`aqfg.fg.fit.fit_fg`,
         no ``estimate``) runs the structural test even where the fixes are explained, and
         where it names a missing effect of the vehicle's dynamics (not a drift of the
-        heading offset or the current) fits again with that effect added, returning that
-        fit if it lowers the cost, is plausible and keeps the heading offset and current
-        within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``); False
-        fits the model as given.
+        heading offset or the current) fits again with that effect added (and with the
+        dynamics effect of largest score statistic, if another), returning the lower-cost
+        fit of those that lower the cost, are plausible and keep the heading offset and
+        current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``);
+        False fits the model as given.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
