@@ -235,11 +235,12 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
     may be adopted (lower cost, plausible, the heading offset and the current within 3
     sigma of ``res``'s honest sigma)."""
     name = pick["effect"]
-    # solved from the effect's one-step values and from its null, the lower cost kept: in
-    # the flat valley where the linear and the quadratic drag trade, the two ended 3-31
-    # apart in cost on five of seven Otter runs, each start lower on some, and the higher
-    # one's sigma(theta_e) was 0.16 deg with theta_e 1.0 deg off on one
-    # (docs/independent-vehicle.md)
+    # solved from the effect's one-step values and from its null, the lower cost kept: with
+    # the linear drag the sway drag has two local minima (linear, c_yz > 0 and k_yz small;
+    # or quadratic, c_yz at its bound 0), not a stop too early (a 1000x tighter stop ends
+    # where the default does); the two starts ended 3-31 apart in cost on five of seven
+    # Otter runs, each lower on some, and the higher one's sigma(theta_e) was 0.16 deg with
+    # theta_e 1.0 deg off on one (docs/independent-vehicle.md)
     one_step = {n: v for n, v in pick.get("estimate", {}).items()
                 if math.isfinite(v) and n not in (init or {})}
     starts = [{**(init or {}), **one_step}] + ([dict(init or {})] if one_step else [])
