@@ -163,6 +163,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add a model effect (repeatable)")
     s.add_argument("--gnss-every", type=float, default=0.0, metavar="S",
                    help="use one GNSS fix every S seconds (default: all)")
+    s.add_argument("--no-auto-effect", action="store_true",
+                   help="fit the model as given, without adding the effect the vehicles' "
+                        "structural tests find missing")
     s.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
     s = sub.add_parser("demo", help="the main job on a built-in simulated mission",

@@ -13,7 +13,7 @@ from conftest import data_path
 
 from aqfg.cli import main
 from aqfg.commands.common import EXIT_DATA
-from aqfg.data.io import load_mission, save_mission
+from aqfg.data.io import load_mission, load_truth, save_mission
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings
@@ -120,10 +120,10 @@ def _sim_vehicle(root, seeds, k_scale, duration=240.0):
     return paths
 
 
-def _assert_joint(fr_res, batch, tol=0.05):
+def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
     """Within tol x the batch's model sigma (stricter than its sandwich-inflated sigma),
-    fixed parameters and every mission's own; the same sigmas (model and inflated; the
-    structural shift, linearised at the two solutions, within 2 %)."""
+    fixed parameters and every mission's own; the same sigmas (model and inflated, within
+    ``sig_rel``; the structural shift, linearised at the two solutions, within 2 %)."""
     sm = batch.info.get("sigma_model", batch.sigma)
     st_f, st_b = (r.info.get("sigma_structure") for r in (fr_res, batch))
     assert (st_f or {}).get("effect") == (st_b or {}).get("effect")
@@ -134,13 +134,13 @@ def _assert_joint(fr_res, batch, tol=0.05):
             assert st_f["sigma_before"][n] == pytest.approx(st_b["sigma_before"][n], rel=1e-6)
             assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
             continue
-        assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=1e-6), n
-        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=1e-6), n
+        assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=sig_rel), n
+        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=sig_rel), n
     for m, pm in batch.info["per_mission"].items():
         for n, e in pm.items():
             got = fr_res.info["per_mission"][m][n]
             assert abs(got["value"] - e["value"]) < tol * sm[n]
-            assert got["sigma"] == pytest.approx(e["sigma"], rel=1e-6), (m, n)
+            assert got["sigma"] == pytest.approx(e["sigma"], rel=sig_rel), (m, n)
 
 
 @pytest.mark.slow
@@ -155,12 +155,29 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
                                                  "sim-asv": ["sim-21", "sim-22"]})
     man = load_manifest(p)
     fr = fit_fleet(man, cluster, gnss_every=8.0, timeout=300)
+    # the fleet's effect step: the Otter's fits call for the linear drag, and one model
+    # serves the fleet, so both vehicles are fitted with it; the step records the model-
+    # as-given estimates
+    for v in ("otter", "sim-asv"):
+        ae = fr.results[v].info["auto_effect"]
+        assert ae["adopted"] and ae["effect"] == "linear_drag", ae.get("reason")
+        assert fr.results[v].effects == ("linear_drag",)
+        assert ae["fleet"]["vehicles_calling"] == ["otter"]
+        assert ae["fleet"]["cost_after"] < ae["fleet"]["cost_before"]
+    for name in ("otter-example", "otter-dev-calm-a"):
+        truth = load_truth(data_path(name)).params
+        cur = fr.results["otter"].info["per_mission"][name]
+        assert np.hypot(cur["s_x"]["value"] - truth.get("s_x", 0.0),
+                        cur["s_y"]["value"] - truth.get("s_y", 0.0)) < 0.03, name
     for v in man.vehicles:
         ms = [with_gnss_every(load_mission(m.path), 8.0) for m in v.missions]
-        # the fleet fits the model as given (the structural test's effect is named, not
-        # added: FGSettings.auto_effect is fit_fg's)
-        ref = fit_fg(ms, settings=FGSettings(auto_effect=False))
-        _assert_joint(fr.results[v.name], ref)
+        # each vehicle equals fit_fg of its missions with the fleet's model
+        ref = fit_fg(ms, effects=fr.results[v.name].effects,
+                     settings=FGSettings(auto_effect=False))
+        # (with the linear drag the two solvers' stopping points differ by up to a few
+        # hundredths of a sigma, and the sigmas evaluated there by up to 0.5 % (k_yz,
+        # poorly determined: sigma 5))
+        _assert_joint(fr.results[v.name], ref, sig_rel=1e-2)
         d, e = fr.results[v.name].info["dead_reckoning"], ref.info["dead_reckoning"]
         assert d["applied"] == e["applied"] and d["blocks"] == e["blocks"], (d, e)
         # the tracks under the noise each mission's evidence chooses, as fit_fg's
@@ -171,18 +188,21 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
     out = tmp_path / "out"
     save_fleet(fr, out)
     table = json.loads((out / "fleet.json").read_text())
-    assert table["parameters"] == ["k", "k_x", "k_yz"]
+    assert table["parameters"] == ["k", "k_x", "k_yz", "linear_drag.c_x", "linear_drag.c_yz"]
     assert set(table["vehicles"]) == {"otter", "sim-asv"}
     for v in ("otter", "sim-asv"):
         par = json.loads((out / v / "parameters.json").read_text())
         assert par["format"] == "aqfg-parameters/1" and par["provenance"]["mode"] == "fleet"
         assert par["parameters"]["k"]["value"] == pytest.approx(fr.results[v].values["k"])
         assert par["dead_reckoning"]["applied"] == fr.results[v].info["dead_reckoning"]["applied"]
+        assert par["auto_effect"]["adopted"] and par["auto_effect"]["effect"] == "linear_drag"
+        assert "linear_drag.c_x" in par["parameters"]
         assert table["vehicles"][v]["test"]["differs"] is True     # Otter vs simulated ASV
     # the Otter (not the model) dead-reckons with refined constants, as aqfg fit's
     assert json.loads((out / "otter" / "parameters.json").read_text())["dead_reckoning"]["applied"]
     mp = json.loads((out / "sim-asv" / "sim-22" / "parameters.json").read_text())["parameters"]
-    assert set(mp) == {"k", "k_x", "k_yz", "theta_e", "s_x", "s_y"}
+    assert set(mp) == {"k", "k_x", "k_yz", "linear_drag.c_x", "linear_drag.c_yz", "theta_e",
+                       "s_x", "s_y"}
     traj = np.loadtxt(out / "otter" / "otter-dev-calm-a" / "trajectory.csv", delimiter=",",
                       skiprows=1)
     assert traj.shape[1] == 7 and len(traj) > 500
@@ -296,3 +316,18 @@ def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):
     assert solve._alive_workers(NoneComes(), wait=0.1) == []
     with pytest.raises(solve.FleetError, match="no Dask worker"):
         solve._least_loaded([], {})
+
+
+@pytest.mark.slow
+def test_cli_fleet_no_auto_effect_fits_the_model_as_given(tmp_path, capsys):
+    """An Otter vehicle, whose fit calls for the linear drag: `--no-auto-effect` keeps the
+    model as given (no effect, no step recorded, no warning of one)."""
+    os.symlink(data_path("otter-dev-calm-b"), tmp_path / "otter-dev-calm-b")
+    p = write_manifest(tmp_path / "fleet.toml", {"otter": ["otter-dev-calm-b"]})
+    out = tmp_path / "out"
+    assert main(["fleet", str(p), "--out", str(out), "--workers", "1", "--gnss-every", "8",
+                 "--no-auto-effect"]) == 0
+    assert "added the effect" not in capsys.readouterr().err
+    veh = json.loads((out / "otter" / "parameters.json").read_text())
+    assert "auto_effect" not in veh and veh["provenance"]["effects"] == []
+    assert set(veh["parameters"]) == {"k", "k_x", "k_yz"}

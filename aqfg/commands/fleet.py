@@ -30,8 +30,10 @@ def run(args) -> int:
     where = f"scheduler {args.scheduler}" if args.scheduler else f"{args.workers} local workers"
     print(f"aqfg fleet: {len(manifest.vehicles)} vehicle(s), {manifest.n_missions} mission(s) "
           f"on {where}", file=sys.stderr)
+    from aqfg.fg.common import FGSettings
     fr = fit_fleet(manifest, workers=args.workers, scheduler=args.scheduler, effects=effects,
-                   gnss_every=args.gnss_every, diagnose=args.diagnose, progress=True)
+                   gnss_every=args.gnss_every, diagnose=args.diagnose, progress=True,
+                   settings=FGSettings(auto_effect=not args.no_auto_effect))
     save_fleet(fr, out, overwrite=args.force)
     from aqfg.fleet.report import fleet_table
     table = fleet_table(fr)
@@ -42,6 +44,16 @@ def run(args) -> int:
                         for n in names)
         d = e["test"]["differs"]
         print(f"{v:<20}{cells}{'-' if d is None else ('yes' if d else 'no'):>9}")
+    said = set()
+    for r in fr.results.values():
+        ae = r.info.get("auto_effect")
+        if ae:
+            # the fleet's effect step: one warning for the fleet
+            w = next((w for w in r.info.get("warnings", []) if ae["effect"] in w
+                      and ("added the effect" in w or "was not added" in w)), None)
+            if w and w not in said:
+                said.add(w)
+                print(f"warning: {w}", file=sys.stderr)
     for v, e in table["vehicles"].items():
         if e.get("plausible") is False:
             print(f"warning: {v}: a mission's solution is implausible (see fleet.json); "

@@ -113,6 +113,17 @@ def _finish(res: Result, bs: BatchSmoother, missions: Sequence[Mission], model,
     return res
 
 
+def base_record(res: Result) -> dict:
+    """``info["auto_effect"]["base"]``: the model-as-given fit's effects, values and sigmas
+    (and each mission's, for a joint fit), kept beside a fit that added an effect."""
+    return {"effects": list(res.effects),
+            "values": {n: float(res.values[n]) for n in
+                       (res.model.active_names if res.model is not None else res.values)},
+            "sigma": {n: float(v) for n, v in res.sigma.items()},
+            **({"per_mission": res.info["per_mission"]}
+               if len(res.missions) > 1 and res.info.get("per_mission") else {})}
+
+
 def _variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:
     """``{(mission or "", name): (value, sigma)}`` of the heading offset and the current:
     per mission where a joint fit has them per mission, else the fit's."""
@@ -138,6 +149,13 @@ def _difference(name: str, a: float, b: float) -> float:
     return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
 
 
+def dynamics_effect(name: str) -> bool:
+    """An effect the effect step may add: one of the vehicle's dynamics, not a drift of the
+    heading offset or the current, which would make the reported values those at the start
+    (and the two drifts stand in for each other: docs/independent-vehicle.md)."""
+    return not isinstance(resolve(name), (HeadingTerm, CurrentTerm))
+
+
 def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                  effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
     """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
@@ -152,11 +170,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     have = {getattr(e, "name", e) for e in effects}
 
     def dynamics(c: dict) -> bool:
-        # an effect of the vehicle's dynamics: not a drift of the heading offset or the
-        # current, which would make the reported values those at the start (and the two
-        # drifts stand in for each other: docs/independent-vehicle.md)
-        return c["effect"] not in have and not isinstance(resolve(c["effect"]),
-                                                          (HeadingTerm, CurrentTerm))
+        return c["effect"] not in have and dynamics_effect(c["effect"])
     # the candidates, at most two: the best-supported one the test calls for, and the one
     # of largest score statistic whether or not it passes the test's level alone (the test
     # says the model misses something; which effect explains it best, the refit's cost
@@ -180,14 +194,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     name, new, bs_new, why, moved = (best["rec"]["effect"], best["new"], best["bs"],
                                      best["why"], best["moved"])
     rec: dict = {**best["rec"], "fixes_explained": "sigma_structure" not in res.info,
-                 "cost_before": cost0,
-                 "base": {"effects": list(res.effects),
-                          "values": {n: float(res.values[n]) for n in
-                                     (res.model.active_names if res.model is not None
-                                      else res.values)},
-                          "sigma": {n: float(v) for n, v in res.sigma.items()},
-                          **({"per_mission": res.info["per_mission"]}
-                             if len(missions) > 1 and res.info.get("per_mission") else {})}}
+                 "cost_before": cost0, "base": base_record(res)}
     if len(tried) > 1:
         rec["tried"] = [{**{k: v for k, v in t["rec"].items() if k != "moved"},
                          **({"reason": t["why"]} if t["why"] else {})} for t in tried]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import math
 import os
 from pathlib import Path
 
@@ -127,6 +128,9 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
             dr = res.info.get("dead_reckoning")
             if dr and dr.get("segments"):
                 doc["dead_reckoning"] = dead_reckoning_document(dr)
+            ae = res.info.get("auto_effect")
+            if ae:
+                doc["auto_effect"] = effect_document(ae)
             write_json(vdir / "parameters.json", doc)
             written.append(out / v.name / "parameters.json")
             names_f = fixed_names(res)
@@ -147,6 +151,30 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
         (stage / "fleet.html").write_text(fleet_html(fr, table), encoding="utf-8")
         written += [out / "fleet.json", out / "fleet.html"]
     return written
+
+
+def effect_document(ae: dict) -> dict:
+    """A vehicle's ``parameters.json`` ``auto_effect``: the effect the fleet's step tried,
+    whether it was added (and why not), the vehicles whose tests called for it, the costs,
+    and each mission's heading offset and current without it."""
+    def num(x) -> float | None:
+        return float(x) if x is not None and math.isfinite(float(x)) else None
+    fl = ae.get("fleet", {})
+    per = ae.get("base", {}).get("per_mission") or {}
+    return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
+            **({"reason": ae["reason"]} if "reason" in ae else {}),
+            "p_value_robust": num(ae.get("p_value_robust")),
+            "vehicles_calling": list(fl.get("vehicles_calling", [])),
+            "cost_before": num(ae.get("cost_before")), "cost_after": num(ae.get("cost_after")),
+            "fleet_cost_before": num(fl.get("cost_before")),
+            "fleet_cost_after": num(fl.get("cost_after")),
+            "without_effect": (
+                {m: {n: {"value": num(e["value"]), "sigma": num(e["sigma"])}
+                     for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
+                 for m, d in per.items()} if per else
+                {n: {"value": num(ae["base"]["values"][n]),
+                     "sigma": num(ae["base"]["sigma"].get(n))}
+                 for n in ("theta_e", "s_x", "s_y") if n in ae.get("base", {}).get("values", {})})}
 
 
 def _unit(res: Result, name: str) -> str | None:

@@ -92,8 +92,34 @@ def _client(workers: int, scheduler: str | None):
 
 def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,
          timeout) -> FleetResult:
-    from distributed import as_completed
     t0 = time.perf_counter()
+    # stats: {by_op: {op: [missions served, compute seconds, reply bytes]}, ...}
+    stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
+                             "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
+    specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
+                                  gnss_every, show, timeout, stats)
+    if settings.auto_effect and estimate is None and settings.structural_sigma:
+        specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
+                                      show, timeout, stats, specs, results)
+    stats["memory"] = _memory(client)
+    stats["workers"] = len(_workers(client))
+    diag = {}
+    if diagnose:
+        show(0.99, f"diagnosing {manifest.n_missions} missions")
+        diag = _diagnose(client, specs, timeout)
+    stats["seconds"] = time.perf_counter() - t0
+    show(1.0, f"done: {len(results)} vehicles, {manifest.n_missions} missions, "
+              f"{stats['rounds']} rounds, {stats['seconds']:.1f} s")
+    return FleetResult(manifest, results, diag, stats)
+
+
+def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
+                 timeout, stats: dict) -> tuple[dict, dict[str, Result]]:
+    """Every vehicle's joint fit with the model ``effects``: the rounds of
+    :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its dead-reckoning
+    constants, tracks and structural sigma (one task each). ``(specs, results)``, by
+    vehicle; ``stats`` accumulates the run's figures."""
+    from distributed import as_completed
     run = uuid.uuid4().hex[:12]
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
                                   effects, estimate, init, gnss_every)
@@ -108,10 +134,6 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     pending = {v: next(g) for v, g in gens.items()}
     sols: dict[str, Solution] = {}
     where: dict[tuple, str] = {}               # mission key -> worker address
-    # by_op: {op: [missions served, compute seconds, reply bytes]}
-    stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
-             "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
-    n_total = manifest.n_missions
     built_once: set = set()
     while pending:
         stats["rounds"] += 1
@@ -181,8 +203,6 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
                 sols[v] = stop.value
         pending = new_pending
         stats["client_seconds"] = stats.get("client_seconds", 0.0) + time.perf_counter() - t_client
-    stats["memory"] = _memory(client)
-    stats["workers"] = len(_workers(client))
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
     effect_names = tuple(getattr(e, "name", e) for e in effects)
@@ -209,15 +229,35 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
         except TimeoutError:
             raise FleetError(f"the dead-reckoning constants and tracks took longer than {timeout} s"
                              ) from None
-        stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
-    diag = {}
-    if diagnose:
-        show(0.99, f"diagnosing {n_total} missions")
-        diag = _diagnose(client, specs, timeout)
-    stats["seconds"] = time.perf_counter() - t0
-    show(1.0, f"done: {len(results)} vehicles, {n_total} missions, {stats['rounds']} rounds, "
-              f"{stats['seconds']:.1f} s")
-    return FleetResult(manifest, results, diag, stats)
+        stats["dead_reckoning_seconds"] = (stats.get("dead_reckoning_seconds", 0.0)
+                                           + time.perf_counter() - t_dr)
+    return specs, results
+
+
+def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, timeout,
+                 stats: dict, specs: dict, results: dict[str, Result]
+                 ) -> tuple[dict, dict[str, Result]]:
+    """:attr:`FGSettings.auto_effect` for a fleet: where the vehicles' structural tests
+    call for an effect of the vehicle's dynamics, every vehicle is fitted again with the
+    one most of them call for (:func:`aqfg.fleet.effect.choose`); one model serves the
+    fleet, so that its vehicles' constants compare. Kept where it lowers the fleet's cost,
+    every vehicle's fit is plausible and every mission's heading offset and current stay
+    within 3 sigma (:func:`aqfg.fleet.effect.judge`); otherwise the model as given, saying
+    why. Each vehicle's ``info["auto_effect"]`` records the step."""
+    from aqfg.fleet import effect as fe
+    pick = fe.choose(results, effects)
+    if pick is None:
+        return specs, results
+    show(0.99, f"the fits call for {pick['effect']}: every vehicle again with it")
+    try:
+        specs2, new = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
+                                   None, init, gnss_every, show, timeout, stats)
+    except FleetError as e:
+        fe.record(results, pick, None, f"its fit failed ({e})")
+        return specs, results
+    why = fe.judge(results, new)
+    fe.record(results, pick, new, why)
+    return (specs, results) if why else (specs2, new)
 
 
 def _diagnose(client, specs, timeout) -> dict:

@@ -114,7 +114,10 @@ def structural(specs: list[MissionSpec], missions: list, result):
     except ValueError:
         return result                          # not the graph the joint fit solved
     X, th = fs.from_values(values)
-    return structural_sigma(result, missions, fs, fs.evaluate(X, th), st)
+    # the test also where the fixes are explained, for the fleet's effect step
+    # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
+    return structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
+                            test_always=st.auto_effect and specs[0].estimate is None)
 
 
 def smooth_tracks(specs: list[MissionSpec], missions: list, result):

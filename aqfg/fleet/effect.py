@@ -1,0 +1,96 @@
+"""The fleet's effect step (:attr:`aqfg.fg.common.FGSettings.auto_effect`, as ``aqfg fit``'s
+:func:`aqfg.fg.fit.adopt_effect`): which effect the vehicles' structural tests call for,
+whether the fleet's refit with it is kept, and the record of the step. One model serves
+the whole fleet, so that its vehicles' constants compare (``fleet.json``'s test)."""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from aqfg.fg.fit import _difference, _label, _variable_estimates, base_record, dynamics_effect
+from aqfg.result import Result
+
+
+def choose(results: dict[str, Result], effects: Sequence) -> dict | None:
+    """The effect of the vehicle's dynamics (not a drift) that the most vehicles' structural
+    tests call for (``info["structural_test"]["called_for"]``), ties broken by the summed
+    score statistic: ``{"effect", "vehicles", "statistic", "p_value_robust": {vehicle: p}}``;
+    None where no vehicle's test calls for one not already in ``effects``."""
+    have = {getattr(e, "name", e) for e in effects}
+    votes: dict[str, dict] = {}
+    for v, r in results.items():
+        st = r.info.get("structural_test") or {}
+        stat = {c["effect"]: float(c.get("statistic", 0.0)) for c in st.get("ranked", [])}
+        for c in st.get("called_for", []):
+            e = c["effect"]
+            if e in have or not dynamics_effect(e):
+                continue
+            x = votes.setdefault(e, {"effect": e, "vehicles": [], "statistic": 0.0,
+                                     "p_value_robust": {}})
+            x["vehicles"].append(v)
+            x["statistic"] += stat.get(e, 0.0)
+            x["p_value_robust"][v] = float(c["p_value_robust"])
+    if not votes:
+        return None
+    return max(votes.values(), key=lambda x: (len(x["vehicles"]), x["statistic"]))
+
+
+def _cost(results: dict[str, Result]) -> float:
+    return sum(float(r.info.get("cost", math.nan)) for r in results.values())
+
+
+def judge(before: dict[str, Result], after: dict[str, Result]) -> str:
+    """Why the fleet's refit ``after`` may not replace ``before`` ("" where it may): it
+    must lower the fleet's cost, every vehicle's fit must be plausible, and every
+    mission's heading offset and current must stay within 3 of ``before``'s honest sigmas
+    (which include the effect's predicted shift)."""
+    c0, c1 = _cost(before), _cost(after)
+    why = []
+    for v, r in before.items():
+        n = after[v]
+        if not n.info.get("plausible", True):
+            why.append(f"vehicle {v}'s fit is not plausible")
+            continue
+        base, moved = _variable_estimates(r), _variable_estimates(n)
+        far = [_label(m, k) for (m, k), (x, s) in base.items() if (m, k) in moved
+               and not abs(_difference(k, moved[m, k][0], x)) <= 3.0 * s]
+        if far:
+            why.append(f"it moves vehicle {v}'s {', '.join(far)} by more than 3 sigma of the "
+                       "fit without it")
+    if not c1 < c0:
+        why.insert(0, f"it does not lower the fleet's cost ({c0:.1f} -> {c1:.1f})")
+    return "; ".join(why)
+
+
+def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | None,
+           why: str) -> None:
+    """Each vehicle's ``info["auto_effect"]`` (as :func:`aqfg.fg.fit.adopt_effect`'s, plus
+    ``fleet``: the vehicles whose tests called for it and the fleet's cost) and a warning,
+    on ``after``'s results (the refit, None where it failed) where the effect was added
+    (``why`` empty), else on ``before``'s."""
+    fleet = {"vehicles_calling": list(pick["vehicles"]), "cost_before": _cost(before),
+             "cost_after": _cost(after) if after is not None else math.nan}
+    name, p = pick["effect"], min(pick["p_value_robust"].values())
+    for v, r in before.items():
+        rec: dict = {"effect": name, "p_value_robust": pick["p_value_robust"].get(v, p),
+                     "fixes_explained": "sigma_structure" not in r.info,
+                     "cost_before": float(r.info.get("cost", math.nan)),
+                     "cost_after": (float(after[v].info.get("cost", math.nan))
+                                    if after is not None else math.nan),
+                     "base": base_record(r), "fleet": fleet, "adopted": not why}
+        if why:
+            rec["reason"] = why
+            r.info["auto_effect"] = rec
+            r.info.setdefault("warnings", []).append(
+                f"the effect {name} was not added to the fleet's model ({why}): the model "
+                "is fitted as given")
+            continue
+        assert after is not None
+        n = after[v]
+        n.info["auto_effect"] = rec
+        n.info.setdefault("warnings", []).insert(
+            0, f"added the effect {name} to the fleet's model, which the fits of "
+               f"{len(pick['vehicles'])} of {len(before)} vehicles call for (robust score test "
+               f"p = {p:.2g}; fleet cost {fleet['cost_before']:.1f} -> "
+               f"{fleet['cost_after']:.1f}); aqfg fleet --no-auto-effect (FGSettings("
+               "auto_effect=False)) fits the model as given")
