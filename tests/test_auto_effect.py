@@ -188,3 +188,28 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     e = _errors(out, truth)
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02
     assert any("explains the fixes best" in w for w in out.info["warnings"])
+
+
+def test_a_second_minimum_as_good_widens_the_sigma():
+    """The refit's two starts can end in two local minima (the sway drag linear or
+    quadratic): where the other explains the fixes as well (cost within the ambiguity
+    margin), each sigma is widened by the difference between them, top-level and per
+    mission; a minimum clearly worse changes nothing."""
+    from aqfg.result import Result
+    est = ("theta_e", "s_x", "k")
+
+    def res(cost, th, sx, k):
+        r = Result("fg", "batch", est, {"theta_e": th, "s_x": sx, "k": k},
+                   {"theta_e": 0.003, "s_x": 0.005, "k": 0.06}, [])
+        r.info = {"cost": cost, "per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
+                                                      "s_x": {"value": sx, "sigma": 0.005}}}}
+        return r
+    chosen = res(1080.2, -1.1748, 0.0196, 1.388)
+    fit_module._widen_by_other_minimum(chosen, [res(1084.6, -1.1723, 0.0084, 1.30)])
+    assert chosen.sigma["s_x"] == pytest.approx(np.hypot(0.005, 0.0112))
+    assert chosen.sigma["k"] == pytest.approx(np.hypot(0.06, 0.088))
+    assert chosen.info["per_mission"]["a"]["s_x"]["sigma"] == pytest.approx(np.hypot(0.005, 0.0112))
+    assert chosen.info["other_minimum"]["cost"] == [1084.6]
+    far = res(1080.2, -1.1748, 0.0196, 1.388)
+    fit_module._widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
+    assert far.sigma["s_x"] == 0.005 and "other_minimum" not in far.info
