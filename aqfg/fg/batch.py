@@ -645,8 +645,14 @@ class BatchSmoother:
             return None
         self._track_job = sm._track_job
         slip = max((v.slip_deg or 0.0) for v in verdicts)
-        w = (f"the free fit slid sideways through the water ({slip:.0f} deg off the thrust axis "
-             f"on held courses), which no hull does: k_yz held at {st.fixed['k_yz']:.3g} "
+        if slip >= 1.0:
+            why = (f"slid sideways through the water ({slip:.0f} deg off the thrust axis on "
+                   "held courses), which no hull does")
+        else:
+            # implausible for another reason than a slip it shows (say which)
+            reasons = sorted({r for v in verdicts for r in v.reasons})
+            why = f"was implausible ({'; '.join(reasons) or 'no start gave a plausible fit'})"
+        w = (f"the free fit {why}: k_yz held at {st.fixed['k_yz']:.3g} "
              f"(sway drag {st.fixed['k_yz'] / st.fixed['k_x']:.0f}x the surge drag, where the "
              "slip is near zero whatever its value); run `aqfg diagnose` for the missing physics")
         res.info["warnings"] = [w, *res.info.get("warnings", [])]
