@@ -886,6 +886,10 @@ class FixedLagSmoother:
             assert own_b is not None
             ref_v = {**bres.values, **own_b["values"]}
         th_b = ref_v["theta_e"]
+        free = self._constants_discrepancy(view, ref_v) if self._constants_given else None
+        if free:
+            for n, d in free["difference"].items():
+                self._ambiguity[n] = self._ambiguity.get(n, 0.0) + d * d
         gap = abs(float(np.angle(np.exp(1j * (th_b - p[self.model.index("theta_e")])))))
         # released: restart when the online heading is outside the batch's 3 sigma (its
         # honest sigma; at least 1 deg) -- the smoother's marginal priors, linearised when
@@ -912,7 +916,8 @@ class FixedLagSmoother:
             "theta_e_determined": not undetermined,
             "reference": ("solution from the online estimate (as good a basin)" if own_ref
                           else "non-sliding alternative" if alt else "batch"),
-            "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb})
+            "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb,
+            **({"constants_free": free} if free is not None else {})})
         if force:
             self._forced_at = float(t_fix)
         elif gap < tol:
@@ -933,6 +938,40 @@ class FixedLagSmoother:
             t_re)
         self._release(t_fix)
         return info
+
+    def _constants_discrepancy(self, view: Mission, ref: dict[str, float]) -> dict | None:
+        """The thrust/drag constants given (another mission's, or the defaults) are not this
+        mission's: the fixes so far solved again with them free (from the given values),
+        and each variable parameter's difference from the batch ``ref`` with them held
+        (``{"difference": {name: value}, "theta_e", "cost"}``; None where that solve fails
+        or is implausible). Its square is added to the reported variance until the next
+        batch (``_ambiguity``): the held constants' sigma assumes them right, and with a
+        weak-propeller mission's constants a 16-s batch put theta_e 42 deg off with sigma
+        12 deg where the free solve was 17 deg off (docs/independent-vehicle.md)."""
+        from aqfg.fg.batch import BatchSmoother
+        consts = tuple(n for n in self.model.active_names
+                       if self.model.spec(n).group == "fixed" and n not in self.layout.estimated)
+        if not consts:
+            return None
+        try:
+            bs = BatchSmoother(self.base_model, effects=self.effects,
+                               estimate=(*self.layout.estimated, *consts), init=self.init,
+                               settings=replace(self.settings, online_init_after=0.0,
+                                                adapt_batch=None, measure_noise=True,
+                                                adapt_track=False))
+            bs.log_warnings = False
+            res = bs.run([view])
+        except (ValueError, np.linalg.LinAlgError, *GTSAM_ERRORS):
+            return None
+        if not res.info.get("plausible", True):
+            return None
+        diff = {}
+        for n in self.layout.estimated:
+            if n in ref and n in res.values and self.model.spec(n).group == "variable":
+                d = float(res.values[n]) - float(ref[n])
+                diff[n] = abs(math.remainder(d, 2 * math.pi) if n == "theta_e" else d)
+        return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
+                "cost": float(res.info.get("cost", np.nan))}
 
     def _batch_not_used(self, t_fix: float, event: dict) -> None:
         """A re-initialisation batch that failed or is not used: recorded (``event``); the
