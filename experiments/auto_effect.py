@@ -9,7 +9,7 @@ none), seeds 1 and 2, 600 s, 8-s fixes (a drifting current, too, against its mis
 Writes experiments/results/auto_effect.md (``--out`` to name another file). Run:
 ``python experiments/auto_effect.py`` (the Otter missions of tests/data), ``--data DIR``
 (every mission under DIR with a ``[truth]`` table, e.g. those of
-``experiments/heldout/otter_missions.py``), ``--sim``.
+``experiments/heldout/otter_missions.py``), ``--sim`` (writes results/auto_effect_sim.md).
 """
 from __future__ import annotations
 
@@ -101,9 +101,14 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None, help="missions with truth (default: "
                     "the Otter missions of tests/data)")
     ap.add_argument("--sim", action="store_true", help="aqfg's simulator, each effect hidden")
-    ap.add_argument("--out", type=Path, default=RESULTS / "auto_effect.md")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="the table (default: results/auto_effect.md, with --sim "
+                         "results/auto_effect_sim.md)")
     ap.add_argument("--jobs", type=int, default=2)
     a = ap.parse_args()
+    if a.out is None:
+        # (--sim without --out wrote over the missions' table)
+        a.out = RESULTS / ("auto_effect_sim.md" if a.sim else "auto_effect.md")
     t0 = time.perf_counter()
     if a.sim:
         from aqfg.sim.cases import CASES
