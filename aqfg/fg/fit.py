@@ -268,10 +268,10 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
                 effects: Sequence, init, settings: FGSettings | None, progress) -> dict:
     """The fit again with the candidate effect ``pick`` (a structural-test entry) added,
     judged against the model-as-given fit (``base``: its variable estimates and honest
-    sigmas, :func:`_variable_estimates`; ``cost0``: its cost): ``{"rec", "new", "bs", "why",
-    "moved"}``, ``why`` empty where it
-    may be adopted (lower cost, plausible, the heading offset and the current within 3
-    sigma of ``res``'s honest sigma)."""
+    sigmas, :func:`_variable_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
+    "bs", "why", "moved"}``; ``why`` is empty where the refit may be adopted: it lowers the
+    cost, is plausible, and keeps the heading offset and the current within 3 of ``base``'s
+    sigmas."""
     name = pick["effect"]
     # solved from the effect's one-step values and from its null, the lower cost kept: with
     # the linear drag the sway drag has two local minima (linear, c_yz > 0 and k_yz small;
