@@ -179,6 +179,17 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
 ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
 
 
+def effect_step_document(ae: dict) -> dict:
+    """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
+    fleet's share, from a result's ``info["auto_effect"]``: the effect, whether it was
+    added (and why not), its robust p and the costs without and with it."""
+    return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
+            "p_value_robust": float(ae["p_value_robust"]),
+            "cost_before": float(ae["cost_before"]),
+            "cost_after": float(ae.get("cost_after", float("nan"))),
+            **({"reason": ae["reason"]} if "reason" in ae else {})}
+
+
 def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     """The content of ``parameters.json`` (format doc, "Outputs"): the estimated parameters
     (value, 1-sigma, unit), the fixed parameters the model used (value, unit), per-mission
@@ -232,11 +243,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # auto_effect), and the heading offset and current of the model as given
         b = ae["base"]
         doc["auto_effect"] = {
-            "effect": ae["effect"], "adopted": bool(ae["adopted"]),
-            "p_value_robust": float(ae["p_value_robust"]),
-            "cost_before": float(ae["cost_before"]),
-            "cost_after": float(ae.get("cost_after", float("nan"))),
-            **({"reason": ae["reason"]} if "reason" in ae else {}),
+            **effect_step_document(ae),
             "without_effect": {n: {"value": float(b["values"][n]),
                                    "sigma": float(b["sigma"].get(n, float("nan")))}
                                for n in ("theta_e", "s_x", "s_y") if n in b["values"]}}

@@ -44,16 +44,11 @@ def run(args) -> int:
                         for n in names)
         d = e["test"]["differs"]
         print(f"{v:<20}{cells}{'-' if d is None else ('yes' if d else 'no'):>9}")
-    said = set()
-    for r in fr.results.values():
-        ae = r.info.get("auto_effect")
-        if ae:
-            # the fleet's effect step: one warning for the fleet
-            w = next((w for w in r.info.get("warnings", []) if ae["effect"] in w
-                      and ("added the effect" in w or "was not added" in w)), None)
-            if w and w not in said:
-                said.add(w)
-                print(f"warning: {w}", file=sys.stderr)
+    # the fleet's effect step: one message for the fleet (each vehicle's record holds it)
+    step = next((r.info["auto_effect"]["fleet"]["message"] for r in fr.results.values()
+                 if r.info.get("auto_effect")), None)
+    if step:
+        print(f"warning: {step}", file=sys.stderr)
     for v, e in table["vehicles"].items():
         if e.get("plausible") is False:
             print(f"warning: {v}: a mission's solution is implausible (see fleet.json); "

@@ -44,12 +44,15 @@ class StructuralShift:
     effect: str
     p_robust: float
     shift: dict[str, float]
-    # every candidate the data call for, best first (``effect`` the first):
-    # {effect, p_value_robust, estimate (its one-step values)}
-    called_for: list[dict[str, Any]] = field(default_factory=list)
-    # every candidate tested, called for or not, by its score statistic (largest first),
-    # as ``called_for``'s entries plus "statistic" and "called_for" (bool)
+    # every candidate tested, called for or not, by its score statistic (largest first):
+    # {effect, p_value_robust, estimate (its one-step values), statistic, called_for (bool)}
     ranked: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def called_for(self) -> list[dict[str, Any]]:
+        """The candidates the data call for (robust p below the level after Holm), best
+        first (``effect`` the first): ``ranked``'s entries so marked."""
+        return [c for c in self.ranked if c["called_for"]]
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "p_value_robust": self.p_robust,
@@ -137,12 +140,9 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                 shift[n] = max(shift.get(n, 0.0), abs(float(move[o + j])))
     if not shift:
         return None
-
-    def entry(x) -> dict[str, Any]:
-        return {"effect": x.effect, "p_value_robust": float(x.p_value_robust),
-                "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)}}
     called = {x.effect for x in ranked}
-    return StructuralShift(t.effect, t.p_value_robust, shift, [entry(x) for x in ranked],
-                           [{**entry(x), "statistic": float(x.statistic),
-                             "called_for": x.effect in called}
+    return StructuralShift(t.effect, t.p_value_robust, shift,
+                           [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
+                             "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)},
+                             "statistic": float(x.statistic), "called_for": x.effect in called}
                             for x in sorted(tests, key=lambda x: -x.statistic)])

@@ -50,8 +50,7 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     if mode == "batch":
-        st = settings or FGSettings()
-        auto = st.auto_effect and estimate is None and st.structural_sigma
+        auto = auto_effect_applies(settings or FGSettings(), estimate)
         res, bs = _solve(missions, model, effects, estimate, init, settings, progress,
                          log_warnings=not auto, test_always=auto)
         if auto:
@@ -79,6 +78,13 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     r0.info["per_mission"] = {r.missions[0].name: {n: {"value": r.values[n], "sigma": r.sigma.get(n, np.nan)}
                                                    for n in r.estimated} for r in results}
     return r0
+
+
+def auto_effect_applies(settings: FGSettings, estimate: Sequence[str] | None) -> bool:
+    """Whether a batch fit (``aqfg fit``'s or the fleet's) takes the effect step
+    (:attr:`FGSettings.auto_effect`): on, the default parameters (no ``estimate``: with it
+    the user has chosen the model) and the structural test that names the effect."""
+    return settings.auto_effect and estimate is None and settings.structural_sigma
 
 
 def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init, settings,
@@ -126,7 +132,9 @@ def _widen_by_other_minimum(res: Result, others: list[Result]) -> None:
             if float(o.info.get("cost", np.inf)) - cost < ambiguity_margin(cost)]
     if not near:
         return
+    # the largest difference over the near minima, top-level and per mission
     d_top: dict[str, float] = {}
+    d_per: dict[tuple[str, str], float] = {}
     for o in near:
         for n in res.estimated:
             if n in res.sigma and n in o.values:
@@ -136,7 +144,10 @@ def _widen_by_other_minimum(res: Result, others: list[Result]) -> None:
             for n, e in est.items():
                 if n in oe and isinstance(e, dict) and e.get("sigma") is not None:
                     d = abs(_difference(n, float(oe[n]["value"]), float(e["value"])))
-                    e["sigma"] = float(np.hypot(float(e["sigma"]), d))
+                    d_per[m, n] = max(d_per.get((m, n), 0.0), d)
+    for (m, n), d in d_per.items():
+        e = res.info["per_mission"][m][n]
+        e["sigma"] = float(np.hypot(float(e["sigma"]), d))
     before = {n: float(res.sigma[n]) for n in d_top}
     for n, d in d_top.items():
         res.sigma[n] = float(np.hypot(res.sigma[n], d))
@@ -155,7 +166,7 @@ def base_record(res: Result) -> dict:
                if len(res.missions) > 1 and res.info.get("per_mission") else {})}
 
 
-def _variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:
+def variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:
     """``{(mission or "", name): (value, sigma)}`` of the heading offset and the current:
     per mission where a joint fit has them per mission, else the fit's."""
     names = [n for n in ("theta_e", "s_x", "s_y") if n in res.estimated]
@@ -178,6 +189,17 @@ def _label(mission: str, name: str) -> str:
 def _difference(name: str, a: float, b: float) -> float:
     """``a - b``, wrapped to (-pi, pi] for the heading offset."""
     return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
+
+
+def moves(base: dict, after: dict) -> tuple[dict[tuple[str, str], float], list[str]]:
+    """From the :func:`variable_estimates` ``base`` (the model as given) to ``after`` (a
+    refit): each estimate's move, ``{(mission or "", name): after - base}``, and the labels
+    of those beyond 3 of ``base``'s sigmas (a NaN sigma counts as beyond: nothing says the
+    move is within it), the effect step's guard."""
+    moved = {(m, n): _difference(n, after[m, n][0], v)
+             for (m, n), (v, _) in base.items() if (m, n) in after}
+    far = [_label(m, n) for (m, n), d in moved.items() if not abs(d) <= 3.0 * base[m, n][1]]
+    return moved, far
 
 
 def dynamics_effect(name: str) -> bool:
@@ -214,7 +236,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
         return _finish(res, bs, missions, model, effects)
     top = next((c for c in (st or {}).get("ranked", []) if dynamics(c)), called)
     picks = [called] + ([top] if top["effect"] != called["effect"] else [])
-    base = _variable_estimates(res)
+    base = variable_estimates(res)
     cost0 = float(res.info.get("cost", np.nan))
     tried = []
     for pick in picks:
@@ -268,7 +290,7 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
                 effects: Sequence, init, settings: FGSettings | None, progress) -> dict:
     """The fit again with the candidate effect ``pick`` (a structural-test entry) added,
     judged against the model-as-given fit (``base``: its variable estimates and honest
-    sigmas, :func:`_variable_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
+    sigmas, :func:`variable_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
     "bs", "why", "moved"}``; ``why`` is empty where the refit may be adopted: it lowers the
     cost, is plausible, and keeps the heading offset and the current within 3 of ``base``'s
     sigmas."""
@@ -301,12 +323,8 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
         why = ""
         _widen_by_other_minimum(new, [o for o in solved if o is not new])
         rec["cost_after"] = float(new.info.get("cost", np.nan))
-        after = _variable_estimates(new)
-        moved = {(m, n): _difference(n, after[m, n][0], v)
-                 for (m, n), (v, _) in base.items() if (m, n) in after}
+        moved, far = moves(base, variable_estimates(new))
         rec["moved"] = {_label(m, n): d for (m, n), d in moved.items()}
-        # (a NaN sigma counts as far: nothing says the move is within it)
-        far = [_label(m, n) for (m, n), d in moved.items() if not abs(d) <= 3.0 * base[m, n][1]]
         if not new.info.get("plausible", True):
             why = "its fit is not plausible"
         elif not rec["cost_after"] < cost0:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -773,7 +774,7 @@ class FixedLagSmoother:
         release them where they are. An incremental solver cannot leave a wrong heading
         basin by itself; the batch of the data so far does not start in one. A ``rescue``
         (:meth:`_reinit_due`) leaves the schedule of later checks where it was."""
-        from aqfg.fg.batch import BatchSmoother, as_good_a_basin
+        from aqfg.fg.batch import as_good_a_basin
         t_re = time.perf_counter()
         el = t_fix - self.knots[0]
         self._batch_tried = True
@@ -793,14 +794,7 @@ class FixedLagSmoother:
             # the sandwich (the batch's default rule), else measured only: over 640 s of an
             # Otter mission the evidence-chosen noise freed a hull sliding sideways, theta_e
             # 44 deg off, which replaced a right online estimate (docs/independent-vehicle.md)
-            bs = BatchSmoother(self.base_model, effects=self.effects,
-                               estimate=self.layout.estimated, init=self.init,
-                               settings=replace(self.settings, online_init_after=0.0,
-                                                adapt_batch=None, measure_noise=True,
-                                                adapt_track=False),
-                               also_start=own)
-            bs.log_warnings = False
-            bres = bs.run([view])
+            bres = self._batch(self.layout.estimated, also_start=own).run([view])
         except (ValueError, *GTSAM_ERRORS) as exc:
             self._batch_not_used(t_fix, {
                 "event": "batch re-initialisation failed",
@@ -944,41 +938,48 @@ class FixedLagSmoother:
         self._release(t_fix)
         return info
 
+    def _batch(self, estimate: Sequence[str], also_start: dict[str, float] | None = None):
+        """A re-initialisation batch solver of the fixes so far (its warnings not logged):
+        the process noise by the evidence only where the fixes are too short for the
+        sandwich, else measured only (see :meth:`_reinitialise`)."""
+        from aqfg.fg.batch import BatchSmoother
+        bs = BatchSmoother(self.base_model, effects=self.effects, estimate=tuple(estimate),
+                           init=self.init,
+                           settings=replace(self.settings, online_init_after=0.0,
+                                            adapt_batch=None, measure_noise=True,
+                                            adapt_track=False),
+                           also_start=also_start)
+        bs.log_warnings = False
+        return bs
+
     def _constants_discrepancy(self, view: Mission, ref: dict[str, float]) -> dict | None:
-        """The thrust/drag constants given (another mission's, or the defaults) are not this
-        mission's: the fixes so far solved again with them free (from the given values),
-        and each variable parameter's difference from the batch ``ref`` with them held
-        (``{"difference": {name: value}, "theta_e", "cost"}``; None where that solve fails
-        or is implausible). Its square is added to the reported variance until the next
+        """The thrust/drag constants given (another mission's fit, or by hand) may not be
+        this mission's: the fixes so far solved again with them free (from the given
+        values), and each variable parameter's difference from the batch ``ref`` with them
+        held: ``{"difference": {name: value}, "theta_e", "sigma_theta_e", "sigma",
+        "theta_e_determined", "free", "cost"}``, None where that solve fails or is
+        implausible. Its square is added to the reported variance until the next
         batch (``_ambiguity``): the held constants' sigma assumes them right, and with a
         weak-propeller mission's constants a 16-s batch put theta_e 42 deg off with sigma
         12 deg where the free solve was 17 deg off (docs/independent-vehicle.md)."""
-        from aqfg.fg.batch import BatchSmoother
         consts = tuple(n for n in self.model.active_names
                        if self.model.spec(n).group == "fixed" and n not in self.layout.estimated)
         if not consts:
             return None
-        res = None
         # all free; where that is implausible (on a short stretch the sway drag often falls
         # to its bound, a hull sliding sideways), all but the sway drag
-        for free in (consts, tuple(n for n in consts if n != "k_yz")):
-            if not free:
-                break
+        tries = [consts]
+        if "k_yz" in consts and len(consts) > 1:
+            tries.append(tuple(n for n in consts if n != "k_yz"))
+        res = None
+        for free in tries:
             try:
-                bs = BatchSmoother(self.base_model, effects=self.effects,
-                                   estimate=(*self.layout.estimated, *free), init=self.init,
-                                   settings=replace(self.settings, online_init_after=0.0,
-                                                    adapt_batch=None, measure_noise=True,
-                                                    adapt_track=False))
-                bs.log_warnings = False
-                res = bs.run([view])
+                res = self._batch((*self.layout.estimated, *free)).run([view])
             except (ValueError, np.linalg.LinAlgError, *GTSAM_ERRORS):
                 res = None
             if res is not None and res.info.get("plausible", True):
                 break
             res = None
-            if "k_yz" not in free:
-                break
         if res is None:
             return None
         diff = {}

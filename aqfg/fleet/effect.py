@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from aqfg.fg.fit import _difference, _label, _variable_estimates, base_record, dynamics_effect
+from aqfg.fg.fit import base_record, dynamics_effect, moves, variable_estimates
 from aqfg.result import Result
 
 
@@ -51,9 +51,7 @@ def judge(before: dict[str, Result], after: dict[str, Result]) -> str:
         if not n.info.get("plausible", True):
             why.append(f"vehicle {v}'s fit is not plausible")
             continue
-        base, moved = _variable_estimates(r), _variable_estimates(n)
-        far = [_label(m, k) for (m, k), (x, s) in base.items() if (m, k) in moved
-               and not abs(_difference(k, moved[m, k][0], x)) <= 3.0 * s]
+        _, far = moves(variable_estimates(r), variable_estimates(n))
         if far:
             why.append(f"it moves vehicle {v}'s {', '.join(far)} by more than 3 sigma of the "
                        "fit without it")
@@ -65,12 +63,20 @@ def judge(before: dict[str, Result], after: dict[str, Result]) -> str:
 def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | None,
            why: str) -> None:
     """Each vehicle's ``info["auto_effect"]`` (as :func:`aqfg.fg.fit.adopt_effect`'s, plus
-    ``fleet``: the vehicles whose tests called for it and the fleet's cost) and a warning,
-    on ``after``'s results (the refit, None where it failed) where the effect was added
-    (``why`` empty), else on ``before``'s."""
+    ``fleet``: the vehicles whose tests called for it, the fleet's cost and the step's
+    message) and that message among its warnings, on ``after``'s results (the refit, None
+    where it failed) where the effect was added (``why`` empty), else on ``before``'s."""
     fleet = {"vehicles_calling": list(pick["vehicles"]), "cost_before": _cost(before),
              "cost_after": _cost(after) if after is not None else math.nan}
     name, p = pick["effect"], min(pick["p_value_robust"].values())
+    # one message for the fleet (``fleet["message"]``), the same in every vehicle's warnings
+    fleet["message"] = (
+        f"the effect {name} was not added to the fleet's model ({why}): the model is fitted "
+        "as given" if why else
+        f"added the effect {name} to the fleet's model, which the fits of "
+        f"{len(pick['vehicles'])} of {len(before)} vehicles call for (robust score test "
+        f"p = {p:.2g}; fleet cost {fleet['cost_before']:.1f} -> {fleet['cost_after']:.1f}); "
+        "aqfg fleet --no-auto-effect (FGSettings(auto_effect=False)) fits the model as given")
     for v, r in before.items():
         rec: dict = {"effect": name, "p_value_robust": pick["p_value_robust"].get(v, p),
                      "fixes_explained": "sigma_structure" not in r.info,
@@ -81,16 +87,8 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
         if why:
             rec["reason"] = why
             r.info["auto_effect"] = rec
-            r.info.setdefault("warnings", []).append(
-                f"the effect {name} was not added to the fleet's model ({why}): the model "
-                "is fitted as given")
+            r.info.setdefault("warnings", []).append(fleet["message"])
             continue
         assert after is not None
-        n = after[v]
-        n.info["auto_effect"] = rec
-        n.info.setdefault("warnings", []).insert(
-            0, f"added the effect {name} to the fleet's model, which the fits of "
-               f"{len(pick['vehicles'])} of {len(before)} vehicles call for (robust score test "
-               f"p = {p:.2g}; fleet cost {fleet['cost_before']:.1f} -> "
-               f"{fleet['cost_after']:.1f}); aqfg fleet --no-auto-effect (FGSettings("
-               "auto_effect=False)) fits the model as given")
+        after[v].info["auto_effect"] = rec
+        after[v].info.setdefault("warnings", []).insert(0, fleet["message"])

@@ -14,7 +14,13 @@ import numpy as np
 from scipy import stats
 
 from aqfg.fleet.solve import FleetResult
-from aqfg.result import PARAMETERS_FORMAT, Result, dead_reckoning_document, write_result
+from aqfg.result import (
+    PARAMETERS_FORMAT,
+    Result,
+    dead_reckoning_document,
+    effect_step_document,
+    write_result,
+)
 
 
 def fixed_names(res: Result) -> tuple[str, ...]:
@@ -161,11 +167,8 @@ def effect_document(ae: dict) -> dict:
         return float(x) if x is not None and math.isfinite(float(x)) else None
     fl = ae.get("fleet", {})
     per = ae.get("base", {}).get("per_mission") or {}
-    return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
-            **({"reason": ae["reason"]} if "reason" in ae else {}),
-            "p_value_robust": num(ae.get("p_value_robust")),
+    return {**effect_step_document(ae),
             "vehicles_calling": list(fl.get("vehicles_calling", [])),
-            "cost_before": num(ae.get("cost_before")), "cost_after": num(ae.get("cost_after")),
             "fleet_cost_before": num(fl.get("cost_before")),
             "fleet_cost_after": num(fl.get("cost_after")),
             "without_effect": (

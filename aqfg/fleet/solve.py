@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from aqfg.fg.common import FGSettings
+from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
 from aqfg.fleet.manifest import Manifest
 from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, refine_op, release
@@ -98,7 +99,7 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
                              "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
     specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
                                   gnss_every, show, timeout, stats)
-    if settings.auto_effect and estimate is None and settings.structural_sigma:
+    if auto_effect_applies(settings, estimate):
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
                                       show, timeout, stats, specs, results)
     stats["memory"] = _memory(client)

@@ -100,7 +100,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     parameters)."""
     from aqfg.fg.batch import BatchSmoother, solution_values
     from aqfg.fg.fastlm import FastSystem
-    from aqfg.fg.fit import structural_sigma
+    from aqfg.fg.fit import auto_effect_applies, structural_sigma
     st = specs[0].settings
     if not st.structural_sigma or result.model is None:
         return result
@@ -117,7 +117,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     # the test also where the fixes are explained, for the fleet's effect step
     # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
     return structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
-                            test_always=st.auto_effect and specs[0].estimate is None)
+                            test_always=auto_effect_applies(st, specs[0].estimate))
 
 
 def smooth_tracks(specs: list[MissionSpec], missions: list, result):
