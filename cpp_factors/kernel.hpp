@@ -207,6 +207,30 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
     }
   }
 
+  // inflow (ground_advance): each propeller loses c |u| va of its thrust, va the speed over
+  // ground along its axis; |u| = (d^2 + 1e-4)^(1/4) (effects.abs_command)
+  const double cga = p[P_GROUND_ADVANCE_C];
+  double bga[3] = {0, 0, 0}, Mg[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+  if (Jac || cga != 0.0) {
+    double vg[3];
+    for (int m = 0; m < 3; ++m) vg[m] = R[m] * v[0] + R[3 + m] * v[1] + R[6 + m] * v[2];
+    for (std::ptrdiff_t i = 0; i < g.n_thr; ++i) {
+      const double* u = g.dirs + 3 * i;
+      const double r = d[i] * d[i] + 1e-4, n = std::sqrt(std::sqrt(r));
+      const double va = u[0] * vg[0] + u[1] * vg[1] + u[2] * vg[2];
+      const double loss = cga * n * va;
+      for (int m = 0; m < 3; ++m) at[m] -= loss * u[m];
+      if constexpr (Jac) {
+        const double dn = 0.5 * d[i] * n / r, tt = cga * va * dn * dd[i];
+        for (int m = 0; m < 3; ++m) {
+          bga[m] -= n * va * u[m];
+          bt[m] -= tt * u[m];
+          for (int l = 0; l < 3; ++l) Mg[3 * m + l] -= cga * n * u[m] * u[l];
+        }
+      }
+    }
+  }
+
   // drag (Eq. 2): quadratic + linear
   const double kq[3] = {p[P_K_X], p[P_K_YZ], p[P_K_YZ]};
   const double kl[3] = {p[P_LINEAR_DRAG_C_X], p[P_LINEAR_DRAG_C_YZ], p[P_LINEAR_DRAG_C_YZ]};
@@ -232,16 +256,25 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
     for (int c = 0; c < 3; ++c)
       A[3 * r + c] = RD[3 * r] * R[3 * c] + RD[3 * r + 1] * R[3 * c + 1] + RD[3 * r + 2] * R[3 * c + 2];
 
-  // heading: dR/dth = E_Z R, E_Z x = (-x1, x0, 0); d v_r/dth = R^T E_Z^T w
-  double qth[3];
-  for (int m = 0; m < 3; ++m) qth[m] = R[m] * w[1] - R[3 + m] * w[0];
+  // heading: dR/dth = E_Z R, E_Z x = (-x1, x0, 0); d v_r/dth = R^T E_Z^T w, d v_g/dth = R^T E_Z^T v
+  double qth[3], qg[3];
+  for (int m = 0; m < 3; ++m) {
+    qth[m] = R[m] * w[1] - R[3 + m] * w[0];
+    qg[m] = R[m] * v[1] - R[3 + m] * v[0];
+  }
   const double ez[3] = {-Rab[1], Rab[0], 0.0};
+  // R Mg: d a / d v_g (the inflow), and its d a / d v = R Mg R^T (added after the current's columns)
+  double RMg[9];
+  for (int r = 0; r < 3; ++r)
+    for (int m = 0; m < 3; ++m)
+      RMg[3 * r + m] = R[3 * r] * Mg[m] + R[3 * r + 1] * Mg[3 + m] + R[3 * r + 2] * Mg[6 + m];
 
   const int nrow = g.planar ? 2 : 3;
   for (int r = 0; r < nrow; ++r) {
     const double* Rr = R + 3 * r;
     double* J = Jp + r * ldj;
-    const double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2];
+    const double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2] +
+                       RMg[3 * r] * qg[0] + RMg[3 * r + 1] * qg[1] + RMg[3 * r + 2] * qg[2];
     J[P_THETA_E] = dth;
     J[P_HEADING_DRIFT_RATE] = dth * tm;
     J[P_S_X] = -A[3 * r];
@@ -258,7 +291,12 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
     J[P_THRUST_LAG_TAU] = Rr[0] * bt[0] + Rr[1] * bt[1] + Rr[2] * bt[2];
     J[P_WIND_DRAG_A_N] = r == 0 ? 1.0 : 0.0;
     J[P_WIND_DRAG_A_E] = r == 1 ? 1.0 : 0.0;
+    J[P_GROUND_ADVANCE_C] = Rr[0] * bga[0] + Rr[1] * bga[1] + Rr[2] * bga[2];
   }
+  if (cga != 0.0)
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c)
+        A[3 * r + c] += RMg[3 * r] * R[3 * c] + RMg[3 * r + 1] * R[3 * c + 1] + RMg[3 * r + 2] * R[3 * c + 2];
   if (g.planar) {
     for (int c = 0; c < 3; ++c) A[6 + c] = 0.0;
     for (int c = 0; c < N_DYN; ++c) Jp[2 * ldj + c] = 0.0;

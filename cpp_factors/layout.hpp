@@ -27,6 +27,7 @@ enum ParamIndex : int {
   P_CURRENT_DRIFT_DS_Y = 13,      // current_drift.ds_y [m/s^2]
   P_WIND_DRAG_A_N = 14,           // wind_drag.a_n [m/s^2]
   P_WIND_DRAG_A_E = 15,           // wind_drag.a_e [m/s^2]
+  P_GROUND_ADVANCE_C = 16,        // ground_advance.c [1/s]
   N_DYN
 };
 
@@ -47,6 +48,7 @@ inline constexpr const char* PARAM_NAMES[N_DYN] = {
     "current_drift.ds_y",
     "wind_drag.a_n",
     "wind_drag.a_e",
+    "ground_advance.c",
 };
 
 }  // namespace kernel

@@ -28,7 +28,8 @@ PER_SAMPLE = UserEffect("cub", ("a", "b"), accel=_cubic, null=(0.0, 0.0))
 VECTORISED = UserEffect("cub", ("a", "b"), accel=_cubic_vec, null=(0.0, 0.0), vectorized=True)
 VALUES = {"k": 5.0, "k_x": 1.5, "thrust_lag.tau": 0.4, "reverse_thrust.ratio": 0.6,
           "cub.a": 0.3, "cub.b": 0.2, "theta_e": 0.3, "s_x": 0.1, "heading_drift.rate": 1e-3,
-          "current_drift.ds_x": 1e-3, "linear_drag.c_x": 0.2, "wind_drag.a_n": 0.01}
+          "current_drift.ds_x": 1e-3, "linear_drag.c_x": 0.2, "wind_drag.a_n": 0.01,
+          "ground_advance.c": 0.15}
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +40,7 @@ def mission():
 
 @pytest.mark.parametrize("user", [PER_SAMPLE, VECTORISED], ids=["per-sample", "vectorised"])
 def test_lockstep_equals_the_reference(mission, user):
-    model = Model.for_mission(mission, ("thrust_lag", "reverse_thrust", user))
+    model = Model.for_mission(mission, ("thrust_lag", "reverse_thrust", "ground_advance", user))
     knots = knot_times(mission, 1.0)
     steps, off = model.steps(mission, knots)
     p = model.nominal(VALUES)
@@ -52,6 +53,7 @@ def test_lockstep_equals_the_reference(mission, user):
     else:       # the reference calls one sample at a time: through sample_accel
         want = ref.propagate_many(X0, p, steps, off, model.geometry,
                                   Model.for_mission(mission, ("thrust_lag", "reverse_thrust",
+                                                              "ground_advance",
                                                               PER_SAMPLE)).user_layout())
     for a, b in zip(got, want):
         assert np.allclose(a, b, rtol=1e-8, atol=1e-8)
@@ -61,7 +63,7 @@ def test_lockstep_equals_the_reference(mission, user):
 
 @pytest.mark.parametrize("lag", [True, False])
 def test_rollout_equals_the_segment_by_segment_integration(mission, lag):
-    effects = (("thrust_lag",) if lag else ()) + ("reverse_thrust", VECTORISED)
+    effects = (("thrust_lag",) if lag else ()) + ("reverse_thrust", "ground_advance", VECTORISED)
     model = Model.for_mission(mission, effects)
     p = model.nominal(VALUES if lag else {k: v for k, v in VALUES.items() if "lag" not in k})
     knots = np.arange(mission.t0 + 1.0, mission.t1, 0.5)

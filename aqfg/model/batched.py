@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aqfg.model.effects import abs_command
 from aqfg.model.frames import heading
 from aqfg.model.params import N_DYN
 from aqfg.model.reference import (
@@ -34,6 +35,7 @@ from aqfg.model.reference import (
     I_CYZ,
     I_DSX,
     I_DSY,
+    I_GA,
     I_HDR,
     I_K,
     I_KX,
@@ -127,6 +129,13 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
     g = p[I_K] * g_asym * g_rev
     dirs = np.asarray(geom.dirs, float)
     a_thr = (g * d) @ dirs
+    # ground_advance: thrust lost with |u| and the advance speed over ground
+    c_ga = p[I_GA]
+    if c_ga != 0.0:
+        vg = _mtv(R, v)
+        va = vg @ dirs.T
+        n_abs, dn_dd = abs_command(d)
+        a_thr = a_thr - (c_ga * n_abs * va) @ dirs
     kq = np.array([p[I_KX], p[I_KYZ], p[I_KYZ]])
     kl = np.array([p[I_CX], p[I_CYZ], p[I_CYZ]])
     sq = np.sign(vr) * vr ** 2
@@ -140,9 +149,16 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
             a[:, 2] = 0.0
         return a, R
     Dg = -2.0 * kq * np.abs(vr) - kl
-    A = (R * Dg[:, None, :]) @ np.transpose(R, (0, 2, 1))
+    Rt = np.transpose(R, (0, 2, 1))
+    A = (R * Dg[:, None, :]) @ Rt
     Jp = np.zeros((K, 3, N_DYN))
     da_dth = _ez(Rab) + _mv(A, _ezt(w))
+    if c_ga != 0.0:
+        RM = R @ np.einsum("ki,ij,il->kjl", -c_ga * n_abs, dirs, dirs)  # R d a_b / d vg
+        da_dth = da_dth + _mv(RM, _mtv(R, _ezt(v)))
+        dloss_dd = c_ga * va * dn_dd
+    else:
+        dloss_dd = 0.0
     Jp[:, :, I_TH] = da_dth
     Jp[:, :, I_HDR] = da_dth * tm[:, None]
     Jp[:, :, I_SX] = -A[:, :, 0]
@@ -159,9 +175,13 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
     Jp[:, :, I_CYZ] = R[:, :, 1] * -vr[:, 1:2] + R[:, :, 2] * -vr[:, 2:3]
     Jp[:, :, I_ASYM] = body(np.where(stb, p[I_K] * g_rev * d, 0.0) @ dirs)
     Jp[:, :, I_REV] = body(np.where(neg, p[I_K] * g_asym * d, 0.0) @ dirs)
-    Jp[:, :, I_TAU] = body((g * dd_tau) @ dirs)
+    Jp[:, :, I_TAU] = body(((g - dloss_dd) * dd_tau) @ dirs)
     Jp[:, 0, I_WN] = 1.0
     Jp[:, 1, I_WE] = 1.0
+    n_abs_j = abs_command(d)[0]
+    Jp[:, :, I_GA] = body(-(n_abs_j * (_mtv(R, v) @ dirs.T)) @ dirs)
+    if c_ga != 0.0:
+        A = A + RM @ Rt        # after the current's columns: the inflow sees the ground speed
     if geom.planar:
         a[:, 2] = 0.0
         A[:, 2, :] = 0.0
@@ -316,8 +336,8 @@ def rollout(x0: np.ndarray, p: np.ndarray, steps: Steps, offsets: np.ndarray,
     """States (K + 1, 6) at the segment boundaries of one trajectory integrated from ``x0``
     through the K consecutive segments (no Jacobians: the model-only re-trace). What does
     not depend on the state (attitude, current, thrust after the lag filter, wind) is
-    computed for every step at once; only the velocity-dependent drag and user terms are
-    stepped."""
+    computed for every step at once; only the velocity-dependent drag, inflow and user terms
+    are stepped."""
     p = np.asarray(p, float)
     offsets = np.asarray(offsets, np.int64)
     K = len(offsets) - 1
@@ -359,6 +379,9 @@ def rollout(x0: np.ndarray, p: np.ndarray, steps: Steps, offsets: np.ndarray,
     a_fix[:, 1] += p[I_WE]
     kq = np.array([p[I_KX], p[I_KYZ], p[I_KYZ]])
     kl = np.array([p[I_CX], p[I_CYZ], p[I_CYZ]])
+    dirs = np.asarray(geom.dirs, float)
+    c_ga = float(p[I_GA])
+    n_ga = c_ga * abs_command(d)[0] if c_ga != 0.0 else None     # (n, N)
     qs = [(eff, p[i0:i0 + len(eff.params)]) for eff, i0 in user]
     live = ~steps.warm.astype(bool) & (steps.h > 0.0)
     planar = geom.planar
@@ -373,7 +396,10 @@ def rollout(x0: np.ndarray, p: np.ndarray, steps: Steps, offsets: np.ndarray,
         if live[j]:
             h = float(steps.h[j])
             vr = Rt[j] @ (vel - s[j])
-            a = a_fix[j] + R[j] @ (-kq * np.abs(vr) * vr - kl * vr)
+            a_b = -kq * np.abs(vr) * vr - kl * vr
+            if n_ga is not None:
+                a_b = a_b - (n_ga[j] * (dirs @ (Rt[j] @ vel))) @ dirs
+            a = a_fix[j] + R[j] @ a_b
             for eff, q in qs:
                 a = a + _call(eff, vel[None], R[j:j + 1], d[j:j + 1], tm[j:j + 1], q)[0]
             if planar:

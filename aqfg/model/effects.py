@@ -14,6 +14,7 @@ HeadingTerm          adds to the heading offset ``theta(tm)`` (Eq. 6)
 CurrentTerm          adds to the water current ``s(tm)``, ground frame (Eq. 3)
 ThrustGainTerm       multiplies each thruster's gain (Eq. 1)
 DemandLagTerm        the time constant of the first-order lag of the thrust demand
+InflowTerm           takes from each propeller's thrust a loss of ``|u|`` and its advance speed
 BodyForceTerm        adds a body-frame force / mass of the relative velocity (Eqs. 2, 4)
 GroundForceTerm      adds a ground-frame acceleration ``a(v, R, d, tm, q)`` (Eq. 9)
 SensorOffsetTerm     moves the position sensor away from the centre of mass (body frame)
@@ -146,6 +147,34 @@ class DemandLagTerm(Effect):
     def time_constant_jacobian(self, q: np.ndarray) -> np.ndarray:
         """d tau / d q, (nq,)."""
         raise NotImplementedError
+
+
+class InflowTerm(Effect):
+    """Takes ``loss(n, va, q)`` (m/s^2) from propeller i's thrust along its axis, with
+    ``n = |u_i|`` (from the demand, :func:`abs_command`) and ``va`` its advance speed: the
+    vehicle's velocity over ground, body frame, along the propeller's axis (m/s)."""
+
+    @abstractmethod
+    def loss(self, n: np.ndarray, va: np.ndarray, q: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    @abstractmethod
+    def loss_jacobians(self, n: np.ndarray, va: np.ndarray, q: np.ndarray):
+        """d loss / d n, d loss / d va (each like ``n``) and d loss / d q (len(n), nq)."""
+        raise NotImplementedError
+
+
+INFLOW_EPS4 = 1e-4   # smooths |u| = sqrt|d| at d = 0: (d^2 + eps^4)^(1/4), eps = 0.1
+
+
+def abs_command(d):
+    """``|u|`` from the demand ``d = u|u|``, smoothed at zero: ``(d^2 + 1e-4)^(1/4)``, 0.1 at
+    ``u = 0`` (an idling propeller's drag), 1.5 % above ``|u|`` at 0.2 and 0.02 % at 0.5, so
+    that its derivative through the thrust lag stays moderate. Returns ``|u|`` and
+    ``d|u|/dd``."""
+    r = np.asarray(d, dtype=float) ** 2 + INFLOW_EPS4
+    n = r ** 0.25
+    return n, 0.5 * np.asarray(d, dtype=float) * n / r
 
 
 class BodyForceTerm(Effect):
@@ -287,6 +316,21 @@ class LinearDrag(BuiltinEffect, BodyForceTerm):
         return -c * vr, np.diag(-c), Fq
 
 
+class GroundAdvance(BuiltinEffect, InflowTerm):
+    name = "ground_advance"
+    description = ("propeller thrust falls with the speed over ground along its axis "
+                   "(a thrust curve linear in an advance speed taken over ground)")
+    parameters = (_param("c", "1/s", 0.0, 0.0, np.inf, "fixed", 0.1, 0.1,
+                         "thrust lost / mass per unit |u| and per m/s of advance speed over "
+                         "ground"),)
+
+    def loss(self, n, va, q):
+        return q[0] * n * va
+
+    def loss_jacobians(self, n, va, q):
+        return q[0] * va, q[0] * n, (n * va)[:, None]
+
+
 class HeadingDrift(BuiltinEffect, HeadingTerm):
     name = "heading_drift"
     description = "the IMU's unreferenced yaw drifts at a constant rate"
@@ -385,7 +429,7 @@ class LeverArm(BuiltinEffect, SensorOffsetTerm):
 
 BUILTIN: dict[str, Effect] = {e.name: e for e in (
     ThrustAsymmetry(), ReverseThrust(), ThrustLag(), LinearDrag(), HeadingDrift(),
-    CurrentDrift(), WindDrag(), UsblRangeScale(), UsblBearingBias(), LeverArm(),
+    CurrentDrift(), WindDrag(), GroundAdvance(), UsblRangeScale(), UsblBearingBias(), LeverArm(),
 )}
 
 

@@ -10,8 +10,9 @@ where its class says:
   of :func:`aqfg.model.frames.heading` (heading terms);
 * current (Eq. 3): ``s = [s_x, s_y, 0] + current terms``; relative velocity, body:
   ``v_r = R.T @ (v - s)``;
-* thrust (Eq. 1): ``a_thrust = sum_i g_i * d_i * dir_i`` with ``d_i`` the (lag-filtered)
-  demand ``u_i|u_i|`` and gain ``g_i = k * (product of the thrust-gain terms)``;
+* thrust (Eq. 1): ``a_thrust = sum_i (g_i * d_i - loss_i) * dir_i`` with ``d_i`` the
+  (lag-filtered) demand ``u_i|u_i|``, gain ``g_i = k * (product of the thrust-gain terms)``
+  and ``loss_i`` the inflow terms' (of ``|u_i|`` and the speed over ground along ``dir_i``);
 * drag (Eq. 2): ``a_drag = -[k_x, k_yz, k_yz] * sign(v_r) * v_r**2 + body-force terms``;
 * net body acceleration (Eqs. 4, 10): ``a_b = a_thrust + a_drag``; ground acceleration
   (Eq. 9): ``a = R @ a_b + ground-force terms``, vertical zeroed for planar vehicles.
@@ -28,7 +29,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aqfg.model.effects import BodyForceTerm, CurrentTerm, DemandLagTerm, GroundForceTerm, ThrustGainTerm
+from aqfg.model.effects import (
+    BodyForceTerm,
+    CurrentTerm,
+    DemandLagTerm,
+    GroundForceTerm,
+    InflowTerm,
+    ThrustGainTerm,
+    abs_command,
+)
 from aqfg.model.frames import E_Z, heading, heading_jacobian, rot_z
 from aqfg.model.frames import wrap_angle as wrap_angle  # re-exported for existing callers
 from aqfg.model.params import DYNAMICS_EFFECTS, INDEX, N_DYN, SLICE
@@ -42,6 +51,7 @@ I_ASYM, I_REV, I_TAU = (INDEX[n] for n in ("thrust_asymmetry.ratio", "reverse_th
 I_CX, I_CYZ = INDEX["linear_drag.c_x"], INDEX["linear_drag.c_yz"]
 I_DSX, I_DSY = INDEX["current_drift.ds_x"], INDEX["current_drift.ds_y"]
 I_WN, I_WE = INDEX["wind_drag.a_n"], INDEX["wind_drag.a_e"]
+I_GA = INDEX["ground_advance.c"]
 
 
 def _terms(kind: type) -> tuple:
@@ -52,6 +62,7 @@ def _terms(kind: type) -> tuple:
 CURRENT_TERMS = _terms(CurrentTerm)
 GAIN_TERMS = _terms(ThrustGainTerm)
 LAG_TERMS = _terms(DemandLagTerm)
+INFLOW_TERMS = _terms(InflowTerm)
 BODY_TERMS = _terms(BodyForceTerm)
 GROUND_TERMS = _terms(GroundForceTerm)
 if len(LAG_TERMS) > 1:
@@ -154,6 +165,20 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
         g_rel = g_rel * f
     g = k * g_rel
     a_thr = geom.dirs.T @ (g * d)
+    # inflow terms: thrust lost with |u| and the advance speed over ground
+    vg = R.T @ v
+    va = geom.dirs @ vg
+    n_abs, dn_dd = abs_command(d)
+    M = np.zeros((3, 3))                       # d a_b / d vg
+    dloss_dd = np.zeros(len(d))
+    inflow_q = []
+    for e, sl in INFLOW_TERMS:
+        L = e.loss(n_abs, va, p[sl])
+        Ln, Lva, Lq = e.loss_jacobians(n_abs, va, p[sl])
+        a_thr = a_thr - geom.dirs.T @ L
+        M = M - geom.dirs.T @ (Lva[:, None] * geom.dirs)
+        dloss_dd = dloss_dd + Ln * dn_dd
+        inflow_q.append((sl, -geom.dirs.T @ Lq))
 
     # quadratic drag (Eq. 2) and the body-force terms
     kq = np.array([p[I_KX], p[I_KYZ], p[I_KYZ]])
@@ -182,16 +207,18 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
                 others = others * f
         Jp[:, sl] = Rdirs @ ((others * d)[:, None] * e.gain_jacobian(side, d, p[sl]))
     for e, sl in LAG_TERMS:
-        Jp[:, sl] = np.outer(Rdirs @ (g * dd_tau), e.time_constant_jacobian(p[sl]))
-    for sl, Fq in body_q:
+        Jp[:, sl] = np.outer(Rdirs @ ((g - dloss_dd) * dd_tau), e.time_constant_jacobian(p[sl]))
+    for sl, Fq in body_q + inflow_q:
         Jp[:, sl] = R @ Fq
-    # heading: dR/dth = E_Z R; a = R a_b(vr), vr = R^T (v - s)
-    da_dth = E_Z @ a + RD @ (R.T @ (E_Z.T @ w))
-    # current: d a / d s = -A
+    # heading: dR/dth = E_Z R; a = R a_b(vr, vg), vr = R^T (v - s), vg = R^T v
+    RM = R @ M
+    da_dth = E_Z @ a + RD @ (R.T @ (E_Z.T @ w)) + RM @ (R.T @ (E_Z.T @ v))
+    # current: d a / d s = -A (the water part; the inflow terms see the speed over ground)
     Jp[:, I_SX] = -A[:, 0]
     Jp[:, I_SY] = -A[:, 1]
     for e, sl in CURRENT_TERMS:
         Jp[:, sl] = -A @ e.current_jacobian(tm, p[sl])
+    A = A + RM @ R.T
 
     # ground-frame terms
     for e, sl in GROUND_TERMS:
