@@ -182,11 +182,15 @@ ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_sca
 def effect_step_document(ae: dict) -> dict:
     """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
     fleet's share, from a result's ``info["auto_effect"]``: the effect, whether it was
-    added (and why not), its robust p and the costs without and with it."""
+    added (and why not), its robust p, the costs without and with it, and how far its
+    refit moved the heading offset and the current beside the move the test predicted."""
     return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
             "p_value_robust": float(ae["p_value_robust"]),
             "cost_before": float(ae["cost_before"]),
             "cost_after": float(ae.get("cost_after", float("nan"))),
+            **({"moved": {n: float(v) for n, v in ae["moved"].items()}} if "moved" in ae else {}),
+            **({"predicted_move": {n: float(v) for n, v in ae["predicted_move"].items()}}
+               if "predicted_move" in ae else {}),
             **({"reason": ae["reason"]} if "reason" in ae else {})}
 
 

@@ -181,6 +181,22 @@ def variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]
     return out
 
 
+def guard_estimates(res: Result, effect: str) -> dict[tuple[str, str], tuple[float, float]]:
+    """The effect step's guard for a refit of ``res`` with ``effect``: ``res``'s
+    :func:`variable_estimates` with each sigma widened (in quadrature) by the move the
+    structural test predicts for that effect (its ``shift``), unless the sigma already
+    holds it (``sigma_structure``). A refit that moves the estimates as predicted is the
+    effect at work; one that moves them far beyond went elsewhere. Without the prediction
+    a REMUS 100 whose current the effect corrects by 0.015 m/s (7 of the fit's sigmas, the
+    fixes explained) was refused (docs/independent-vehicle.md)."""
+    est = variable_estimates(res)
+    if (res.info.get("sigma_structure") or {}).get("effect") == effect:
+        return est
+    ranked = (res.info.get("structural_test") or {}).get("ranked", [])
+    shift: dict[str, float] = next((c.get("shift", {}) for c in ranked if c["effect"] == effect), {})
+    return {(m, n): (v, float(math.hypot(s, shift.get(n, 0.0)))) for (m, n), (v, s) in est.items()}
+
+
 def _label(mission: str, name: str) -> str:
     """``name``, or ``mission:name`` for a joint fit's per-mission value."""
     return f"{mission}:{name}" if mission else name
@@ -236,12 +252,11 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
         return _finish(res, bs, missions, model, effects)
     top = next((c for c in (st or {}).get("ranked", []) if dynamics(c)), called)
     picks = [called] + ([top] if top["effect"] != called["effect"] else [])
-    base = variable_estimates(res)
     cost0 = float(res.info.get("cost", np.nan))
     tried = []
     for pick in picks:
-        tried.append(_try_effect(pick, base, cost0, missions, model, effects, init,
-                                 settings, progress))
+        tried.append(_try_effect(pick, guard_estimates(res, pick["effect"]), cost0, missions,
+                                 model, effects, init, settings, progress))
     ok = [t for t in tried if not t["why"]]
     best = min(ok, key=lambda t: t["rec"]["cost_after"]) if ok else tried[0]
     name, new, bs_new, why, moved = (best["rec"]["effect"], best["new"], best["bs"],
@@ -289,8 +304,8 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
 def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], model,
                 effects: Sequence, init, settings: FGSettings | None, progress) -> dict:
     """The fit again with the candidate effect ``pick`` (a structural-test entry) added,
-    judged against the model-as-given fit (``base``: its variable estimates and honest
-    sigmas, :func:`variable_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
+    judged against the model-as-given fit (``base``: its variable estimates and the guard's
+    sigmas, :func:`guard_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
     "bs", "why", "moved"}``; ``why`` is empty where the refit may be adopted: it lowers the
     cost, is plausible, and keeps the heading offset and the current within 3 of ``base``'s
     sigmas."""
@@ -304,7 +319,8 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
     one_step = {n: v for n, v in pick.get("estimate", {}).items()
                 if math.isfinite(v) and n not in (init or {})}
     starts = [{**(init or {}), **one_step}] + ([dict(init or {})] if one_step else [])
-    rec: dict = {"effect": name, "p_value_robust": float(pick["p_value_robust"])}
+    rec: dict = {"effect": name, "p_value_robust": float(pick["p_value_robust"]),
+                 "predicted_move": dict(pick.get("shift", {}))}
     why = ""
     new = bs_new = None
     moved: dict[tuple[str, str], float] = {}     # (mission or "", name) -> refit - base
@@ -375,7 +391,8 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     cur = [sh.shift[n] for n in ("s_x", "s_y") if n in sh.shift]
     if cur:
         parts.append(f"the current by {math.sqrt(sum(c * c for c in cur)):.2g} m/s")
-    w = (f"the data call for the effect {sh.effect} (robust score test p = {sh.p_robust:.2g}): "
+    verb = "call for" if sh.proven else "suggest (do not prove)"
+    w = (f"the data {verb} the effect {sh.effect} (robust score test p = {sh.p_robust:.2g}): "
          f"with it {' and '.join(parts) or 'the estimates'} would move; sigma includes that "
          f"shift (try --effect {sh.effect}, or `aqfg diagnose`)")
     res.info.setdefault("warnings", []).append(w)

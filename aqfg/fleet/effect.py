@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from aqfg.fg.fit import base_record, dynamics_effect, moves, variable_estimates
+from aqfg.fg.fit import base_record, dynamics_effect, guard_estimates, moves, variable_estimates
 from aqfg.result import Result
 
 
@@ -39,11 +39,11 @@ def _cost(results: dict[str, Result]) -> float:
     return sum(float(r.info.get("cost", math.nan)) for r in results.values())
 
 
-def judge(before: dict[str, Result], after: dict[str, Result]) -> str:
-    """Why the fleet's refit ``after`` may not replace ``before`` ("" where it may): it
-    must lower the fleet's cost, every vehicle's fit must be plausible, and every
-    mission's heading offset and current must stay within 3 of ``before``'s honest sigmas
-    (which include the effect's predicted shift)."""
+def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> str:
+    """Why the fleet's refit ``after`` with ``effect`` may not replace ``before`` ("" where
+    it may): it must lower the fleet's cost, every vehicle's fit must be plausible, and
+    every mission's heading offset and current must stay within 3 of ``before``'s honest
+    sigmas widened by the effect's predicted shift (:func:`aqfg.fg.fit.guard_estimates`)."""
     c0, c1 = _cost(before), _cost(after)
     why = []
     for v, r in before.items():
@@ -51,7 +51,7 @@ def judge(before: dict[str, Result], after: dict[str, Result]) -> str:
         if not n.info.get("plausible", True):
             why.append(f"vehicle {v}'s fit is not plausible")
             continue
-        _, far = moves(variable_estimates(r), variable_estimates(n))
+        _, far = moves(guard_estimates(r, effect), variable_estimates(n))
         if far:
             why.append(f"it moves vehicle {v}'s {', '.join(far)} by more than 3 sigma of the "
                        "fit without it")

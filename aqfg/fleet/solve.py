@@ -256,7 +256,7 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     except FleetError as e:
         fe.record(results, pick, None, f"its fit failed ({e})")
         return specs, results
-    why = fe.judge(results, new)
+    why = fe.judge(results, new, pick["effect"])
     fe.record(results, pick, new, why)
     return (specs, results) if why else (specs2, new)
 
