@@ -194,6 +194,22 @@ def effect_step_document(ae: dict) -> dict:
             **({"reason": ae["reason"]} if "reason" in ae else {})}
 
 
+def without_effect_document(base: dict) -> dict:
+    """``auto_effect.without_effect`` of ``parameters.json`` (``aqfg fit``'s and the
+    fleet's): the heading offset and current of the model as given (``base``, the step's
+    ``info["auto_effect"]["base"]``), and each mission's under ``per_mission`` for a joint
+    fit."""
+    out: dict = {n: {"value": float(base["values"][n]),
+                     "sigma": float(base["sigma"].get(n, float("nan")))}
+                 for n in ("theta_e", "s_x", "s_y") if n in base.get("values", {})}
+    if base.get("per_mission"):
+        out["per_mission"] = {
+            m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
+                for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
+            for m, d in base["per_mission"].items()}
+    return out
+
+
 def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     """The content of ``parameters.json`` (format doc, "Outputs"): the estimated parameters
     (value, 1-sigma, unit), the fixed parameters the model used (value, unit), per-mission
@@ -245,18 +261,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if result.mode == "batch" and ae:
         # the effect the structural test named, whether the fit added it (FGSettings.
         # auto_effect), and the heading offset and current of the model as given
-        b = ae["base"]
-        doc["auto_effect"] = {
-            **effect_step_document(ae),
-            "without_effect": {n: {"value": float(b["values"][n]),
-                                   "sigma": float(b["sigma"].get(n, float("nan")))}
-                               for n in ("theta_e", "s_x", "s_y") if n in b["values"]}}
-        if b.get("per_mission"):
-            # a joint fit: the heading offset and current of each mission
-            doc["auto_effect"]["without_effect"]["per_mission"] = {
-                m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
-                    for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
-                for m, d in b["per_mission"].items()}
+        doc["auto_effect"] = {**effect_step_document(ae),
+                              "without_effect": without_effect_document(ae["base"])}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

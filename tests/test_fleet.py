@@ -197,6 +197,11 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         assert par["dead_reckoning"]["applied"] == fr.results[v].info["dead_reckoning"]["applied"]
         assert par["auto_effect"]["adopted"] and par["auto_effect"]["effect"] == "linear_drag"
         assert "linear_drag.c_x" in par["parameters"]
+        # the model-as-given estimates in aqfg fit's shape (a joint fit's: per_mission)
+        wo = par["auto_effect"]["without_effect"]
+        assert set(wo) == {"theta_e", "s_x", "s_y", "per_mission"}
+        assert len(wo["per_mission"]) == 2
+        assert all(set(e) == {"theta_e", "s_x", "s_y"} for e in wo["per_mission"].values())
         assert table["vehicles"][v]["test"]["differs"] is True     # Otter vs simulated ASV
     # the Otter (not the model) dead-reckons with refined constants, as aqfg fit's
     assert json.loads((out / "otter" / "parameters.json").read_text())["dead_reckoning"]["applied"]

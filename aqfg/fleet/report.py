@@ -19,6 +19,7 @@ from aqfg.result import (
     Result,
     dead_reckoning_document,
     effect_step_document,
+    without_effect_document,
     write_result,
 )
 
@@ -166,18 +167,11 @@ def effect_document(ae: dict) -> dict:
     def num(x) -> float | None:
         return float(x) if x is not None and math.isfinite(float(x)) else None
     fl = ae.get("fleet", {})
-    per = ae.get("base", {}).get("per_mission") or {}
     return {**effect_step_document(ae),
             "vehicles_calling": list(fl.get("vehicles_calling", [])),
             "fleet_cost_before": num(fl.get("cost_before")),
             "fleet_cost_after": num(fl.get("cost_after")),
-            "without_effect": (
-                {m: {n: {"value": num(e["value"]), "sigma": num(e["sigma"])}
-                     for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
-                 for m, d in per.items()} if per else
-                {n: {"value": num(ae["base"]["values"][n]),
-                     "sigma": num(ae["base"]["sigma"].get(n))}
-                 for n in ("theta_e", "s_x", "s_y") if n in ae.get("base", {}).get("values", {})})}
+            "without_effect": without_effect_document(ae.get("base", {}))}
 
 
 def _unit(res: Result, name: str) -> str | None:
