@@ -51,3 +51,22 @@ def test_closed_form_heading_on_a_straight_leg_with_the_current_prior(theta_deg)
         errs.append(abs(np.degrees(np.angle(np.exp(1j * (th - theta))))))
         assert np.hypot(*cur) < 0.5 and 0.5 < rho < 2.0, (cur, rho)
     assert max(errs) < 10.0, errs
+
+
+@pytest.mark.parametrize("theta_deg", [4.0, 150.0, -95.0])
+def test_closed_form_from_three_fixes_holds_the_current_at_zero(theta_deg):
+    """Three fixes (0, 8, 16 s of the straight leg: two legs) are the fewest the closed form
+    takes: the current is held at zero and theta is the direction of travel, off by about
+    the current's share of the speed (0.1 of 1.5 m/s: 4 deg) plus the fixes' noise; two
+    fixes give nothing."""
+    theta = np.radians(theta_deg)
+    for seed in range(5):
+        W, knots, tf, pf = straight_leg(theta, seed)
+        keep = np.isin(tf, (0.0, 8.0, 16.0))
+        out = closed_form(W, knots, tf[keep], pf[keep], current_sigma=(0.3, 0.3))
+        assert out is not None
+        th, cur, rho, _, _ = out
+        assert np.all(cur == 0.0) and 0.5 < rho < 2.0, (cur, rho)
+        assert abs(np.degrees(np.angle(np.exp(1j * (th - theta))))) < 12.0
+        two = np.isin(tf, (0.0, 16.0))
+        assert closed_form(W, knots, tf[two], pf[two]) is None

@@ -74,6 +74,7 @@ GTSAM_ERRORS = (RuntimeError, IndexError, ValueError)
 # a held heading offset this far from the closed-form one of the fixes so far is re-seeded
 # while the held model fails (FixedLagSmoother._reseed)
 RESEED_GAP = np.radians(20.0)
+RESEED_EARLY_FIXES = 3     # the fewest fixes the closed form takes (the current held at zero)
 
 
 @dataclass
@@ -416,7 +417,7 @@ class FixedLagSmoother:
             info = self._reinitialise(t_fix, rescue=due == "rescue") or info
         elif self._troubled(t_fix):
             info = self._reinitialise(t_fix, force=True) or info
-        if self._held_failing():
+        if self._held_failing() or self._held_missed_early():
             info = self._reseed(t_fix) or info
         return info
 
@@ -694,6 +695,13 @@ class FixedLagSmoother:
                      or (len(recent) >= 2 and min(recent[-2:]) > s.online_gate_usbl)
                      or (len(recent) == 3 and sorted(recent)[1] > noise.CHI2_2_99)))
 
+    def _held_missed_early(self) -> bool:
+        """The parameters are held and the third fix, the first that gives two legs, is
+        beyond the USBL gate's quantile (later fixes: :meth:`_held_failing`, two misses)."""
+        return (bool(self._hold_idx) and self.n_fix == RESEED_EARLY_FIXES
+                and len(self._taken_m2) > 0
+                and self._taken_m2[-1] > self.settings.online_gate_usbl)
+
     def _reseed(self, t_fix: float) -> UpdateInfo | None:
         """While the parameters are held and the held model fails before a batch can take
         over: re-hold the heading offset and the current at the closed-form start of the
@@ -705,7 +713,7 @@ class FixedLagSmoother:
         from aqfg.fg.init import candidate_starts, current_prior
         t_re = time.perf_counter()
         if (getattr(self, "_replaying", False) or not self._hold_idx
-                or "theta_e" not in self.layout.estimated or self.n_fix < 4):
+                or "theta_e" not in self.layout.estimated or self.n_fix < RESEED_EARLY_FIXES):
             return None
         view = _mission_until(self.mission, t_fix)
         knots = knot_times(view, self.settings.knot_spacing)

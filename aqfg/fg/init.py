@@ -99,14 +99,15 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     at constant speed the model track and the current's drift are the same direction in
     time, and without it the split between them, so theta, is arbitrary: a 20-s start of
     an Otter mission came out 177 deg off, the "current" 2 m/s (docs/independent-vehicle.md).
-    None if ill-posed.
+    From three fixes (the fewest that give two legs) the current is held at zero: theta then
+    comes from the direction of travel alone. None if ill-posed.
     """
     t_a = float(knots[0])
     sel = (tf >= t_a - 1e-9) & (tf <= knots[-1] + 1e-9)
     tf, pf = tf[sel], pf[sel]
     n = len(tf)
     dt = tf - t_a
-    if n < 4 or np.ptp(dt) <= 0:
+    if n < 3 or np.ptp(dt) <= 0:
         return None
     Wf = np.column_stack([np.interp(tf, knots, W[:, a]) for a in range(2)])
     win = np.zeros(n, int) if not window else np.floor(dt / window).astype(int)
@@ -124,7 +125,11 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
                   np.column_stack([z, dt, Wf[:, 1], Wf[:, 0]])])
     prior = (None if current_sigma is None else
              np.array([current_sigma[0], current_sigma[1], np.inf, np.inf]))
-    c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw, prior=prior)
+    if n == 3:
+        c2, off, misfit = _robust_fit(C[:, :, 2:], np.stack([pf[:, 0], pf[:, 1]]), win, nw)
+        c = np.concatenate([[0.0, 0.0], c2])
+    else:
+        c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw, prior=prior)
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(off))):
         return None
     theta = float(np.arctan2(c[3], c[2]))
