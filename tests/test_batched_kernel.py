@@ -90,3 +90,20 @@ def test_vectorised_effect_of_the_wrong_shape_is_named(mission):
     steps, off = model.steps(mission, knots)
     with pytest.raises(ValueError, match="user effect 'bad'"):
         model.propagate_many(np.zeros((3, 6)), model.nominal({"k": 5.0}), steps, off)
+
+
+def test_an_effects_column_at_its_null_equals_the_references(mission):
+    """The structural test reads every catalogue column of J_p at the effects' null values:
+    the lockstep kernel's `ground_advance` column at c = 0 (nonzero: what the effect would
+    do) equals the reference's."""
+    model = Model.for_mission(mission, ("thrust_lag", PER_SAMPLE))
+    knots = knot_times(mission, 1.0)
+    steps, off = model.steps(mission, knots)
+    p = model.nominal({k: v for k, v in VALUES.items() if k != "ground_advance.c"})
+    X0 = np.random.default_rng(1).normal(size=(len(knots) - 1, 6))
+    X0[:, 2] = X0[:, 5] = 0.0
+    got = batched.propagate_many(X0, p, steps, off, model.geometry, model.user_layout())[2]
+    want = ref.propagate_many(X0, p, steps, off, model.geometry, model.user_layout())[2]
+    j = model.index("ground_advance.c")
+    assert np.abs(want[:, :, j]).max() > 1e-3
+    assert np.allclose(got[:, :, j], want[:, :, j], rtol=1e-8, atol=1e-10)

@@ -131,10 +131,10 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
     a_thr = (g * d) @ dirs
     # ground_advance: thrust lost with |u| and the advance speed over ground
     c_ga = p[I_GA]
-    if c_ga != 0.0:
-        vg = _mtv(R, v)
-        va = vg @ dirs.T
+    if c_ga != 0.0 or jac:       # (its Jacobian column is needed at c = 0 too: the tests)
+        va = _mtv(R, v) @ dirs.T
         n_abs, dn_dd = abs_command(d)
+    if c_ga != 0.0:
         a_thr = a_thr - (c_ga * n_abs * va) @ dirs
     kq = np.array([p[I_KX], p[I_KYZ], p[I_KYZ]])
     kl = np.array([p[I_CX], p[I_CYZ], p[I_CYZ]])
@@ -178,8 +178,7 @@ def accel(v, R_raw, d, dd_tau, tm, p, geom: Geometry, jac: bool = True):
     Jp[:, :, I_TAU] = body(((g - dloss_dd) * dd_tau) @ dirs)
     Jp[:, 0, I_WN] = 1.0
     Jp[:, 1, I_WE] = 1.0
-    n_abs_j = abs_command(d)[0]
-    Jp[:, :, I_GA] = body(-(n_abs_j * (_mtv(R, v) @ dirs.T)) @ dirs)
+    Jp[:, :, I_GA] = body(-(n_abs * va) @ dirs)
     if c_ga != 0.0:
         A = A + RM @ Rt        # after the current's columns: the inflow sees the ground speed
     if geom.planar:
