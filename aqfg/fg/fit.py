@@ -26,6 +26,7 @@ from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
 from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
+from aqfg.model.params import difference
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
@@ -138,12 +139,12 @@ def _widen_by_other_minimum(res: Result, others: list[Result]) -> None:
     for o in near:
         for n in res.estimated:
             if n in res.sigma and n in o.values:
-                d_top[n] = max(d_top.get(n, 0.0), abs(_difference(n, o.values[n], res.values[n])))
+                d_top[n] = max(d_top.get(n, 0.0), abs(difference(n, o.values[n], res.values[n])))
         for m, est in (res.info.get("per_mission") or {}).items():
             oe = (o.info.get("per_mission") or {}).get(m, {})
             for n, e in est.items():
                 if n in oe and isinstance(e, dict) and e.get("sigma") is not None:
-                    d = abs(_difference(n, float(oe[n]["value"]), float(e["value"])))
+                    d = abs(difference(n, float(oe[n]["value"]), float(e["value"])))
                     d_per[m, n] = max(d_per.get((m, n), 0.0), d)
     for (m, n), d in d_per.items():
         e = res.info["per_mission"][m][n]
@@ -202,17 +203,12 @@ def _label(mission: str, name: str) -> str:
     return f"{mission}:{name}" if mission else name
 
 
-def _difference(name: str, a: float, b: float) -> float:
-    """``a - b``, wrapped to (-pi, pi] for the heading offset."""
-    return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
-
-
 def moves(base: dict, after: dict) -> tuple[dict[tuple[str, str], float], list[str]]:
     """From the :func:`variable_estimates` ``base`` (the model as given) to ``after`` (a
     refit): each estimate's move, ``{(mission or "", name): after - base}``, and the labels
     of those beyond 3 of ``base``'s sigmas (a NaN sigma counts as beyond: nothing says the
     move is within it), the effect step's guard."""
-    moved = {(m, n): _difference(n, after[m, n][0], v)
+    moved = {(m, n): difference(n, after[m, n][0], v)
              for (m, n), (v, _) in base.items() if (m, n) in after}
     far = [_label(m, n) for (m, n), d in moved.items() if not abs(d) <= 3.0 * base[m, n][1]]
     return moved, far

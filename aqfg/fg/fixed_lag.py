@@ -61,7 +61,7 @@ from aqfg.fg.common import (
     robust_fix_table,
 )
 from aqfg.fg.fastlag import LagWindow
-from aqfg.model.params import FIXED_BASE
+from aqfg.model.params import FIXED_BASE, difference
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
@@ -993,8 +993,7 @@ class FixedLagSmoother:
         diff = {}
         for n in self.layout.estimated:
             if n in ref and n in res.values and self.model.spec(n).group == "variable":
-                d = float(res.values[n]) - float(ref[n])
-                diff[n] = abs(math.remainder(d, 2 * math.pi) if n == "theta_e" else d)
+                diff[n] = abs(difference(n, float(res.values[n]), float(ref[n])))
         return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
                 "sigma_theta_e": float(res.sigma.get("theta_e", np.nan)),
                 "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},

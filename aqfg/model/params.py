@@ -11,6 +11,8 @@ value per mission, ``sensor`` = measurement-model parameters (per mission).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from aqfg.model.effects import BUILTIN, Effect
@@ -70,6 +72,12 @@ def vector(values: dict[str, float] | None = None, base: np.ndarray | None = Non
             raise KeyError(f"unknown parameter {name!r}; known: {', '.join(NAMES)}")
         p[INDEX[name]] = float(v)
     return p
+
+
+def difference(name: str, a: float, b: float) -> float:
+    """``a - b`` of parameter ``name``, wrapped to (-pi, pi] for the heading offset (the
+    one circular parameter)."""
+    return math.remainder(a - b, 2 * math.pi) if name == "theta_e" else a - b
 
 
 def as_dict(p: np.ndarray, names: tuple[str, ...] | list[str] = NAMES) -> dict[str, float]:
