@@ -19,7 +19,8 @@ from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import fit_fg
 from aqfg.fleet import ManifestError, fit_fleet, load_manifest, write_manifest
-from aqfg.fleet.report import differs_from_fleet, save_fleet
+from aqfg.fleet.report import differs_from_fleet, effect_document, save_fleet
+from aqfg.outputs import dumps
 from aqfg.sim import simulate, true_params
 
 distributed = pytest.importorskip("distributed")
@@ -141,6 +142,19 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
             got = fr_res.info["per_mission"][m][n]
             assert abs(got["value"] - e["value"]) < tol * sm[n]
             assert got["sigma"] == pytest.approx(e["sigma"], rel=sig_rel), (m, n)
+
+
+def test_effect_document_writes_a_missing_fleet_cost_as_aqfg_fit_does():
+    """A fleet cost that was not computed (no refit) is written as the shared fields are:
+    null with a null_reason, not a bare null."""
+    ae = {"effect": "linear_drag", "adopted": False, "p_value_robust": 1e-4,
+          "cost_before": 10.0, "reason": "refit not plausible",
+          "fleet": {"vehicles_calling": ["otter"], "cost_before": 12.5, "cost_after": float("nan")}}
+    doc = json.loads(dumps({"auto_effect": effect_document(ae)}))
+    e = doc["auto_effect"]
+    assert e["fleet_cost_before"] == 12.5
+    assert e["fleet_cost_after"] is None and e["cost_after"] is None
+    assert {"/auto_effect/fleet_cost_after", "/auto_effect/cost_after"} <= set(doc["null_reasons"])
 
 
 @pytest.mark.slow

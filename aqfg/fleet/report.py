@@ -164,8 +164,9 @@ def effect_document(ae: dict) -> dict:
     """A vehicle's ``parameters.json`` ``auto_effect``: the effect the fleet's step tried,
     whether it was added (and why not), the vehicles whose tests called for it, the costs,
     and each mission's heading offset and current without it."""
-    def num(x) -> float | None:
-        return float(x) if x is not None and math.isfinite(float(x)) else None
+    def num(x) -> float:
+        # NaN, like the shared fields: the JSON writer makes it null with a null_reason
+        return float(x) if x is not None else math.nan
     fl = ae.get("fleet", {})
     return {**effect_step_document(ae),
             "vehicles_calling": list(fl.get("vehicles_calling", [])),
