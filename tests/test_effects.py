@@ -160,3 +160,24 @@ def test_thrust_gains_and_lag_come_from_their_effects():
     g = ref.thrust_gains(p, np.array([-1.0, 1.0, 1.0]), np.array([0.2, 0.3, -0.4]))
     np.testing.assert_allclose(g, [5.0, 4.0, 2.0])
     assert ref.lag_time_constant(p) == 0.3
+
+
+def test_a_model_that_crosses_a_process_keeps_its_catalogue_effects_built_in():
+    """Pickled (a fleet worker's reply) or copied, a model with catalogue effects still
+    tells them from user effects (by identity), so its parameter layout and propagation
+    are the original's: a copy once put linear_drag's parameters after the table as a user
+    effect's, and the dead-reckoning refinement failed on the fleet."""
+    import copy
+    import pickle
+    m, _ = simulate("asv", seed=1, duration=20.0)
+    model = Model.for_mission(m).with_effects("linear_drag", SquareWind())
+    for other in (pickle.loads(pickle.dumps(model)), copy.deepcopy(model)):
+        assert other.effects[0] is BUILTIN["linear_drag"]
+        assert [e.name for e in other.user_effects] == ["square_wind"]
+        assert other.user_layout()[0][1] == model.user_layout()[0][1]
+        assert other.n_full == model.n_full
+        steps, _ = other.steps(m, np.array([5.0, 7.0]))
+        p = model.nominal({"k": 9.0, "linear_drag.c_x": 2.0, "square_wind.c": 1e-3})
+        x0 = np.array([0.0, 0.0, 0.0, 0.5, 0.1, 0.0])
+        np.testing.assert_array_equal(other.propagate(x0, p, steps)[0],
+                                      model.propagate(x0, p, steps)[0])

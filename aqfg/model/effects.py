@@ -77,6 +77,13 @@ class Effect(ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r})"
 
+    def __reduce_ex__(self, protocol):
+        # a catalogue effect is its catalogue object in every process and every copy: the
+        # model tells built-in from user effects by identity (Model.user_effects)
+        if BUILTIN.get(self.name) is self:
+            return (resolve, (self.name,))
+        return super().__reduce_ex__(protocol)
+
 
 class BuiltinEffect(Effect):
     """An effect of the catalogue: parameters declared by short name in ``parameters``."""
