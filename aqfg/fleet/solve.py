@@ -21,7 +21,7 @@ from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
 from aqfg.fleet.manifest import Manifest
-from aqfg.fleet.worker import MissionSpec, diagnose_op, memory, missions_op, refine_op, release
+from aqfg.fleet.worker import MissionSpec, diagnose_op, finish_op, memory, missions_op, release, structural_op
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
@@ -102,6 +102,15 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     if auto_effect_applies(settings, estimate):
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
                                       show, timeout, stats, specs, results)
+    if settings.dr_horizon > 0 or settings.adapt_track:
+        # the constants to dead-reckon with, per vehicle over its missions, and the
+        # missions' tracks under the noise their evidence chooses, as aqfg fit does
+        # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): once, for the fits returned
+        show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
+        t_dr = time.perf_counter()
+        results = _per_vehicle(client, finish_op, specs, results, timeout,
+                               "the dead-reckoning constants or tracks")
+        stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     stats["memory"] = _memory(client)
     stats["workers"] = len(_workers(client))
     diag = {}
@@ -117,9 +126,10 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
                  timeout, stats: dict) -> tuple[dict, dict[str, Result]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
-    :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its dead-reckoning
-    constants, tracks and structural sigma (one task each). ``(specs, results)``, by
-    vehicle; ``stats`` accumulates the run's figures."""
+    :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its structural sigma
+    (one task each; the dead-reckoning constants and tracks come once, after the effect
+    step, in :func:`_fit`). ``(specs, results)``, by vehicle; ``stats`` accumulates the
+    run's figures."""
     from distributed import as_completed
     run = uuid.uuid4().hex[:12]
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
@@ -209,29 +219,14 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     effect_names = tuple(getattr(e, "name", e) for e in effects)
     for r in results.values():
         r.effects = effect_names               # the model's effects, for the outputs
-    if settings.dr_horizon > 0 or settings.adapt_track or settings.structural_sigma:
-        # the constants to dead-reckon with, per vehicle over its missions, the missions'
-        # tracks under the noise their evidence chooses and the structural sigma, as aqfg
-        # fit does (aqfg.fg.dead_reckoning, FGSettings.adapt_track, structural_sigma): one
-        # task per vehicle
-        show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
-        t_dr = time.perf_counter()
-        futs = {client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
-                              key=f"aqfg-{run}-refine-{i}"): v
-                for i, v in enumerate(results)}
-        try:
-            for fut in as_completed(list(futs), timeout=timeout):
-                v = futs[fut]
-                try:
-                    results[v] = fut.result()
-                except Exception as e:             # re-raised with context
-                    raise FleetError(f"vehicle {v!r}: the dead-reckoning constants or tracks failed: "
-                                     f"{type(e).__name__}: {e}") from e
-        except TimeoutError:
-            raise FleetError(f"the dead-reckoning constants and tracks took longer than {timeout} s"
-                             ) from None
-        stats["dead_reckoning_seconds"] = (stats.get("dead_reckoning_seconds", 0.0)
-                                           + time.perf_counter() - t_dr)
+    if settings.structural_sigma:
+        # the structural sigma, as aqfg fit's batch (FGSettings.structural_sigma), whose
+        # test the fleet's effect step reads: one task per vehicle
+        t_st = time.perf_counter()
+        results = _per_vehicle(client, structural_op, specs, results, timeout,
+                               "the structural sigma")
+        stats["structural_seconds"] = (stats.get("structural_seconds", 0.0)
+                                       + time.perf_counter() - t_st)
     return specs, results
 
 
@@ -259,6 +254,28 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     why = fe.judge(results, new, pick["effect"])
     fe.record(results, pick, new, why)
     return (specs, results) if why else (specs2, new)
+
+
+def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str
+                 ) -> dict[str, Result]:
+    """``op(specs[v], results[v])`` for every vehicle, one task each on the workers; a
+    failure or a timeout raises :class:`FleetError` naming the vehicle and ``what``."""
+    from distributed import as_completed
+    out = dict(results)
+    futs = {client.submit(op, specs[v], results[v], pure=False, retries=2,
+                          key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}"): v
+            for i, v in enumerate(results)}
+    try:
+        for fut in as_completed(list(futs), timeout=timeout):
+            v = futs[fut]
+            try:
+                out[v] = fut.result()
+            except Exception as e:                 # re-raised with context
+                raise FleetError(f"vehicle {v!r}: {what} failed: {type(e).__name__}: {e}"
+                                 ) from e
+    except TimeoutError:
+        raise FleetError(f"{what} took longer than {timeout} s") from None
+    return out
 
 
 def _diagnose(client, specs, timeout) -> dict:

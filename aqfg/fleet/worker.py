@@ -80,15 +80,24 @@ def missions_op(items: list) -> list[dict]:
     return out
 
 
-def refine_op(specs: list[MissionSpec], result):
-    """A vehicle's joint fit with its thrust/drag constants re-estimated by prediction error
-    over its missions (:func:`aqfg.fg.dead_reckoning.refine`, as ``aqfg fit`` does); the
-    missions are read on the worker."""
+def structural_op(specs: list[MissionSpec], result):
+    """A vehicle's joint fit with the model it was fitted with and the structural part of
+    its sigma (:func:`structural`); the missions are read on the worker."""
+    from aqfg.fg.common import mission_model
+    missions = [load(spec) for spec in specs]
+    result.model = mission_model(None, missions[0], specs[0].effects)
+    return structural(specs, missions, result)
+
+
+def finish_op(specs: list[MissionSpec], result):
+    """A vehicle's final joint fit with its thrust/drag constants re-estimated by prediction
+    error over its missions (:func:`aqfg.fg.dead_reckoning.refine`) and its missions' tracks
+    smoothed under the noise their evidence chooses (:func:`smooth_tracks`), as ``aqfg fit``
+    does once for the fit it returns; the missions are read on the worker."""
     from aqfg.fg import dead_reckoning
     from aqfg.fg.common import mission_model
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
-    result = structural(specs, missions, result)
     result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
     return smooth_tracks(specs, missions, result)
 
