@@ -218,12 +218,14 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
       const double* u = g.dirs + 3 * i;
       const double r = d[i] * d[i] + 1e-4, n = std::sqrt(std::sqrt(r));
       const double va = u[0] * vg[0] + u[1] * vg[1] + u[2] * vg[2];
+      if constexpr (Jac)
+        for (int m = 0; m < 3; ++m) bga[m] -= n * va * u[m];  // the column, also at c = 0
+      if (cga == 0.0) continue;  // the effect off: its terms vanish
       const double loss = cga * n * va;
       for (int m = 0; m < 3; ++m) at[m] -= loss * u[m];
       if constexpr (Jac) {
         const double dn = 0.5 * d[i] * n / r, tt = cga * va * dn * dd[i];
         for (int m = 0; m < 3; ++m) {
-          bga[m] -= n * va * u[m];
           bt[m] -= tt * u[m];
           for (int l = 0; l < 3; ++l) Mg[3 * m + l] -= cga * n * u[m] * u[l];
         }
@@ -264,17 +266,18 @@ AQFG_HOT_INLINE void accel_core(const double* v, const double* Rraw, const doubl
   }
   const double ez[3] = {-Rab[1], Rab[0], 0.0};
   // R Mg: d a / d v_g (the inflow), and its d a / d v = R Mg R^T (added after the current's columns)
-  double RMg[9];
-  for (int r = 0; r < 3; ++r)
-    for (int m = 0; m < 3; ++m)
-      RMg[3 * r + m] = R[3 * r] * Mg[m] + R[3 * r + 1] * Mg[3 + m] + R[3 * r + 2] * Mg[6 + m];
+  double RMg[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+  if (cga != 0.0)
+    for (int r = 0; r < 3; ++r)
+      for (int m = 0; m < 3; ++m)
+        RMg[3 * r + m] = R[3 * r] * Mg[m] + R[3 * r + 1] * Mg[3 + m] + R[3 * r + 2] * Mg[6 + m];
 
   const int nrow = g.planar ? 2 : 3;
   for (int r = 0; r < nrow; ++r) {
     const double* Rr = R + 3 * r;
     double* J = Jp + r * ldj;
-    const double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2] +
-                       RMg[3 * r] * qg[0] + RMg[3 * r + 1] * qg[1] + RMg[3 * r + 2] * qg[2];
+    double dth = ez[r] + RD[3 * r] * qth[0] + RD[3 * r + 1] * qth[1] + RD[3 * r + 2] * qth[2];
+    if (cga != 0.0) dth += RMg[3 * r] * qg[0] + RMg[3 * r + 1] * qg[1] + RMg[3 * r + 2] * qg[2];
     J[P_THETA_E] = dth;
     J[P_HEADING_DRIFT_RATE] = dth * tm;
     J[P_S_X] = -A[3 * r];
