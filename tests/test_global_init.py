@@ -47,7 +47,7 @@ def test_closed_form_heading_on_a_straight_leg_with_the_current_prior(theta_deg)
         W, knots, tf, pf = straight_leg(theta, seed)
         out = closed_form(W, knots, tf, pf, current_sigma=(0.3, 0.3))
         assert out is not None
-        th, cur, rho, _, _ = out
+        th, cur, rho, _, _, _ = out
         errs.append(abs(np.degrees(np.angle(np.exp(1j * (th - theta))))))
         assert np.hypot(*cur) < 0.5 and 0.5 < rho < 2.0, (cur, rho)
     assert max(errs) < 10.0, errs
@@ -65,8 +65,33 @@ def test_closed_form_from_three_fixes_holds_the_current_at_zero(theta_deg):
         keep = np.isin(tf, (0.0, 8.0, 16.0))
         out = closed_form(W, knots, tf[keep], pf[keep], current_sigma=(0.3, 0.3))
         assert out is not None
-        th, cur, rho, _, _ = out
+        th, cur, rho, _, _, _ = out
         assert np.all(cur == 0.0) and 0.5 < rho < 2.0, (cur, rho)
         assert abs(np.degrees(np.angle(np.exp(1j * (th - theta))))) < 12.0
         two = np.isin(tf, (0.0, 16.0))
         assert closed_form(W, knots, tf[two], pf[two]) is None
+
+
+def test_closed_form_rho_variance_is_the_spread_of_rho():
+    """The speed scale's variance that the closed form reports (per unit fix variance, x the
+    fixes' 1 m^2 here): from three fixes (0, 8, 16 s; the current held at zero) it is the
+    spread of rho over noise draws; from the whole leg, the current free with its prior, it
+    is wider than that spread, as it carries the current's prior too (on a straight leg the
+    current's drift and the speed scale are the same direction). The online re-seed scales
+    the thrust gain by rho^2 only where rho is detected and differs from 1 by this sigma
+    (FixedLagSmoother._reseed)."""
+    theta = np.radians(40.0)
+    for keep_t in ((0.0, 8.0, 16.0), None):
+        rhos, var = [], []
+        for seed in range(200):
+            W, knots, tf, pf = straight_leg(theta, 1000 + seed)
+            keep = np.isin(tf, keep_t) if keep_t else np.ones(len(tf), bool)
+            out = closed_form(W, knots, tf[keep], pf[keep], current_sigma=(0.3, 0.3))
+            assert out is not None
+            rhos.append(out[2])
+            var.append(out[5])
+        sd_emp, sd_rep = float(np.std(rhos)), float(np.sqrt(np.median(var)))
+        if keep_t:
+            assert 0.8 < sd_rep / sd_emp < 1.25, (sd_rep, sd_emp)
+        else:
+            assert sd_rep > 1.5 * sd_emp, (sd_rep, sd_emp)

@@ -766,6 +766,32 @@ def test_gnss_only_a_reseed_takes_the_speed_scale_and_beats_the_baseline(monkeyp
     assert after_h > 2.0 * after, (after_h, after)
 
 
+def test_a_reseed_keeps_the_thrust_gain_where_the_speed_scale_is_not_determined(monkeypatch):
+    """The same GNSS-only crop, the closed form's start replaced by one whose speed scale is
+    13 +- 6.5 (what three fixes of a REMUS that had barely moved gave; scaled, k went 8 ->
+    1357 and the causal track 21 m off): the heading is re-seeded, the thrust gain kept.
+    With the same scale known to +- 0.5 it is scaled."""
+    import dataclasses
+
+    from aqfg.fg import init as fg_init
+    full, truth = mission("otter-heldout-93-40s", 0.0)
+    m = with_gnss_every(dataclasses.replace(full, usbl=None), 8.0)
+    real = fg_init.candidate_starts
+
+    def run(rho, sd):
+        def starts(*a, **k):
+            out = real(*a, **k)
+            v_fix = 1.0                       # the crop's GNSS sigma: 1 m
+            return [dataclasses.replace(s, rho=rho, rho_var=sd ** 2 / v_fix) for s in out]
+        monkeypatch.setattr(fg_init, "candidate_starts", starts)
+        r = fit_fg([m], mode="online")
+        return [e for e in r.info["events"] if e["event"].startswith("held heading")][0]
+    e = run(13.0, 6.5)
+    assert e["k_after"] == e["k_before"], e
+    e = run(13.0, 0.5)
+    assert e["k_after"] > 10.0 * e["k_before"], e
+
+
 def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternative():
     """otter-heldout-52-300s (the first 300 s of a held-out mission, 1-s GNSS), online with
     the default constants: the 256-s re-initialisation batch slides 16 deg off the thrust

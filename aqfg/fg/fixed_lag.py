@@ -733,8 +733,15 @@ class FixedLagSmoother:
         # scale rho says the held model's steady speed sqrt(k / k_x) is rho times the
         # vehicle's (aqfg.fg.init.candidate_starts), and a heading re-seeded at a speed
         # 2.4x the vehicle's still ran the track 6-11 m off its GNSS-only fixes
+        # where the fixes determine it: rho off 1 by more than 2 of its sigma (the fixes'
+        # median variance through the closed form's) and detected at 3 sigma (sigma below
+        # rho / 3); from three fixes of a vehicle that had barely moved, rho came out
+        # 13 +- 6.5 (k x 170)
+        v_fix = float(np.median(self._fixes[2][self._fixes[0] <= t_fix + 1e-9]))
+        sd_rho = math.sqrt(max(v_fix * st.rho_var, 0.0)) if math.isfinite(st.rho_var) else math.inf
         scale_k = ("k" in self.layout.estimated and "k" not in self.init
-                   and not RESEED_RHO[0] <= st.rho <= RESEED_RHO[1])
+                   and not RESEED_RHO[0] <= st.rho <= RESEED_RHO[1]
+                   and abs(st.rho - 1.0) > 2.0 * sd_rho and 3.0 * sd_rho < st.rho)
         if gap < RESEED_GAP and not scale_k:
             return None
         new_init = {n: float(p[self.model.index(n)]) for n in self.layout.estimated}
@@ -751,7 +758,8 @@ class FixedLagSmoother:
         return self._replay(t_fix, new_init, {}, {
             "t": float(t_fix), "event": "held heading re-seeded from the fixes so far",
             "theta_e_before": th0, "theta_e_after": float(st.theta_e),
-            "speed_scale": float(st.rho), "k_before": k0, "k_after": new_init.get("k", k0),
+            "speed_scale": float(st.rho), "speed_scale_sigma": sd_rho, "k_before": k0,
+            "k_after": new_init.get("k", k0),
             "misfit_m": float(st.misfit)}, t_re)
 
     def _release(self, t_fix: float) -> None:

@@ -38,10 +38,12 @@ class Start:
     W: np.ndarray              # (K, 3) model positions at the knots, theta = 0, no current
     w: np.ndarray              # (K, 3) model velocities at the knots
     p0: np.ndarray             # (2,) fitted start position
+    rho_var: float = np.nan    # variance of rho per unit fix variance (1/m^2; x sigma_fix^2)
 
 
 def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: int = 8,
-                prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+                prior: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Huber-weighted (IRLS) least squares of 2-D residual pairs with one free offset per
     window: ``y[a] = off[win, a] + C[a] @ c`` for the north (a = 0) and east (a = 1) rows.
     ``prior``: per coefficient, the sigma of a zero-mean prior on it (``inf``: none),
@@ -50,7 +52,8 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
     ``C`` is (2, n, m), ``y`` (2, n). The offsets are eliminated in closed form (weighted
     means within each window), so each IRLS step solves an m-unknown problem instead of a
     (2 nw + m)-unknown one (the same solution, docs/speed.md). Returns the coefficients
-    ``c``, the offsets (nw, 2) and the robust RMS misfit.
+    ``c``, the offsets (nw, 2), the robust RMS misfit and the coefficients' covariance per
+    unit residual variance (the last step's ``(A^T A)^-1``, offsets eliminated).
     """
     n, m = y.shape[1], C.shape[2]
     wf = np.ones(n)
@@ -74,6 +77,7 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
             A = np.vstack([A, np.diag(lam)])
             b = np.concatenate([b, np.zeros(m)])
         c = np.linalg.lstsq(A, b, rcond=None)[0]
+        AtA = A.T @ A
         r = yc - Cc @ c
         res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
@@ -83,14 +87,16 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
         wf = wf_next
     k = 2.0 * (1.4826 * np.median(res) + 1e-3)
     huber = np.where(res <= k, 0.5 * res ** 2, k * (res - 0.5 * k))
-    return c, off, float(np.sqrt(2.0 * np.mean(huber)))
+    cov = np.linalg.pinv(AtA) if iters > 0 else np.full((m, m), np.nan)
+    return c, off, float(np.sqrt(2.0 * np.mean(huber))), cov
 
 
 def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray,
                 window: float | None = None, current_sigma: tuple[float, float] | None = None
-                ) -> tuple[float, np.ndarray, float, np.ndarray, float] | None:
-    """Theta, current, rho, start position and robust misfit that best map the model track
-    ``W`` (at ``knots``, theta = 0, no current) onto the fixes ``(tf, pf)``.
+                ) -> tuple[float, np.ndarray, float, np.ndarray, float, float] | None:
+    """Theta, current, rho, start position, robust misfit and rho's variance per unit fix
+    variance (1/m^2) that best map the model track ``W`` (at ``knots``, theta = 0, no
+    current) onto the fixes ``(tf, pf)``.
 
     With ``window`` (s), every window of that length gets its own position offset, so the
     misfit measures how well the model predicts motion over a window rather than how far
@@ -126,15 +132,19 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     prior = (None if current_sigma is None else
              np.array([current_sigma[0], current_sigma[1], np.inf, np.inf]))
     if n == 3:
-        c2, off, misfit = _robust_fit(C[:, :, 2:], np.stack([pf[:, 0], pf[:, 1]]), win, nw)
+        c2, off, misfit, cov = _robust_fit(C[:, :, 2:], np.stack([pf[:, 0], pf[:, 1]]), win, nw)
         c = np.concatenate([[0.0, 0.0], c2])
     else:
-        c, off, misfit = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw, prior=prior)
+        c, off, misfit, cov = _robust_fit(C, np.stack([pf[:, 0], pf[:, 1]]), win, nw,
+                                          prior=prior)
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(off))):
         return None
     theta = float(np.arctan2(c[3], c[2]))
     rho = float(np.hypot(c[2], c[3]))
-    return theta, c[:2].copy(), rho, off[0].copy(), misfit
+    # rho's variance: the (rho cos, rho sin) block's along their direction
+    u = np.array([c[2], c[3]]) / max(rho, 1e-300)
+    rho_var = float(u @ cov[-2:, -2:] @ u)
+    return theta, c[:2].copy(), rho, off[0].copy(), misfit, rho_var
 
 
 def current_prior(prior_sigma: dict | None) -> tuple[float, float] | None:
@@ -186,12 +196,12 @@ def candidate_starts(model: Model, mission: Mission, knots: np.ndarray, p: np.nd
         cf = closed_form(X[:, :3], knots, tf, pf, window, current_sigma)
         if cf is None:
             continue
-        theta, cur, rho, p0, misfit = cf
+        theta, cur, rho, p0, misfit, rho_var = cf
         if not 0.05 < rho < 20.0:
             continue
         # a speed scale rho means the model's steady speed sqrt(k / k_x) is off by rho
         fixed = {"k": float(qq[i_k] * rho ** 2), "k_x": float(qq[i_x]), "k_yz": float(qq[i_y])}
-        out.append(Start(theta, cur, fixed, rho, misfit, X[:, :3], X[:, 3:], p0))
+        out.append(Start(theta, cur, fixed, rho, misfit, X[:, :3], X[:, 3:], p0, rho_var))
     out.sort(key=lambda s: s.misfit)
     return out
 
