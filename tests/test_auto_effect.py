@@ -98,11 +98,17 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     ae = res.info["auto_effect"]
     assert ae["adopted"] and res.effects == ("ground_advance",), ae
     e, e0 = _errors(res, truth), _errors(given, truth)
-    assert max(abs(e0[n]) / given.sigma[n] for n in ("s_x", "s_y")) > 3.0
+    # the model as given: its current 4-6 sandwich sigmas off; its reported sigma holds the
+    # shift the proven effect would cause (the structural sigma, the sandwich having raised
+    # a sigma), which covers it
+    sw = given.info["sigma_structure"]["sigma_before"]
+    assert given.info["sigma_structure"]["effect"] == "ground_advance"
+    assert max(abs(e0[n]) / sw[n] for n in ("s_x", "s_y")) > 3.0
+    assert max(abs(e0[n]) / given.sigma[n] for n in ("s_x", "s_y")) <= 3.0
     # the move is many of the model-as-given's sigmas, and about what the test predicted
     pred = ae["predicted_move"]
     moved = max(abs(ae["moved"][n]) for n in ("s_x", "s_y"))
-    assert moved > 3 * max(given.sigma[n] for n in ("s_x", "s_y"))
+    assert moved > 3 * max(sw[n] for n in ("s_x", "s_y"))
     assert moved < 3 * max(pred[n] for n in ("s_x", "s_y"))
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.005
     for n in VAR:
