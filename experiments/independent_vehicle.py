@@ -1,7 +1,8 @@
 """Independent-vehicle benchmark: both methods, batch and online, on the Otter USV missions of
 Fossen's 6-DOF simulator (tests/data; a vehicle that is not the paper's model).
 
-For every mission and GNSS fix interval (1, 4, 8 s; USBL every 4.5 s throughout):
+For every mission and GNSS fix interval (1, 4, 8 s; USBL every 4.5 s throughout, none with
+``--without-usbl``):
 
 * batch: factor graph and update-error method, all six parameters: theta_e and current
   error, |error| / sigma, smoothed RMSE, model-only re-trace RMSE, median 60-s dead-reckoning
@@ -24,6 +25,7 @@ import argparse
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -133,12 +135,20 @@ def all6_row(m, truth) -> dict:
             "events": len(r.info.get("events", []) or [])}
 
 
+def load(path: Path, without_usbl: bool = False):
+    """A mission, without its USBL stream where asked (``--without-usbl``: GNSS only, an
+    ASV's usual case)."""
+    m = load_mission(path)
+    return replace(m, usbl=None) if without_usbl else m
+
+
 def one(args) -> dict:
-    data, name, donor_name, every = args
+    data, name, donor_name, every, *rest = args
+    without_usbl = bool(rest and rest[0])
     from aqfg.fg import fit_fg
-    m = with_gnss_every(load_mission(data / name), every)
+    m = with_gnss_every(load(data / name, without_usbl), every)
     truth = load_truth(data / name)
-    donor = fit_fg([load_mission(data / donor_name)])
+    donor = fit_fg([load(data / donor_name, without_usbl)])
     # the donor's vehicle constants, with the effects its fit added (as --params-from)
     init = donor.vehicle_constants()
     d_eff = tuple(donor.effects)
@@ -288,6 +298,8 @@ def main() -> None:
                     help="a folder of missions with [truth] (default: the Otter missions in "
                          "tests/data)")
     ap.add_argument("--out", type=Path, default=None, help="where to write the table")
+    ap.add_argument("--without-usbl", action="store_true",
+                    help="leave every mission's USBL out (GNSS only, an ASV's usual case)")
     args = ap.parse_args()
     if args.data is not None and args.out is None:
         sys.exit("independent_vehicle: with --data, name the table with --out "
@@ -302,9 +314,9 @@ def main() -> None:
             sys.exit(f"independent_vehicle: {data} needs at least two missions with truth "
                      "(each is another's donor)")
         donors = {n: names[(i + 1) % len(names)] for i, n in enumerate(names)}
-    jobs = [(data, n, donors[n], e) for n in names for e in EVERY]
+    jobs = [(data, n, donors[n], e, args.without_usbl) for n in names for e in EVERY]
     if args.quick:
-        jobs = [(data, "otter-dev-calm-a", donors["otter-dev-calm-a"], 8.0)] \
+        jobs = [(data, "otter-dev-calm-a", donors["otter-dev-calm-a"], 8.0, args.without_usbl)] \
             if args.data is None else jobs[2:3]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as ex:
@@ -321,6 +333,9 @@ def main() -> None:
             "mean of its drifting offset (batch), the offset at t = 0 (batch with the "
             "`heading_drift` effect) or the offset at that time (online). The update-error "
             "method's online σ is NaN where its 3-fix window does not determine θe.\n\n")
+    if args.without_usbl:
+        head += ("Every mission without its USBL stream (`--without-usbl`): GNSS only, "
+                 "donors' fits included.\n\n")
     if args.data is not None:
         head += f"Missions: {data.name}/; donors: " + ", ".join(
             f"{n} ← {donors[n]}" for n in names) + ".\n\n"
