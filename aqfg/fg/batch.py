@@ -644,6 +644,10 @@ class BatchSmoother:
         if not res.info.get("plausible"):
             return None
         self._track_job = sm._track_job
+        # its numpy system too, for the structural sigma (aqfg.fg.fit.structural_sigma): a
+        # held-sway fit went without it, and its current sat 7 sigma off on a GNSS-only
+        # weak-propeller Otter (docs/independent-vehicle.md)
+        self.fast_solution = sm.fast_solution
         slip = max((v.slip_deg or 0.0) for v in verdicts)
         if slip >= 1.0:
             why = (f"slid sideways through the water ({slip:.0f} deg off the thrust axis on "
