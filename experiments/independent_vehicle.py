@@ -143,8 +143,7 @@ def load(path: Path, without_usbl: bool = False):
 
 
 def one(args) -> dict:
-    data, name, donor_name, every, *rest = args
-    without_usbl = bool(rest and rest[0])
+    data, name, donor_name, every, without_usbl = args
     from aqfg.fg import fit_fg
     m = with_gnss_every(load(data / name, without_usbl), every)
     truth = load_truth(data / name)

@@ -729,14 +729,14 @@ class FixedLagSmoother:
         st = starts[0]
         th0 = float(p[self.model.index("theta_e")])
         gap = abs(float(np.angle(np.exp(1j * (st.theta_e - th0)))))
-        # the thrust gain too where it is estimated (not given): the closed form's speed
-        # scale rho says the held model's steady speed sqrt(k / k_x) is rho times the
-        # vehicle's (aqfg.fg.init.candidate_starts), and a heading re-seeded at a speed
-        # 2.4x the vehicle's still ran the track 6-11 m off its GNSS-only fixes
-        # where the fixes determine it: rho off 1 by more than 2 of its sigma (the fixes'
-        # median variance through the closed form's) and detected at 3 sigma (sigma below
+        # The thrust gain too, where it is estimated (not given): the closed form's speed
+        # scale rho says the held model's steady speed sqrt(k / k_x) is 1 / rho times the
+        # vehicle's (aqfg.fg.init.candidate_starts); a heading re-seeded at 2.4x the
+        # vehicle's speed still ran the track 6-11 m off its GNSS-only fixes. Only where
+        # the fixes determine rho: off 1 by more than 2 of its sigma (the fixes' median
+        # variance through the closed form's) and detected at 3 sigma (sigma below
         # rho / 3); from three fixes of a vehicle that had barely moved, rho came out
-        # 13 +- 6.5 (k x 170)
+        # 13 +- 6.5 (k x 170).
         v_fix = float(np.median(self._fixes[2][self._fixes[0] <= t_fix + 1e-9]))
         sd_rho = math.sqrt(max(v_fix * st.rho_var, 0.0)) if math.isfinite(st.rho_var) else math.inf
         scale_k = ("k" in self.layout.estimated and "k" not in self.init

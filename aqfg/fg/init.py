@@ -77,7 +77,6 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
             A = np.vstack([A, np.diag(lam)])
             b = np.concatenate([b, np.zeros(m)])
         c = np.linalg.lstsq(A, b, rcond=None)[0]
-        AtA = A.T @ A
         r = yc - Cc @ c
         res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
@@ -87,7 +86,8 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
         wf = wf_next
     k = 2.0 * (1.4826 * np.median(res) + 1e-3)
     huber = np.where(res <= k, 0.5 * res ** 2, k * (res - 0.5 * k))
-    cov = np.linalg.pinv(AtA) if iters > 0 else np.full((m, m), np.nan)
+    # (A: the last step's system)
+    cov = np.linalg.pinv(A.T @ A) if iters > 0 else np.full((m, m), np.nan)
     return c, off, float(np.sqrt(2.0 * np.mean(huber))), cov
 
 

@@ -80,13 +80,19 @@ def missions_op(items: list) -> list[dict]:
     return out
 
 
-def structural_op(specs: list[MissionSpec], result):
-    """A vehicle's joint fit with the model it was fitted with and the structural part of
-    its sigma (:func:`structural`); the missions are read on the worker."""
+def _vehicle(specs: list[MissionSpec], result) -> list:
+    """A vehicle's missions, read on the worker, and its joint fit ``result`` given the
+    model it was fitted with (in place)."""
     from aqfg.fg.common import mission_model
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
-    return structural(specs, missions, result)
+    return missions
+
+
+def structural_op(specs: list[MissionSpec], result):
+    """A vehicle's joint fit with the model it was fitted with and the structural part of
+    its sigma (:func:`structural`); the missions are read on the worker."""
+    return structural(specs, _vehicle(specs, result), result)
 
 
 def finish_op(specs: list[MissionSpec], result):
@@ -95,9 +101,7 @@ def finish_op(specs: list[MissionSpec], result):
     smoothed under the noise their evidence chooses (:func:`smooth_tracks`), as ``aqfg fit``
     does once for the fit it returns; the missions are read on the worker."""
     from aqfg.fg import dead_reckoning
-    from aqfg.fg.common import mission_model
-    missions = [load(spec) for spec in specs]
-    result.model = mission_model(None, missions[0], specs[0].effects)
+    missions = _vehicle(specs, result)
     result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
     return smooth_tracks(specs, missions, result)
 
