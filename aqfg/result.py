@@ -255,8 +255,16 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         doc["sigma_structure"] = {"effect": st["effect"],
                                   "p_value_robust": float(st["p_value_robust"]),
                                   "shift": {n: float(v) for n, v in st["shift"].items()},
+                                  "proven": bool(st.get("proven", True)),
                                   "sigma_before": {n: float(v)
                                                    for n, v in st["sigma_before"].items()}}
+        rf = st.get("refit")
+        if rf:
+            # the fit again with the effect (aqfg.fg.fit.refit_structure)
+            doc["sigma_structure"]["refit"] = {
+                k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict)
+                    else v if isinstance(v, str) else float(v))
+                for k, v in rf.items() if k in ("cost", "move", "not_used", "failed")}
     ae = result.info.get("auto_effect")
     if result.mode == "batch" and ae:
         # the effect the structural test named, whether the fit added it (FGSettings.

@@ -179,8 +179,13 @@ def test_fit_batch_writes_and_says_the_structural_sigma(tmp_path, capsys):
     assert "auto_effect" not in doc and doc["provenance"]["effects"] == []
     st = doc["sigma_structure"]
     assert st["effect"] == "linear_drag" and st["p_value_robust"] < 1e-3
+    # ... the fit again with it, whose move of each estimate the sigma holds where it
+    # exceeds the first-order shift (aqfg.fg.fit.refit_structure)
+    move = st["refit"]["move"]
+    assert set(move) >= set(st["shift"]) and st["refit"]["cost"] > 0
     for n, d in st["shift"].items():
-        assert doc["parameters"][n]["sigma"] == pytest.approx(np.hypot(st["sigma_before"][n], d))
+        assert doc["parameters"][n]["sigma"] == pytest.approx(
+            np.hypot(st["sigma_before"][n], max(d, move[n])))
     assert "try --effect linear_drag" in capsys.readouterr().err
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from aqfg.fg.fit import base_record, dynamics_effect, guard_estimates, moves, variable_estimates
+from aqfg.fg.fit import base_record, cover_refit, dynamics_effect, guard_estimates, moves, variable_estimates
 from aqfg.result import Result
 
 
@@ -78,6 +78,11 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
         f"p = {p:.2g}; fleet cost {fleet['cost_before']:.1f} -> {fleet['cost_after']:.1f}); "
         "aqfg fleet --no-auto-effect (FGSettings(auto_effect=False)) fits the model as given")
     for v, r in before.items():
+        st = r.info.get("sigma_structure") or {}
+        if after is not None and st.get("effect") == name and st.get("proven"):
+            # the model-as-given fit's structural sigma checked by the refit with its
+            # effect, as aqfg fit's effect step does (aqfg.fg.fit.refit_structure)
+            cover_refit(r, after[v])
         rec: dict = {"effect": name, "p_value_robust": pick["p_value_robust"].get(v, p),
                      "fixes_explained": "sigma_structure" not in r.info,
                      "cost_before": float(r.info.get("cost", math.nan)),

@@ -98,7 +98,8 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
                              "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
     specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
-                                  gnss_every, show, timeout, stats)
+                                  gnss_every, show, timeout, stats,
+                                  refit=not auto_effect_applies(settings, estimate))
     if auto_effect_applies(settings, estimate):
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
                                       show, timeout, stats, specs, results)
@@ -124,7 +125,7 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
 
 
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
-                 timeout, stats: dict) -> tuple[dict, dict[str, Result]]:
+                 timeout, stats: dict, refit: bool = False) -> tuple[dict, dict[str, Result]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
     :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its structural sigma
     (one task each; the dead-reckoning constants and tracks come once, after the effect
@@ -133,7 +134,7 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     from distributed import as_completed
     run = uuid.uuid4().hex[:12]
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
-                                  effects, estimate, init, gnss_every)
+                                  effects, estimate, init, gnss_every, refit)
                       for i, m in enumerate(v.missions)] for v in manifest.vehicles}
     iters = {v: 0 for v in specs}
 
@@ -247,7 +248,7 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     show(0.99, f"the fits call for {pick['effect']}: every vehicle again with it")
     try:
         specs2, new = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
-                                   None, init, gnss_every, show, timeout, stats)
+                                   None, init, gnss_every, show, timeout, stats, refit=True)
     except FleetError as e:
         fe.record(results, pick, None, f"its fit failed ({e})")
         return specs, results

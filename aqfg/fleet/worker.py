@@ -28,6 +28,10 @@ class MissionSpec:
     estimate: tuple | None = None
     init: dict = field(default_factory=dict)
     gnss_every: float = 0.0
+    # the structural sigma checked by a refit with the effect it rests on
+    # (aqfg.fg.fit.refit_structure): the fits returned, not the model-as-given fit of an
+    # effect step, as aqfg fit's batch
+    refit: bool = False
 
     @property
     def key(self) -> tuple:
@@ -113,7 +117,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     parameters)."""
     from aqfg.fg.batch import BatchSmoother, solution_values
     from aqfg.fg.fastlm import FastSystem
-    from aqfg.fg.fit import auto_effect_applies, structural_sigma
+    from aqfg.fg.fit import auto_effect_applies, refit_structure, structural_sigma
     st = specs[0].settings
     if not st.structural_sigma or result.model is None:
         return result
@@ -129,8 +133,12 @@ def structural(specs: list[MissionSpec], missions: list, result):
     X, th = fs.from_values(values)
     # the test also where the fixes are explained, for the fleet's effect step
     # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
-    return structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
-                            test_always=auto_effect_applies(st, specs[0].estimate))
+    result = structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
+                              test_always=auto_effect_applies(st, specs[0].estimate))
+    if specs[0].refit:
+        result = refit_structure(result, missions, None, specs[0].effects, specs[0].estimate,
+                                 specs[0].init, st)
+    return result
 
 
 def smooth_tracks(specs: list[MissionSpec], missions: list, result):
