@@ -129,6 +129,26 @@ def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
     assert e <= 3 * h.sigma[k10, i]
 
 
+def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
+    """otter-dev-calm-a at 4-s GNSS with the paper's constants: a re-initialisation batch
+    restarts the smoother where other basins fit as well (its sigma over them is many times
+    the chosen basin's). The restart's own fix, where the parameters are still held at the
+    batch's values, reports that spread, not the hold prior's sigma alone (which is twice
+    the one basin's: 3 deg against 16.5)."""
+    m, _ = mission("otter-dev-calm-a", 4.0)
+    res = fit_fg([m], mode="online")
+    h = res.history
+    i = list(h.names).index("theta_e")
+    amb = [b for b in res.info["reinit_batches"]
+           if b["restarted"] and b["reference"] != "non-sliding alternative"
+           and b["sigma_theta_e"] > 3 * b["reference_sigma_theta_e"]]
+    assert amb, res.info["reinit_batches"]
+    for b in amb:
+        k = int(np.argmin(np.abs(h.t - b["t"])))
+        assert h.t[k] == pytest.approx(b["t"])
+        assert h.sigma[k, i] >= b["sigma_theta_e"], (b, h.sigma[k, i])
+
+
 @pytest.mark.slow
 def test_heading_drift_recovered_on_the_otter():
     m, truth = mission("otter-dev-yawdrift", 8.0)
