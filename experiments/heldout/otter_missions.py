@@ -244,6 +244,12 @@ BOX_E = (-15.0, 155.0)
 SPEEDS = (1.2, 1.5, 1.8, 2.1)
 
 
+# --wide: conditions beyond those of the example missions, to test that nothing was tuned
+# to them: currents 0.15-0.30 m/s, a propeller at 55-70 %, a heading offset drifting
+# 0.03-0.05 deg/s, missions stopped after 8-15 min
+WIDE = False
+
+
 def design(seed: int):
     rng = np.random.default_rng(seed)
     # hidden physics variant: a fixed shuffle of 3 plain, 3 weak-propeller, 2 drift
@@ -251,15 +257,16 @@ def design(seed: int):
         ["plain"] * 3 + ["weakprop"] * 3 + ["yawdrift"] * 2)
     variant = str(order[(seed - 1) % 8])
     theta_e = float(rng.uniform(-np.pi, np.pi))
-    cur_speed = float(rng.uniform(0.0, 0.15))
+    cur_speed = float(rng.uniform(*((0.15, 0.30) if WIDE else (0.0, 0.15))))
     cur_dir = float(rng.uniform(0.0, 360.0))
     scale = (1.0, 1.0)
     rate = 0.0
     if variant == "weakprop":
-        s = float(rng.uniform(0.7, 0.9))
+        s = float(rng.uniform(*((0.55, 0.7) if WIDE else (0.7, 0.9))))
         scale = (1.0, s) if rng.random() < 0.5 else (s, 1.0)
     elif variant == "yawdrift":
-        rate = math.radians(float(rng.uniform(0.01, 0.03)) * rng.choice([-1, 1]))
+        rate = math.radians(float(rng.uniform(*((0.03, 0.05) if WIDE else (0.01, 0.03))))
+                            * rng.choice([-1, 1]))
     # route: random points in the box, legs 45-120 m, turns >= 45 deg
     start = np.array([rng.uniform(*BOX_N), rng.uniform(*BOX_E)])
     wps = []
@@ -399,7 +406,8 @@ def make(seed: int, outdir: str) -> float:
     d = design(seed)
     v = Otter(d["cur_speed"], d["cur_dir"], d["scale"])
     ctrl = WaypointController(v, d["start"], d["wps"], d["speeds"], d["pauses"],
-                              t_stop_after=float(d["rng"].uniform(790.0, 900.0)))
+                              t_stop_after=float(d["rng"].uniform(
+                                  *((480.0, 900.0) if WIDE else (790.0, 900.0)))))
     z, phi, theta = trim_state()
     eta0 = [d["start"][0], d["start"][1], z, phi, theta, d["psi0"]]
     t0 = time.time()
@@ -421,6 +429,10 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "missions"))
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 9)))
+    ap.add_argument("--wide", action="store_true",
+                    help="conditions beyond the examples' (stronger currents, weaker "
+                         "propeller, faster drift, shorter missions)")
     a = ap.parse_args()
+    WIDE = a.wide
     for s in a.seeds:
         make(s, a.out)
