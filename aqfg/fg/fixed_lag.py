@@ -416,7 +416,7 @@ class FixedLagSmoother:
         due = self._reinit_due(t_fix)
         if due:
             info = self._reinitialise(t_fix, rescue=due == "rescue") or info
-        elif self._troubled(t_fix):
+        elif self._troubled(t_fix) or self._implausible_released(t_fix):
             info = self._reinitialise(t_fix, force=True) or info
         if self._held_failing() or self._held_missed_early():
             info = self._reseed(t_fix) or info
@@ -512,6 +512,29 @@ class FixedLagSmoother:
                   for e in self.events[self._ev_mark:])
         return (bad and self.n_fix >= 6 and "theta_e" not in self.init
                 and t_fix - self._forced_at >= 30.0)
+
+    def _implausible_released(self, t_fix: float) -> bool:
+        """The released parameters have become a vehicle whose prediction nothing bounds
+        (the batch's bounds check, :func:`aqfg.fg.plausibility.bounds`, on the thrust, the
+        surge drag and the current: no thrust or no drag along the thrust axis, a current
+        at its bound), and no forced re-initialisation ran in the last 30 s: the event is
+        recorded and the fixes so far are solved as a batch and replayed (as for
+        :meth:`_troubled`). On an Otter in a 0.23 m/s current with the paper's constants
+        and all six free, the released thrust and drags fell to zero after a 160-s batch,
+        and the causal track ran 45 km off in the next 60 s (docs/independent-vehicle.md).
+        A sway drag at its bound (a hull that slides) is left to the batches' slip checks:
+        it happens on the Otter, and the predictions stay bounded."""
+        if self._hold_idx or self.n_fix < 6 or "theta_e" in self.init \
+                or t_fix - self._forced_at < 30.0:
+            return False
+        est = tuple(n for n in self.layout.estimated if n != "k_yz")
+        pinned, why = plausibility.bounds(self.model, self.params(), est)
+        if not pinned:
+            return False
+        self.events.append({"t": float(t_fix), "event": "released parameters implausible",
+                            "reasons": why})
+        self._forced_at = float(t_fix)        # one attempt per 30 s, used or not
+        return True
 
     def _update_fast(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
                      ) -> UpdateInfo:
@@ -739,7 +762,13 @@ class FixedLagSmoother:
         # 13 +- 6.5 (k x 170).
         v_fix = float(np.median(self._fixes[2][self._fixes[0] <= t_fix + 1e-9]))
         sd_rho = math.sqrt(max(v_fix * st.rho_var, 0.0)) if math.isfinite(st.rho_var) else math.inf
+        # ... and where no fix can be an undetected outlier: three fixes have none to
+        # spare, so there only if none is a USBL fix (the stream with outliers, which the
+        # gate exists for; a 17-m USBL outlier among the first three gave rho = 13 +- 3.8,
+        # k x 170, and the causal track ran 190 m off; docs/independent-vehicle.md)
+        n_usbl = 0 if view.usbl is None else int(np.sum(view.usbl.t <= t_fix + 1e-9))
         scale_k = ("k" in self.layout.estimated and "k" not in self.init
+                   and (len(np.unique(view.fix_times())) > RESEED_EARLY_FIXES or n_usbl == 0)
                    and not RESEED_RHO[0] <= st.rho <= RESEED_RHO[1]
                    and abs(st.rho - 1.0) > 2.0 * sd_rho and 3.0 * sd_rho < st.rho)
         if gap < RESEED_GAP and not scale_k:

@@ -89,18 +89,20 @@ def check(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.nd
     if slip is not None and slip > max_slip:
         reasons.append(f"the vehicle moves {slip:.0f} deg off its thrust axis through the water "
                        f"(a hull is pushed along it; above {max_slip:.0f} deg is not a vessel)")
-    pinned: list[str] = []
-    for n in ("k", "k_x", "k_yz"):
-        if n in estimated:
-            spec = model.spec(n)
-            if p[model.index(n)] <= spec.lower * 10.0:
-                pinned.append(n)
-    if pinned:
-        reasons.append(f"{', '.join(pinned)} at the lower bound (no thrust or no drag)")
+    pinned, why = bounds(model, p, estimated)
+    return Plausibility(not reasons and not why, slip, pinned, reasons + why)
+
+
+def bounds(model: Model, p: np.ndarray, estimated: tuple[str, ...]) -> tuple[list[str], list[str]]:
+    """The bounds check of the parameter vector ``p`` (see the module docstring): the
+    estimated parameters pinned at a bound no vehicle has, and the reasons in words."""
+    pinned: list[str] = [n for n in ("k", "k_x", "k_yz")
+                         if n in estimated and p[model.index(n)] <= model.spec(n).lower * 10.0]
+    reasons = [f"{', '.join(pinned)} at the lower bound (no thrust or no drag)"] if pinned else []
     at_bound = [n for n in ("s_x", "s_y") if n in estimated
                 and abs(p[model.index(n)]) >= 0.99 * model.spec(n).upper]
     if at_bound:
         pinned += at_bound
         reasons.append(f"{', '.join(at_bound)} at the {model.spec(at_bound[0]).upper:g} m/s "
                        "bound (a current no vehicle of this kind works in)")
-    return Plausibility(not reasons, slip, pinned, reasons)
+    return pinned, reasons
