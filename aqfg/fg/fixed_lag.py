@@ -527,7 +527,19 @@ class FixedLagSmoother:
         if self._hold_idx or self.n_fix < 6 or "theta_e" in self.init \
                 or t_fix - self._forced_at < 30.0:
             return False
-        est = tuple(n for n in self.layout.estimated if n != "k_yz")
+        # (a few comparisons on the latest estimates per update; the check in words only
+        # where one is at its bound)
+        lay = self.layout
+        watch = getattr(self, "_bound_watch", None)
+        if watch is None:
+            watch = self._bound_watch = [
+                (g, lay.names[g].index(n), self.model.spec(n).lower * 10.0,
+                 0.99 * self.model.spec(n).upper if n in ("s_x", "s_y") else np.inf)
+                for g in lay.groups for n in lay.names[g] if n in ("k", "k_x", "s_x", "s_y")]
+        if not any(g in self._last_params and not lo < abs(self._last_params[g][j]) < hi
+                   for g, j, lo, hi in watch):
+            return False
+        est = tuple(n for n in lay.estimated if n != "k_yz")
         pinned, why = plausibility.bounds(self.model, self.params(), est)
         if not pinned:
             return False
