@@ -166,6 +166,7 @@ class FixedLagSmoother:
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
         # per-update constants of the layout (its properties build tuples on each call)
         self._theta_est = "theta_e" in self.layout.estimated
+        self._bound_watch: list | None = None      # see _implausible_released
         # no thrust/drag constant estimated (given by init, or held fixed)
         self._constants_given = not any(n in self.layout.estimated for n in FIXED_BASE)
         self._scales = np.array([self.model.spec(n).scale for n in self.layout.estimated])
@@ -530,7 +531,7 @@ class FixedLagSmoother:
         # (a few comparisons on the latest estimates per update; the check in words only
         # where one is at its bound)
         lay = self.layout
-        watch = getattr(self, "_bound_watch", None)
+        watch = self._bound_watch
         if watch is None:
             watch = self._bound_watch = [
                 (g, lay.names[g].index(n), self.model.spec(n).lower * 10.0,
