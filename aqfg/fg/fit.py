@@ -403,7 +403,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
             # a joint fit's per-mission values: the same shift (the largest over them)
             if isinstance(e.get(n), dict) and "sigma" in e[n]:
                 e[n]["sigma"] = float(np.hypot(e[n]["sigma"], d))
-    w = _structure_warning(sh.effect, sh.proven, sh.p_robust, sh.shift, refitted=False)
+    w = _structure_warning(sh.effect, sh.proven, sh.p_robust, sh.shift)
     res.info["sigma_structure"] = {**sh.to_json(), "sigma_before": before, "warning": w}
     res.info.setdefault("warnings", []).append(w)
     if log_warnings:
@@ -412,21 +412,24 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
 
 
 def _structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],
-                       refitted: bool) -> str:
-    """The structural sigma's warning: which effect, how far it moves the heading offset
-    and the current (its first-order shift, or the refit's move where ``refitted``)."""
-    parts = []
-    if "theta_e" in shift:
-        parts.append(f"theta_e by {np.degrees(shift['theta_e']):.2g} deg")
-    cur = [shift[n] for n in ("s_x", "s_y") if n in shift]
-    if cur:
-        parts.append(f"the current by {math.sqrt(sum(c * c for c in cur)):.2g} m/s")
+                       moved: dict[str, float] | None = None) -> str:
+    """The structural sigma's warning: which effect and how far it moves the heading offset
+    and the current (its first-order ``shift``; with ``moved``, the refit's move beside it),
+    which the sigma includes (the larger of the two)."""
+    def words(d: dict[str, float]) -> str:
+        parts = []
+        if "theta_e" in d:
+            parts.append(f"theta_e by {np.degrees(d['theta_e']):.2g} deg")
+        cur = [d[n] for n in ("s_x", "s_y") if n in d]
+        if cur:
+            parts.append(f"the current by {math.sqrt(sum(c * c for c in cur)):.2g} m/s")
+        return " and ".join(parts) or "the estimates"
     verb = "call for" if proven else "suggest (do not prove)"
-    how = "refitted with it," if refitted else "with it"
-    moves_ = "move" if refitted else "would move"
+    how = (f"refitted with it, {words(moved)} move (to first order {words(shift)}); sigma "
+           "includes the larger" if moved is not None else
+           f"with it {words(shift)} would move; sigma includes that shift")
     return (f"the data {verb} the effect {effect} (robust score test p = {p_robust:.2g}): "
-            f"{how} {' and '.join(parts) or 'the estimates'} {moves_}; sigma includes that "
-            f"shift (try --effect {effect}, or `aqfg diagnose`)")
+            f"{how} (try --effect {effect}, or `aqfg diagnose`)")
 
 
 def refit_structure(res: Result, missions: list[Mission], model, effects: Sequence,
@@ -488,9 +491,8 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
                 em["sigma"] = _cover(float(em["sigma"]), d, first.get(n, 0.0))
                 move[f"{m}:{n}"] = d
     rec.update(move=move, sigma_before=before)
-    shown = {n: max(first.get(n, 0.0), move[n]) for n in names}
-    w = _structure_warning(ss["effect"], True, float(ss["p_value_robust"]), shown,
-                           refitted=True)
+    w = _structure_warning(ss["effect"], True, float(ss["p_value_robust"]), first,
+                           moved={n: move[n] for n in names})
     warns = res.info.setdefault("warnings", [])
     warns[:] = [w if x == ss.get("warning") else x for x in warns]
     ss["warning"] = w
