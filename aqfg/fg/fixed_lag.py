@@ -511,8 +511,13 @@ class FixedLagSmoother:
         solved as a batch and replayed."""
         bad = any(e["event"] in ("fix skipped", "prediction diverged", "restarted (broad priors)")
                   for e in self.events[self._ev_mark:])
-        return (bad and self.n_fix >= 6 and "theta_e" not in self.init
-                and t_fix - self._forced_at >= 30.0)
+        return bad and self._may_force(t_fix)
+
+    def _may_force(self, t_fix: float) -> bool:
+        """A forced re-initialisation may run at this fix: six fixes in, the heading offset
+        not given, and none forced in the last 30 s (:meth:`_troubled`,
+        :meth:`_implausible_released`)."""
+        return self.n_fix >= 6 and "theta_e" not in self.init and t_fix - self._forced_at >= 30.0
 
     def _implausible_released(self, t_fix: float) -> bool:
         """The released parameters have become a vehicle whose prediction nothing bounds
@@ -525,17 +530,15 @@ class FixedLagSmoother:
         and the causal track ran 45 km off in the next 60 s (docs/independent-vehicle.md).
         A sway drag at its bound (a hull that slides) is left to the batches' slip checks:
         it happens on the Otter, and the predictions stay bounded."""
-        if self._hold_idx or self.n_fix < 6 or "theta_e" in self.init \
-                or t_fix - self._forced_at < 30.0:
+        if self._hold_idx or not self._may_force(t_fix):
             return False
-        # (a few comparisons on the latest estimates per update; the check in words only
-        # where one is at its bound)
+        # (a few comparisons on the latest estimates per update, against the bounds check's
+        # own limits; the check in words only where one is at its bound)
         lay = self.layout
         watch = self._bound_watch
         if watch is None:
             watch = self._bound_watch = [
-                (g, lay.names[g].index(n), self.model.spec(n).lower * 10.0,
-                 0.99 * self.model.spec(n).upper if n in ("s_x", "s_y") else np.inf)
+                (g, lay.names[g].index(n), *plausibility.limits(self.model, n))
                 for g in lay.groups for n in lay.names[g] if n in ("k", "k_x", "s_x", "s_y")]
         if not any(g in self._last_params and not lo < abs(self._last_params[g][j]) < hi
                    for g, j, lo, hi in watch):

@@ -93,14 +93,24 @@ def check(model: Model, mission: Mission, t: np.ndarray, X: np.ndarray, p: np.nd
     return Plausibility(not reasons and not why, slip, pinned, reasons + why)
 
 
+def limits(model: Model, name: str) -> tuple[float, float]:
+    """The open interval the magnitude of a thrust/drag constant or a current component must
+    stay in (:func:`bounds`): above ten times a constant's lower bound, below 99 % of the
+    current's bound."""
+    spec = model.spec(name)
+    if name in ("s_x", "s_y"):
+        return -np.inf, 0.99 * spec.upper
+    return spec.lower * 10.0, np.inf
+
+
 def bounds(model: Model, p: np.ndarray, estimated: tuple[str, ...]) -> tuple[list[str], list[str]]:
     """The bounds check of the parameter vector ``p`` (see the module docstring): the
     estimated parameters pinned at a bound no vehicle has, and the reasons in words."""
     pinned: list[str] = [n for n in ("k", "k_x", "k_yz")
-                         if n in estimated and p[model.index(n)] <= model.spec(n).lower * 10.0]
+                         if n in estimated and p[model.index(n)] <= limits(model, n)[0]]
     reasons = [f"{', '.join(pinned)} at the lower bound (no thrust or no drag)"] if pinned else []
     at_bound = [n for n in ("s_x", "s_y") if n in estimated
-                and abs(p[model.index(n)]) >= 0.99 * model.spec(n).upper]
+                and abs(p[model.index(n)]) >= limits(model, n)[1]]
     if at_bound:
         pinned += at_bound
         reasons.append(f"{', '.join(at_bound)} at the {model.spec(at_bound[0]).upper:g} m/s "
