@@ -1,7 +1,8 @@
 """Short stretches (``python experiments/short_crops.py``): the batch fit (all six
 parameters) and the online fit with default constants on 80 crops of 2.5 and 5 min of the
 Otter missions in tests/data, at 1- and 8-s GNSS plus USBL. One line per crop: theta_e
-error (deg; the yaw-drift mission against the crop's mean), |error|/sigma, and whether the
+error (deg; the yaw-drift mission against the crop's mean), |error|/sigma, the current's
+error (m/s) and its larger |error|/sigma of the two axes, and whether the
 fit was held against sliding ("held"), named a non-sliding alternative ("named") or is
 implausible ("IMPL"); the online causal RMSE (m). Committed run:
 ``results/short_crops.txt``, discussed in docs/independent-vehicle.md."""
@@ -37,7 +38,10 @@ def one(args) -> str:
         e = iv.wrap_deg(r.values["theta_e"] - th)
         flag = ("held" if "held_sway" in r.info else "named" if "alternative_held_sway" in r.info
                 else "IMPL" if not r.info["plausible"] else "")
-        out += f" | batch {e:6.1f} z={abs(e) / np.degrees(r.sigma['theta_e']):4.1f} {flag}"
+        ec = np.hypot(*(r.values[n] - tr.params.get(n, 0.0) for n in ("s_x", "s_y")))
+        zc = max(abs(r.values[n] - tr.params.get(n, 0.0)) / r.sigma[n] for n in ("s_x", "s_y"))
+        out += (f" | batch {e:6.1f} z={abs(e) / np.degrees(r.sigma['theta_e']):4.1f}"
+                f" current {ec:5.3f} z={zc:4.1f} {flag}")
     except Exception as ex:  # a failure is a result here
         out += (f" | batch EXC {type(ex).__name__}: {str(ex)[:80]} @ "
                 f"{traceback.extract_tb(ex.__traceback__)[-1].name}")

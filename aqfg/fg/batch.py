@@ -166,6 +166,7 @@ class BatchSmoother:
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # info["warnings"] also to the log (WARNING)
         self.fast_solution: tuple | None = None   # (FastSystem, evaluation) of the last run
+        self.short_solution: tuple | None = None  # the same where too short for the sandwich
         # the model-only re-trace of each mission in the result; False: left empty where
         # one parameter vector serves the mission, for a caller that changes the parameters
         # and re-traces itself (fit_fg after the dead-reckoning refinement)
@@ -355,10 +356,7 @@ class BatchSmoother:
         q_scale, q_tried = 1.0, dict[float, float]()
         # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
         # noise is the honest sigma there (docs/independent-vehicle.md)
-        b = s.sandwich_block or np.inf
-        n_blocks = sum(int(np.floor((float(p.knots[-1]) - float(p.knots[0])) / b)) + 1
-                       for p in parts)
-        short = n_blocks < sum(layout.dim(g) for g, _, _ in node_list) + 2
+        short = too_short_for_sandwich(bg, s)
         adapt = short if s.adapt_batch is None else s.adapt_batch
         q_measured = None
         if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
@@ -378,19 +376,55 @@ class BatchSmoother:
                 q_tried = {}
                 fs.set_process_scale(1.0)
                 out = _finish_fast(fs, out, X0, th0, s)
+        # where the evidence chooses the noise, basins are ranked by their evidence, each
+        # under the noise its own misfit asks for (noise.basin_evidence): the peak height
+        # under the noise one basin chose favours a sliding hull on a short crop, which
+        # ranked a basin 43 deg off 7 lower in cost and 14.5 lower in evidence
+        # (docs/independent-vehicle.md)
+        le_out = np.nan
+        if adapt and s.rank_by_evidence and fs is not None and out.fast is not None:
+            le_out = fs.log_evidence(out.fast)
+        by_ev = bool(np.isfinite(le_out))
+        q_out = q_scale
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start")]
+        if by_ev:
+            basins[0].update(log_evidence=float(le_out), process_noise_scale=q_out)
         for label, alt in [*self._alternatives(bg, verdicts, short), *self._given_start(bg)]:
             o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
+            le_o, q_o = np.nan, q_out
+            if by_ev and fs is not None and o.fast is not None:
+                le_o, q_o, Xo, tho = noise.basin_evidence(fs, *fs.from_values(o.values),
+                                                          o.fast, s)
+                if q_o != q_out:
+                    o = _finish_fast(fs, o, Xo, tho, s)
+                    assert o.fast is not None       # the numpy path's evaluation
+                    le_o = fs.log_evidence(o.fast)
             v = self.check_plausibility(bg, o.values)
             basins.append(_basin(bg, o, v, label))
+            if by_ev:
+                basins[-1].update(log_evidence=float(le_o), process_noise_scale=q_o)
             # (lower by more than round-off: a start that ends in the same basin keeps the
             # first solution and its iterates)
+            if np.isfinite(le_o) and np.isfinite(le_out):
+                lower = le_o > le_out + 1e-6 * max(abs(le_out), 1.0)
+            else:
+                lower = o.cost < out.cost - 1e-6 * max(abs(out.cost), 1.0)
             if (all(x.plausible for x in v) and not all(x.plausible for x in verdicts)) or \
                     (all(x.plausible for x in v) == all(x.plausible for x in verdicts)
-                     and o.cost < out.cost - 1e-6 * max(abs(out.cost), 1.0)):
-                out, verdicts = o, v
+                     and lower):
+                out, verdicts, le_out, q_out = o, v, le_o, q_o
+            if by_ev and fs is not None:
+                fs.set_process_scale(q_out)
+        if by_ev:
+            q_scale = q_out
+            # each basin's cost on the chosen one's scale, by evidence: the chosen one's
+            # cost plus its evidence lead (what the ambiguity margin compares)
+            for bas in basins:
+                le_b = bas.get("log_evidence", np.nan)
+                bas["rank"] = float(out.cost + (le_out - le_b)) \
+                    if np.isfinite(le_b) and np.isfinite(le_out) else float(bas["cost"])
         slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
         held = None
         if not all(v.plausible for v in verdicts):
@@ -444,7 +478,7 @@ class BatchSmoother:
             res.info["sigma_model"], prior_sigma)
         res.info["basins"] = basins
         ok = [b for b in basins if b["plausible"]]
-        best = min((b["cost"] for b in ok), default=None)
+        best = min((_rank(b) for b in ok), default=None)
         res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
                                  and as_good_a_basin(b, best, basins[0])]
         if res.info["ambiguous"]:
@@ -459,7 +493,7 @@ class BatchSmoother:
                 th = pm.get("theta_e")
                 if th is not None and len(parts) > 1:
                     d2 = _spread({"theta_e": th["value"]},
-                                 [({"theta_e": b["theta_e"][name]}, b["cost"])
+                                 [({"theta_e": b["theta_e"][name]}, _rank(b))
                                   for b in res.info["ambiguous"] if name in b["theta_e"]],
                                  float(err))["theta_e"]
                     th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
@@ -506,6 +540,11 @@ class BatchSmoother:
         # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
         self.fast_solution = ((fs, out.fast) if q_scale == 1.0 and fs is not None
                               and out.fast is not None else None)
+        # data too short for the sandwich: its solution at the evidence's noise, for the
+        # structural sigma (the only misfit check left there, aqfg.fg.fit.structural_sigma)
+        self.short_solution = ((fs, out.fast) if short and fs is not None
+                               and out.fast is not None else None)
+        res.info["too_short_for_sandwich"] = bool(short)
         if s.adapt_track and self.fast_solution is not None:
             self._track_job = (fs, out, layout, parts, node_list, cov)
         if not self.defer_track:
@@ -648,6 +687,7 @@ class BatchSmoother:
         # held-sway fit went without it, and its current sat 7 sigma off on a GNSS-only
         # weak-propeller Otter (docs/independent-vehicle.md)
         self.fast_solution = sm.fast_solution
+        self.short_solution = sm.short_solution
         slip = max((v.slip_deg or 0.0) for v in verdicts)
         if slip >= 1.0:
             why = (f"slid sideways through the water ({slip:.0f} deg off the thrust axis on "
@@ -986,6 +1026,17 @@ AMBIGUOUS_GAP = np.radians(10.0)
 MISFIT_INFLATION = 3.0
 
 
+def too_short_for_sandwich(bg: BuiltGraph, s: FGSettings) -> bool:
+    """Whether ``bg``'s missions have fewer of the sandwich's time blocks
+    (``s.sandwich_block``) than its parameters + 2: there the evidence chooses the batch's
+    process noise (``FGSettings.adapt_batch``) and the structural test alone decides
+    whether the fit explains its fixes (:func:`aqfg.fg.fit.structural_sigma`)."""
+    b = s.sandwich_block or np.inf
+    n_blocks = sum(int(np.floor((float(p.knots[-1]) - float(p.knots[0])) / b)) + 1
+                   for p in bg.parts)
+    return n_blocks < sum(bg.layout.dim(g) for g, _, _ in bg.nodes) + 2
+
+
 def ambiguity_margin(best_cost: float) -> float:
     """Cost (1/2 chi-square) within which another basin explains the fixes as well as the
     best one: 2 (a likelihood ratio of e^2), or 1 % of the cost when the model misses
@@ -997,7 +1048,7 @@ def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
     """Basin ``b`` (``info["basins"]`` entry) explains the fixes as well as the best cost
     (:func:`ambiguity_margin`) and is another heading basin than ``other`` (more than
     ``AMBIGUOUS_GAP`` apart)."""
-    return (b["cost"] - best_cost < ambiguity_margin(best_cost)
+    return (_rank(b) - best_cost < ambiguity_margin(best_cost)
             and _heading_gap(b, other) > AMBIGUOUS_GAP)
 
 
@@ -1055,7 +1106,13 @@ def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: fl
     weighted by their likelihood ratios ``exp(cost - cost_b)`` (the chosen one weight 1);
     angles (theta_e) wrapped. Names: those of the basins' ``values`` (the first mission's
     and the shared parameters)."""
-    return _spread(chosen, [(b["values"], b["cost"]) for b in ambiguous], cost)
+    return _spread(chosen, [(b["values"], _rank(b)) for b in ambiguous], cost)
+
+
+def _rank(b: dict) -> float:
+    """A basin's (``info["basins"]`` entry) cost for comparing it with the chosen one: its
+    ``rank`` where the basins were ranked by evidence, else its cost."""
+    return float(b.get("rank", b["cost"]))
 
 
 def _spread(chosen: dict[str, float], others: list[tuple[dict[str, float], float]],
@@ -1093,8 +1150,10 @@ def _warnings(info: dict, n_it: int) -> list[str]:
                            "(the model may lack the vehicle's physics: run `aqfg diagnose`)")
     for b in info.get("ambiguous", []):
         th = ", ".join(f"{n} {np.degrees(v):.1f} deg" for n, v in b["theta_e"].items())
+        ev = (f", {b['rank']:.1f} with its evidence's noise"
+              if abs(_rank(b) - float(b["cost"])) > 0.05 else "")
         out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
-                   f"{b['cost']:.1f}): the heading offset is ambiguous")
+                   f"{b['cost']:.1f}{ev}): the heading offset is ambiguous")
     if info.get("ambiguous") and "theta_e" in info.get("sigma_unimodal", {}):
         out.append("the sigmas cover the basins that fit as well (theta_e's "
                    f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "

@@ -55,6 +55,11 @@ class FGSettings:
         6-15 times too small on Otter crops of 2.5-5 min (docs/independent-vehicle.md).
         The diagnosis sets False: a noise chosen to explain the fixes would hide the misfit
         it is there to show.
+    rank_by_evidence: where the batch chooses the noise by its evidence, its heading basins
+        are ranked by their evidence, each under the noise its own misfit asks for
+        (:func:`aqfg.fg.noise.basin_evidence`), not by their cost under the noise the first
+        one chose, which favoured a hull sliding sideways 43 deg off on a 5-min Otter crop
+        (docs/independent-vehicle.md). False ranks them by cost everywhere (as before).
     measure_noise: the batch also measures the process-noise factor by the evidence where
         it does not adopt it (``info["process_noise_measured"]``; the solution stays the
         nominal noise's): the online re-initialisations take it as the floor of the online
@@ -151,6 +156,7 @@ class FGSettings:
     sandwich_block: float = 60.0
     adapt_process: bool = True
     adapt_batch: bool | None = None
+    rank_by_evidence: bool = True
     measure_noise: bool = False
     adapt_track: bool = True
     structural_sigma: bool = True

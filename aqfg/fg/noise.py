@@ -144,6 +144,38 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
     return best[1], best[2], best[3], tried
 
 
+def basin_evidence(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
+                   settings: FGSettings, iterations: int = 5
+                   ) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """The largest log evidence (:meth:`FastSystem.log_evidence`) of the basin of the
+    solution ``(X, th, ev)`` at the system's current factor, over the factors 4x apart in
+    ``[1, settings.adapt_max]``: searched upwards, then (where that gains nothing)
+    downwards, each by a few LM iterations warm-started from the best so far, stopping
+    when the evidence falls. Returns ``(log evidence, factor, X, th)`` (the solution not
+    fully converged where the factor moved); the system is left at that factor.
+
+    Two basins of a fit are compared by it (:class:`aqfg.fg.batch.BatchSmoother`): the
+    Laplace approximation of each one's posterior mass, each under the noise that explains
+    its own misfit, not the peak height under the noise one of them chose."""
+    q0 = fs.q
+    best = (fs.log_evidence(ev), q0, X, th)
+    for step in (4.0, 0.25):
+        q = q0
+        while 1.0 <= q * step <= settings.adapt_max:
+            q *= step
+            fs.set_process_scale(q)
+            Xq, thq, _, evq, *_ = levenberg_marquardt_fast(
+                fs, None, settings, start=(best[2], best[3]), max_iterations=iterations)
+            le = fs.log_evidence(evq)
+            if not le > best[0]:
+                break
+            best = (le, q, Xq, thq)
+        if best[1] != q0:
+            break
+    fs.set_process_scale(best[1])
+    return best
+
+
 def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
                        settings: FGSettings, iterations: int = 2
                        ) -> tuple[np.ndarray, np.ndarray, dict[float, list[float]]]:

@@ -115,7 +115,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     (:func:`aqfg.fg.fit.structural_sigma`): its missions' graph built on the worker, the
     numpy system evaluated at the joint solution (the smoothed states and each mission's
     parameters)."""
-    from aqfg.fg.batch import BatchSmoother, solution_values
+    from aqfg.fg.batch import BatchSmoother, solution_values, too_short_for_sandwich
     from aqfg.fg.fastlm import FastSystem
     from aqfg.fg.fit import auto_effect_applies, refit_structure, structural_sigma
     st = specs[0].settings
@@ -131,6 +131,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     except ValueError:
         return result                          # not the graph the joint fit solved
     X, th = fs.from_values(values)
+    result.info["too_short_for_sandwich"] = too_short_for_sandwich(bg, st)
     # the test also where the fixes are explained, for the fleet's effect step
     # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
     result = structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
