@@ -199,3 +199,23 @@ def test_update_error_batch_with_an_undetermined_parameter_completes(tmp_path, c
     doc = json.loads((out / "parameters.json").read_text())
     assert doc["parameters"]["k_yz"]["sigma"] is None and "internal error" not in \
         capsys.readouterr().err
+
+
+def test_fit_with_heading_drift_says_the_offset_at_the_end(tmp_path, capsys):
+    """With heading_drift, theta_e is the offset at the mission start: the table says so and
+    gives the drifted offset at the end, within 3 deg of otter-dev-yawdrift's truth there
+    (-10 deg + 0.02 deg/s)."""
+    import re
+
+    from conftest import data_path
+    from aqfg.data import load_truth
+    d = data_path("otter-dev-yawdrift")
+    out = tmp_path / "fit"
+    assert main(["fit", str(d), "--out", str(out), "--gnss-every", "8", "--no-plots",
+                 "--effect", "heading_drift", "--no-auto-effect"]) == 0
+    said = re.search(r"with the drift it is (-?[\d.]+) deg at the end, t0 \+ (\d+) s",
+                     capsys.readouterr().out)
+    assert said, "no offset at the end"
+    P = load_truth(d).params
+    truth_end = np.degrees(P["theta_e"] + P["heading_drift.rate"] * float(said[2]))
+    assert abs(float(said[1]) - truth_end) < 3.0

@@ -82,6 +82,14 @@ def parameter_table(result: Result) -> str:
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"
                          f"{result.sigma.get(n, float('nan')):>12.3g}")
+    rate = result.values.get("heading_drift.rate")
+    if rate is not None and "theta_e" in result.values and len(result.missions) == 1 \
+            and result.model is not None and len(result.missions[0].track.t):
+        # the drift's theta_e is the offset at the mission start (aqfg.model.effects)
+        tm = float(result.missions[0].track.t[-1]) - float(result.model.t0)
+        now = math.degrees(math.remainder(result.values["theta_e"] + rate * tm, 2.0 * math.pi))
+        lines.append(f"(theta_e is the heading offset at the mission start; with the drift it "
+                     f"is {now:.2f} deg at the end, t0 + {tm:.0f} s)")
     return "\n".join(lines)
 
 
