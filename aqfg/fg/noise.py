@@ -126,12 +126,23 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
     factor, the solution at it (not fully converged: the caller finishes it), and the
     evidence per factor tried. The system is left at the chosen factor.
     """
-    q0 = fs.q
-    best = (fs.log_evidence(ev), q0, X, th)
-    tried = {q0: float(best[0])}
-    q = q0
-    while q * 4.0 <= settings.adapt_max:
-        q *= 4.0
+    best = (fs.log_evidence(ev), fs.q, X, th)
+    tried = {fs.q: float(best[0])}
+    best = _climb(fs, best, 4.0, settings, iterations, tried)
+    fs.set_process_scale(best[1])
+    return best[1], best[2], best[3], tried
+
+
+def _climb(fs: FastSystem, best: tuple, step: float, settings: FGSettings, iterations: int,
+           tried: dict[float, float]) -> tuple:
+    """From ``best`` = ``(log evidence, factor, X, th)``, the factor multiplied by ``step``
+    while it stays in ``[1, settings.adapt_max]``, each solved by ``iterations`` LM
+    iterations warm-started from the best so far, until the evidence falls; the evidence
+    of each factor tried into ``tried``. Returns the best; the system is left at the last
+    factor tried."""
+    q = best[1]
+    while 1.0 <= q * step <= settings.adapt_max:
+        q *= step
         fs.set_process_scale(q)
         Xq, thq, _, evq, *_ = levenberg_marquardt_fast(
             fs, None, settings, start=(best[2], best[3]), max_iterations=iterations)
@@ -140,8 +151,7 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
         if not le > best[0]:
             break
         best = (le, q, Xq, thq)
-    fs.set_process_scale(best[1])
-    return best[1], best[2], best[3], tried
+    return best
 
 
 def basin_evidence(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
@@ -157,21 +167,10 @@ def basin_evidence(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
     Two basins of a fit are compared by it (:class:`aqfg.fg.batch.BatchSmoother`): the
     Laplace approximation of each one's posterior mass, each under the noise that explains
     its own misfit, not the peak height under the noise one of them chose."""
-    q0 = fs.q
-    best = (fs.log_evidence(ev), q0, X, th)
-    for step in (4.0, 0.25):
-        q = q0
-        while 1.0 <= q * step <= settings.adapt_max:
-            q *= step
-            fs.set_process_scale(q)
-            Xq, thq, _, evq, *_ = levenberg_marquardt_fast(
-                fs, None, settings, start=(best[2], best[3]), max_iterations=iterations)
-            le = fs.log_evidence(evq)
-            if not le > best[0]:
-                break
-            best = (le, q, Xq, thq)
-        if best[1] != q0:
-            break
+    start = (fs.log_evidence(ev), fs.q, X, th)
+    best = _climb(fs, start, 4.0, settings, iterations, {})
+    if best[1] == start[1]:
+        best = _climb(fs, start, 0.25, settings, iterations, {})
     fs.set_process_scale(best[1])
     return best
 
