@@ -15,6 +15,7 @@ from pathlib import Path
 
 from aqfg.commands.common import UsageError
 from aqfg.data.mission import with_gnss_every
+from aqfg.model.frames import wrap_angle
 from aqfg.result import Result, read_parameter_values
 
 PLOTS = ("map.png", "parameters.png")
@@ -87,7 +88,7 @@ def parameter_table(result: Result) -> str:
             and result.model is not None and len(result.missions[0].track.t):
         # the drift's theta_e is the offset at the mission start (aqfg.model.effects)
         tm = float(result.missions[0].track.t[-1]) - float(result.model.t0)
-        now = math.degrees(math.remainder(result.values["theta_e"] + rate * tm, 2.0 * math.pi))
+        now = math.degrees(float(wrap_angle(result.values["theta_e"] + rate * tm)))
         lines.append(f"(theta_e is the heading offset at the mission start; with the drift it "
                      f"is {now:.2f} deg at the end, t0 + {tm:.0f} s)")
     return "\n".join(lines)
