@@ -418,7 +418,10 @@ class BatchSmoother:
             if by_ev and fs is not None:
                 fs.set_process_scale(q_out)
         if by_ev:
-            q_scale = q_out
+            # the noise measured is the chosen basin's (the first basin's may differ: a
+            # 20-s batch of heldout-231 chose a basin at q = 1 after the first asked 64,
+            # and an online smoother replaying that solution at 64 ran 24 deg from it)
+            q_scale = q_measured = q_out
             # each basin's cost on the chosen one's scale, by evidence: the chosen one's
             # cost plus its evidence lead (what the ambiguity margin compares)
             for bas in basins:
