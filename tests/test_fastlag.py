@@ -321,7 +321,8 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
     """``LagWindow._walk`` (the marginal's current moved by a first-order Gauss-Markov step:
     an affine map and Woodbury; the heading offset with its own variance) against the same
     process written out: the marginal's current as its own variable ``c``, joined to the window's by the factor
-    ``z - th0 - a (c - th0) ~ N(0, S (1 - a^2))``, then eliminated (Schur complement)."""
+    ``z - mu0 - a (c - mu0) ~ N(0, S (1 - a^2))`` (``mu0``: the prior's centre), then
+    eliminated (Schur complement)."""
     m, _, init = _mission(4, False)
     sw = 0.02
     fl = FixedLagSmoother(init=init, window=30.0, settings=FGSettings(online_current_walk=sw))
@@ -359,7 +360,7 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
         A[:N, :N] += Hw
         v[:N] += bw
         for j, c, a, q in zip(w, N + np.arange(k), a_all, q_all):   # (z_j - a c - k0)^2 / q
-            k0 = (1 - a) * eng.th0[j]
+            k0 = (1 - a) * eng.mu0[j]
             A[j, j] += 1 / q
             A[c, c] += a * a / q
             A[j, c] -= a / q

@@ -108,7 +108,7 @@ class LagWindow:
     def __init__(self, model, layout: fc.ParamLayout, settings, mission, lag: float,
                  prior_sigma: np.ndarray, hold_sigma: np.ndarray | None,
                  x0: np.ndarray, first_mean: np.ndarray, first_sigma: np.ndarray,
-                 t0: float, kid0: int):
+                 t0: float, kid0: int, prior_mean: np.ndarray | None = None):
         s = settings
         self.model, self.layout, self.s = model, layout, s
         self.planar = bool(mission.planar)
@@ -117,6 +117,8 @@ class LagWindow:
         th0 = np.concatenate([layout.initial(g) for g in groups]) if groups else np.zeros(0)
         P = self.P = len(th0)
         self.th0 = th0.copy()
+        # the parameters' prior centre (default: the start values th0, where they are held)
+        self.mu0 = th0.copy() if prior_mean is None else np.asarray(prior_mean, float).copy()
         self.lo = np.concatenate([layout.bounds(g)[0] for g in groups]) if groups else np.zeros(0)
         self.hi = np.concatenate([layout.bounds(g)[1] for g in groups]) if groups else np.zeros(0)
         self.slices = {}
@@ -176,7 +178,7 @@ class LagWindow:
         self.b = np.zeros(N)
         wp = 1.0 / np.asarray(prior_sigma, float) ** 2
         self.H[self.pidx, self.pidx] += wp
-        self.b[:P] -= wp * th0
+        self.b[:P] -= wp * self.mu0
         wf = 1.0 / np.asarray(first_sigma, float) ** 2
         ii = P + np.arange(6)
         self.H[ii, ii] += wf
@@ -745,7 +747,7 @@ class LagWindow:
         ``online_heading_walk`` rad per sqrt(s)) of the information that has left the window
         moves before it meets the window's data: a first-order Gauss-Markov process (the
         INS bias model) around the
-        start value ``th0``, ``s' - th0 = a (s - th0) + w``, diffusing as a random walk of
+        prior's centre ``mu0``, ``s' - mu0 = a (s - mu0) + w``, diffusing as a random walk of
         ``online_current_walk`` m/s per sqrt(s) over short times and with the current's
         prior (``FGSettings.prior_sigma``) as its stationary sigma, so that the prior does
         not wash out over a long mission (``a = exp(-dt / tau)``, ``tau = 2 S / sigma^2``,
@@ -775,7 +777,7 @@ class LagWindow:
             bw -= np.array([d[3] for d in self.dyn])[:, w].sum(axis=0)
         if np.any(a < 1.0):          # the mean reversion: z_w = (z_w' - c) / a on H_m, b_m
             f = 1.0 / a
-            c = (1.0 - a) * self.th0[w]
+            c = (1.0 - a) * self.mu0[w]
             Ct = Cm * f[None, :]
             Ct[w] *= f[:, None]
             D = Ct - Cm

@@ -65,6 +65,11 @@ from aqfg.model.params import FIXED_BASE, difference
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 
+# parameter groups whose start prior a replay keeps as the batch had it (the user's prior,
+# centred on the original start values): the heading offset, the current and the sensor
+# parameters. The thrust/drag constants ("fixed") are replayed with the batch's marginals
+# as priors instead (see FixedLagSmoother._replay_sigmas)
+BATCH_PRIOR_GROUPS = ("variable", "sensor")
 log = logging.getLogger(__name__)
 
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
@@ -243,7 +248,7 @@ class FixedLagSmoother:
         hold = replaying or self._reinit_scheduled()
         # held parameters are reported with their prior's sigma (the batch's, replaying):
         # the hold priors' tiny marginal would claim a certainty no data gave
-        self._held_sigma = self._prior_sigmas(replaying)[0] if hold else None
+        self._held_sigma = self._held_report_sigma(replaying) if hold else None
         reason = ("online_engine = 'gtsam'" if s.online_engine == "gtsam" else
                   LagWindow.unsupported(self.model, self.layout, mission, s))
         self.engine = "gtsam" if reason else "numpy"
@@ -292,11 +297,26 @@ class FixedLagSmoother:
         return info
 
     def _start_prior(self, g: str, k: int, replaying: bool) -> gtsam.PriorFactorVector:
-        """The weak prior of parameter group ``g`` at node ``k`` in a fresh smoother: the
-        settings' sigmas, or a replay's batch sigmas (``_prior_override``)."""
+        """The weak prior of parameter group ``g`` at node ``k`` in a fresh smoother (see
+        :meth:`_prior_sigmas` and :meth:`_prior_mean`)."""
         sig = dict(self.settings.prior_sigma)
-        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
-        return fc.param_prior(self.layout, g, k, self.settings.prior_scale, sigma=sig)
+        sig.update(self._replay_sigmas() if replaying else {})
+        return fc.param_prior(self.layout, g, k, self.settings.prior_scale,
+                              mean=self._prior_mean(g, replaying), sigma=sig)
+
+    def _prior_mean(self, g: str, replaying: bool) -> np.ndarray:
+        """Centre of parameter group ``g``'s start prior: its start values; in a replay, for
+        the groups of ``BATCH_PRIOR_GROUPS``, the values the smoother first started from
+        (``_prior_centre``, the original ``init``), as the batch had it. The replay holds
+        them at the batch's values and, released, the window solves the batch's problem
+        (centred on the batch's values, the current's zero-mean prior is gone and the
+        released estimate slides along the offset-current ridge; measured in
+        docs/independent-vehicle.md)."""
+        centre = getattr(self, "_prior_centre", None) \
+            if replaying and g in BATCH_PRIOR_GROUPS else None
+        if centre is None:
+            return self.layout.initial(g)
+        return self.layout.project(g, self.model.nominal(centre)[self.layout.idx[g]])
 
     def _hold_prior(self, g: str, k: int) -> gtsam.PriorFactorVector:
         """The removable prior that holds group ``g`` at its start values (1e-3 x scale)."""
@@ -308,11 +328,29 @@ class FixedLagSmoother:
         priors, in the layout's order."""
         s = self.settings
         sig = dict(s.prior_sigma)
-        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
+        sig.update(self._replay_sigmas() if replaying else {})
         names = self.layout.estimated
         prior = np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale) for n in names])
         hold = np.array([1e-3 * self.model.spec(n).scale for n in names])
         return prior, hold
+
+    def _replay_sigmas(self) -> dict[str, float]:
+        """A replay's prior sigmas that are not the settings': the batch's marginals (x2)
+        of the thrust/drag constants, centred on the batch's values: the window's single
+        steps on constants the first minutes barely determine wander from the settings'
+        flat prior (docs/independent-vehicle.md)."""
+        ov = getattr(self, "_prior_override", {})
+        return {n: v for n, v in ov.items() if self.model.spec(n).group not in BATCH_PRIOR_GROUPS}
+
+    def _held_report_sigma(self, replaying: bool) -> np.ndarray:
+        """The sigmas a held parameter is reported with: its prior's, and in a replay the
+        batch's (``_prior_override``; the hold priors' tiny marginal would claim a
+        certainty no data gave)."""
+        s = self.settings
+        sig = dict(s.prior_sigma)
+        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
+        return np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale)
+                         for n in self.layout.estimated])
 
     def _start_fast(self, mission: Mission, t0: float, x0: np.ndarray, hold: bool,
                     replaying: bool) -> UpdateInfo:
@@ -320,9 +358,11 @@ class FixedLagSmoother:
         s = self.settings
         pf = first_knot_prior(mission, fc.state_key(0, 0), x0, s)
         prior, hold_sig = self._prior_sigmas(replaying)
+        mean = (np.concatenate([self._prior_mean(g, replaying) for g in self.layout.groups])
+                if self.layout.groups else np.zeros(0))
         self._fast = LagWindow(self.model, self.layout, s, mission, self.window, prior,
                                hold_sig if hold else None, x0, np.asarray(pf.prior()),
-                               np.asarray(pf.noiseModel().sigmas()), t0, 0)
+                               np.asarray(pf.noiseModel().sigmas()), t0, 0, prior_mean=mean)
         self.knots.append(t0)
         self.filtered.append(x0.copy())
         info = self._update(None, None, {}, t0, 1)
@@ -843,7 +883,8 @@ class FixedLagSmoother:
         sigmas (within 1-10 deg; 1 deg while the parameters are still held at their start
         values), or ``force`` (the smoother is in trouble), restart from the batch
         solution: replay the fixes so far with the parameters held at the batch's values
-        and their batch marginals (x4 in variance) as priors, then release them. Otherwise
+        and the batch's own priors (the constants: their batch marginals, x4 in variance;
+        :meth:`_prior_mean`, :meth:`_replay_sigmas`), then release them. Otherwise
         release them where they are. An incremental solver cannot leave a wrong heading
         basin by itself; the batch of the data so far does not start in one. A ``rescue``
         (:meth:`_reinit_due`) leaves the schedule of later checks where it was."""
@@ -1089,6 +1130,7 @@ class FixedLagSmoother:
         saved = self.init
         self.init = new_init
         self._prior_override = prior
+        self._prior_centre = dict(saved)
         try:
             self._replaying = True
             self.start(self.mission, plan=self._plan is not None)
