@@ -68,6 +68,29 @@ def effects_of_values(values: dict[str, float], where: str) -> tuple[str, ...]:
     return tuple(out)
 
 
+def vehicle_values(values: dict[str, float], mission, effects: tuple[str, ...],
+                   where: str) -> dict[str, float]:
+    """The vehicle's values of a ``--params-from`` file: its thrust/drag constants and
+    sensor set-up (groups "fixed" and "sensor"), not the per-mission parameters (group
+    "variable": the heading offset, the current, a drift rate), which belong to the
+    mission the file was fitted on and are estimated afresh (given, an online fit starts
+    from another mission's heading offset and runs no batch initialisation:
+    docs/independent-vehicle.md). Names the model does not have are left to the fit's
+    own checks."""
+    from aqfg.commands.common import log
+    from aqfg.model.vehicle import Model
+    try:
+        model = Model.for_mission(mission, effects)
+    except ValueError:
+        return values
+    names = set(model.all_names)
+    dropped = [n for n in values if n in names and model.spec(n).group == "variable"]
+    if dropped:
+        log.info("%s: %s of the mission it was fitted on are estimated afresh, not taken "
+                 "(--init NAME=VALUE gives a start)", where, ", ".join(dropped))
+    return {n: v for n, v in values.items() if n not in dropped}
+
+
 def parameter_table(result: Result) -> str:
     """The short table ``aqfg fit`` prints: name, value, 1-sigma (per mission for the
     per-mission parameters when several missions were fitted)."""
@@ -83,7 +106,9 @@ def parameter_table(result: Result) -> str:
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"
                          f"{result.sigma.get(n, float('nan')):>12.3g}")
-    rate = result.values.get("heading_drift.rate")
+    # (the values hold every parameter of the model, an effect's switched off too)
+    rate = result.values.get("heading_drift.rate") \
+        if "heading_drift" in (result.effects or ()) else None
     if rate is not None and "theta_e" in result.values and len(result.missions) == 1 \
             and result.model is not None and len(result.missions[0].track.t):
         # the drift's theta_e is the offset at the mission start (aqfg.model.effects)
@@ -127,7 +152,6 @@ def run(args) -> int:
         if not estimate:
             raise UsageError("--estimate: no parameter names given")
     from_file = initial_values([], args.params_from)
-    init = {**from_file, **initial_values(args.init, None)}
     missions = load_missions(args.missions, args.max_knots)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
@@ -141,6 +165,9 @@ def run(args) -> int:
             log.info("--params-from %s: its model has the effect(s) %s; they are added",
                      args.params_from, ", ".join(added))
         effects = tuple(dict.fromkeys(file_effects + effects))
+        from_file = vehicle_values(from_file, missions[0], effects,
+                                   f"--params-from {args.params_from}")
+    init = {**from_file, **initial_values(args.init, None)}
     model_path = getattr(args, "model", None)
     if model_path:
         # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial
