@@ -388,7 +388,8 @@ class BatchSmoother:
         q_out = q_scale
         verdicts = self.check_plausibility(bg, out.values)
         basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
-                         else "closed-form start")]
+                         else "closed-form start" if all(bg.starts)
+                         else "null heading start (no closed form)")]
         if by_ev:
             basins[0].update(log_evidence=float(le_out), process_noise_scale=q_out)
         for label, alt in [*self._alternatives(bg, verdicts, short), *self._given_start(bg)]:
@@ -626,8 +627,17 @@ class BatchSmoother:
         is implausible and the constants were searched, the best start with a sway drag
         at least ten times the surge drag (an implausible solution slides sideways with k_yz near zero; on a
         7.5-min crop of an Otter mission every heading start slid into it)."""
-        if not bg.starts or not all(bg.starts) or "variable" not in bg.layout.names \
+        if not bg.starts or "variable" not in bg.layout.names \
                 or "theta_e" not in bg.layout.names["variable"]:
+            return
+        if not all(bg.starts):
+            # a mission with too few fixes for the closed form started at the null heading
+            # offset; the other quarters of the circle are started too (4 fixes in the first
+            # 8 s of an Otter mission ended 146 deg off from the null start, sigma 18 deg)
+            if "theta_e" not in self.init:
+                for turn in (90.0, 180.0, 270.0):
+                    yield (f"turned heading start {turn:.0f} deg (no closed form)",
+                           self._turned_values(bg, np.radians(turn)))
             return
         heads = [distinct_headings(st) for st in bg.starts]
         implausible = not all(v.plausible for v in verdicts)
@@ -705,6 +715,25 @@ class BatchSmoother:
         res.info["warnings"] = [w, *res.info.get("warnings", [])]
         res.info["held_sway"] = {"k_yz": float(st.fixed["k_yz"]), "free_fit_basins": basins}
         return res
+
+    def _turned_values(self, bg: BuiltGraph, turn: float) -> gtsam.Values:
+        """The graph's start values with the heading offset of each mission that has no
+        closed-form start turned by ``turn`` rad and its current at zero (the knot states
+        stay those interpolated from the fixes)."""
+        vals = gtsam.Values(bg.values)
+        names = bg.layout.names["variable"]
+        for part, st in zip(bg.parts, bg.starts):
+            if st:
+                continue
+            for seg in range(len(part.seg_starts)):
+                key = fc.node_key("variable", part.index, seg)
+                v = vals.atVector(key).copy()
+                v[names.index("theta_e")] += turn
+                for n in ("s_x", "s_y"):
+                    if n in names:
+                        v[names.index(n)] = 0.0
+                vals.update(key, bg.layout.project("variable", v))
+        return vals
 
     def _start_values(self, bg: BuiltGraph, sts: list[Start], constants: bool) -> gtsam.Values:
         """Values of the graph at the starts ``sts`` (one per mission): knot states, heading
