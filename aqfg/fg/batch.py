@@ -723,16 +723,10 @@ class BatchSmoother:
         vals = gtsam.Values(bg.values)
         names = bg.layout.names["variable"]
         for part, st in zip(bg.parts, bg.starts):
-            if st:
-                continue
-            for seg in range(len(part.seg_starts)):
-                key = fc.node_key("variable", part.index, seg)
-                v = vals.atVector(key).copy()
-                v[names.index("theta_e")] += turn
-                for n in ("s_x", "s_y"):
-                    if n in names:
-                        v[names.index(n)] = 0.0
-                vals.update(key, bg.layout.project("variable", v))
+            if not st:
+                key = fc.node_key("variable", part.index, 0)
+                th = float(vals.atVector(key)[names.index("theta_e")]) + turn
+                _set_variable(vals, bg, part, {"theta_e": th, "s_x": 0.0, "s_y": 0.0})
         return vals
 
     def _start_values(self, bg: BuiltGraph, sts: list[Start], constants: bool) -> gtsam.Values:
@@ -740,18 +734,11 @@ class BatchSmoother:
         offset and current; the constants of the first mission's start where they are
         estimated and ``constants`` (or not given by the user)."""
         vals = gtsam.Values(bg.values)
-        names = bg.layout.names["variable"]
         for part, st in zip(bg.parts, sts):
             for k, x in zip(part.keys, start_states(st, part.mission, part.knots)):
                 vals.update(k, x)
-            for seg in range(len(part.seg_starts)):
-                key = fc.node_key("variable", part.index, seg)
-                v = vals.atVector(key).copy()
-                for n, val in (("theta_e", st.theta_e), ("s_x", st.current[0]),
-                               ("s_y", st.current[1])):
-                    if n in names:
-                        v[names.index(n)] = val
-                vals.update(key, bg.layout.project("variable", v))
+            _set_variable(vals, bg, part, {"theta_e": st.theta_e, "s_x": st.current[0],
+                                           "s_y": st.current[1]})
         if "fixed" in bg.layout.names:
             key = fc.node_key("fixed")
             fnames = bg.layout.names["fixed"]
@@ -1056,6 +1043,21 @@ AMBIGUOUS_GAP = np.radians(10.0)
 # the honest sigma this many times the model's: the fixes are not explained as the noise
 # model says (warned; the structural sigma is looked for, aqfg.diagnose.structure)
 MISFIT_INFLATION = 3.0
+
+
+def _set_variable(vals: gtsam.Values, bg: BuiltGraph, part: MissionPart,
+                  values: dict[str, float]) -> None:
+    """Write ``values`` (those of the layout's variable group among them) into every
+    variable-parameter segment node of mission ``part`` in ``vals``, projected into the
+    bounds."""
+    names = bg.layout.names["variable"]
+    for seg in range(len(part.seg_starts)):
+        key = fc.node_key("variable", part.index, seg)
+        v = vals.atVector(key).copy()
+        for n, val in values.items():
+            if n in names:
+                v[names.index(n)] = val
+        vals.update(key, bg.layout.project("variable", v))
 
 
 def too_short_for_sandwich(bg: BuiltGraph, s: FGSettings) -> bool:

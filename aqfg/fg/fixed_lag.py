@@ -326,13 +326,18 @@ class FixedLagSmoother:
     def _prior_sigmas(self, replaying: bool) -> tuple[np.ndarray, np.ndarray]:
         """Sigmas of the parameter priors (as :func:`fc.param_prior`) and of the hold
         priors, in the layout's order."""
-        s = self.settings
-        sig = dict(s.prior_sigma)
-        sig.update(self._replay_sigmas() if replaying else {})
-        names = self.layout.estimated
-        prior = np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale) for n in names])
-        hold = np.array([1e-3 * self.model.spec(n).scale for n in names])
+        prior = self._sigmas_with(self._replay_sigmas() if replaying else {})
+        hold = np.array([1e-3 * self.model.spec(n).scale for n in self.layout.estimated])
         return prior, hold
+
+    def _sigmas_with(self, override: dict[str, float]) -> np.ndarray:
+        """The settings' prior sigmas (``prior_sigma``, else ``prior_scale`` x the
+        parameter's scale, as :func:`fc.param_prior`) with ``override``, in the layout's
+        order."""
+        s = self.settings
+        sig = {**s.prior_sigma, **override}
+        return np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale)
+                         for n in self.layout.estimated])
 
     def _replay_sigmas(self) -> dict[str, float]:
         """A replay's prior sigmas that are not the settings': the batch's marginals (x2)
@@ -346,11 +351,7 @@ class FixedLagSmoother:
         """The sigmas a held parameter is reported with: its prior's, and in a replay the
         batch's (``_prior_override``; the hold priors' tiny marginal would claim a
         certainty no data gave)."""
-        s = self.settings
-        sig = dict(s.prior_sigma)
-        sig.update(getattr(self, "_prior_override", {}) if replaying else {})
-        return np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale)
-                         for n in self.layout.estimated])
+        return self._sigmas_with(getattr(self, "_prior_override", {}) if replaying else {})
 
     def _start_fast(self, mission: Mission, t0: float, x0: np.ndarray, hold: bool,
                     replaying: bool) -> UpdateInfo:
