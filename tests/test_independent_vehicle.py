@@ -120,6 +120,33 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
     assert any("the sigmas cover the basins" in w for w in res.info["warnings"])
 
 
+# a batch fit of otter-dev-calm-b at 8-s fixes (its effect added): another mission's constants
+CONSTANTS_CALM_B = {"k": 1.011, "k_x": 0.0475, "k_yz": 3.78, "linear_drag.c_x": 0.525,
+                    "linear_drag.c_yz": 0.0}
+
+
+def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
+    """The first 11 s of seed 93 (five fixes) with calm-b's constants: all four starts end in
+    one basin 147 deg off, whose curvature claimed sigma 12 deg; the evidence over the whole
+    circle is nearly flat, and the sigma says so."""
+    from aqfg.data.mission import between
+    from aqfg.fg.common import FGSettings
+    m, truth = mission("otter-heldout-93-40s", 8.0)
+    c = between(m, -np.inf, 11.01)
+    kw = dict(estimate=("theta_e", "s_x", "s_y"), init=CONSTANTS_CALM_B, effects=["linear_drag"])
+    one = fit_fg([c], settings=FGSettings(heading_profile=False), **kw)
+    res = fit_fg([c], **kw)
+    e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
+    assert e > np.radians(90.0) and e > 3 * one.sigma["theta_e"]      # the defect
+    assert res.values["theta_e"] == one.values["theta_e"]              # the same fit ...
+    assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
+    assert res.info["sigma_unimodal"]["theta_e"] == one.sigma["theta_e"]
+    assert len(res.info["heading_profile"]["theta_e"]) == 24           # the whole circle
+    assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
+    for n in ("s_x", "s_y"):
+        assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]
+
+
 def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
     m, truth = mission("otter-heldout-93-40s", 8.0)
     res = fit_fg([m], mode="online", init=CONSTANTS_94)

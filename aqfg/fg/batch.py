@@ -55,6 +55,7 @@ from aqfg.fg.init import (
     start_states,
 )
 from aqfg.fg.plausibility import Plausibility
+from aqfg.fg.profile import heading_profile, worth_walking
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 from aqfg.threads import blas_threads
@@ -501,6 +502,8 @@ class BatchSmoother:
                                   for b in res.info["ambiguous"] if name in b["theta_e"]],
                                  float(err))["theta_e"]
                     th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
+        if short and s.heading_profile and fs is not None and out.fast is not None:
+            _widen_by_profile(res, fs, bg, node_list, values, s)
         res.info["plausible"] = all(v.plausible for v in verdicts)
         res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                     for i, v in enumerate(verdicts)}
@@ -1143,6 +1146,49 @@ def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: fl
     return _spread(chosen, [(b["values"], _rank(b)) for b in ambiguous], cost)
 
 
+def _widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, values,
+                      s: FGSettings) -> None:
+    """:attr:`FGSettings.heading_profile`: the heading offset's profile over the circle
+    (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
+    ``info["heading_profile"]``; each sigma of the first mission's parameters widened to
+    the profile's spread about the fit where that is larger (the former sigmas in
+    ``info["sigma_before_profile"]``)."""
+    lay = bg.layout
+    if "theta_e" not in lay.estimated:
+        return
+    js = [fs.node_off[n.key][0] + lay.names["variable"].index("theta_e")
+          for n in node_list if n.group == "variable"]
+    if len(js) != 1 or not worth_walking(float(res.sigma.get("theta_e", np.inf))):
+        return
+    held = [fs.node_off[n.key][0] + i for n in node_list if n.group == "fixed"
+            for i in range(lay.dim("fixed"))]
+    X0, th0 = fs.from_values(values)
+    prof = heading_profile(fs, X0, th0, js[0], s, held)
+    res.info["heading_profile"] = prof.as_dict()
+    before = {}
+    for g, k, mi in node_list:
+        if mi not in (None, 0):
+            continue
+        o, _ = fs.node_off[k]
+        for i, n in enumerate(lay.names[g]):
+            v = prof.heading_spread() if o + i == js[0] else prof.spread(o + i)
+            sd = float(np.sqrt(v))
+            if n in res.sigma and sd > res.sigma[n]:
+                before[n] = res.sigma[n]
+                res.sigma[n] = sd
+    res.info["sigma_before_profile"] = before
+    res.info["heading_profile"]["sigma_theta_e"] = float(res.sigma["theta_e"])
+    # one basin's sigma stays the unimodal one (the online smoother's priors and its
+    # restart tolerance; the spread is added to what it reports until its next batch)
+    res.info["sigma_unimodal"] = {**before, **res.info.get("sigma_unimodal", {})}
+    if not res.info["sigma_unimodal"]:
+        del res.info["sigma_unimodal"]
+    for e in res.info.get("per_mission", {}).values():
+        for n in before:
+            if isinstance(e.get(n), dict) and "sigma" in e[n]:
+                e[n]["sigma"] = max(float(e[n]["sigma"]), res.sigma[n])
+
+
 def _rank(b: dict) -> float:
     """A basin's (``info["basins"]`` entry) cost for comparing it with the chosen one: its
     ``rank`` where the basins were ranked by evidence, else its cost."""
@@ -1192,6 +1238,12 @@ def _warnings(info: dict, n_it: int) -> list[str]:
         out.append("the sigmas cover the basins that fit as well (theta_e's "
                    f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
                    "chosen basin)")
+    before = info.get("sigma_before_profile", {}).get("theta_e")
+    prof = info.get("heading_profile", {})
+    if before is not None and prof.get("sigma_theta_e", 0.0) > 2.0 * before:
+        out.append(f"these fixes hardly determine the heading offset: its evidence over the "
+                   f"whole circle gives sigma {np.degrees(prof['sigma_theta_e']):.0f} deg "
+                   f"({np.degrees(before):.1f} deg within the chosen basin)")
     for n, v in info.get("observability", {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")

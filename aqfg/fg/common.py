@@ -60,6 +60,13 @@ class FGSettings:
         (:func:`aqfg.fg.noise.basin_evidence`), not by their cost under the noise the first
         one chose, which favoured a hull sliding sideways 43 deg off on a 5-min Otter crop
         (docs/independent-vehicle.md). False ranks them by cost everywhere (as before).
+    heading_profile: where the data are too short for the sandwich and theta_e is estimated
+        (one mission), the batch also solves with theta_e held on a grid over the whole
+        circle (:mod:`aqfg.fg.profile`) and widens each sigma to the spread of the
+        solutions weighted by their evidence, where that is the larger: one basin's
+        curvature claimed 12 deg at a heading 147 deg off over 11 s of data
+        (docs/independent-vehicle.md). The online smoother's re-initialisation batches
+        go without it.
     measure_noise: the batch also measures the process-noise factor by the evidence where
         it does not adopt it (``info["process_noise_measured"]``; the solution stays the
         nominal noise's): the online re-initialisations take it as the floor of the online
@@ -157,6 +164,7 @@ class FGSettings:
     adapt_process: bool = True
     adapt_batch: bool | None = None
     rank_by_evidence: bool = True
+    heading_profile: bool = True
     measure_noise: bool = False
     adapt_track: bool = True
     structural_sigma: bool = True

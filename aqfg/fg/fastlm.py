@@ -25,7 +25,7 @@ different knots): the caller then keeps the GTSAM path.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -304,17 +304,20 @@ class FastSystem:
                          minlength=n)
         return -cost - 0.5 * nq - 0.5 * ld
 
-    def log_evidence(self, ev: dict) -> float:
+    def log_evidence(self, ev: dict, held: Sequence[int] = ()) -> float:
         """Laplace approximation of the log marginal likelihood of the measurements at the
         solution ``ev`` (up to a constant independent of the process-noise factor):
-        ``-cost - 1/2 log det(q Q) - 1/2 log det H``, H the Gauss-Newton Hessian.
+        ``-cost - 1/2 log det(q Q) - 1/2 log det H``, H the Gauss-Newton Hessian; the
+        parameters ``held`` (indices) are given, not integrated over (a profile).
         -inf when H is not positive definite."""
         D, E, Hsp, Hpp, _, _ = self.normal(ev)
         try:
             cb, _, _, S = self.factor(D, E, Hsp, Hpp)
             ld = 2.0 * float(np.sum(np.log(cb[0])))
-            if self.P:
-                ld += 2.0 * float(np.sum(np.log(np.diag(np.linalg.cholesky(S)))))
+            free = np.setdiff1d(np.arange(self.P), np.asarray(held, int))
+            if len(free):
+                Sf = S[np.ix_(free, free)]
+                ld += 2.0 * float(np.sum(np.log(np.diag(np.linalg.cholesky(Sf)))))
         except (np.linalg.LinAlgError, ValueError):
             return -np.inf
         n_q = float(np.sum(self.q_axes * np.log(self.q_k)[:, None]))
@@ -650,14 +653,15 @@ def _propagator(model, sl):
 
 def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, progress=None,
                              start: tuple[np.ndarray, np.ndarray] | None = None,
-                             max_iterations: int | None = None, hold_params: bool = False):
+                             max_iterations: int | None = None,
+                             hold_params: bool | Sequence[int] = False):
     """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
     (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
     accepted step and x10 after a rejected one, the active set of the parameter bounds, the
     same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
     iteration times). ``start``: (X, th) instead of ``values``; ``max_iterations``: instead
     of the settings'; ``hold_params``: the states alone move, the parameters stay at
-    ``th``."""
+    ``th`` (or, a sequence of indices into ``th``, those parameters alone stay)."""
     import time
     if start is not None:
         X, th = start
@@ -669,7 +673,8 @@ def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, pro
     lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
     converged = False
     key_slices = [(o, d) for o, d in fs.node_off.values()]
-    held = {j: 0.0 for j in range(fs.P)} if hold_params else None
+    held = None if hold_params is False else \
+        {j: 0.0 for j in (range(fs.P) if hold_params is True else hold_params)} or None
     for it in range(s.max_iterations if max_iterations is None else max_iterations):
         t_it = time.perf_counter()
         D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
