@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aqfg.fg.profile import DEPTH, HeadingProfile, worth_walking
+from aqfg.fg.profile import DEPTH, N_GRID, HeadingProfile, worth_walking
 
 
 def profile(theta, le, params=None) -> HeadingProfile:
@@ -33,7 +33,7 @@ def test_heading_differences_wrap_round_the_circle():
 
 
 def test_a_sharp_basin_is_not_walked():
-    step = 2.0 * np.pi / 24
+    step = 2.0 * np.pi / N_GRID
     sharp = step / np.sqrt(2.0 * 4.0 * DEPTH) * 0.99
     assert not worth_walking(sharp)
     assert worth_walking(sharp * 1.02) and worth_walking(np.radians(12.0))

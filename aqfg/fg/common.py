@@ -66,7 +66,7 @@ class FGSettings:
         solutions weighted by their evidence, where that is the larger: one basin's
         curvature claimed 12 deg at a heading 147 deg off over 11 s of data
         (docs/independent-vehicle.md). The online smoother's re-initialisation batches
-        go without it.
+        walk it too: the spread is added to the sigma it reports until its next batch.
     measure_noise: the batch also measures the process-noise factor by the evidence where
         it does not adopt it (``info["process_noise_measured"]``; the solution stays the
         nominal noise's): the online re-initialisations take it as the floor of the online

@@ -1056,16 +1056,13 @@ class FixedLagSmoother:
     def _batch(self, estimate: Sequence[str], also_start: dict[str, float] | None = None):
         """A re-initialisation batch solver of the fixes so far (its warnings not logged):
         the process noise by the evidence only where the fixes are too short for the
-        sandwich, else measured only (see :meth:`_reinitialise`); without the heading
-        profile (:attr:`FGSettings.heading_profile`), which would only widen the sigma
-        reported until the next batch, at a third of the online run's time on the Otter
-        (docs/independent-vehicle.md)."""
+        sandwich, else measured only (see :meth:`_reinitialise`)."""
         from aqfg.fg.batch import BatchSmoother
         bs = BatchSmoother(self.base_model, effects=self.effects, estimate=tuple(estimate),
                            init=self.init,
                            settings=replace(self.settings, online_init_after=0.0,
                                             adapt_batch=None, measure_noise=True,
-                                            adapt_track=False, heading_profile=False),
+                                            adapt_track=False),
                            also_start=also_start)
         bs.log_warnings = False
         return bs

@@ -18,8 +18,8 @@ import numpy as np
 
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 
-# grid points over the circle (15 deg apart)
-N_GRID = 24
+# grid points over the circle (30 deg apart)
+N_GRID = 12
 # log evidence below the best point's at which a walk round the circle stops (its weight
 # e^-10, 5e-5)
 DEPTH = 10.0
@@ -29,8 +29,8 @@ def worth_walking(sigma_theta: float, n: int = N_GRID) -> bool:
     """Whether a fit whose heading sigma (rad, its basin's curvature and the spread of the
     basins found) is ``sigma_theta`` is worth a profile: where the quadratic model of its
     basin puts the neighbouring grid point (360/n deg away) more than 4 :data:`DEPTH`
-    below the fit (sigma under 1.7 deg at 15 deg apart), the walk would stop there; its
-    two solves cost 40 % of a 5-min crop's batch (docs/independent-vehicle.md)."""
+    below the fit (sigma under 3.4 deg at 30 deg apart), the walk would stop there; on a
+    5-min crop its two solves cost 40 % of the batch (docs/independent-vehicle.md)."""
     step = 2.0 * np.pi / n
     return not 0.5 * (step / sigma_theta) ** 2 > 4.0 * DEPTH
 
