@@ -37,3 +37,9 @@ def test_a_sharp_basin_is_not_walked():
     sharp = step / np.sqrt(2.0 * 4.0 * DEPTH) * 0.99
     assert not worth_walking(sharp)
     assert worth_walking(sharp * 1.02) and worth_walking(np.radians(12.0))
+
+
+def test_a_profile_without_evidence_widens_nothing():
+    p = profile([0.0, 1.0], [-np.inf, -np.inf])
+    assert np.all(np.isnan(p.weights())) and np.isnan(p.heading_spread())
+    assert not np.sqrt(p.heading_spread()) > 0.1       # so no sigma is widened by it

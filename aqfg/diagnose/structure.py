@@ -73,12 +73,14 @@ class StructuralShift:
 
 
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
-                     estimated: tuple[str, ...]) -> StructuralShift | None:
+                     estimated: tuple[str, ...], level: float = ALPHA_SIGMA
+                     ) -> StructuralShift | None:
     """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
     nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
     candidates are the catalogue's dynamics effects the kernel already differentiates at
     their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
-    and the test costs a few banded solves. None when no candidate is called for."""
+    and the test costs a few banded solves. None when no candidate is suggested (its
+    Holm-adjusted robust p below ``level``; 1 ranks them all)."""
     from aqfg.diagnose.score import Projected, score_tests
     from aqfg.diagnose.workflow import _holm_log, candidate_effects
 
@@ -135,7 +137,7 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
         lp = np.log10(np.array([t.p_value_robust for t in tests]))
     adj = _holm_log(np.where(np.isnan(lp), 0.0, lp))
     ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
-    suggested = [i for i in range(len(tests)) if adj[i] < ALPHA_SIGMA]
+    suggested = [i for i in range(len(tests)) if adj[i] < level]
     if not suggested:
         return None
 

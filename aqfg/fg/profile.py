@@ -44,8 +44,12 @@ class HeadingProfile:
     params: np.ndarray
 
     def weights(self) -> np.ndarray:
-        """The grid points' posterior weights (sum 1; a flat prior on theta_e)."""
+        """The grid points' posterior weights (sum 1; a flat prior on theta_e); NaN where
+        no point has a finite evidence (the sigmas are then left as they are)."""
         le = np.where(np.isfinite(self.log_evidence), self.log_evidence, -np.inf)
+        if not np.isfinite(np.max(le)):
+            # no grid point's Hessian was positive definite: the profile says nothing
+            return np.full(len(le), np.nan)
         w = np.exp(le - np.max(le))
         return w / w.sum()
 
