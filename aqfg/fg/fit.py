@@ -266,10 +266,11 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
         # the fixes not explained (the sandwich's sigma MISFIT_INFLATION times the
         # model's) and no effect reaching the test's level: the one of largest score
         # statistic is tried, adopted only where it also lowers the cost by what its
-        # parameters cost (BIC; a second candidate doubled a 1.2-s fit's 3.4 extra s). Under such a misfit the robust test loses its power:
-        # a wide-condition Otter at 8-s fixes (0.17 m/s current) was 14x inflated and
-        # its linear drag's p 0.52, and the refit with it lowered the cost 1162 -> 376 and
-        # put the current 0.087 -> 0.007 m/s off (docs/independent-vehicle.md)
+        # parameters cost (BIC; a second candidate doubled the extra time). Under such a
+        # misfit the robust test loses its power: a wide-condition Otter at 8-s fixes
+        # (0.17 m/s current) was 14x inflated and its linear drag's p 0.52, and the refit
+        # with it lowered the cost 1162 -> 376 and put the current 0.087 -> 0.007 m/s off
+        # (docs/independent-vehicle.md)
         picks = [c for c in _ranked_if_unexplained(res, bs, missions) if dynamics(c)][:1]
         if not picks:
             return _finish(res, bs, missions, model, effects)
