@@ -191,7 +191,8 @@ def effect_step_document(ae: dict) -> dict:
             **({"moved": {n: float(v) for n, v in ae["moved"].items()}} if "moved" in ae else {}),
             **({"predicted_move": {n: float(v) for n, v in ae["predicted_move"].items()}}
                if "predicted_move" in ae else {}),
-            **({"reason": ae["reason"]} if "reason" in ae else {})}
+            **({"reason": ae["reason"]} if "reason" in ae else {}),
+            **({"untested": True} if ae.get("untested") else {})}
 
 
 def without_effect_document(base: dict) -> dict:
