@@ -165,14 +165,16 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
             if cost < best[0]:
                 best = (cost, xs)
         x0 = best[1]
-    sol = least_squares(residuals, x0, bounds=(lo, hi), loss="huber",
-                        f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8, max_nfev=100)
+    def huber_fit(x_start, scale):
+        return least_squares(residuals, x_start, bounds=(lo, hi), loss="huber",
+                             f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8,
+                             max_nfev=100)
+    sol = huber_fit(x0, scale)
     r1 = residuals(sol.x)
     s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
     if abs(s1 / scale - 1.0) > 0.2:
         scale = s1
-        sol = least_squares(residuals, sol.x, bounds=(lo, hi), loss="huber",
-                            f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8, max_nfev=100)
+        sol = huber_fit(sol.x, scale)
         r1 = residuals(sol.x)
     x, r = sol.x, r1
     # Jacobian (forward differences) and Huber weights at the solution

@@ -293,9 +293,10 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     rec: dict = {**best["rec"], "fixes_explained": "sigma_structure" not in res.info,
                  "cost_before": cost0, "base": base_record(res)}
     if len(tried) > 1:
+        assert called is not None           # two are tried only where the test calls for one
         rec["tried"] = [{**{k: v for k, v in t["rec"].items() if k != "moved"},
                          **({"reason": t["why"]} if t["why"] else {})} for t in tried]
-        rec["called_for"] = called["effect"] if called is not None else None
+        rec["called_for"] = called["effect"]
     if called is None:
         rec["untested"] = True
     rec["adopted"] = not why
@@ -421,9 +422,9 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
             why = "its fit is not plausible"
         elif not rec["cost_after"] < cost0:
             why = f"it does not lower the cost ({cost0:.1f} -> {rec['cost_after']:.1f})"
-        elif untested and not cost0 - rec["cost_after"] > bic_cost(name, missions):
+        elif untested and not cost0 - rec["cost_after"] > (bic := bic_cost(name, missions)):
             why = (f"untested, it lowers the cost by {cost0 - rec['cost_after']:.1f}, not "
-                   f"the {bic_cost(name, missions):.1f} its parameters cost (BIC)")
+                   f"the {bic:.1f} its parameters cost (BIC)")
         elif far:
             why = f"it moves {', '.join(far)} by more than 3 sigma of the fit without it"
     else:

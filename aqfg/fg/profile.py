@@ -54,9 +54,9 @@ class HeadingProfile:
         return w / w.sum()
 
     def spread(self, j: int) -> float:
-        """Second moment (rad^2 for theta_e, the parameter's unit^2 else) of parameter
-        ``j`` of ``params`` about the fit's value (index 0), over the posterior weights;
-        theta_e's differences wrapped."""
+        """Second moment (the parameter's unit^2) of parameter ``j`` of ``params`` about
+        the fit's value (index 0), over the posterior weights; differences not wrapped
+        (theta_e's: :meth:`heading_spread`)."""
         d = self.params[:, j] - self.params[0, j]
         return float(np.sum(self.weights() * d ** 2))
 
