@@ -46,8 +46,9 @@ ALPHA_SIGMA = 0.05
 
 @dataclass
 class StructuralShift:
-    """The effect the data call for most, and the shift of each variable parameter it
-    would cause (model units; largest over the missions)."""
+    """The effect the data call for most (where none is ``suggested``, the one of largest
+    score statistic), and the shift of each variable parameter it would cause (model
+    units; largest over the missions)."""
     effect: str
     p_robust: float
     shift: dict[str, float]
@@ -58,6 +59,10 @@ class StructuralShift:
     # whether ``effect`` is called for (robust p below ALPHA after Holm), or only suggested
     # (below ALPHA_SIGMA)
     proven: bool = True
+    # whether any candidate is suggested (Holm-adjusted robust p below the test's level);
+    # where none is, the ranking alone is the result (the effect step of a fit that does
+    # not explain its fixes tries the first: aqfg.fg.fit.adopt_effect)
+    suggested: bool = True
 
     @property
     def called_for(self) -> list[dict[str, Any]]:
@@ -68,6 +73,7 @@ class StructuralShift:
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "p_value_robust": self.p_robust,
                 "shift": dict(self.shift), "proven": self.proven,
+                "suggested": self.suggested,
                 "called_for": [dict(c) for c in self.called_for],
                 "ranked": [dict(c) for c in self.ranked]}
 
@@ -79,8 +85,9 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
     candidates are the catalogue's dynamics effects the kernel already differentiates at
     their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
-    and the test costs a few banded solves. None when no candidate is suggested (its
-    Holm-adjusted robust p below ``level``; 1 ranks them all)."""
+    and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
+    Holm-adjusted robust p is below ``level`` (its ranking is still every candidate's);
+    None where there is nothing to test or no candidate moves a variable parameter."""
     from aqfg.diagnose.score import Projected, score_tests
     from aqfg.diagnose.workflow import _holm_log, candidate_effects
 
@@ -138,8 +145,6 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     adj = _holm_log(np.where(np.isnan(lp), 0.0, lp))
     ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
     suggested = [i for i in range(len(tests)) if adj[i] < level]
-    if not suggested:
-        return None
 
     def shift_of(t) -> dict[str, float]:
         # the one-step move of each variable parameter, largest over the missions
@@ -155,8 +160,9 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
         return out
     # of those called for (else suggested), the one the data call for most: the largest
     # score statistic (the diagnosis's ranking; the robust p-values of 20 time blocks
-    # saturate near each other)
-    t = max((tests[i] for i in (ok or suggested)), key=lambda t: t.statistic)
+    # saturate near each other); none suggested, the largest statistic of all
+    t = max((tests[i] for i in (ok or suggested or range(len(tests)))),
+            key=lambda t: t.statistic)
     shift = shift_of(t)
     if not shift:
         return None
@@ -167,4 +173,4 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                              "statistic": float(x.statistic), "called_for": x.effect in called,
                              "shift": shift_of(x)}
                             for x in sorted(tests, key=lambda x: -x.statistic)],
-                           proven=bool(ok))
+                           proven=bool(ok), suggested=bool(suggested))

@@ -206,9 +206,12 @@ def guard_estimates(res: Result, effect: str) -> dict[tuple[str, str], tuple[flo
     a REMUS 100 whose current the effect corrects by 0.015 m/s (7 of the fit's sigmas, the
     fixes explained) was refused (docs/independent-vehicle.md)."""
     est = variable_estimates(res)
-    if (res.info.get("sigma_structure") or {}).get("effect") == effect:
+    st = res.info.get("structural_test") or {}
+    if (res.info.get("sigma_structure") or {}).get("effect") == effect \
+            or not st.get("suggested", True):
+        # (a test that suggests nothing predicts no move the guard should allow)
         return est
-    ranked = (res.info.get("structural_test") or {}).get("ranked", [])
+    ranked = st.get("ranked", [])
     shift: dict[str, float] = next((c.get("shift", {}) for c in ranked if c["effect"] == effect), {})
     return {(m, n): (v, float(math.hypot(s, shift.get(n, 0.0)))) for (m, n), (v, s) in est.items()}
 
@@ -345,14 +348,18 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     """The structural test's candidates of the batch fit ``res`` (solver ``bs``) ranked by
     their score statistic whatever their p-values, where the fit does not explain its
     fixes (a sigma inflated more than ``MISFIT_INFLATION`` times by the sandwich) on its
-    nominal-noise solution; else none."""
+    nominal-noise solution; else none. The ranking :func:`structural_sigma` recorded
+    (``info["structural_test"]``), or the test's where it recorded none."""
     from aqfg.diagnose.structure import structural_shift
     infl = max(res.info.get("sigma_inflation", {}).values(), default=0.0)
     if infl <= MISFIT_INFLATION or bs.fast_solution is None or res.model is None:
         return []
-    fs, ev = bs.fast_solution
-    sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated), level=1.0)
-    return [c for c in (sh.ranked if sh is not None else []) if c["statistic"] > 0.0]
+    ranked = (res.info.get("structural_test") or {}).get("ranked")
+    if ranked is None:
+        fs, ev = bs.fast_solution
+        sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
+        ranked = sh.ranked if sh is not None else []
+    return [c for c in ranked if c["statistic"] > 0.0]
 
 
 def n_fix_residuals(missions: Sequence[Mission]) -> int:
@@ -445,7 +452,8 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     in place; ``info["sigma_structure"]``
     and a warning say which effect and how much. ``test_always``: the test also where the
     fixes are explained (for :attr:`FGSettings.auto_effect`), its result in
-    ``info["structural_test"]`` (the sigma is widened only where they are not)."""
+    ``info["structural_test"]`` (the sigma is widened only where they are not); the test's
+    ranking is recorded there whether or not it suggests an effect (``suggested``)."""
     infl = res.info.get("sigma_inflation", {})
     # data too short for the sandwich cannot show a misfit by it: the test decides alone
     # there (a 170-s crop of an Otter mission put the current 0.46 m/s off with sigma 0.03,
@@ -460,7 +468,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     if sh is None:
         return res
     res.info["structural_test"] = sh.to_json()
-    if not misfit:
+    if not misfit or not sh.suggested:
         return res
     before = {n: float(res.sigma[n]) for n in sh.shift if n in res.sigma}
     for n, d in sh.shift.items():
