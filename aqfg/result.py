@@ -249,6 +249,14 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # the process-noise factor each mission's trajectory was smoothed with
         # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
+    jk = result.info.get("block_jackknife")
+    if result.mode == "batch" and jk and "sigma" in jk:
+        # the spread of the fit without each time block's fixes, which the sigma includes
+        # where larger (data too short for the sandwich; aqfg.fg.jackknife)
+        doc["block_jackknife"] = {"blocks": int(jk["blocks"]), "block_s": float(jk["block_s"]),
+                                  "sigma": {n: float(v) for n, v in jk["sigma"].items()},
+                                  "sigma_before": {n: float(v)
+                                                   for n, v in jk["sigma_before"].items()}}
     st = result.info.get("sigma_structure")
     if result.mode == "batch" and st:
         # the shift of the variable parameters the missing effect the data call for most

@@ -92,6 +92,12 @@ class FGSettings:
         fit of those that lower the cost, are plausible and keep the heading offset and
         current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``);
         False fits the model as given.
+    block_jackknife: a one-mission batch fit (:func:`aqfg.fg.fit.fit_fg`) on data too
+        short for the sandwich is run again with each of 4-8 time blocks' fixes left out,
+        and each sigma widened to the spread of those refits where that is larger
+        (:mod:`aqfg.fg.jackknife`; ``info["block_jackknife"]``): on 2.5-5 min Otter crops
+        the current was up to 15 of its sigmas off (docs/independent-vehicle.md). The
+        online re-initialisations do not run it.
     online_init_after, online_reinit_until: online without a given heading offset, the
         estimated parameters are held at their start values until ``online_init_after`` s
         of fixes are in; then a batch solve of the fixes so far (global heading start)
@@ -169,6 +175,7 @@ class FGSettings:
     adapt_track: bool = True
     structural_sigma: bool = True
     auto_effect: bool = True
+    block_jackknife: bool = True
     online_init_after: float = 20.0
     online_init_fixes: int = 10
     online_reinit_until: float = 960.0

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.fg import dead_reckoning
+from aqfg.fg import dead_reckoning, jackknife
 from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fastlm import FastSystem
@@ -56,16 +56,30 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     if mode == "batch":
-        auto = auto_effect_applies(settings or FGSettings(), estimate)
+        st = settings or FGSettings()
+        auto = auto_effect_applies(st, estimate)
         res, bs = _solve(missions, model, effects, estimate, init, settings, progress,
                          log_warnings=not auto, test_always=auto, refit=not auto)
         if auto:
             res = adopt_effect(res, bs, list(missions), model, effects, init, settings,
                                progress)
-            for w in res.info.get("warnings", []):
-                log.warning("fg: %s", w)
-            return res
-        return _finish(res, bs, missions, model, effects)
+        else:
+            res = _finish(res, bs, missions, model, effects)
+        n_warn = len(res.info.get("warnings", []))
+        if st.block_jackknife and len(missions) == 1 and res.info.get("too_short_for_sandwich"):
+            have = {getattr(e, "name", e) for e in effects}
+            eff = (*effects, *(n for n in res.effects if n not in have))
+            quick = st.with_(auto_effect=False, heading_profile=False, adapt_track=False)
+            est = tuple(res.estimated)
+
+            def refit(m: Mission) -> Result:
+                # the model fitted, silently (its warnings are the replicate's, not the fit's)
+                r, b = _solve([m], model, eff, est, init, quick, False, log_warnings=False)
+                return _finish(r, b, [m], model, eff)
+            jackknife.widen(res, missions[0], refit)
+        for w in res.info.get("warnings", [])[0 if auto else n_warn:]:
+            log.warning("fg: %s", w)
+        return res
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]

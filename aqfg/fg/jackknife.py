@@ -1,0 +1,116 @@
+"""The block jackknife of a short batch fit: the fit again with each time block's fixes
+left out, and each sigma widened to the spread of those refits where that is larger.
+
+On data too short for the block sandwich (fewer 60-s blocks than the parameters + 2:
+:func:`aqfg.fg.batch.too_short_for_sandwich`) nothing else measures how far a model that
+is not the vehicle moves the estimates: the Hessian sigma assumes the model is right. The
+delete-one-block jackknife (Künsch 1989) needs no more blocks than it has refits, and a
+refit left without one block's fixes moves as far as that block pulled the fit.
+Measurements: docs/independent-vehicle.md.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from aqfg.data.mission import Gnss, Mission
+from aqfg.result import Result
+
+BLOCK = 30.0        # s, the shortest block left out
+MIN_BLOCKS = 4      # fewer: the jackknife's spread is itself too uncertain to report
+MAX_BLOCKS = 8      # refits at most (each is a batch solve)
+
+
+def blocks(mission: Mission) -> np.ndarray:
+    """The edges (s) of the jackknife's blocks over ``mission``'s fix times: as many equal
+    blocks as fit ``BLOCK`` s each, at most ``MAX_BLOCKS``; empty where fewer than
+    ``MIN_BLOCKS`` fit or a block would hold no fix."""
+    tf = mission.fix_times()
+    if len(tf) < 2:
+        return np.zeros(0)
+    k = min(MAX_BLOCKS, int((tf[-1] - tf[0]) // BLOCK))
+    if k < MIN_BLOCKS:
+        return np.zeros(0)
+    edges = np.linspace(tf[0], tf[-1], k + 1)
+    edges[-1] = np.nextafter(tf[-1], np.inf)
+    held = np.histogram(tf, edges)[0]
+    return edges if np.all(held > 0) else np.zeros(0)
+
+
+def without_fixes(mission: Mission, t_from: float, t_to: float) -> Mission:
+    """A copy of ``mission`` without its GNSS and USBL fixes at ``t_from <= t < t_to``
+    (s); the inputs, the depth and the other fixes kept."""
+    out = copy.copy(mission)
+    if mission.gnss is not None:
+        g = mission.gnss
+        k = ~((g.t >= t_from) & (g.t < t_to))
+        out.gnss = Gnss(g.t[k], g.ne[k], None if g.sigma is None else g.sigma[k])
+    if mission.usbl is not None:
+        u = copy.copy(mission.usbl)
+        k = ~((u.t >= t_from) & (u.t < t_to))
+        for f in ("range", "bearing", "elevation"):
+            x = getattr(u, f)
+            if isinstance(x, np.ndarray) and len(x) == len(u.t):
+                setattr(u, f, x[k])
+        u.t = u.t[k]
+        out.usbl = u
+    return out
+
+
+def jackknife_sigma(full: dict[str, float], replicates: list[dict[str, float]]
+                    ) -> dict[str, float]:
+    """The delete-one-block jackknife's sigma of each of ``full``'s parameters from the
+    ``replicates`` (each the fit without one block): sqrt((K-1)/K sum (x_i - mean)^2),
+    K the replicates; the heading offset's (``theta_e``, rad) differences wrapped about
+    ``full``'s."""
+    k = len(replicates)
+    out = {}
+    for n, v in full.items():
+        x = np.array([float(r[n]) for r in replicates if n in r])
+        if len(x) != k or not np.all(np.isfinite(x)):
+            continue
+        if n == "theta_e":
+            x = float(v) + np.angle(np.exp(1j * (x - float(v))))
+        out[n] = float(math.sqrt((k - 1) / k * float(np.sum((x - x.mean()) ** 2))))
+    return out
+
+
+def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> None:
+    """Widen ``res``'s sigmas (a one-mission batch fit too short for the sandwich) to the
+    block jackknife's where that is larger, in place: ``refit`` fits a mission with
+    ``res``'s model. ``info["block_jackknife"]`` records the blocks, the jackknife's
+    sigmas and the former ones (``sigma_before``, of the widened parameters); a refit
+    that fails leaves the sigmas as they were and says why."""
+    edges = blocks(mission)
+    if not len(edges):
+        return
+    reps = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        try:
+            r = refit(without_fixes(mission, float(a), float(b)))
+        except Exception as e:  # noqa: BLE001 -- an optional widening; the fit stands
+            res.info["block_jackknife"] = {"blocks": len(edges) - 1,
+                                           "failed": f"{type(e).__name__}: {e}"[:200]}
+            return
+        reps.append({n: float(r.values[n]) for n in res.estimated if n in r.values})
+    sj = jackknife_sigma({n: float(res.values[n]) for n in res.estimated}, reps)
+    before = {}
+    for n, s in sj.items():
+        if n in res.sigma and not s <= res.sigma[n]:
+            before[n] = float(res.sigma[n])
+            res.sigma[n] = s
+    res.info["block_jackknife"] = {"blocks": len(edges) - 1, "block_s": float(edges[1] - edges[0]),
+                                   "sigma": sj, "sigma_before": before}
+    moved = [n for n in ("theta_e", "s_x", "s_y") if n in before and sj[n] > 2.0 * before[n]]
+    if moved:
+        parts = [f"theta_e {math.degrees(before['theta_e']):.2g} -> "
+                 f"{math.degrees(sj['theta_e']):.2g} deg" if n == "theta_e" else
+                 f"{n} {before[n]:.2g} -> {sj[n]:.2g} m/s" for n in moved]
+        res.info.setdefault("warnings", []).append(
+            f"these fixes are too short to test the model; leaving out each of "
+            f"{len(edges) - 1} {edges[1] - edges[0]:.0f}-s blocks of fixes moved the fit by "
+            f"more than its sigma claimed: sigma widened to the block jackknife's "
+            f"({', '.join(parts)})")
