@@ -824,11 +824,17 @@ class FixedLagSmoother:
         # gate exists for; a 17-m USBL outlier among the first three gave rho = 13 +- 3.8,
         # k x 170, and the causal track ran 190 m off; docs/independent-vehicle.md)
         n_usbl = 0 if view.usbl is None else int(np.sum(view.usbl.t <= t_fix + 1e-9))
-        scale_k = ("k" in self.layout.estimated and "k" not in self.init
-                   and (len(np.unique(view.fix_times())) > RESEED_EARLY_FIXES or n_usbl == 0)
+        spare = len(np.unique(view.fix_times())) > RESEED_EARLY_FIXES or n_usbl == 0
+        scale_k = ("k" in self.layout.estimated and "k" not in self.init and spare
                    and not RESEED_RHO[0] <= st.rho <= RESEED_RHO[1]
                    and abs(st.rho - 1.0) > 2.0 * sd_rho and 3.0 * sd_rho < st.rho)
-        if gap < RESEED_GAP and not scale_k:
+        # ... and the heading as well: from a hull that had moved 2 m with a 0.29-m/s
+        # current, three fixes (one a USBL fix 14 m long in range) re-seeded a heading 140
+        # deg off, and the causal track ran 20 m off the fixes: the held heading waits for
+        # a fourth. (Refusing closed forms whose heading sigma is large was worse: the held
+        # heading is arbitrary, and an uncertain one from four fixes mostly beat it on the
+        # runs it would have refused; docs/independent-vehicle.md)
+        if not spare or (gap < RESEED_GAP and not scale_k):
             return None
         new_init = {n: float(p[self.model.index(n)]) for n in self.layout.estimated}
         new_init.update(self.init)
