@@ -67,16 +67,7 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
             res = _finish(res, bs, missions, model, effects)
         n_warn = len(res.info.get("warnings", []))
         if st.block_jackknife and len(missions) == 1 and res.info.get("too_short_for_sandwich"):
-            have = {getattr(e, "name", e) for e in effects}
-            eff = (*effects, *(n for n in res.effects if n not in have))
-            quick = st.with_(auto_effect=False, heading_profile=False, adapt_track=False)
-            est = tuple(res.estimated)
-
-            def refit(m: Mission) -> Result:
-                # the model fitted, silently (its warnings are the replicate's, not the fit's)
-                r, b = _solve([m], model, eff, est, init, quick, False, log_warnings=False)
-                return _finish(r, b, [m], model, eff)
-            jackknife.widen(res, missions[0], refit)
+            _block_jackknife(res, missions[0], model, effects, init, st)
         for w in res.info.get("warnings", [])[0 if auto else n_warn:]:
             log.warning("fg: %s", w)
         return res
@@ -98,6 +89,23 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     r0.info["per_mission"] = {r.missions[0].name: {n: {"value": r.values[n], "sigma": r.sigma.get(n, np.nan)}
                                                    for n in r.estimated} for r in results}
     return r0
+
+
+def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, init,
+                     settings: FGSettings) -> None:
+    """:attr:`FGSettings.block_jackknife` on the batch fit ``res`` of ``mission``, in place:
+    its refits keep ``res``'s model (its effects, the effect step's among them) and its
+    estimated parameters, without the effect step, the heading profile or the track's
+    noise, and log nothing (their warnings are theirs, not the fit's)."""
+    have = {getattr(e, "name", e) for e in effects}
+    eff = (*effects, *(n for n in res.effects if n not in have))
+    quick = settings.with_(auto_effect=False, heading_profile=False, adapt_track=False)
+    est = tuple(res.estimated)
+
+    def refit(m: Mission) -> Result:
+        r, b = _solve([m], model, eff, est, init, quick, progress=False, log_warnings=False)
+        return _finish(r, b, [m], model, eff)
+    jackknife.widen(res, mission, refit)
 
 
 def auto_effect_applies(settings: FGSettings, estimate: Sequence[str] | None) -> bool:
