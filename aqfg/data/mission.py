@@ -7,7 +7,7 @@ estimator handed a ``Mission`` cannot read it by accident.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -153,6 +153,23 @@ def without_gnss(mission: Mission, keep_first: bool = True) -> Mission:
     return out
 
 
+def samples(stream, keep: np.ndarray):
+    """A copy of the stream ``stream`` (:class:`Imu`, :class:`Motors`, :class:`Gnss`,
+    :class:`Usbl` or :class:`Depth`) holding only its samples where the boolean ``keep``
+    (one per sample) is true: every array field of one row per sample is cut; None stays
+    None."""
+    import copy
+    if stream is None:
+        return None
+    out = copy.copy(stream)
+    n = len(stream.t)
+    for f in fields(stream):
+        x = getattr(stream, f.name)
+        if isinstance(x, np.ndarray) and len(x) == n:
+            setattr(out, f.name, x[keep])
+    return out
+
+
 def between(mission: Mission, t_from: float, t_to: float) -> Mission:
     """A copy holding only the samples of every stream (IMU, motors, GNSS, USBL, depth) with
     ``t_from <= t <= t_to`` (s, the mission's clock): part of a mission fitted on its own,
@@ -162,20 +179,11 @@ def between(mission: Mission, t_from: float, t_to: float) -> Mission:
         raise ValueError(f"between: the end {t_to} s is not after the start {t_from} s")
     out = copy.copy(mission)
 
-    def cut(obj, fields):
-        if obj is None:
-            return None
-        o = copy.copy(obj)
-        k = (obj.t >= t_from) & (obj.t <= t_to)
-        for f in fields:
-            x = getattr(obj, f, None)
-            if isinstance(x, np.ndarray) and len(x) == len(obj.t):
-                setattr(o, f, x[k])
-        o.t = obj.t[k]
-        return o
-    out.imu = cut(mission.imu, ("q", "acc", "gyro"))
-    out.motors = cut(mission.motors, ("u",))
-    out.gnss = cut(mission.gnss, ("ne", "sigma", "latlon"))
-    out.usbl = cut(mission.usbl, ("range", "bearing", "elevation"))
-    out.depth = cut(mission.depth, ("depth",))
+    def cut(stream):
+        return None if stream is None else samples(stream, (stream.t >= t_from) & (stream.t <= t_to))
+    out.imu = cut(mission.imu)
+    out.motors = cut(mission.motors)
+    out.gnss = cut(mission.gnss)
+    out.usbl = cut(mission.usbl)
+    out.depth = cut(mission.depth)
     return out

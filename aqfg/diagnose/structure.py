@@ -79,14 +79,13 @@ class StructuralShift:
 
 
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
-                     estimated: tuple[str, ...], level: float = ALPHA_SIGMA
-                     ) -> StructuralShift | None:
+                     estimated: tuple[str, ...]) -> StructuralShift | None:
     """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
     nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
     candidates are the catalogue's dynamics effects the kernel already differentiates at
     their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
     and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
-    Holm-adjusted robust p is below ``level`` (its ranking is still every candidate's);
+    Holm-adjusted robust p is below ``ALPHA_SIGMA`` (its ranking is still every candidate's);
     None where there is nothing to test or no candidate moves a variable parameter."""
     from aqfg.diagnose.score import Projected, score_tests
     from aqfg.diagnose.workflow import _holm_log, candidate_effects
@@ -144,7 +143,7 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
         lp = np.log10(np.array([t.p_value_robust for t in tests]))
     adj = _holm_log(np.where(np.isnan(lp), 0.0, lp))
     ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
-    suggested = [i for i in range(len(tests)) if adj[i] < level]
+    suggested = [i for i in range(len(tests)) if adj[i] < ALPHA_SIGMA]
 
     def shift_of(t) -> dict[str, float]:
         # the one-step move of each variable parameter, largest over the missions

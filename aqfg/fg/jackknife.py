@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from aqfg.data.mission import Gnss, Mission
+from aqfg.data.mission import Mission, samples
 from aqfg.result import Result
 
 BLOCK = 30.0        # s, the shortest block left out
@@ -44,19 +44,10 @@ def without_fixes(mission: Mission, t_from: float, t_to: float) -> Mission:
     """A copy of ``mission`` without its GNSS and USBL fixes at ``t_from <= t < t_to``
     (s); the inputs, the depth and the other fixes kept."""
     out = copy.copy(mission)
-    if mission.gnss is not None:
-        g = mission.gnss
-        k = ~((g.t >= t_from) & (g.t < t_to))
-        out.gnss = Gnss(g.t[k], g.ne[k], None if g.sigma is None else g.sigma[k])
-    if mission.usbl is not None:
-        u = copy.copy(mission.usbl)
-        k = ~((u.t >= t_from) & (u.t < t_to))
-        for f in ("range", "bearing", "elevation"):
-            x = getattr(u, f)
-            if isinstance(x, np.ndarray) and len(x) == len(u.t):
-                setattr(u, f, x[k])
-        u.t = u.t[k]
-        out.usbl = u
+    for name in ("gnss", "usbl"):
+        s = getattr(mission, name)
+        if s is not None:
+            setattr(out, name, samples(s, ~((s.t >= t_from) & (s.t < t_to))))
     return out
 
 
