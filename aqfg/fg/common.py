@@ -117,6 +117,12 @@ class FGSettings:
         bounds an outlier's pull while the dynamics are stiff; once the adaptive process
         noise has loosened them (a wrong model), a 15-m range outlier moved the smoothed
         track 14 m (docs/independent-vehicle.md). ``inf``: no gate.
+    online_kinematic_q: online, while the parameters are held (before the first batch has
+        estimated the heading offset), the causal track is a constant-velocity filter's on
+        the fixes alone (:mod:`aqfg.fg.kinematic`), with white acceleration of this power
+        spectral density per horizontal axis (m^2/s^3; 0.1: about 0.3 m/s^2 sustained
+        over a second); 0: the model's from the start. Only the causal track: the
+        smoother and its estimates do not see it.
     online_current_walk: online (numpy engine), the current the window's past has informed
         moves before it meets the window's data: a first-order Gauss-Markov process, m/s
         per sqrt(s) over short times, stationary sigma the current's prior (0.03 with
@@ -182,6 +188,7 @@ class FGSettings:
     adapt_window: int = 10
     adapt_max: float = 256.0
     online_gate_usbl: float = 13.8
+    online_kinematic_q: float = 0.1
     online_current_walk: float = 0.03
     online_heading_walk: float = 0.003
     online_max_rejects: int = 3

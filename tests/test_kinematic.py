@@ -1,0 +1,52 @@
+"""The online causal track's kinematic floor (aqfg.fg.kinematic): a constant-velocity
+Kalman filter on the fixes."""
+from __future__ import annotations
+
+import numpy as np
+
+from aqfg.fg.kinematic import KinematicFilter, track_from, transition
+
+
+def test_transition_is_the_double_integrators():
+    """Q by quadrature of F(s) G q G^T F(s)^T over the interval, F x by kinematics."""
+    dt, q = 2.5, 0.3
+    F, Q = transition(dt, q)
+    np.testing.assert_allclose(F @ np.array([1.0, 2.0, 0.5, -1.0]), [2.25, -0.5, 0.5, -1.0])
+    s = np.linspace(0.0, dt, 20001)
+    g = np.stack([s, np.ones_like(s)])                     # (pos, vel) response to a kick
+    y = g[:, None, :] * g[None, :, :]
+    num = q * np.sum(0.5 * (y[..., 1:] + y[..., :-1]) * np.diff(s), axis=2)   # trapezoid rule
+    np.testing.assert_allclose(Q[np.ix_([0, 2], [0, 2])], num, rtol=1e-6)
+    np.testing.assert_allclose(Q[np.ix_([1, 3], [1, 3])], num, rtol=1e-6)
+    assert Q[0, 1] == Q[0, 3] == 0.0
+
+
+def test_it_learns_a_constant_velocity_from_noisy_fixes():
+    rng = np.random.default_rng(3)
+    v = np.array([1.2, -0.7])
+    kf = KinematicFilter(q=0.01)
+    for t in np.arange(0.0, 60.0, 4.0):
+        kf.update(t, v * t + rng.normal(0.0, 1.0, 2), 1.0)
+    np.testing.assert_allclose(kf.x[2:], v, atol=0.1)
+    np.testing.assert_allclose(kf.at(70.0)[:2], v * 70.0, atol=2.0)
+    assert np.all(np.linalg.eigvalsh(kf.P) > 0)
+
+
+def test_an_outlier_is_left_out_until_max_rejects_in_a_row():
+    kf = KinematicFilter(q=0.01, max_rejects=2)
+    for t in range(10):
+        assert kf.update(float(t), np.array([float(t), 0.0]), 0.25)
+    x_before = kf.x.copy()
+    assert not kf.update(10.0, np.array([10.0, 30.0]), 0.25)     # a 30-m jump: left out
+    np.testing.assert_allclose(kf.x[:2], x_before[:2] + x_before[2:], atol=1e-9)
+    assert not kf.update(11.0, np.array([11.0, 30.0]), 0.25)
+    assert kf.update(12.0, np.array([12.0, 30.0]), 0.25)          # the third in a row: taken
+    assert kf.x[1] > 5.0
+
+
+def test_track_from_predicts_each_time_from_the_last_record_before_it():
+    log_t = np.array([0.0, 10.0])
+    log_x = np.array([[0.0, 0.0, 1.0, 0.0], [12.0, 0.0, 0.0, 2.0]])
+    out = track_from(log_t, log_x, np.array([0.0, 4.0, 10.0, 13.0]))
+    np.testing.assert_allclose(out[:, :2], [[0, 0], [4, 0], [12, 0], [12, 6]])
+    np.testing.assert_allclose(out[:, 2:], [[1, 0], [1, 0], [0, 2], [0, 2]])
