@@ -76,7 +76,8 @@ def main() -> None:
     with ProcessPoolExecutor(a.jobs) as ex:
         rows = list(ex.map(one, jobs))
     kinds = ("fg", "fg, no floor", "update-error")
-    lines = [f"# The online causal track's first minute, paper's constants ({data.name})", "",
+    where = data.relative_to(ROOT) if data.is_relative_to(ROOT) else data.name
+    lines = [f"# The online causal track's first minute, paper's constants ({where})", "",
              f"{len(rows)} runs, {time.perf_counter() - t0:.0f} s wall. Causal RMSE (m) over "
              f"the first {SPLIT:.0f} s / after it / whole run; 'no floor': "
              "`online_kinematic_q = 0` (the model's prediction while the parameters are "
