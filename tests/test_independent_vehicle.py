@@ -1222,7 +1222,7 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     # the estimates, the corrected track and the model's knots after the release: the same
     np.testing.assert_array_equal(on.history.values, off.history.values)
     np.testing.assert_array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
-    t_model = fl._kin_until
+    t_model = fl._floor.until
     assert t_model < m.t1 and any(e["event"].startswith("causal track follows the model")
                                   for e in on.info["events"])
     after = on.missions[0].filtered.t >= t_model

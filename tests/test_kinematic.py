@@ -50,3 +50,31 @@ def test_track_from_predicts_each_time_from_the_last_record_before_it():
     out = track_from(log_t, log_x, np.array([0.0, 4.0, 10.0, 13.0]))
     np.testing.assert_allclose(out[:, :2], [[0, 0], [4, 0], [12, 0], [12, 6]])
     np.testing.assert_allclose(out[:, 2:], [[1, 0], [1, 0], [0, 2], [0, 2]])
+
+
+def test_the_floor_follows_the_better_predictor_while_held_and_the_model_after():
+    """CausalFloor: fixes of a vehicle at 1 m/s north, every 2 s. The model's predictions
+    miss by 5 m for four fixes (the filter is followed), then hit them exactly (after three
+    such fixes the model is); the fix that finds the parameters released hands the track
+    to the model, once."""
+    from aqfg.fg.kinematic import CausalFloor
+    t = np.arange(0.0, 22.0, 2.0)
+    pos = np.column_stack([t, np.zeros_like(t)])
+    fixes = (t, pos, np.full(len(t), 0.25))
+    fl = CausalFloor(KinematicFilter(q=0.1))
+    switched = []
+    for k, tk in enumerate(t):
+        pred = None if k == 0 else np.array([tk + (5.0 if k <= 4 else 0.0), 0.0, 0.0])
+        switched.append(fl.step(float(tk), fixes, pred, held=k < 9))
+    assert fl.until == t[9] and switched == [False] * 9 + [True, False]
+    assert fl.use[:5] == [True] * 5 and fl.use[-1] is False and len(fl.use) == 9
+    knots = np.arange(0.0, 21.0, 1.0)
+    X = np.full((len(knots), 6), 7.0)
+    fl.apply(knots, X)
+    chosen = np.array(fl.use)[np.clip(np.searchsorted(fl.t, knots + 1e-9) - 1, 0, 8)]
+    followed = (knots < t[9]) & chosen
+    assert followed[:9].all() and not followed[knots >= t[9]].any()
+    K = track_from(np.array(fl.t), np.array(fl.x), knots[followed])         # the filter's
+    np.testing.assert_array_equal(X[followed][:, [0, 1, 3, 4]], K)
+    np.testing.assert_allclose(X[followed, 0], knots[followed], atol=2.0)
+    assert np.all(X[~followed] == 7.0)                                      # the model's

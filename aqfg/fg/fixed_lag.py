@@ -61,7 +61,7 @@ from aqfg.fg.common import (
     robust_fix_table,
 )
 from aqfg.fg.fastlag import LagWindow
-from aqfg.fg.kinematic import KinematicFilter, track_from
+from aqfg.fg.kinematic import CausalFloor, KinematicFilter
 from aqfg.model.params import FIXED_BASE, difference
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
@@ -256,15 +256,10 @@ class FixedLagSmoother:
         if not replaying:
             # the causal track's kinematic floor while the parameters are held
             # (aqfg.fg.kinematic); none where they are not, or the settings say so
-            self._kin = KinematicFilter(q=s.online_kinematic_q, gate=s.online_gate_usbl,
-                                        max_rejects=s.online_max_rejects)
-            self._kin_next = 0                     # next row of the fix table to feed it
-            self._kin_t: list[float] = []          # fix times while held, and the filter's
-            self._kin_x: list[np.ndarray] = []     # state right after each
-            self._kin_use: list[bool] = []         # ... and whether the track follows it
-            self._kin_diff: list[float] = []       # model's minus filter's squared miss
-            self._kin_until = (math.inf if hold and s.online_kinematic_q > 0
-                               else float(self.fix_t[0]))
+            self._floor = CausalFloor(
+                KinematicFilter(q=s.online_kinematic_q, gate=s.online_gate_usbl,
+                                max_rejects=s.online_max_rejects),
+                until=math.inf if hold and s.online_kinematic_q > 0 else float(self.fix_t[0]))
         # held parameters are reported with their prior's sigma (the batch's, replaying):
         # the hold priors' tiny marginal would claim a certainty no data gave
         self._held_sigma = self._held_report_sigma(replaying) if hold else None
@@ -485,36 +480,15 @@ class FixedLagSmoother:
         return info
 
     def _kinematic_step(self, t_fix: float) -> None:
-        """The causal track's kinematic floor (:mod:`aqfg.fg.kinematic`): while the
-        parameters are held, the constant-velocity filter takes the fixes up to ``t_fix``
-        and its state there is recorded; at the first fix at which they are not (the first
-        batch released them), the causal track follows the model from there on (an event
-        says so). Not in a replay: it re-runs fixes already reported."""
-        if getattr(self, "_replaying", False) or t_fix >= self._kin_until:
+        """The causal track's kinematic floor (:class:`aqfg.fg.kinematic.CausalFloor`) at
+        this fix: fed while the parameters are held; at the first fix at which they are not
+        (the first batch released them), the causal track follows the model from there on
+        (an event says so). Not in a replay: it re-runs fixes already reported."""
+        if getattr(self, "_replaying", False):
             return
-        t, pos, var, _ = self._fixes
-        i = self._kin_next
-        # the fix's squared distance from each predictor: the filter's, and the model's
-        # (the state this update predicted there, before the fix; none at the first knot)
-        if i < len(t) and abs(float(t[i]) - t_fix) <= 1e-6 and self._kin.started \
-                and self.pred_t and abs(self.pred_t[-1] - t_fix) <= 1e-9:
-            e_kin = float(np.sum((pos[i, :2] - self._kin.at(t_fix)[:2]) ** 2))
-            e_mod = float(np.sum((pos[i, :2] - self.pred_x[-1][:2]) ** 2))
-            self._kin_diff.append(e_mod - e_kin)
-        while i < len(t) and t[i] <= t_fix + 1e-9:
-            self._kin.update(float(t[i]), pos[i], float(var[i]))
-            i += 1
-        self._kin_next = i
-        if self._hold_idx:
-            self._kin_t.append(float(t_fix))
-            self._kin_x.append(self._kin.at(t_fix))
-            # the filter's unless the model predicted the last fixes better (the median of
-            # the last three paired differences: one outlying fix does not decide)
-            recent = self._kin_diff[-3:]
-            self._kin_use.append(not recent or float(np.median(recent)) >= 0.0)
-            return
-        self._kin_until = float(t_fix)
-        if self._kin_t:
+        pred = (self.pred_x[-1] if self.pred_t and abs(self.pred_t[-1] - t_fix) <= 1e-9
+                else None)
+        if self._floor.step(t_fix, self._fixes, pred, bool(self._hold_idx)):
             self.events.append({"t": float(t_fix), "event": "causal track follows the model "
                                 "from here (before: a constant-velocity filter on the fixes, "
                                 "while the parameters were held)"})
@@ -1719,15 +1693,7 @@ class FixedLagSmoother:
         self._materialise()
         X = np.array(self.filtered)
         kn = np.array(self.knots)
-        held = kn < self._kin_until - 1e-9
-        if self._kin_t and held.any():
-            # while the parameters were held: the kinematic floor (horizontal only) after
-            # the fixes at which it was chosen
-            kt = np.array(self._kin_t)
-            j = np.clip(np.searchsorted(kt, kn + 1e-9) - 1, 0, len(kt) - 1)
-            use = held & np.array(self._kin_use)[j]
-            K = track_from(kt, np.array(self._kin_x), kn[use])
-            X[use, 0:2], X[use, 3:5] = K[:, :2], K[:, 2:]
+        self._floor.apply(kn, X)
         return Track(kn, X[:, :3], X[:, 3:])
 
     # ---------------------------------------------------------------- whole runs

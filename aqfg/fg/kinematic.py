@@ -23,6 +23,7 @@ that is off must not refuse every fix).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,3 +106,63 @@ def track_from(log_t: np.ndarray, log_x: np.ndarray, t: np.ndarray) -> np.ndarra
     out = log_x[j].copy()
     out[:, :2] += out[:, 2:] * dt[:, None]
     return out
+
+
+@dataclass
+class CausalFloor:
+    """The kinematic floor of an online causal track (see the module docstring): the
+    filter's state recorded after each fix while the parameters are held, whether the track
+    follows it there, and the fix time from which it follows the model (``until``; inf
+    while held, the first fix where there is no hold)."""
+    filt: KinematicFilter
+    until: float = math.inf
+    t: list[float] = field(default_factory=list)          # fix times while held
+    x: list[np.ndarray] = field(default_factory=list)     # the filter's state right after
+    use: list[bool] = field(default_factory=list)         # the track follows the filter
+    diff: list[float] = field(default_factory=list)       # model's minus filter's miss (m^2)
+    next_row: int = 0                                     # next row of the fix table
+
+    def step(self, t_fix: float, fixes: tuple, model_pred: np.ndarray | None,
+             held: bool) -> bool:
+        """The update at the fix ``t_fix``: the filter takes the fixes of the table
+        ``fixes`` (times, horizontal positions, per-axis variances, ...; time order) up to
+        it, after scoring both predictors on its first fix there (``model_pred``: the
+        model's state predicted there before the update; None at the first knot). ``held``:
+        the parameters are still held after this update; if not, the track follows the
+        model from here, and True is returned (once)."""
+        if t_fix >= self.until:
+            return False
+        t, pos, var = fixes[0], fixes[1], fixes[2]
+        i = self.next_row
+        if (model_pred is not None and self.filt.started and i < len(t)
+                and abs(float(t[i]) - t_fix) <= 1e-6):
+            e_kin = float(np.sum((pos[i, :2] - self.filt.at(t_fix)[:2]) ** 2))
+            e_mod = float(np.sum((pos[i, :2] - np.asarray(model_pred)[:2]) ** 2))
+            self.diff.append(e_mod - e_kin)
+        while i < len(t) and t[i] <= t_fix + 1e-9:
+            self.filt.update(float(t[i]), pos[i], float(var[i]))
+            i += 1
+        self.next_row = i
+        if held:
+            self.t.append(float(t_fix))
+            self.x.append(self.filt.at(t_fix))
+            # the filter's unless the model predicted the last fixes better (the median of
+            # the last three paired differences: one outlying fix does not decide)
+            recent = self.diff[-3:]
+            self.use.append(not recent or float(np.median(recent)) >= 0.0)
+            return False
+        self.until = float(t_fix)
+        return bool(self.t)
+
+    def apply(self, knots: np.ndarray, X: np.ndarray) -> None:
+        """Knot states ``X`` (n, 6: NED position, velocity) of the causal track at ``knots``
+        (n,) s, in place: before ``until``, horizontally the filter's after the fixes at
+        which the track follows it (each knot from the last fix at or before it)."""
+        held = np.asarray(knots) < self.until - 1e-9
+        if not self.t or not held.any():
+            return
+        kt = np.array(self.t)
+        j = np.clip(np.searchsorted(kt, np.asarray(knots) + 1e-9) - 1, 0, len(kt) - 1)
+        use = held & np.array(self.use)[j]
+        K = track_from(kt, np.array(self.x), np.asarray(knots)[use])
+        X[use, 0:2], X[use, 3:5] = K[:, :2], K[:, 2:]
