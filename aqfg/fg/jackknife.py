@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from aqfg.data.mission import Mission, samples
+from aqfg.model.params import difference
 from aqfg.result import Result
 
 BLOCK = 30.0        # s, the shortest block left out
@@ -55,17 +56,15 @@ def jackknife_sigma(full: dict[str, float], replicates: list[dict[str, float]]
                     ) -> dict[str, float]:
     """The delete-one-block jackknife's sigma of each of ``full``'s parameters from the
     ``replicates`` (each the fit without one block): sqrt((K-1)/K sum (x_i - mean)^2),
-    K the replicates; the heading offset's (``theta_e``, rad) differences wrapped about
-    ``full``'s."""
+    K the replicates; from each replicate's difference from ``full``
+    (:func:`aqfg.model.params.difference`: the heading offset's wrapped)."""
     k = len(replicates)
     out = {}
     for n, v in full.items():
-        x = np.array([float(r[n]) for r in replicates if n in r])
-        if len(x) != k or not np.all(np.isfinite(x)):
+        d = np.array([difference(n, float(r[n]), float(v)) for r in replicates if n in r])
+        if len(d) != k or not np.all(np.isfinite(d)):
             continue
-        if n == "theta_e":
-            x = float(v) + np.angle(np.exp(1j * (x - float(v))))
-        out[n] = float(math.sqrt((k - 1) / k * float(np.sum((x - x.mean()) ** 2))))
+        out[n] = float(math.sqrt((k - 1) / k * float(np.sum((d - d.mean()) ** 2))))
     return out
 
 
