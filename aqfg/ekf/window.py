@@ -42,6 +42,7 @@ from aqfg.model import reference as ref
 from aqfg.model.frames import corrected_attitude
 from aqfg.model.measurements import sensor_position, usbl_inverse
 from aqfg.model.params import INDEX, MEAS_INDEX, N_DYN
+from aqfg.model.process import white_acceleration
 
 I_TAU = INDEX["thrust_lag.tau"]
 
@@ -92,15 +93,11 @@ class WindowOut:
         return float(np.sum(self.e * self.e))
 
 
-def _q_block(q: float, T: float) -> np.ndarray:
-    return q * np.array([[T**3 / 3.0, T**2 / 2.0], [T**2 / 2.0, T]])
-
-
 def process_noise(T: float, q_h: float, q_v: float, planar: bool) -> np.ndarray:
     """Q (6x6) on [x, v] over T seconds: white acceleration, exact for a double integrator."""
     Q = np.zeros((6, 6))
     for i, q in enumerate((q_h, q_h, 0.0 if planar else q_v)):
-        b = _q_block(q, T)
+        b = white_acceleration(q, T)
         Q[np.ix_([i, i + 3], [i, i + 3])] = b
     return Q
 

@@ -37,6 +37,7 @@ import numpy as np
 from aqfg.model.effects import SensorOffsetTerm
 from aqfg.model.frames import HEADING_PARAMS
 from aqfg.model.params import N_PARAMS
+from aqfg.model.process import white_acceleration
 from aqfg.model.reference import Steps, wrap_angle
 from aqfg.model.vehicle import Model
 
@@ -80,13 +81,9 @@ class ProcessNoise:
     def cov(self, dt: float, planar: bool = False) -> np.ndarray:
         """6x6 covariance of ``x1 - f(x0, p)`` (NED position then velocity)."""
         dt = float(dt)
-        s2 = self.sigma_a ** 2
-        Q = np.zeros((6, 6))
-        I3 = np.eye(3)
-        Q[:3, :3] = (s2 * dt ** 3 / 3 + dt * self.pos_rate ** 2) * I3
-        Q[:3, 3:] = Q[3:, :3] = s2 * dt ** 2 / 2 * I3
-        Q[3:, 3:] = (s2 * dt + dt * self.vel_rate ** 2) * I3
-        return Q
+        b = white_acceleration(self.sigma_a ** 2, dt)
+        b += np.diag([dt * self.pos_rate ** 2, dt * self.vel_rate ** 2])
+        return np.kron(b, np.eye(3))
 
     def scaled(self, factor: float) -> ProcessNoise:
         """The same noise with every variance times ``factor``."""
