@@ -331,3 +331,50 @@ def test_a_held_model_that_fails_its_fixes_brings_the_first_batch_forward():
     ref = np.column_stack([np.interp(f.t[sel], tr.t, tr.pos[:, a]) for a in range(2)])
     err = np.linalg.norm(f.pos[sel, :2] - ref, axis=1)
     assert err.max() < 3.0, err.max()
+
+
+def test_a_corrected_track_interval_the_model_cannot_retrace_joins_the_smoothed_states(
+        monkeypatch):
+    """Re-traced from a smoothed state with a stiff estimate (k_yz 93 1/m and a 1-m/s sway
+    on a held-out Otter mission), the explicit integration oscillated to inf and the
+    corrected track, so trajectory.csv, held NaN rows. Such an interval now joins the
+    smoothed states (positions and velocities at both ends) and an event names it."""
+    from aqfg.fg import fixed_lag
+    from aqfg.model.vehicle import Model
+    m, _ = simulate("asv", seed=2, duration=120.0)
+    m = with_gnss_every(m, 4.0)
+    fl = FixedLagSmoother(init={"theta_e": 0.0}, window=24.0)
+    fl.run(m)
+    plain = fl.corrected_track()
+    anchors = np.array(fl.knots)[np.array(fl.anchor_idx)]
+    a, b = (float(x) for x in anchors[(anchors > 50.0)][:2])
+    real = Model.propagate
+
+    def stiff(self, x0, p, steps):
+        x, Jx, Jp = real(self, x0, p, steps)
+        if len(steps.tm) and a < float(steps.tm[0]) < b:
+            x = np.full_like(x, np.inf)
+        return x, Jx, Jp
+    monkeypatch.setattr(Model, "propagate", stiff)
+    tr = fl.corrected_track()
+    assert np.all(np.isfinite(tr.pos)) and np.all(np.isfinite(tr.vel))
+    inside = (tr.t > a) & (tr.t < b)
+    assert inside.sum() >= 2
+    # outside the interval, the track as before; at its ends, the smoothed states
+    np.testing.assert_allclose(tr.pos[~inside], plain.pos[~inside], rtol=0, atol=1e-9)
+    # within, a smooth join: no step longer than the ends' speeds allow
+    seg = tr.pos[(tr.t >= a) & (tr.t <= b)]
+    vmax = max(np.linalg.norm(tr.vel[tr.t == a][0]), np.linalg.norm(tr.vel[tr.t == b][0]))
+    assert np.max(np.linalg.norm(np.diff(seg, axis=0), axis=1)) < 2.0 * vmax * (b - a)
+    ev = [e for e in fl.events if "re-trace diverged" in e["event"]]
+    assert len(ev) == 1 and ev[0]["t"] == a
+    fl.corrected_track()                           # asked again: no second event
+    assert len([e for e in fl.events if "re-trace diverged" in e["event"]]) == 1
+    # the join itself: Hermite through both states
+    xa, xb = np.r_[0.0, 0, 0, 1, 0, 0], np.r_[10.0, 2, 0, 1, 1, 0]
+    J = fixed_lag._joined(np.array([0.0, 5.0, 10.0]), xa, xb)
+    np.testing.assert_allclose(J[-1], xb, atol=1e-12)
+    np.testing.assert_allclose(fixed_lag._joined(np.array([0.0, 2.0]), xa, None)[0],
+                               [2.0, 0, 0, 1, 0, 0])
+    assert fixed_lag._diverged(np.array([[0, 0, 0, 60.0, 0, 0]]))
+    assert not fixed_lag._diverged(np.array([[0, 0, 0, 3.0, 0, 0]]))

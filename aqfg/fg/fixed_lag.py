@@ -1665,12 +1665,29 @@ class FixedLagSmoother:
                                 len(seg_p) - 1))
                 x = self.model.propagate(x, seg_p[j], steps.slice(int(off[i]), int(off[i + 1])))[0]
                 X[i + 1] = x
+            if _diverged(X[a + 1:b + 1]):
+                # the model cannot be integrated from this smoothed state (e.g. a stiff
+                # drag: k_yz 93 1/m with a 1-m/s sway made the explicit steps oscillate to
+                # inf): the smoothed states, joined by a cubic, stand here
+                X[a + 1:b + 1] = _joined(knots[a:b + 1], ax[a], ax.get(b))
+                self._note_diverged(float(knots[a]), float(knots[b]))
+                continue
             if b in ax:
                 err = ax[b] - X[b]
                 w = (knots[a + 1:b + 1] - knots[a]) / (knots[b] - knots[a])
                 X[a + 1:b + 1] += w[:, None] * err[None, :]
         self.timings["correction"].append(time.perf_counter() - t_a)
         return Track(knots, X[:, :3], X[:, 3:])
+
+    def _note_diverged(self, t_a: float, t_b: float) -> None:
+        """An event, once per interval, for a corrected-track interval the model could not
+        re-trace (:meth:`corrected_track`)."""
+        seen = self.__dict__.setdefault("_diverged_at", set())
+        if (t_a, t_b) not in seen:
+            seen.add((t_a, t_b))
+            self.events.append({"t": t_a, "event": "corrected track: the model's re-trace "
+                                f"diverged between {t_a:.1f} and {t_b:.1f} s; the smoothed "
+                                "states joined there instead"})
 
     def _p_segments(self, p_now: np.ndarray) -> list[np.ndarray]:
         """Parameter vectors per random-walk segment (the current one for the last)."""
@@ -1755,6 +1772,38 @@ class FixedLagSmoother:
                             "engine_note": getattr(self, "engine_note", ""),
                             "settings": self.settings},
                       effects=tuple(e.name for e in self.model.effects), model=self.model)
+
+
+# m/s: a re-traced speed beyond this is the integration diverging, not a vehicle
+DIVERGED_SPEED = 50.0
+
+
+def _diverged(X: np.ndarray) -> bool:
+    """Whether re-traced states (n, 6) left what any small vehicle can do (non-finite, or a
+    speed beyond :data:`DIVERGED_SPEED`)."""
+    return bool(len(X)) and (not np.all(np.isfinite(X))
+                             or float(np.max(np.linalg.norm(X[:, 3:], axis=1))) > DIVERGED_SPEED)
+
+
+def _joined(t: np.ndarray, xa: np.ndarray, xb: np.ndarray | None) -> np.ndarray:
+    """States at ``t[1:]`` joining the state ``xa`` at ``t[0]`` to ``xb`` at ``t[-1]``: the
+    cubic Hermite curve through both positions and velocities (velocity its derivative);
+    without ``xb``, constant velocity from ``xa``."""
+    dt = np.asarray(t[1:], float) - float(t[0])
+    if xb is None:
+        out = np.tile(np.asarray(xa, float), (len(dt), 1))
+        out[:, :3] += dt[:, None] * out[:, 3:]
+        return out
+    T = float(t[-1] - t[0])
+    s = (dt / T)[:, None]
+    p0, v0, p1, v1 = xa[:3], xa[3:] * T, xb[:3], xb[3:] * T
+    h00, h10, h01, h11 = 2 * s ** 3 - 3 * s ** 2 + 1, s ** 3 - 2 * s ** 2 + s, \
+        -2 * s ** 3 + 3 * s ** 2, s ** 3 - s ** 2
+    g00, g10, g01, g11 = 6 * s ** 2 - 6 * s, 3 * s ** 2 - 4 * s + 1, -6 * s ** 2 + 6 * s, \
+        3 * s ** 2 - 2 * s
+    pos = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
+    vel = (g00 * p0 + g10 * v0 + g01 * p1 + g11 * v1) / T
+    return np.hstack([pos, vel])
 
 
 def _mission_until(mission: Mission, t: float) -> Mission:
