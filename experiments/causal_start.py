@@ -59,26 +59,37 @@ def one(args) -> dict:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+def run_missions(one, script: str, doc: str, missions=MISSIONS
+                 ) -> tuple[list[dict], Path | None, str, float]:
+    """The command line of this script and its kin (``--data DIR --out FILE --jobs J``):
+    ``one((path, every))`` over the missions (default: ``missions`` in tests/data; with
+    ``--data``, every mission with truth under DIR) at the fix intervals ``EVERY``, in
+    ``--jobs`` processes. Returns the rows, ``--out``, where the missions are (for the
+    title) and the wall time (s)."""
+    ap = argparse.ArgumentParser(description=doc.strip().splitlines()[0])
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--jobs", type=int, default=2)
     a = ap.parse_args()
     if a.data is not None and a.out is None:
-        sys.exit("causal_start: with --data, name the table with --out")
+        sys.exit(f"{script}: with --data, name the table with --out")
     data = DATA if a.data is None else a.data.resolve()
-    names = list(MISSIONS) if a.data is None else sorted(
+    names = list(missions) if a.data is None else sorted(
         p.name for p in data.iterdir() if (p / "mission.toml").is_file()
         and (p / "truth.csv").is_file())
     jobs = [(data / n, e) for n in names for e in EVERY]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.jobs) as ex:
         rows = list(ex.map(one, jobs))
+    where = str(data.relative_to(ROOT) if data.is_relative_to(ROOT) else data.name)
+    return rows, a.out, where, time.perf_counter() - t0
+
+
+def main() -> None:
+    rows, out, where, wall = run_missions(one, "causal_start", __doc__)
     kinds = ("fg", "fg, no floor", "update-error")
-    where = data.relative_to(ROOT) if data.is_relative_to(ROOT) else data.name
     lines = [f"# The online causal track's first minute, paper's constants ({where})", "",
-             f"{len(rows)} runs, {time.perf_counter() - t0:.0f} s wall. Causal RMSE (m) over "
+             f"{len(rows)} runs, {wall:.0f} s wall. Causal RMSE (m) over "
              f"the first {SPLIT:.0f} s / after it / whole run; 'no floor': "
              "`online_kinematic_q = 0` (the model's prediction while the parameters are "
              "held).", "",
@@ -97,7 +108,7 @@ def main() -> None:
             cells.append(f"{np.median(q):.2f}, {np.percentile(q, 90):.2f}, {q.max():.2f}, "
                          f"{int(np.sum(q > 1))} of {len(q)}")
         lines.append(f"| {k} | " + " | ".join(cells) + " |")
-    out = a.out or Path(__file__).resolve().parent / "results" / "causal_start.md"
+    out = out or Path(__file__).resolve().parent / "results" / "causal_start.md"
     out.write_text("\n".join(lines) + "\n")
     print(out.read_text())
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aqfg.fg.kinematic import KinematicFilter, track_from, transition
+from aqfg.fg.kinematic import KinematicFilter, baseline_tracks, track_from, transition
 
 
 def test_transition_is_the_double_integrators():
@@ -52,29 +52,64 @@ def test_track_from_predicts_each_time_from_the_last_record_before_it():
     np.testing.assert_allclose(out[:, 2:], [[1, 0], [1, 0], [0, 2], [0, 2]])
 
 
-def test_the_floor_follows_the_better_predictor_while_held_and_the_model_after():
-    """CausalFloor: fixes of a vehicle at 1 m/s north, every 2 s. The model's predictions
-    miss by 5 m for four fixes (the filter is followed), then hit them exactly (after three
-    such fixes the model is); the fix that finds the parameters released hands the track
-    to the model, once."""
+def test_the_floor_is_the_filter_while_held_and_the_model_after():
+    """CausalFloor: fixes of a vehicle at 1 m/s north, every 2 s; the fix that finds the
+    parameters released hands the track to the model, once. Before it every knot is the
+    filter's prediction from the fixes so far; from it, the model's (untouched)."""
     from aqfg.fg.kinematic import CausalFloor
     t = np.arange(0.0, 22.0, 2.0)
     pos = np.column_stack([t, np.zeros_like(t)])
     fixes = (t, pos, np.full(len(t), 0.25))
     fl = CausalFloor(KinematicFilter(q=0.1))
-    switched = []
-    for k, tk in enumerate(t):
-        pred = None if k == 0 else np.array([tk + (5.0 if k <= 4 else 0.0), 0.0, 0.0])
-        switched.append(fl.step(float(tk), fixes, pred, held=k < 9))
+    switched = [fl.step(float(tk), fixes, held=k < 9) for k, tk in enumerate(t)]
     assert fl.until == t[9] and switched == [False] * 9 + [True, False]
-    assert fl.use[:5] == [True] * 5 and fl.use[-1] is False and len(fl.use) == 9
+    assert len(fl.t) == 9 and fl.next_row == 10          # fed up to the switch, no further
     knots = np.arange(0.0, 21.0, 1.0)
     X = np.full((len(knots), 6), 7.0)
     fl.apply(knots, X)
-    chosen = np.array(fl.use)[np.clip(np.searchsorted(fl.t, knots + 1e-9) - 1, 0, 8)]
-    followed = (knots < t[9]) & chosen
-    assert followed[:9].all() and not followed[knots >= t[9]].any()
+    followed = knots < t[9]
     K = track_from(np.array(fl.t), np.array(fl.x), knots[followed])         # the filter's
     np.testing.assert_array_equal(X[followed][:, [0, 1, 3, 4]], K)
     np.testing.assert_allclose(X[followed, 0], knots[followed], atol=2.0)
+    assert np.all(X[followed][:, [2, 5]] == 7.0)                            # depth: model's
     assert np.all(X[~followed] == 7.0)                                      # the model's
+    # no hold at all (until at the first fix): nothing recorded, nothing replaced
+    fl0 = CausalFloor(KinematicFilter(q=0.1), until=float(t[0]))
+    assert not any(fl0.step(float(tk), fixes, held=False) for tk in t)
+    X0 = np.full((len(knots), 6), 7.0)
+    fl0.apply(knots, X0)
+    assert np.all(X0 == 7.0)
+
+
+def test_the_baseline_smoother_is_the_map_of_its_model_and_the_causal_track_the_filters():
+    """With (almost) no process noise the Rauch-Tung-Striebel pass is the MAP straight line
+    through the fixes under the filter's start (the first fix, the velocity prior of
+    ``vel_sigma``), and the causal states are the filter's predictions from the fixes so
+    far (:func:`track_from` of its records). A gated outlier moves neither."""
+    rng = np.random.default_rng(5)
+    tf = np.arange(0.0, 60.0, 4.0)
+    pf = np.column_stack([3.0 + 0.8 * tf, -1.0 + 0.3 * tf]) + rng.normal(0.0, 0.7, (len(tf), 2))
+    var = np.full(len(tf), 0.5)
+    bad = pf.copy()
+    bad[7] += 40.0                                    # left out by the gate
+    t = np.concatenate([[-3.0], np.arange(0.0, 62.0, 0.7)])
+    q = 1e-10
+    causal, smooth = baseline_tracks((tf, bad, var), t, q=q)
+    keep = np.arange(len(tf)) != 7
+    # MAP line a + b t: fixes (variance var), b ~ N(0, 1) per axis (the filter's vel_sigma)
+    A = np.vstack([np.column_stack([np.ones(keep.sum()), tf[keep]]) / np.sqrt(0.5), [[0.0, 1.0]]])
+    for ax in range(2):
+        y = np.concatenate([pf[keep, ax] / np.sqrt(0.5), [0.0]])
+        a, b = np.linalg.lstsq(A, y, rcond=None)[0]
+        np.testing.assert_allclose(smooth[1:, ax], a + b * t[1:], atol=1e-3)
+        np.testing.assert_allclose(smooth[0, ax], a, atol=1e-3)   # before the first fix
+        np.testing.assert_allclose(smooth[1:, 2 + ax], b, atol=1e-4)
+    kf = KinematicFilter(q=q)
+    rec_t, rec_x = [], []
+    for i in range(len(tf)):
+        kf.update(tf[i], bad[i], var[i])
+        rec_t.append(tf[i])
+        rec_x.append(kf.x.copy())
+    np.testing.assert_allclose(causal[1:], track_from(np.array(rec_t), np.array(rec_x), t[1:]),
+                               atol=1e-9)
+    np.testing.assert_allclose(causal[0], rec_x[0])

@@ -486,9 +486,7 @@ class FixedLagSmoother:
         (an event says so). Not in a replay: it re-runs fixes already reported."""
         if getattr(self, "_replaying", False):
             return
-        pred = (self.pred_x[-1] if self.pred_t and abs(self.pred_t[-1] - t_fix) <= 1e-9
-                else None)
-        if self._floor.step(t_fix, self._fixes, pred, bool(self._hold_idx)):
+        if self._floor.step(t_fix, self._fixes, bool(self._hold_idx)):
             self.events.append({"t": float(t_fix), "event": "causal track follows the model "
                                 "from here (before: a constant-velocity filter on the fixes, "
                                 "while the parameters were held)"})

@@ -8,11 +8,8 @@ heading offset no data has chosen (a start value, or a closed form of three or f
 fixes), and on a model of another vehicle where the constants are the defaults: between
 fixes it ran the causal track 5-15 m off where a filter that knows no model stays within
 2-3 m (docs/independent-vehicle.md). While the parameters are held the causal track
-therefore follows this filter, unless the model predicted the last fixes better (the
-median of the last three paired differences of their squared misses: a vehicle
-accelerating from rest outruns a constant-velocity prediction from 8-s fixes), and the
-model from the fix at which they are first released. The smoother itself, and every
-estimate, are untouched.
+therefore follows this filter, and the model from the fix at which they are first
+released. The smoother itself, and every estimate, are untouched.
 
 State ``[north, east, v_north, v_east]`` (m, m/s, NED), white acceleration of power
 spectral density ``q`` per horizontal axis (m^2/s^3); fixes are horizontal positions with
@@ -28,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aqfg.model.process import white_acceleration
+
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
 
 
@@ -37,7 +36,7 @@ def transition(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     (exact for the double integrator)."""
     F = np.eye(4)
     F[0, 2] = F[1, 3] = dt
-    b = q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0], [dt ** 2 / 2.0, dt]])
+    b = white_acceleration(q, dt)
     Q = np.zeros((4, 4))
     Q[np.ix_([0, 2], [0, 2])] = b
     Q[np.ix_([1, 3], [1, 3])] = b
@@ -108,37 +107,72 @@ def track_from(log_t: np.ndarray, log_x: np.ndarray, t: np.ndarray) -> np.ndarra
     return out
 
 
+def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 13.8,
+                    max_rejects: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """The kinematic baseline a motion model has to beat: the constant-velocity filter on
+    the fix table ``fixes`` (times, horizontal positions (m, 2), per-axis variances, ...;
+    :func:`aqfg.fg.common.robust_fix_table`) with its gate, at the times ``t`` (n,) s.
+    Returns its causal states (n, 4: each predicted from the fixes at or before it, as
+    :func:`track_from`) and its smoothed ones (Rauch-Tung-Striebel over all the fixes).
+    Times before the first fix take the first fix's state."""
+    tf, pf, vf = np.asarray(fixes[0], float), np.asarray(fixes[1], float), fixes[2]
+    t = np.asarray(t, float)
+    # events in time order; at equal times the fixes first (the output sees them)
+    ev = sorted([(float(x), 0, i) for i, x in enumerate(tf)]
+                + [(float(x), 1, j) for j, x in enumerate(t)])
+    kf = KinematicFilter(q=q, gate=gate, max_rejects=max_rejects)
+    nt, xp, Pp, xu, Pu, out_node = [], [], [], [], [], np.full(len(t), -1)
+    causal = np.zeros((len(t), 4))
+    for tk, kind, i in ev:
+        if not kf.started:
+            if kind == 1:
+                continue
+            kf.update(tk, pf[i], float(vf[i]))
+            a, A = kf.x.copy(), kf.P.copy()
+        else:
+            a, A = kf._predict(tk)
+            if kind == 0:
+                kf.update(tk, pf[i], float(vf[i]))
+            else:
+                kf.x, kf.P, kf.t = a.copy(), A.copy(), tk
+        nt.append(tk); xp.append(a); Pp.append(A); xu.append(kf.x.copy()); Pu.append(kf.P.copy())
+        if kind == 1:
+            out_node[i] = len(nt) - 1
+            causal[i] = kf.x
+    if not nt:
+        raise ValueError("baseline_tracks: no fixes")
+    xs = [np.zeros(4)] * len(nt)
+    xs[-1] = xu[-1]
+    for k in range(len(nt) - 2, -1, -1):
+        F, _ = transition(nt[k + 1] - nt[k], q)
+        C = Pu[k] @ F.T @ np.linalg.pinv(Pp[k + 1])
+        xs[k] = xu[k] + C @ (xs[k + 1] - xp[k + 1])
+    smooth = np.array([xs[n] if n >= 0 else xs[0] for n in out_node]).reshape(len(t), 4)
+    causal[out_node < 0] = xu[0]
+    return causal, smooth
+
+
 @dataclass
 class CausalFloor:
     """The kinematic floor of an online causal track (see the module docstring): the
-    filter's state recorded after each fix while the parameters are held, whether the track
-    follows it there, and the fix time from which it follows the model (``until``; inf
-    while held, the first fix where there is no hold)."""
+    filter's state recorded after each fix while the parameters are held, and the fix time
+    from which the track follows the model (``until``; inf while held, the first fix where
+    there is no hold)."""
     filt: KinematicFilter
     until: float = math.inf
     t: list[float] = field(default_factory=list)          # fix times while held
     x: list[np.ndarray] = field(default_factory=list)     # the filter's state right after
-    use: list[bool] = field(default_factory=list)         # the track follows the filter
-    diff: list[float] = field(default_factory=list)       # model's minus filter's miss (m^2)
     next_row: int = 0                                     # next row of the fix table
 
-    def step(self, t_fix: float, fixes: tuple, model_pred: np.ndarray | None,
-             held: bool) -> bool:
+    def step(self, t_fix: float, fixes: tuple, held: bool) -> bool:
         """The update at the fix ``t_fix``: the filter takes the fixes of the table
         ``fixes`` (times, horizontal positions, per-axis variances, ...; time order) up to
-        it, after scoring both predictors on its first fix there (``model_pred``: the
-        model's state predicted there before the update; None at the first knot). ``held``:
-        the parameters are still held after this update; if not, the track follows the
-        model from here, and True is returned (once)."""
+        it. ``held``: the parameters are still held after this update; if not, the track
+        follows the model from here, and True is returned (once)."""
         if t_fix >= self.until:
             return False
         t, pos, var = fixes[0], fixes[1], fixes[2]
         i = self.next_row
-        if (model_pred is not None and self.filt.started and i < len(t)
-                and abs(float(t[i]) - t_fix) <= 1e-6):
-            e_kin = float(np.sum((pos[i, :2] - self.filt.at(t_fix)[:2]) ** 2))
-            e_mod = float(np.sum((pos[i, :2] - np.asarray(model_pred)[:2]) ** 2))
-            self.diff.append(e_mod - e_kin)
         while i < len(t) and t[i] <= t_fix + 1e-9:
             self.filt.update(float(t[i]), pos[i], float(var[i]))
             i += 1
@@ -146,23 +180,16 @@ class CausalFloor:
         if held:
             self.t.append(float(t_fix))
             self.x.append(self.filt.at(t_fix))
-            # the filter's unless the model predicted the last fixes better (the median of
-            # the last three paired differences: one outlying fix does not decide)
-            recent = self.diff[-3:]
-            self.use.append(not recent or float(np.median(recent)) >= 0.0)
             return False
         self.until = float(t_fix)
         return bool(self.t)
 
     def apply(self, knots: np.ndarray, X: np.ndarray) -> None:
         """Knot states ``X`` (n, 6: NED position, velocity) of the causal track at ``knots``
-        (n,) s, in place: before ``until``, horizontally the filter's after the fixes at
-        which the track follows it (each knot from the last fix at or before it)."""
-        held = np.asarray(knots) < self.until - 1e-9
-        if not self.t or not held.any():
+        (n,) s, in place: before ``until``, horizontally the filter's (each knot from the
+        last fix at or before it)."""
+        use = np.asarray(knots) < self.until - 1e-9
+        if not self.t or not use.any():
             return
-        kt = np.array(self.t)
-        j = np.clip(np.searchsorted(kt, np.asarray(knots) + 1e-9) - 1, 0, len(kt) - 1)
-        use = held & np.array(self.use)[j]
-        K = track_from(kt, np.array(self.x), np.asarray(knots)[use])
+        K = track_from(np.array(self.t), np.array(self.x), np.asarray(knots)[use])
         X[use, 0:2], X[use, 3:5] = K[:, :2], K[:, 2:]
