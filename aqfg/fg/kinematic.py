@@ -121,7 +121,13 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 1
     ev = sorted([(float(x), 0, i) for i, x in enumerate(tf)]
                 + [(float(x), 1, j) for j, x in enumerate(t)])
     kf = KinematicFilter(q=q, gate=gate, max_rejects=max_rejects)
-    nt, xp, Pp, xu, Pu, out_node = [], [], [], [], [], np.full(len(t), -1)
+    # per filter node: time, predicted and updated state and covariance
+    nt: list[float] = []
+    xp: list[np.ndarray] = []
+    Pp: list[np.ndarray] = []
+    xu: list[np.ndarray] = []
+    Pu: list[np.ndarray] = []
+    out_node = np.full(len(t), -1)
     causal = np.zeros((len(t), 4))
     for tk, kind, i in ev:
         if not kf.started:
@@ -135,7 +141,11 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 1
                 kf.update(tk, pf[i], float(vf[i]))
             else:
                 kf.x, kf.P, kf.t = a.copy(), A.copy(), tk
-        nt.append(tk); xp.append(a); Pp.append(A); xu.append(kf.x.copy()); Pu.append(kf.P.copy())
+        nt.append(tk)
+        xp.append(a)
+        Pp.append(A)
+        xu.append(kf.x.copy())
+        Pu.append(kf.P.copy())
         if kind == 1:
             out_node[i] = len(nt) - 1
             causal[i] = kf.x
@@ -145,7 +155,7 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 1
     xs[-1] = xu[-1]
     for k in range(len(nt) - 2, -1, -1):
         F, _ = transition(nt[k + 1] - nt[k], q)
-        C = Pu[k] @ F.T @ np.linalg.pinv(Pp[k + 1])
+        C = np.linalg.solve(Pp[k + 1], F @ Pu[k]).T       # Pu F^T Pp^-1 (symmetric Pp)
         xs[k] = xu[k] + C @ (xs[k + 1] - xp[k + 1])
     smooth = np.array([xs[n] if n >= 0 else xs[0] for n in out_node]).reshape(len(t), 4)
     causal[out_node < 0] = xu[0]
