@@ -61,6 +61,9 @@ def node_key(group: str, mission: int = 0, segment: int = 0) -> int:
 
 
 # ---------------------------------------------------------------- noise models
+# flat indices of the 6x6 [pos, vel] covariance taking b[0,0], b[0,1], b[1,0], b[1,1] x I3
+_BLOCK_INDEX = np.array([6 * (3 * r + k) + 3 * c + k for r in (0, 1) for c in (0, 1)
+                         for k in range(3)])
 @dataclass(frozen=True)
 class ProcessNoise:
     """Process noise of a dynamics factor over ``dt`` seconds.
@@ -82,8 +85,11 @@ class ProcessNoise:
         """6x6 covariance of ``x1 - f(x0, p)`` (NED position then velocity)."""
         dt = float(dt)
         b = white_acceleration(self.sigma_a ** 2, dt)
-        b += np.diag([dt * self.pos_rate ** 2, dt * self.vel_rate ** 2])
-        return np.kron(b, np.eye(3))
+        b[0, 0] += dt * self.pos_rate ** 2
+        b[1, 1] += dt * self.vel_rate ** 2
+        Q = np.zeros(36)
+        Q[_BLOCK_INDEX] = np.repeat(b.ravel(), 3)   # each entry of b times I3
+        return Q.reshape(6, 6)
 
     def scaled(self, factor: float) -> ProcessNoise:
         """The same noise with every variance times ``factor``."""
