@@ -64,6 +64,8 @@ def node_key(group: str, mission: int = 0, segment: int = 0) -> int:
 # flat indices of the 6x6 [pos, vel] covariance taking b[0,0], b[0,1], b[1,0], b[1,1] x I3
 _BLOCK_INDEX = np.array([6 * (3 * r + k) + 3 * c + k for r in (0, 1) for c in (0, 1)
                          for k in range(3)])
+
+
 @dataclass(frozen=True)
 class ProcessNoise:
     """Process noise of a dynamics factor over ``dt`` seconds.

@@ -213,6 +213,7 @@ class FixedLagSmoother:
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
         self._noise: dict = {}
         self.events: list[dict] = []               # recoveries and other notable events
+        self._diverged_at: set[tuple[float, float]] = set()   # corrected_track's, noted
         self._n_committed = 0                      # knots the smoother holds (keys[:n])
         replaying = getattr(self, "_replaying", False)
         if not replaying:
@@ -1680,9 +1681,8 @@ class FixedLagSmoother:
     def _note_diverged(self, t_a: float, t_b: float) -> None:
         """An event, once per interval, for a corrected-track interval the model could not
         re-trace (:meth:`corrected_track`)."""
-        seen = self.__dict__.setdefault("_diverged_at", set())
-        if (t_a, t_b) not in seen:
-            seen.add((t_a, t_b))
+        if (t_a, t_b) not in self._diverged_at:
+            self._diverged_at.add((t_a, t_b))
             self.events.append({"t": t_a, "event": "corrected track: the model's re-trace "
                                 f"diverged between {t_a:.1f} and {t_b:.1f} s; the smoothed "
                                 "states joined there instead"})
