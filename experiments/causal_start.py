@@ -31,11 +31,12 @@ EVERY = (1.0, 4.0, 8.0)
 SPLIT = 60.0          # s: the first minute
 
 
-def split_rmse(track, truth) -> tuple[float, float, float]:
-    """Causal RMSE (m, horizontal) over the first ``SPLIT`` s, after it, and overall."""
-    pt = np.column_stack([np.interp(track.t, truth.t, truth.pos[:, a]) for a in range(2)])
-    d2 = np.sum((track.pos[:, :2] - pt) ** 2, axis=1)
-    early = track.t - track.t[0] < SPLIT
+def split_rmse(t: np.ndarray, pos: np.ndarray, truth) -> tuple[float, float, float]:
+    """Horizontal RMSE (m) from the truth of the positions ``pos`` (n, >= 2) at ``t`` (n,)
+    s over the first ``SPLIT`` s, after it, and overall."""
+    pt = np.column_stack([np.interp(t, truth.t, truth.pos[:, a]) for a in range(2)])
+    d2 = np.sum((pos[:, :2] - pt) ** 2, axis=1)
+    early = t - t[0] < SPLIT
 
     def rm(x: np.ndarray) -> float:
         return float(np.sqrt(np.mean(x))) if len(x) else float("nan")
@@ -55,7 +56,8 @@ def one(args) -> dict:
             "update-error": lambda: fit_update_error([m], mode="online")}
     for k, f in runs.items():
         mr = f().missions[0]
-        out[k] = split_rmse(mr.filtered if mr.filtered is not None else mr.track, truth)
+        tr = mr.filtered if mr.filtered is not None else mr.track
+        out[k] = split_rmse(tr.t, tr.pos, truth)
     return out
 
 

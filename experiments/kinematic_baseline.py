@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from causal_start import SPLIT, run_missions  # noqa: E402
+from causal_start import SPLIT, run_missions, split_rmse  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
@@ -29,21 +29,11 @@ MISSIONS = ("otter-example", "otter-dev-calm-a", "otter-dev-calm-b",
             "otter-dev-current-weakprop", "otter-dev-yawdrift", "remus-dev-a")
 
 
-def rmse(t: np.ndarray, pos: np.ndarray, truth, first: bool = False) -> float:
-    """Horizontal RMSE (m) of positions ``pos`` at ``t`` against the truth (over the first
-    ``SPLIT`` s only with ``first``)."""
-    ref = np.column_stack([np.interp(t, truth.t, truth.pos[:, a]) for a in range(2)])
-    d2 = np.sum((pos[:, :2] - ref) ** 2, axis=1)
-    if first:
-        d2 = d2[t - t[0] < SPLIT]
-    return float(np.sqrt(np.mean(d2)))
-
-
 def one(args) -> dict:
     path, every = args
     from aqfg.fg import FGSettings, fit_fg
     from aqfg.fg.common import robust_fix_table
-    from aqfg.fg.kinematic import baseline_tracks
+    from aqfg.fg.kinematic import KinematicFilter, baseline_tracks
     m = with_gnss_every(load_mission(path), every)
     truth = load_truth(path)
     s = FGSettings()
@@ -51,19 +41,16 @@ def one(args) -> dict:
     ba = fit_fg([m]).missions[0]
     causal = on.filtered if on.filtered is not None else on.track
     fixes = robust_fix_table(m, s)
-    kc, _ = baseline_tracks(fixes, causal.t, q=s.online_kinematic_q, gate=s.online_gate_usbl)
-    _, ks_on = baseline_tracks(fixes, on.track.t, q=s.online_kinematic_q,
-                               gate=s.online_gate_usbl)
-    _, ks_ba = baseline_tracks(fixes, ba.track.t, q=s.online_kinematic_q,
-                               gate=s.online_gate_usbl)
+    kc, _ = baseline_tracks(fixes, causal.t, KinematicFilter.from_settings(s))
+    _, ks_on = baseline_tracks(fixes, on.track.t, KinematicFilter.from_settings(s))
+    _, ks_ba = baseline_tracks(fixes, ba.track.t, KinematicFilter.from_settings(s))
+    fg_c, kin_c = split_rmse(causal.t, causal.pos, truth), split_rmse(causal.t, kc, truth)
     return {"mission": path.name, "every": every,
-            "fg_causal": (rmse(causal.t, causal.pos, truth, True),
-                          rmse(causal.t, causal.pos, truth)),
-            "kin_causal": (rmse(causal.t, kc, truth, True), rmse(causal.t, kc, truth)),
-            "fg_corrected": rmse(on.track.t, on.track.pos, truth),
-            "kin_smoothed_on": rmse(on.track.t, ks_on, truth),
-            "fg_batch": rmse(ba.track.t, ba.track.pos, truth),
-            "kin_smoothed_ba": rmse(ba.track.t, ks_ba, truth)}
+            "fg_causal": (fg_c[0], fg_c[2]), "kin_causal": (kin_c[0], kin_c[2]),
+            "fg_corrected": split_rmse(on.track.t, on.track.pos, truth)[2],
+            "kin_smoothed_on": split_rmse(on.track.t, ks_on, truth)[2],
+            "fg_batch": split_rmse(ba.track.t, ba.track.pos, truth)[2],
+            "kin_smoothed_ba": split_rmse(ba.track.t, ks_ba, truth)[2]}
 
 
 def summary(q: np.ndarray) -> str:

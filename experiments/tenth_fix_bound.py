@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.integrate import cumulative_trapezoid
 
 sys.path.insert(0, str(Path(__file__).parent))
 from independent_vehicle import DATA, EVERY, MISSIONS, RESULTS  # noqa: E402
@@ -78,9 +79,8 @@ def accelerometer_displacement(m, t0: float, t1: float) -> tuple[np.ndarray, np.
     k = (m.imu.t >= t0) & (m.imu.t <= t1 + 0.05)
     t = m.imu.t[k]
     a = np.einsum("kij,kj->ki", quat_to_rot(m.imu.q[k]), m.imu.acc[k]) + np.array([0, 0, 9.81])
-    v = np.vstack([np.zeros(3), np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t)[:, None], 0)])
-    w = np.vstack([np.zeros(3), np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None], 0)])
-    return t, w[:, :2]
+    v = cumulative_trapezoid(a, t, axis=0, initial=0.0)
+    return t, cumulative_trapezoid(v, t, axis=0, initial=0.0)[:, :2]
 
 
 def realised(m, t, p, t0: float, t10: float, th10: float, w_truth: tuple) -> dict:
@@ -134,8 +134,7 @@ def bound(name: str, every: float) -> dict:
     # water-relative velocity in the IMU heading frame, integrated from the first fix
     vw = tr.vel[:, :2] - s_true
     vi = np.einsum("kij,kj->ki", np.stack([rot(-a) for a in th]), vw)
-    w = np.column_stack([np.concatenate([[0.0], np.cumsum(0.5 * (vi[1:, a] + vi[:-1, a])
-                                                           * np.diff(tr.t))]) for a in range(2)])
+    w = cumulative_trapezoid(vi, tr.t, axis=0, initial=0.0)
     wk = np.column_stack([np.interp(t, tr.t, w[:, a]) for a in range(2)])
     wk -= np.array([np.interp(tu[0], tr.t, w[:, a]) for a in range(2)])
     th0 = float(np.interp(tu[0], tr.t, th))

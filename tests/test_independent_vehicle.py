@@ -16,7 +16,7 @@ from aqfg.data import load_mission, load_truth
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg import BatchSmoother, FGSettings, FixedLagSmoother, fit_fg
 from aqfg.fg.common import robust_fix_table
-from aqfg.fg.kinematic import baseline_tracks
+from aqfg.fg.kinematic import KinematicFilter, baseline_tracks
 from aqfg.result import Track
 
 DEG = np.pi / 180
@@ -89,10 +89,9 @@ def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
 
 def kinematic_baseline(m, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The constant-velocity filter's causal and smoothed states at ``t`` on the fixes of
-    ``m`` (the factor graph's fix table, gate and PSD)."""
+    ``m`` (the factor graph's fix table, and its causal floor's filter)."""
     s = FGSettings()
-    return baseline_tracks(robust_fix_table(m, s), t, q=s.online_kinematic_q,
-                           gate=s.online_gate_usbl)
+    return baseline_tracks(robust_fix_table(m, s), t, KinematicFilter.from_settings(s))
 
 
 def track_rmse(track, truth) -> float:

@@ -94,7 +94,7 @@ def test_the_baseline_smoother_is_the_map_of_its_model_and_the_causal_track_the_
     bad[7] += 40.0                                    # left out by the gate
     t = np.concatenate([[-3.0], np.arange(0.0, 62.0, 0.7)])
     q = 1e-10
-    causal, smooth = baseline_tracks((tf, bad, var), t, q=q)
+    causal, smooth = baseline_tracks((tf, bad, var), t, KinematicFilter(q=q))
     keep = np.arange(len(tf)) != 7
     # MAP line a + b t: fixes (variance var), b ~ N(0, 1) per axis (the filter's vel_sigma)
     A = np.vstack([np.column_stack([np.ones(keep.sum()), tf[keep]]) / np.sqrt(0.5), [[0.0, 1.0]]])

@@ -147,7 +147,8 @@ class FixedLagSmoother:
         return info
 
     def _start(self, mission: Mission, plan: bool) -> UpdateInfo:
-        """:meth:`start` (also a replay's restart) but for the kinematic causal floor."""
+        """:meth:`start` but for the kinematic causal floor's first fix (two return
+        paths). A replay's restart calls :meth:`start` too; the floor skips replays."""
         (mission,) = check_missions([mission])
         s = self.settings
         self._t_call = time.perf_counter()
@@ -258,8 +259,7 @@ class FixedLagSmoother:
             # the causal track's kinematic floor while the parameters are held
             # (aqfg.fg.kinematic); none where they are not, or the settings say so
             self._floor = CausalFloor(
-                KinematicFilter(q=s.online_kinematic_q, gate=s.online_gate_usbl,
-                                max_rejects=s.online_max_rejects),
+                KinematicFilter.from_settings(s),
                 until=math.inf if hold and s.online_kinematic_q > 0 else float(self.fix_t[0]))
         # held parameters are reported with their prior's sigma (the batch's, replaying):
         # the hold priors' tiny marginal would claim a certainty no data gave
@@ -1787,21 +1787,16 @@ def _joined(t: np.ndarray, xa: np.ndarray, xb: np.ndarray | None) -> np.ndarray:
     """States at ``t[1:]`` joining the state ``xa`` at ``t[0]`` to ``xb`` at ``t[-1]``: the
     cubic Hermite curve through both positions and velocities (velocity its derivative);
     without ``xb``, constant velocity from ``xa``."""
-    dt = np.asarray(t[1:], float) - float(t[0])
+    from scipy.interpolate import CubicHermiteSpline
+    t = np.asarray(t, float)
+    xa = np.asarray(xa, float)
     if xb is None:
-        out = np.tile(np.asarray(xa, float), (len(dt), 1))
-        out[:, :3] += dt[:, None] * out[:, 3:]
+        out = np.tile(xa, (len(t) - 1, 1))
+        out[:, :3] += (t[1:] - t[0])[:, None] * out[:, 3:]
         return out
-    T = float(t[-1] - t[0])
-    s = (dt / T)[:, None]
-    p0, v0, p1, v1 = xa[:3], xa[3:] * T, xb[:3], xb[3:] * T
-    h00, h10, h01, h11 = 2 * s ** 3 - 3 * s ** 2 + 1, s ** 3 - 2 * s ** 2 + s, \
-        -2 * s ** 3 + 3 * s ** 2, s ** 3 - s ** 2
-    g00, g10, g01, g11 = 6 * s ** 2 - 6 * s, 3 * s ** 2 - 4 * s + 1, -6 * s ** 2 + 6 * s, \
-        3 * s ** 2 - 2 * s
-    pos = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
-    vel = (g00 * p0 + g10 * v0 + g01 * p1 + g11 * v1) / T
-    return np.hstack([pos, vel])
+    curve = CubicHermiteSpline([t[0], t[-1]], np.stack([xa[:3], xb[:3]]),
+                               np.stack([xa[3:], xb[3:]]))
+    return np.hstack([curve(t[1:]), curve.derivative()(t[1:])])
 
 
 def _mission_until(mission: Mission, t: float) -> Mission:

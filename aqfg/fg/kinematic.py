@@ -22,10 +22,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from aqfg.model.process import white_acceleration
+
+if TYPE_CHECKING:                       # common imports nothing from here; keep it so
+    from aqfg.fg.common import FGSettings
 
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
 
@@ -56,6 +60,13 @@ class KinematicFilter:
     P: np.ndarray = field(default_factory=lambda: np.eye(4))
     rejects: int = 0
 
+    @classmethod
+    def from_settings(cls, s: FGSettings) -> KinematicFilter:
+        """The filter of the settings' causal floor (``online_kinematic_q``, the USBL
+        gate's quantile and rejects rule): the floor's and the baseline's are this one."""
+        return cls(q=s.online_kinematic_q, gate=s.online_gate_usbl,
+                   max_rejects=s.online_max_rejects)
+
     @property
     def started(self) -> bool:
         return bool(np.isfinite(self.t))
@@ -70,13 +81,13 @@ class KinematicFilter:
             return True
         self.x, self.P = self._predict(t)
         self.t = float(t)
-        S = _H @ self.P @ _H.T + var * np.eye(2)
+        Si = np.linalg.inv(_H @ self.P @ _H.T + var * np.eye(2))
         nu = pos - self.x[:2]
-        if float(nu @ np.linalg.solve(S, nu)) > self.gate and self.rejects < self.max_rejects:
+        if float(nu @ Si @ nu) > self.gate and self.rejects < self.max_rejects:
             self.rejects += 1
             return False
         self.rejects = 0
-        K = self.P @ _H.T @ np.linalg.inv(S)
+        K = self.P @ _H.T @ Si
         self.x = self.x + K @ nu
         # Joseph form: stays symmetric positive definite
         A = np.eye(4) - K @ _H
@@ -107,11 +118,12 @@ def track_from(log_t: np.ndarray, log_x: np.ndarray, t: np.ndarray) -> np.ndarra
     return out
 
 
-def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 13.8,
-                    max_rejects: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """The kinematic baseline a motion model has to beat: the constant-velocity filter on
-    the fix table ``fixes`` (times, horizontal positions (m, 2), per-axis variances, ...;
-    :func:`aqfg.fg.common.robust_fix_table`) with its gate, at the times ``t`` (n,) s.
+def baseline_tracks(fixes: tuple, t: np.ndarray, kf: KinematicFilter
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The kinematic baseline a motion model has to beat: the constant-velocity filter
+    ``kf`` (fresh; :meth:`KinematicFilter.from_settings` for the causal floor's) on the fix
+    table ``fixes`` (times, horizontal positions (m, 2), per-axis variances, ...;
+    :func:`aqfg.fg.common.robust_fix_table`), at the times ``t`` (n,) s.
     Returns its causal states (n, 4: each predicted from the fixes at or before it, as
     :func:`track_from`) and its smoothed ones (Rauch-Tung-Striebel over all the fixes).
     Times before the first fix take the first fix's state."""
@@ -120,7 +132,8 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 1
     # events in time order; at equal times the fixes first (the output sees them)
     ev = sorted([(float(x), 0, i) for i, x in enumerate(tf)]
                 + [(float(x), 1, j) for j, x in enumerate(t)])
-    kf = KinematicFilter(q=q, gate=gate, max_rejects=max_rejects)
+    if kf.started:
+        raise ValueError("baseline_tracks: the filter must be fresh")
     # per filter node: time, predicted and updated state and covariance
     nt: list[float] = []
     xp: list[np.ndarray] = []
@@ -154,7 +167,7 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, q: float = 0.1, gate: float = 1
     xs = [np.zeros(4)] * len(nt)
     xs[-1] = xu[-1]
     for k in range(len(nt) - 2, -1, -1):
-        F, _ = transition(nt[k + 1] - nt[k], q)
+        F, _ = transition(nt[k + 1] - nt[k], kf.q)
         C = np.linalg.solve(Pp[k + 1], F @ Pu[k]).T       # Pu F^T Pp^-1 (symmetric Pp)
         xs[k] = xu[k] + C @ (xs[k + 1] - xp[k + 1])
     smooth = np.array([xs[n] if n >= 0 else xs[0] for n in out_node]).reshape(len(t), 4)
