@@ -51,13 +51,33 @@ def test_manifest_reads_vehicles_and_relative_paths(tmp_path):
     assert man.n_missions == 2
 
 
+def test_manifest_takes_absolute_paths_and_globs(tmp_path):
+    store = tmp_path / "store"                   # shared storage, outside the manifest's folder
+    for d in ("2026-06-01a", "2026-06-01b", "2026-07-01a"):
+        _mission_dir(store, d)
+    (store / "2026-06-notes").mkdir()            # matched by the glob, not a mission: skipped
+    home = tmp_path / "cfg"
+    home.mkdir()
+    _mission_dir(home, "local/c")
+    p = _manifest(home, f'[[vehicle]]\nname = "boat3"\nmissions = ["{store}/2026-06-*/", "local/c"]\n'
+                        f'[[vehicle]]\nname = "boat4"\nmissions = ["{store / "2026-07-01a"}"]\n')
+    man = load_manifest(p)
+    got = [[m.path for m in v.missions] for v in man.vehicles]
+    assert got == [[store / "2026-06-01a", store / "2026-06-01b", home / "local" / "c"],
+                   [store / "2026-07-01a"]]
+    assert man.vehicles[0].missions[0].entry == f"{store}/2026-06-*/"
+
+
 @pytest.mark.parametrize("text, words", [
     ('[[vehicle]]\nname = "v"\nmissions = ["runs/none"]\n', ["no such mission directory", "runs/none"]),
     ('[[vehicle]]\nname = "v"\nmissions = ["runs/a"]\n[[vehicle]]\nname = "v"\nmissions = ["runs/b"]\n',
      ["duplicate vehicle name", "'v'"]),
-    ('[[vehicle]]\nname = "v"\nmissions = ["../outside"]\n', ["outside the manifest's directory"]),
-    ('[[vehicle]]\nname = "v"\nmissions = ["runs/../../outside"]\n', ["outside the manifest's directory"]),
-    ('[[vehicle]]\nname = "v"\nmissions = ["/abs/path"]\n', ["absolute paths are not allowed"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["../outside"]\n', ["holds no mission.toml", "outside"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["/nonexistent/abs/path"]\n',
+     ["no such mission directory", "/nonexistent/abs/path"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/z*"]\n', ["matches no mission directory", "runs/z*"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["runs/*", "runs/a"]\n', ["listed twice"]),
+    ('[[vehicle]]\nname = "v"\nmissions = ["odd/*"]\n', ["cannot name an output directory safely"]),
     ('[[vehicle]]\nname = "v"\nmissions = ["runs/a", "runs/./a"]\n', ["listed twice"]),
     ('[[vehicle]]\nname = "v"\nmissions = ["runs/a", "other/a"]\n', ["two missions named 'a'"]),
     ('[[vehicle]]\nname = "v"\nmissions = ["runs/empty"]\n', ["holds no mission.toml"]),
@@ -70,6 +90,7 @@ def test_manifest_reads_vehicles_and_relative_paths(tmp_path):
 def test_manifest_errors_name_what_and_where(tmp_path, text, words):
     _mission_dir(tmp_path, "runs/a")
     _mission_dir(tmp_path, "runs/b")
+    _mission_dir(tmp_path, "odd/bad name")
     _mission_dir(tmp_path, "other/a")
     (tmp_path / "runs" / "empty").mkdir()
     (tmp_path.parent / "outside").mkdir(exist_ok=True)

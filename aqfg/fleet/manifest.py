@@ -3,11 +3,12 @@
 ```toml
 [[vehicle]]
 name = "otter-1"
-missions = ["runs/2026-06-01a", "runs/2026-06-01b"]   # relative to the manifest
+missions = ["runs/2026-06-01a", "/data/boat3/2026-*/"]   # relative, absolute, globs
 ```
 """
 from __future__ import annotations
 
+import glob
 import os
 import re
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ except ModuleNotFoundError:          # Python 3.10
     import tomli as tomllib
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_GLOB = re.compile(r"[*?[]")
 _VEHICLE_KEYS = ("name", "missions")
 
 
@@ -50,10 +52,15 @@ class Manifest:
 
 
 def load_manifest(path: str | os.PathLike) -> Manifest:
-    """Read and check a fleet manifest: vehicle names unique and usable as directory
-    names, each mission a relative path inside the manifest's directory that holds a
-    ``mission.toml``, no mission listed twice, mission directory names unique per vehicle
-    (they name the output directories)."""
+    """Read and check a fleet manifest.
+
+    Each mission entry is a path, relative to the manifest's directory or absolute
+    (``~`` expanded), or a glob pattern (``*``, ``?``, ``[...]``) that expands to the
+    mission directories it matches, in sorted order. Refused, with the reason: a path that
+    is not a mission directory, a pattern that matches none, a mission listed twice, and
+    what would be unsafe as an output name (vehicle names and mission directory names
+    other than letters, digits, '.', '_', '-'; two missions of one vehicle with the same
+    directory name, whose outputs would collide)."""
     p = Path(path)
     if not p.is_file():
         raise ManifestError(f"no such manifest file: {p}")
@@ -94,31 +101,43 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
         missions: list[FleetMission] = []
         names: dict[str, str] = {}
         for entry in ms:
-            mp = _mission_path(root, entry, f"{where}: mission {entry!r}")
-            if mp in seen_m:     # the same directory twice (lexically)
-                raise ManifestError(f"{where}: mission {entry!r} is listed twice "
-                                    f"(also under vehicle {seen_m[mp]!r})")
-            seen_m[mp] = name
-            mname = mp.name
-            if mname in names:
-                raise ManifestError(f"{where}: two missions named {mname!r} ({names[mname]!r} "
-                                    f"and {entry!r}); their outputs would collide")
-            names[mname] = entry
-            missions.append(FleetMission(mname, mp, entry))
+            for mp in _mission_paths(root, entry, f"{where}: mission {entry!r}"):
+                if mp in seen_m:     # the same directory twice (lexically)
+                    raise ManifestError(f"{where}: mission {str(mp)!r} (from {entry!r}) is listed "
+                                        f"twice (also under vehicle {seen_m[mp]!r})")
+                seen_m[mp] = name
+                mname = mp.name
+                if not _NAME.match(mname):
+                    raise ManifestError(f"{where}: mission directory name {mname!r} (from {entry!r}) "
+                                        "cannot name an output directory safely: letters, digits, "
+                                        "'.', '_' or '-' only")
+                if mname in names:
+                    raise ManifestError(f"{where}: two missions named {mname!r} ({names[mname]!r} "
+                                        f"and {entry!r}); their outputs would collide")
+                names[mname] = entry
+                missions.append(FleetMission(mname, mp, entry))
         vehicles.append(Vehicle(name, tuple(missions)))
     return Manifest(Path(os.path.abspath(p)), tuple(vehicles))
 
 
-def _mission_path(root: Path, entry: str, where: str) -> Path:
+def _mission_paths(root: Path, entry: str, where: str) -> list[Path]:
+    """The mission directories an entry names: one path, or a glob's sorted matches."""
     if not entry.strip():
         raise ManifestError(f"{where}: empty path")
-    rel = Path(entry)
-    if rel.is_absolute():
-        raise ManifestError(f"{where}: paths are relative to the manifest's directory "
-                            f"({root}); absolute paths are not allowed")
-    full = Path(os.path.normpath(root / rel))     # lexical: symlinks inside are fine
-    if full == root or root not in full.parents:
-        raise ManifestError(f"{where}: the path leads outside the manifest's directory {root}")
+    full = Path(os.path.expanduser(entry))
+    if not full.is_absolute():
+        full = root / full
+    full = Path(os.path.normpath(full))       # lexical: symbolic links are followed as given
+    if not _GLOB.search(entry):
+        return [_mission_dir(full, where)]
+    hits = sorted(Path(h) for h in glob.glob(str(full)) if os.path.isfile(Path(h) / "mission.toml"))
+    if not hits:
+        raise ManifestError(f"{where}: the pattern {str(full)!r} matches no mission directory "
+                            "(a directory holding mission.toml)")
+    return [Path(os.path.normpath(h)) for h in hits]
+
+
+def _mission_dir(full: Path, where: str) -> Path:
     if not full.is_dir():
         raise ManifestError(f"{where}: no such mission directory {full}")
     if not (full / "mission.toml").is_file():
