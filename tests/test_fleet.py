@@ -372,3 +372,27 @@ def test_cli_fleet_no_auto_effect_fits_the_model_as_given(tmp_path, capsys):
     veh = json.loads((out / "otter" / "parameters.json").read_text())
     assert "auto_effect" not in veh and veh["provenance"]["effects"] == []
     assert set(veh["parameters"]) == {"k", "k_x", "k_yz"}
+
+
+@pytest.mark.slow
+def test_cli_fleet_on_a_separate_scheduler(tmp_path, capsys):
+    """``--scheduler ADDRESS``: the fleet runs on a distributed scheduler it did not start
+    (here one scheduler and one worker process on loopback), with a manifest that names its
+    missions by an absolute glob, and leaves the cluster running for its owner."""
+    import logging
+
+    from distributed import Client, LocalCluster
+    _sim_vehicle(tmp_path / "store", (51,), 1.0, duration=90.0)
+    p = _manifest(tmp_path, f'[[vehicle]]\nname = "asv-s"\nmissions = ["{tmp_path}/store/sim-*"]\n')
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      scheduler_port=0, dashboard_address=None, silence_logs=logging.ERROR) as lc:
+        out = tmp_path / "out"
+        assert main(["fleet", str(p), "--out", str(out), "--scheduler", lc.scheduler_address,
+                     "--no-auto-effect"]) == 0
+        assert "asv-s" in capsys.readouterr().out
+        assert (out / "asv-s" / "sim-51" / "trajectory.csv").is_file()
+        with Client(lc.scheduler_address, timeout="10s") as c:   # still up, worker still there
+            assert len(c.scheduler_info()["workers"]) == 1
+    assert main(["fleet", str(p), "--out", str(tmp_path / "o2"),
+                 "--scheduler", "tcp://127.0.0.1:9"]) == EXIT_DATA
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err

@@ -59,16 +59,18 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
     """
     from aqfg.fg.common import progress_fn
     show = progress_fn(progress)
+    made = client is None          # a client (and cluster) made here is closed here
     own = None
-    if client is None:
+    if made:
         client, own = _client(workers, scheduler)
     try:
         return _fit(client, manifest, settings or FGSettings(), tuple(effects),
                     None if estimate is None else tuple(estimate), dict(init or {}),
                     float(gnss_every), diagnose, show, timeout)
     finally:
-        if own is not None:
+        if made:
             client.close()
+        if own is not None:
             own.close()
 
 
