@@ -12,6 +12,7 @@ from __future__ import annotations
 import fnmatch
 import importlib.util
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -26,14 +27,15 @@ STAMP = re.compile(r"^Produced by `python experiments/[\w/]+\.py( [^`]*)?`, comm
 def _run_all():
     spec = importlib.util.spec_from_file_location("run_all", EXPERIMENTS / "run_all.py")
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    sys.modules.setdefault("run_all", mod)       # dataclasses look their module up
+    spec.loader.exec_module(sys.modules["run_all"])
+    return sys.modules["run_all"]
 
 
 def _results() -> list[str]:
-    # the reduced runs' *_quick files are not results (git-ignored)
+    # the reduced runs' *_quick files are not results (results/.gitignore)
     return sorted(p.name for p in RESULTS.iterdir()
-                  if p.is_file() and "_quick" not in p.name)
+                  if p.is_file() and not p.name.startswith(".") and "_quick" not in p.name)
 
 
 def test_every_result_file_is_written_by_a_listed_job():
