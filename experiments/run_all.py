@@ -246,7 +246,7 @@ def update_readme(readme: Path = HERE / "README.md") -> int:
         table = "\n".join(ln for ln in f.read_text().splitlines()
                           if not ln.startswith(STAMP)).strip()
         pat = re.compile(rf"(<!-- headline:{name} -->\n).*?(\n<!-- /headline:{name} -->)", re.S)
-        text, n = pat.subn(lambda m: m.group(1) + table + m.group(2), text)
+        text, n = pat.subn(lambda m, t=table: m.group(1) + t + m.group(2), text)
         if not n:
             print(f"README has no headline:{name} block", file=sys.stderr)
     readme.write_text(text)
