@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import common as C  # noqa: E402
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
 from aqfg.fg import FGSettings, fit_fg  # noqa: E402
@@ -125,8 +126,7 @@ def main() -> None:
         fn, head = one_mission, f"## {root.name}/: GNSS every 1, 4, 8 s"
     with ProcessPoolExecutor(a.jobs) as ex:
         rows = list(ex.map(fn, tasks))
-    text = ("# The batch fit's effect step (`FGSettings.auto_effect`)\n\n"
-            f"`python experiments/auto_effect.py{' --sim' if a.sim else ''}`, "
+    text = (f"{C.stamp()}\n\n# The batch fit's effect step (`FGSettings.auto_effect`)\n\n"
             f"{time.perf_counter() - t0:.0f} s wall on a shared 2-core machine.\n\n"
             + table(rows, head))
     a.out.parent.mkdir(exist_ok=True)

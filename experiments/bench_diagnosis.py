@@ -152,7 +152,7 @@ def main(argv=None) -> int:
         L.append(f"| {u['case']} | {u['wall']:.2f} | {u['cpu']:.2f} | {u['load']:.1f} | "
                  f"{u['iterations']} | {u['estimate']} | {u['cpu'] / b:.1f}x |")
     L += ["", f"total {time.perf_counter() - t0:.0f} s"]
-    text = "\n".join(L)
+    text = "\n".join([C.stamp(argv), "", *L])
     print(text)
     if not args.quick:
         C.RESULTS.mkdir(parents=True, exist_ok=True)

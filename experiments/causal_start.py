@@ -21,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import common as C  # noqa: E402
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
 
@@ -66,12 +67,16 @@ def run_missions(one, script: str, doc: str, missions=MISSIONS
     """The command line of this script and its kin (``--data DIR --out FILE --jobs J``):
     ``one((path, every))`` over the missions (default: ``missions`` in tests/data; with
     ``--data``, every mission with truth under DIR) at the fix intervals ``EVERY``, in
-    ``--jobs`` processes. Returns the rows, ``--out``, where the missions are (for the
-    title) and the wall time (s)."""
+    ``--jobs`` processes (``--quick``: one run). Returns the rows, the table's path (``--out``,
+    default ``results/<script>[_quick].md``), where the missions are (for the title) and the
+    wall time (s)."""
     ap = argparse.ArgumentParser(description=doc.strip().splitlines()[0])
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--quick", action="store_true",
+                    help="the first mission at 8-s GNSS only (a smoke test); default table "
+                         f"results/{script}_quick.md")
     a = ap.parse_args()
     if a.data is not None and a.out is None:
         sys.exit(f"{script}: with --data, name the table with --out")
@@ -80,17 +85,20 @@ def run_missions(one, script: str, doc: str, missions=MISSIONS
         p.name for p in data.iterdir() if (p / "mission.toml").is_file()
         and (p / "truth.csv").is_file())
     jobs = [(data / n, e) for n in names for e in EVERY]
+    if a.quick:
+        jobs = [(data / names[0], EVERY[-1])]
+    out = a.out or C.RESULTS / f"{script}{'_quick' if a.quick else ''}.md"
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.jobs) as ex:
         rows = list(ex.map(one, jobs))
     where = str(data.relative_to(ROOT) if data.is_relative_to(ROOT) else data.name)
-    return rows, a.out, where, time.perf_counter() - t0
+    return rows, out, where, time.perf_counter() - t0
 
 
 def main() -> None:
     rows, out, where, wall = run_missions(one, "causal_start", __doc__)
     kinds = ("fg", "fg, no floor", "update-error")
-    lines = [f"# The online causal track's first minute, paper's constants ({where})", "",
+    lines = [C.stamp(), "", f"# The online causal track's first minute, paper's constants ({where})", "",
              f"{len(rows)} runs, {wall:.0f} s wall. Causal RMSE (m) over "
              f"the first {SPLIT:.0f} s / after it / whole run; 'no floor': "
              "`online_kinematic_q = 0` (the model's prediction while the parameters are "
@@ -110,7 +118,6 @@ def main() -> None:
             cells.append(f"{np.median(q):.2f}, {np.percentile(q, 90):.2f}, {q.max():.2f}, "
                          f"{int(np.sum(q > 1))} of {len(q)}")
         lines.append(f"| {k} | " + " | ".join(cells) + " |")
-    out = out or Path(__file__).resolve().parent / "results" / "causal_start.md"
     out.write_text("\n".join(lines) + "\n")
     print(out.read_text())
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+import common as C  # noqa: E402
 import independent_vehicle as iv  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
@@ -74,9 +75,13 @@ def one(args) -> str:
 
 def main() -> None:
     jobs = [(n, c, g) for n in MISSIONS for c in CROPS for g in (4.0, 8.0)]
+    lines = [C.stamp(), ""]
     with ProcessPoolExecutor(2) as ex:
         for line in ex.map(one, jobs):
             print(line, flush=True)
+            lines.append(line)
+    C.RESULTS.mkdir(exist_ok=True)
+    (C.RESULTS / "crop_generality.txt").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

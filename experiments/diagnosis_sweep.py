@@ -24,7 +24,8 @@ closer to the truth.
 
 Run: ``python experiments/diagnosis_sweep.py [--seeds 10] [--jobs 2] [--quick]``; prints the
 tables and writes ``experiments/out/diagnosis_sweep.md`` / ``.json`` (plus the reports of the
-tests/data missions), and a copy of the tables to ``experiments/results/diagnosis_sweep.md``.
+tests/data missions), and a copy of the tables to ``experiments/results/diagnosis_sweep.md``
+(``--only-independent``: ``results/diagnosis_independent.md``).
 """
 from __future__ import annotations
 
@@ -249,11 +250,14 @@ def main(argv=None) -> int:
     if ind:
         md += independent_md(ind)
     md.append(f"total time {time.perf_counter() - t0:.0f} s")
-    text = "\n".join(md)
+    text = "\n".join([C.stamp(argv), "", *md])
     (OUT / f"diagnosis_sweep{suffix}.md").write_text(text)
-    if not args.quick and recs and ind:   # experiments/out/ is not versioned
-        C.RESULTS.mkdir(parents=True, exist_ok=True)
-        (C.RESULTS / "diagnosis_sweep.md").write_text(text)
+    # experiments/out/ is not versioned; the full run and the tests/data run are results
+    result = "diagnosis_independent.md" if args.only_independent and ind else \
+        "diagnosis_sweep.md" if recs and ind and not args.effects else None
+    if not args.quick and result:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        (Path(args.out) / result).write_text(text)
     with open(OUT / f"diagnosis_sweep{suffix}.json", "w") as f:
         json.dump({"records": recs, "independent": ind}, f, indent=1,
                   default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))

@@ -34,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import common as C  # noqa: E402
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
 from aqfg.evaluate import dead_reckoning_error  # noqa: E402
@@ -326,7 +327,7 @@ def main() -> None:
         src = str(load_truth(data / names[0]).params.get("source", ""))
         title = src.split(" model of ")[0] + " (Fossen's 6-DOF model)" \
             if " model of " in src else "missions of " + data.name
-    head = (f"# Independent vehicle: {title}\n\n"
+    head = (f"{C.stamp()}\n\n# Independent vehicle: {title}\n\n"
             f"{len(rows)} runs, {time.perf_counter() - t0:.0f} s wall on a shared 2-core machine "
             "(timings are indicative). θe error for otter-dev-yawdrift: against the mission "
             "mean of its drifting offset (batch), the offset at t = 0 (batch with the "

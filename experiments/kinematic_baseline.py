@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common as C  # noqa: E402
 from causal_start import SPLIT, run_missions, split_rmse  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
@@ -59,7 +60,7 @@ def summary(q: np.ndarray) -> str:
 
 def main() -> None:
     rows, out, where, wall = run_missions(one, "kinematic_baseline", __doc__, MISSIONS)
-    lines = [f"# The paper's constants against no model ({where})", "",
+    lines = [C.stamp(), "", f"# The paper's constants against no model ({where})", "",
              f"{len(rows)} runs, {wall:.0f} s wall. RMSE (m) from the "
              "truth. Kinematic: a constant-velocity filter (causal) and Rauch-Tung-Striebel "
              "smoother on the fixes alone, with the factor graph's fix table and USBL gate. "
@@ -83,7 +84,6 @@ def main() -> None:
             ("batch smoothed / smoothed", [r["fg_batch"] / r["kin_smoothed_ba"]
                                            for r in rows])):
         lines.append(f"| {label} | {summary(np.array(q))} |")
-    out = out or Path(__file__).resolve().parent / "results" / "kinematic_baseline.md"
     out.write_text("\n".join(lines) + "\n")
     print(out.read_text())
 

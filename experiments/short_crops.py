@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+import common as C  # noqa: E402
 import independent_vehicle as iv  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
@@ -57,9 +58,13 @@ def one(args) -> str:
 def main() -> None:
     jobs = [(n, a, span, g) for n in iv.MISSIONS for a in (60.0, 200.0, 400.0, 600.0)
             for span in (150.0, 300.0) for g in (1.0, 8.0)]
+    lines = [C.stamp(), ""]
     with ProcessPoolExecutor(2) as ex:
         for line in ex.map(one, jobs):
             print(line, flush=True)
+            lines.append(line)
+    C.RESULTS.mkdir(exist_ok=True)
+    (C.RESULTS / "short_crops.txt").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
 sys.path.insert(0, str(Path(__file__).parent))
+import common as C  # noqa: E402
 from independent_vehicle import DATA, EVERY, MISSIONS, RESULTS  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
@@ -163,7 +164,7 @@ def bound(name: str, every: float) -> dict:
 
 def main() -> None:
     rows = [bound(n, e) for n in MISSIONS for e in EVERY]
-    lines = ["# θe after the 10th fix: the Cramér-Rao bound", "",
+    lines = [C.stamp(), "", "# θe after the 10th fix: the Cramér-Rao bound", "",
              "Smallest σ(θe) (°) any unbiased estimator can have from the first 10 fixes, "
              "given the vehicle's velocity through the water exactly (from the truth); "
              "unknowns: start position, current, θe (`experiments/tenth_fix_bound.py`). "
