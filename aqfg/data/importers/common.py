@@ -237,20 +237,21 @@ def check_layout(source: str, imap: ImportMap) -> None:
 
 def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Series],
              fmt: str, clock: str, utc_offset: float | None = None,
-             notes: list[str] | None = None) -> ImportResult:
+             notes: list[str] | None = None, fixes_required: bool = True) -> ImportResult:
     """Check the series' stamps and values and build the mission.
 
     ``series`` must hold ``imu`` and ``motors``; ``clock`` names the log's clock for the
     ``[source]`` table of mission.toml; ``utc_offset`` is the UTC time (unix seconds) at
     log-clock 0 when the log tells it (0 for a unix clock), from which ``[source] utc_zero``,
-    the UTC time of mission t = 0, is written.
+    the UTC time of mission t = 0, is written. ``fixes_required``: a mission without a
+    gnss or usbl stream is an error (else the caller has noted why it has none).
     """
     src = str(source)
     notes = list(notes or [])
     for k in ("imu", "motors"):
         if k not in series:
             raise LogFormatError(src, f"no {k} stream")
-    if "gnss" not in series and "usbl" not in series:
+    if fixes_required and "gnss" not in series and "usbl" not in series:
         raise LogFormatError(src, "no position fixes: neither a gnss nor a usbl stream; "
                                   "map [topics] gnss (or usbl) to the topic holding them")
     check_layout(src, imap)
