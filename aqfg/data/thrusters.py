@@ -57,8 +57,9 @@ class ThrusterFinding:
         if self.thruster is None:
             return ("the summed thrust demand (u|u| along each thruster's axis) correlates "
                     "negatively with the surge motion from the fixes and the heading "
-                    f"({stat}): "
-                    "are all thrusters reversed, or is the heading off by about 180 deg?")
+                    f"({stat}): is a thruster reversed (all of them, if none is named), "
+                    "or the heading off by about 180 deg? See [motors] reversed in the "
+                    "import map")
         i = self.thruster + 1
         ax = ", ".join(f"{x:g}" for x in self.axis)
         return (f"thruster {i} (u{i}, axis [{ax}]) pushes against the motion it should cause: "
