@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from aqfg.data.importers.frames import quat_mul
 from aqfg.data.io import MissionWarning, load_mission, save_mission
 from aqfg.data.thrusters import effective_n, negative_correlation, thruster_findings
 from aqfg.sim import simulate
@@ -17,6 +18,11 @@ from aqfg.sim import simulate
 def sim():
     m, _ = simulate("asv", seed=3, duration=600.0, gnss_sigma=0.3)
     return m
+
+
+def yaw(q):
+    w, x, y, z = q.T
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 def flipped(m, j):
@@ -68,3 +74,16 @@ def test_effective_n_of_autocorrelated_series():
     w = rng.normal(size=500)
     assert negative_correlation(w, rng.normal(size=500))[2] > 1e-3
     assert negative_correlation(w, -w + 0.5 * rng.normal(size=500))[2] < 1e-20
+
+
+def test_heading_offset_is_not_a_reversal_but_all_reversed_is(sim):
+    """An IMU heading off by 180 deg (theta_e, unreferenced yaw) leaves the check silent;
+    every thruster negated is found, the summed demand included."""
+    turned = copy.copy(sim)
+    q = quat_mul(sim.imu.q, [0.0, 0.0, 0.0, 1.0])     # a half turn about body z
+    dyaw = np.angle(np.exp(1j * (yaw(q) - yaw(sim.imu.q))))
+    assert np.allclose(np.abs(dyaw), np.pi)
+    turned.imu = type(sim.imu)(sim.imu.t, q, sim.imu.acc, sim.imu.gyro)
+    assert thruster_findings(turned) == []
+    both = flipped(flipped(sim, 0), 1)
+    assert None in [f.thruster for f in thruster_findings(both)]

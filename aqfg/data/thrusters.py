@@ -6,7 +6,10 @@ parameters. The check needs no fit. The GNSS fixes are thinned to one per correl
 of the thrust demands (:func:`correlation_time`); over each interval between them the mean
 velocity, rotated into the body frame with the logged heading, and the mean thrust demand
 ``d_i = u_i|u_i|`` of each thruster are formed, and between consecutive intervals the
-acceleration. For each thruster ``i`` with a horizontal axis ``a_i`` two partial
+acceleration. The logged heading may be off by an unknown angle (an IMU's yaw is not
+referenced to north: theta_e), so the body frame is then turned to put the mission's mean
+velocity forward: the vehicle is taken to travel forward on the whole. For each thruster
+``i`` with a horizontal axis ``a_i`` two partial
 correlations are taken, the other thrusters' demands held (linear least squares):
 
 - ``d_i`` with the speed along ``a_i`` (the speed follows the thrust);
@@ -56,9 +59,9 @@ class ThrusterFinding:
                 f"{self.n} intervals between fixes, {self.n_eff:.0f} effective; p = {self.p:.1g}")
         if self.thruster is None:
             return ("the summed thrust demand (u|u| along each thruster's axis) correlates "
-                    "negatively with the surge motion from the fixes and the heading "
-                    f"({stat}): is a thruster reversed (all of them, if none is named), "
-                    "or the heading off by about 180 deg? See [motors] reversed in the "
+                    "negatively with the forward motion from the fixes and the heading "
+                    f"({stat}): are the thrusters reversed (all of them, or one whose own "
+                    "tests lack the contrast to show it)? See [motors] reversed in the "
                     "import map")
         i = self.thruster + 1
         ax = ", ".join(f"{x:g}" for x in self.axis)
@@ -168,6 +171,13 @@ def _to_body(v: np.ndarray, psi: np.ndarray) -> np.ndarray:
     return np.column_stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]])
 
 
+def _turn(v: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Body vectors (n, 2) in the frame whose x axis is the direction ``forward``."""
+    n = float(np.hypot(*forward))
+    c, s = (forward / n) if n > 0 else (1.0, 0.0)
+    return np.column_stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]])
+
+
 def _residual(y: np.ndarray, others: np.ndarray) -> np.ndarray:
     """``y`` less its least-squares fit on ``others`` (columns) and a constant."""
     A = np.column_stack([np.ones(len(y)), others])
@@ -182,6 +192,10 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
     a, b, v, acc = body_motion(m, correlation_time(m))
     if len(a) < 5:
         return []
+    # the logged heading's offset is unknown (theta_e): turn the frame so the mean motion,
+    # weighted by the time of each interval, points forward
+    mean = (v * (b - a)[:, None]).sum(axis=0)
+    v, acc = _turn(v, mean), _turn(acc, mean)
     dem = _mean_demand(m, a, b)
     mid = 0.5 * (a + b)
     dem_acc = _mean_demand(m, mid[:-1], mid[1:])          # between the velocities' middles
