@@ -179,3 +179,18 @@ def test_several_files_one_mission_each(sim, tmp_path, capsys):
                  "--out", str(out)]) == 2
     assert main(["import", "mavlink", str(a), str(b), "--out", str(out)]) == 2
     assert "reads one log" in capsys.readouterr().err
+
+
+def test_import_warns_about_a_thruster_mapped_with_the_wrong_sign(tmp_path, capsys):
+    m, _ = simulate("asv", seed=3, duration=600.0, gnss_sigma=0.3)
+    rows, _ = rows_of(m)
+    f = write(tmp_path / "run.csv", rows)
+    for name, text, warned in (("right", PWM_MAP, False),
+                               ("wrong", PWM_MAP.replace("[true, false]", "[false, false]"), True)):
+        (tmp_path / f"{name}.toml").write_text(text)
+        with warnings.catch_warnings():
+            assert main(["import", "csv", str(f), "--map", str(tmp_path / f"{name}.toml"),
+                         "--out", str(tmp_path / name)]) == 0
+        err = capsys.readouterr().err
+        assert ("motors.csv, column 'u1': thruster 1" in err) is warned, err
+        assert "thruster 2" not in err and "Traceback" not in err
