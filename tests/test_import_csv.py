@@ -121,6 +121,12 @@ def test_empty_cells_are_left_out_and_counted(sim, tmp_path):
     assert len(r.mission.imu.t) == len(rows) - 3
     assert len(r.mission.motors.t) == len(rows)
     assert r.series["gnss"].dropped["empty cell"] == 2
+    for row in rows:
+        row[4] = ""                            # no heading at all: an error naming it
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MissionWarning)
+        with pytest.raises(MissionFormatError, match="column 'yaw': no row has every cell"):
+            import_log("csv", write(tmp_path / "noyaw.csv", rows), imap(FORCE_MAP))
 
 
 def test_bad_cell_and_missing_column_name_file_row_and_column(sim, tmp_path, capsys):

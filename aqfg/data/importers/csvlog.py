@@ -65,6 +65,10 @@ def read_csv_log(source: str | Path, imap: ImportMap) -> ImportResult:
         ok = np.isfinite(d)
         series["depth"] = Series("depth", spec.columns["depth"], "CSV column", t_ns[ok],
                                  {"depth": d[ok]}, {"empty cell": int((~ok).sum())})
+    for s in series.values():
+        if not len(s.t_ns):
+            raise MissionFormatError(src, f"no row has every cell of the {s.stream} columns "
+                                          f"filled ({s.topic})", column=s.topic.split(", ")[0])
     lost = {c: n for c, n in empty.items() if n}
     if lost:
         warnings.warn(MissionWarning(src, f"{sum(lost.values())} empty cells ("
@@ -87,7 +91,8 @@ def _read_columns(source: Path, spec: CsvSpec, imap: ImportMap) -> dict[str, np.
     """The needed columns as floats (NaN where empty); errors name row and column."""
     src = str(source)
     if not source.is_file():
-        raise LogFormatError(src, "no such file; expected a CSV export with a header row")
+        what = "not a regular file" if source.exists() else "no such file"
+        raise LogFormatError(src, f"{what}; expected a CSV export with a header row")
     try:
         with open(source, newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
