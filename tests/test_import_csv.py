@@ -27,7 +27,8 @@ ZERO = (1511.0, 1490.0)                  # us, each thruster's dead-band centre
 LO, HI = 1100.0, 1900.0
 FULL = 50.0                              # N at u = 1
 HEADER = ["", "original_timestamp", "lat", "lon", "yaw", "thr_left", "thr_right",
-          "left_force", "right_force", "thr_left_pwm_zero_point", "thr_right_pwm_zero_point"]
+          "left_force", "right_force", "thr_left_pwm_zero_point", "thr_right_pwm_zero_point",
+          "x_ned", "y_ned"]
 THRUSTERS = ("[thrusters]\ndirection = [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]\n"
              "position = [[-0.25, -0.12, 0.0], [-0.25, 0.12, 0.0]]\n"
              f"\n[origin]\nlat = {ORIGIN[0]}\nlon = {ORIGIN[1]}\n")
@@ -68,7 +69,7 @@ def rows_of(m):
     rows = []
     cols = np.column_stack([BOOT_MS + t * 1000.0, ll, yaw, pwm(u[:, 0], ZERO[0], True),
                             pwm(u[:, 1], ZERO[1], False), u * np.abs(u) * FULL,
-                            np.tile(ZERO, (len(t), 1))])
+                            np.tile(ZERO, (len(t), 1)), m.gnss.ne[k]])
     rows = [[str(i)] + [repr(float(x)) for x in c] for i, c in enumerate(cols)]
     return rows, np.unique(k)
 
@@ -85,7 +86,10 @@ def imap(text):
     return parse_map(tomllib.loads(text), "map.toml")
 
 
-@pytest.mark.parametrize("text", [PWM_MAP, FORCE_MAP], ids=["pwm", "force"])
+NED_MAP = FORCE_MAP.replace('lat = "lat"\nlon = "lon"', 'north = "x_ned"\neast = "y_ned"')
+
+
+@pytest.mark.parametrize("text", [PWM_MAP, FORCE_MAP, NED_MAP], ids=["pwm", "force", "ned"])
 def test_streams_match_the_mission(sim, tmp_path, text):
     m = sim
     rows, fixes = rows_of(m)
@@ -103,7 +107,7 @@ def test_streams_match_the_mission(sim, tmp_path, text):
     # one fix per GPS update, at the first row showing it
     assert len(mi.gnss.t) == len(fixes)
     np.testing.assert_allclose(mi.gnss.t, m.gnss.t[fixes], atol=1e-6)
-    assert mi.origin == ORIGIN
+    assert mi.origin == ORIGIN and mi.gnss_latlon is (text is not NED_MAP)
     assert np.abs(mi.gnss.ne - m.gnss.ne[fixes]).max() < 1e-6
     assert r.series["gnss"].dropped["repeated position (no new fix)"] == len(t) - len(fixes)
 
@@ -141,7 +145,7 @@ def test_bad_cell_and_missing_column_name_file_row_and_column(sim, tmp_path, cap
     with pytest.raises(MissionFormatError, match=r"row 5, column 'thr_right': pulse width 2100"):
         import_log("csv", write(tmp_path / "hi.csv", rows), imap(PWM_MAP))
     rows, _ = rows_of(sim)
-    g = write(tmp_path / "nozero.csv", [r[:-2] for r in rows], HEADER[:-2])
+    g = write(tmp_path / "nozero.csv", [r[:-4] for r in rows], HEADER[:-4])
     (tmp_path / "map.toml").write_text(PWM_MAP)
     assert main(["import", "csv", str(g), "--map", str(tmp_path / "map.toml"),
                  "--out", str(tmp_path / "M")]) == 3
