@@ -77,18 +77,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--usbl", action="store_true", help="record USBL range/bearing every 4.5 s")
     s.add_argument("--force", action="store_true", help="overwrite OUT_DIR if it holds a mission")
 
-    s = sub.add_parser("import", help="convert a vehicle log (ROS bag, MAVLink, ULog, NMEA) "
-                                      "into a mission",
+    s = sub.add_parser("import", help="convert a vehicle log (ROS bag, MAVLink, ULog, NMEA, "
+                                      "CSV) into a mission",
                        description="Read a ROS 2/1 bag, MAVLink tlog or DataFlash .bin, PX4 "
-                                   "ULog, or NMEA log into aqfg-mission/1 (NMEA: adds GNSS "
-                                   "fixes to an existing mission). See docs/mission-format.md.")
+                                   "ULog, NMEA log or CSV export into aqfg-mission/1 (NMEA: "
+                                   "adds GNSS fixes to an existing mission). See "
+                                   "docs/mission-format.md.")
     s.set_defaults(module="import_")
-    s.add_argument("format", metavar="FORMAT", choices=["ros2", "ros1", "mavlink", "ulog", "nmea"],
-                   help="ros2, ros1, mavlink, ulog or nmea")
-    s.add_argument("source", metavar="SOURCE", help="the log file (or ROS 2 bag directory)")
-    s.add_argument("--out", required=True, metavar="MISSION", help="mission directory to write")
+    s.add_argument("format", metavar="FORMAT",
+                   choices=["ros2", "ros1", "mavlink", "ulog", "nmea", "csv"],
+                   help="ros2, ros1, mavlink, ulog, nmea or csv")
+    s.add_argument("source", metavar="SOURCE", nargs="+",
+                   help="the log file (or ROS 2 bag directory); csv: one or more files, one "
+                        "mission each")
+    s.add_argument("--out", required=True, metavar="MISSION",
+                   help="mission directory to write (csv with several files: the directory "
+                        "that receives one mission per file, named after the file)")
     s.add_argument("--map", metavar="MAP.toml",
-                   help="vehicle, thrusters, origin and topics the log does not say")
+                   help="vehicle, thrusters, origin and topics (csv: columns) the log does not say")
     s.add_argument("--force", action="store_true", help="overwrite an existing mission "
                                                         "(nmea: replace its GNSS fixes)")
 

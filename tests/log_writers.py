@@ -206,6 +206,7 @@ DF_MSGS = {
     "GPA": (152, "QBCCCCfBIHfHH",
             "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta,Und,RTCMFU,RTCMFD"),
     "RCOU": (153, "QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14"),
+    "PARM": (154, "QNf", "TimeUS,Name,Value"),
 }
 # format character -> (struct code, scale the log stores the value with)
 DF_CHARS = {"B": ("B", 1), "b": ("b", 1), "H": ("H", 1), "h": ("h", 1), "I": ("I", 1),

@@ -4,7 +4,8 @@ extra (``pip install "aqfg[ros]"``, ``[mavlink]``, ``[ulog]``, ``[nmea]``).
 :func:`import_log` reads a log with a map file (:mod:`.mapfile`) and returns an
 :class:`~aqfg.data.importers.common.ImportResult` whose ``mission`` the caller saves with
 :func:`aqfg.data.io.save_mission`. NMEA logs carry positions only: :func:`import_log` with
-``"nmea"`` adds their fixes to an existing mission (``base``). The formats, defaults and frame
+``"nmea"`` adds their fixes to an existing mission (``base``). CSV exports (``"csv"``) are
+read by the map's ``[csv]`` table, without an optional package. The formats, defaults and frame
 conversions are documented in docs/mission-format.md, "Importing logs".
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ from aqfg.data.importers.common import (
 from aqfg.data.importers.mapfile import ImportMap, load_map, parse_map
 from aqfg.data.mission import Mission
 
-FORMATS = ("ros2", "ros1", "mavlink", "ulog", "nmea")
+FORMATS = ("ros2", "ros1", "mavlink", "ulog", "nmea", "csv")
 
 __all__ = ["FORMATS", "ImportMap", "ImportResult", "LogFormatError", "MissingExtraError",
            "Series", "import_log", "load_map", "parse_map"]
@@ -48,6 +49,9 @@ def import_log(fmt: str, source: str | os.PathLike, imap: ImportMap | None = Non
     if fmt == "mavlink":
         from aqfg.data.importers.mavlink import read_mavlink
         return read_mavlink(path, imap)
+    if fmt == "csv":
+        from aqfg.data.importers.csvlog import read_csv_log
+        return read_csv_log(path, imap)
     if fmt == "ulog":
         from aqfg.data.importers.ulog import read_ulog
         return read_ulog(path, imap)

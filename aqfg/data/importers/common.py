@@ -140,6 +140,9 @@ def motor_commands(values: np.ndarray, imap: ImportMap, source: str, topic: str,
                                      f"the message has {values.shape[1]}", **at(source, topic, None))
     u = values[:, [c - 1 for c in chans]]
     if pwm:
+        if imap.pwm_trim_columns is not None:
+            raise LogFormatError(source, "[motors] pwm_trim names CSV columns; a log's PWM "
+                                         "needs the trims in microseconds", topic=topic)
         if imap.pwm is None:
             raise LogFormatError(source, f"{topic} holds PWM pulse widths; give their range "
                                          "in the map file: [motors] pwm_min, pwm_trim, pwm_max "
@@ -155,7 +158,7 @@ def motor_commands(values: np.ndarray, imap: ImportMap, source: str, topic: str,
                                          f"us, outside [pwm_min, pwm_max] = [{lo[j]:g}, "
                                          f"{hi[j]:g}] of the map file (0 means the output was "
                                          "off)", **at(source, topic, t_ns[i]))
-        u = np.where(u >= mid, (u - mid) / (hi - mid), (u - mid) / (mid - lo))
+        u = pwm_to_command(u, lo, mid, hi)
     else:
         bad = ~np.isfinite(u) | (np.abs(u) > 1.0)
         if bad.any():
@@ -166,6 +169,12 @@ def motor_commands(values: np.ndarray, imap: ImportMap, source: str, topic: str,
     if imap.reversed is not None:
         u = u * np.where(np.asarray(imap.reversed), -1.0, 1.0)
     return u + 0.0                       # no negative zeros in motors.csv
+
+
+def pwm_to_command(pwm: np.ndarray, lo, mid, hi) -> np.ndarray:
+    """Pulse widths (us) -> commands in [-1, 1], piecewise linear: ``lo`` -> -1, ``mid`` ->
+    0, ``hi`` -> +1 (each broadcast against ``pwm``; ``mid`` may vary row by row)."""
+    return np.where(pwm >= mid, (pwm - mid) / (hi - mid), (pwm - mid) / (mid - lo))
 
 
 def _fit(v: np.ndarray, n: int) -> np.ndarray:
@@ -228,20 +237,21 @@ def check_layout(source: str, imap: ImportMap) -> None:
 
 def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Series],
              fmt: str, clock: str, utc_offset: float | None = None,
-             notes: list[str] | None = None) -> ImportResult:
+             notes: list[str] | None = None, fixes_required: bool = True) -> ImportResult:
     """Check the series' stamps and values and build the mission.
 
     ``series`` must hold ``imu`` and ``motors``; ``clock`` names the log's clock for the
     ``[source]`` table of mission.toml; ``utc_offset`` is the UTC time (unix seconds) at
     log-clock 0 when the log tells it (0 for a unix clock), from which ``[source] utc_zero``,
-    the UTC time of mission t = 0, is written.
+    the UTC time of mission t = 0, is written. ``fixes_required``: a mission without a
+    gnss or usbl stream is an error (else the caller has noted why it has none).
     """
     src = str(source)
     notes = list(notes or [])
     for k in ("imu", "motors"):
         if k not in series:
             raise LogFormatError(src, f"no {k} stream")
-    if "gnss" not in series and "usbl" not in series:
+    if fixes_required and "gnss" not in series and "usbl" not in series:
         raise LogFormatError(src, "no position fixes: neither a gnss nor a usbl stream; "
                                   "map [topics] gnss (or usbl) to the topic holding them")
     check_layout(src, imap)
@@ -268,8 +278,10 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
     motors = Motors(secs(sm), np.asarray(sm.data["u"], dtype=float))
     gnss = None
     origin = imap.origin
-    if "gnss" in series:
-        sg = series["gnss"]
+    sg = series.get("gnss")
+    if sg is not None and "ne" in sg.data:                   # a local NED frame already
+        gnss = Gnss(secs(sg), np.asarray(sg.data["ne"], dtype=float), _sigma(sg, notes))
+    elif sg is not None:
         ll = np.column_stack([sg.data["lat"], sg.data["lon"]]).astype(float)
         badll = np.flatnonzero(~np.isfinite(ll).all(axis=1) | (np.abs(ll[:, 0]) >= 90.0)
                                | (np.abs(ll[:, 1]) > 180.0))
@@ -281,15 +293,8 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
         if origin is None:
             origin = (float(ll[0, 0]), float(ll[0, 1]))
             notes.append("no [origin] in the map: the first fix is the origin of the NED frame")
-        sig = sg.data.get("sigma")
-        if sig is not None:
-            sig = np.asarray(sig, dtype=float)
-            if not np.isfinite(sig).all() or (sig <= 0).any():
-                n_bad = int(np.sum(~np.isfinite(sig) | (sig <= 0)))
-                notes.append(f"gnss: {n_bad} of {len(sig)} fixes carry no accuracy; no sigma "
-                             "column written (the estimators' default applies)")
-                sig = None
-        gnss = Gnss(secs(sg), latlon_to_ne(ll[:, 0], ll[:, 1], origin), sig, latlon=ll)
+        gnss = Gnss(secs(sg), latlon_to_ne(ll[:, 0], ll[:, 1], origin), _sigma(sg, notes),
+                    latlon=ll)
     usbl = None
     if "usbl" in series:
         su = series["usbl"]
@@ -312,13 +317,27 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
                       thruster_dir=imap.thruster_dir, imu=imu, motors=motors,
                       thruster_pos=imap.thruster_pos, gnss=gnss, usbl=usbl,
                       usbl_station=imap.usbl_station, depth=depth, origin=origin,
-                      gnss_latlon=gnss is not None, extra=extra)
+                      gnss_latlon=gnss is not None and gnss.latlon is not None, extra=extra)
     if motors.u.shape[1] != mission.n_thrusters:
         raise LogFormatError(src, f"{motors.u.shape[1]} motor commands per message but "
                                   f"[thrusters] lists {mission.n_thrusters} propellers",
                              topic=sm.topic)
     check_mission(mission)
     return ImportResult(mission, series, t0, notes)
+
+
+def _sigma(sg: Series, notes: list[str]) -> np.ndarray | None:
+    """The fixes' sigma, or None (with a note) when any fix lacks a positive one."""
+    sig = sg.data.get("sigma")
+    if sig is None:
+        return None
+    sig = np.asarray(sig, dtype=float)
+    if not np.isfinite(sig).all() or (sig <= 0).any():
+        n_bad = int(np.sum(~np.isfinite(sig) | (sig <= 0)))
+        notes.append(f"gnss: {n_bad} of {len(sig)} fixes carry no accuracy; no sigma "
+                     "column written (the estimators' default applies)")
+        return None
+    return sig
 
 
 # ------------------------------------------------------------------- field access

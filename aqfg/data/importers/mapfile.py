@@ -4,9 +4,9 @@ streams are.
 Top-level ``vehicle`` (and optional ``name``) and the ``[thrusters]``, ``[usbl]`` and
 ``[origin]`` tables have exactly the shape they have in ``mission.toml`` (they are checked
 by the mission reader's own rules); the importer-only tables are ``[topics]`` (stream ->
-topic or message name), ``[motors]`` (output channels, sign and PWM range) and ``[time]``
-(which stamps to use, how far stamps may jump). The shape is documented in
-docs/mission-format.md, "Importing logs".
+topic or message name), ``[motors]`` (output channels, sign and PWM range), ``[time]``
+(which stamps to use, how far stamps may jump) and ``[csv]`` (the columns of a CSV
+export). The shape is documented in docs/mission-format.md, "Importing logs".
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from aqfg.data.mission import FORMAT, VEHICLES
 STREAMS = ("imu", "gnss", "motors", "usbl", "depth")
 MISSION_KEYS = ("vehicle", "name")
 MISSION_TABLES = ("thrusters", "usbl", "origin")
-IMPORT_TABLES = ("topics", "motors", "time")
+IMPORT_TABLES = ("topics", "motors", "time", "csv")
 TOPIC_KEYS = {                       # keys a [topics] entry may hold when it is a table
     "imu": ("topic", "instance"),
     "gnss": ("topic", "instance"),
@@ -44,6 +44,10 @@ TOPIC_KEYS = {                       # keys a [topics] entry may hold when it is
 STAMPS = ("header", "log")
 DEFAULT_MAX_GAP = 60.0       # s: a longer forward step within one stream is a clock jump
 DEFAULT_MAX_SKEW = 5.0       # s: |header stamp - record time| beyond this: two clocks
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}      # [csv] time_unit -> seconds
+THRUST_UNITS = ("pwm", "N")
+CSV_COLUMNS = ("time", "lat", "lon", "north", "east", "sigma", "roll", "pitch", "yaw", "depth")
+CSV_KEYS = CSV_COLUMNS + ("time_unit", "angle_unit", "thrust", "thrust_unit", "full_scale")
 
 
 @dataclass
@@ -66,6 +70,22 @@ class PwmRange:
 
 
 @dataclass
+class CsvSpec:
+    """The ``[csv]`` table: which column holds what in a CSV export (one row per time).
+
+    ``columns``: role (``time``, ``lat``/``lon`` or ``north``/``east``, ``sigma``, ``roll``,
+    ``pitch``, ``yaw``, ``depth``) -> column name; ``thrust``: one column per thruster;
+    ``thrust_unit``: ``"pwm"`` (pulse widths, mapped with ``[motors]``) or ``"N"`` (force,
+    ``u|u| = F / full_scale``)."""
+    columns: dict[str, str]
+    thrust: list[str]
+    time_unit: str = "s"
+    angle_unit: str = "rad"
+    thrust_unit: str = "pwm"
+    full_scale: float | None = None             # N, force of a full command (u = 1)
+
+
+@dataclass
 class ImportMap:
     """A parsed map file (see the module docstring); every field may be absent."""
     path: str | None = None
@@ -79,6 +99,8 @@ class ImportMap:
     channels: list[int] | None = None           # 1-based output per thruster
     reversed: list[bool] | None = None          # negate the command of each thruster
     pwm: PwmRange | None = None
+    pwm_trim_columns: list[str | None] | None = None   # CSV: a column per thruster's trim
+    csv: CsvSpec | None = None
     stamp: str = "header"                       # ROS: "header" or "log"
     max_gap: float = DEFAULT_MAX_GAP
     max_skew: float = DEFAULT_MAX_SKEW
@@ -124,7 +146,7 @@ def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
         if k not in MISSION_KEYS + MISSION_TABLES + IMPORT_TABLES:
             raise MissionFormatError(
                 f, "unknown key; a map file holds vehicle, name, [thrusters], [usbl], "
-                   "[origin], [topics], [motors] and [time]", column=k)
+                   "[origin], [topics], [motors], [time] and [csv]", column=k)
     m = ImportMap(path=f)
     m.vehicle = raw.get("vehicle")
     if m.vehicle is not None and m.vehicle not in VEHICLES:
@@ -135,6 +157,7 @@ def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
         raise MissionFormatError(f, f"got {m.name!r}; expected a string", column="name")
     _mission_tables(m, raw, f)
     _topics(m, raw.get("topics"), f)
+    _csv(m, raw.get("csv"), f)
     _motors(m, raw.get("motors"), f)
     _time(m, raw.get("time"), f)
     return m
@@ -276,15 +299,90 @@ def _motors(m: ImportMap, t: Any, f: str) -> None:
         raise MissionFormatError(f, "pwm_min, pwm_trim and pwm_max come together",
                                  column=f"[motors] {miss}")
     if pw:
-        lo, mid, hi = (_per_thruster(f, k, t[k], n) for k in ("pwm_min", "pwm_trim", "pwm_max"))
+        mid = _trim_columns(m, f, t["pwm_trim"], n)
+        lo, hi = (_per_thruster(f, k, t[k], n) for k in ("pwm_min", "pwm_max"))
         if not (len(lo) == len(mid) == len(hi)):
             raise MissionFormatError(f, "pwm_min, pwm_trim, pwm_max have different lengths",
                                      column="[motors] pwm_min")
-        if not (np.all(lo < mid) and np.all(mid < hi)):
+        known = np.isfinite(mid)          # a trim read from a column is checked row by row
+        if not (np.all(lo[known] < mid[known]) and np.all(mid[known] < hi[known])
+                and np.all(lo < hi)):
             raise MissionFormatError(f, f"got min {lo.tolist()}, trim {mid.tolist()}, max "
                                         f"{hi.tolist()}; expected pwm_min < pwm_trim < pwm_max",
                                      column="[motors] pwm_trim")
         m.pwm = PwmRange(lo, mid, hi)
+
+
+def _trim_columns(m: ImportMap, f: str, v: Any, n: int | None) -> np.ndarray:
+    """``pwm_trim``: numbers (microseconds), or, in a CSV map, column names holding each
+    thruster's zero point row by row (NaN in the returned array where a column is named)."""
+    vals = v if isinstance(v, list) else [v]
+    if not any(isinstance(x, str) for x in vals):
+        return _per_thruster(f, "pwm_trim", v, n)
+    col = "[motors] pwm_trim"
+    if m.csv is None:
+        raise MissionFormatError(f, "a column name is a trim only for CSV exports ([csv] "
+                                    "table); expected microseconds", column=col)
+    if not isinstance(v, list) or (n is not None and len(v) != n) or not all(
+            (isinstance(x, str) and x) or _is_num(x) for x in v):
+        raise MissionFormatError(f, f"got {v!r}; expected one column name or number "
+                                    f"(microseconds) per thruster ({n})", column=col)
+    m.pwm_trim_columns = [x if isinstance(x, str) else None for x in v]
+    return np.array([np.nan if isinstance(x, str) else float(x) for x in v])
+
+
+def _csv(m: ImportMap, t: Any, f: str) -> None:
+    """[csv]: column names by role, units, thrust columns (see :class:`CsvSpec`)."""
+    if t is None:
+        return
+    if not isinstance(t, dict):
+        raise MissionFormatError(f, f"got {t!r}; expected a [csv] table", column="csv")
+    for k, v in t.items():
+        if k not in CSV_KEYS:
+            raise MissionFormatError(f, f"unknown key; expected {', '.join(CSV_KEYS)}",
+                                     column=f"[csv] {k}")
+        if k in CSV_COLUMNS and (not isinstance(v, str) or not v):
+            raise MissionFormatError(f, f"got {v!r}; expected a column name", column=f"[csv] {k}")
+    need = ["time", "yaw", "thrust"]
+    pos = [k for k in ("lat", "lon", "north", "east") if k in t]
+    if sorted(pos) not in (["lat", "lon"], ["east", "north"]):
+        raise MissionFormatError(f, f"position columns {pos}; expected lat and lon (deg) or "
+                                    "north and east (m, NED)", column="[csv] lat")
+    for k in need:
+        if k not in t:
+            raise MissionFormatError(f, f"missing {k!r}: the column holding the "
+                                        f"{'time' if k == 'time' else k}"
+                                        + (" (a list, one per thruster)" if k == "thrust" else ""),
+                                     column=f"[csv] {k}")
+    thr = t["thrust"]
+    n = m.n_thrusters
+    if not (isinstance(thr, list) and thr and all(isinstance(x, str) and x for x in thr)) or (
+            n is not None and len(thr) != n):
+        raise MissionFormatError(f, f"got {thr!r}; expected one column name per thruster"
+                                    + (f" ({n}, as in [thrusters] direction)" if n else ""),
+                                 column="[csv] thrust")
+    spec = CsvSpec({k: t[k] for k in CSV_COLUMNS if k in t}, list(thr))
+    for k, allowed in (("time_unit", tuple(TIME_UNITS)), ("angle_unit", ("rad", "deg")),
+                       ("thrust_unit", THRUST_UNITS)):
+        if k in t:
+            if t[k] not in allowed:
+                raise MissionFormatError(f, f"got {t[k]!r}; expected one of "
+                                            f"{', '.join(map(repr, allowed))}", column=f"[csv] {k}")
+            setattr(spec, k, t[k])
+    if "full_scale" in t and (not _is_num(t["full_scale"]) or t["full_scale"] <= 0):
+        raise MissionFormatError(f, f"got {t['full_scale']!r}; expected the force (N) of a "
+                                    "full command, > 0", column="[csv] full_scale")
+    if spec.thrust_unit == "N":
+        if "full_scale" not in t:
+            raise MissionFormatError(f, "thrust in N needs full_scale: the force (N) of a full "
+                                        "forward command (u = 1); u|u| = F / full_scale",
+                                     column="[csv] full_scale")
+        spec.full_scale = float(t["full_scale"])
+    elif "full_scale" in t:
+        raise MissionFormatError(f, "full_scale is for thrust_unit = \"N\"; PWM thrust is "
+                                    "mapped with [motors] pwm_min, pwm_trim, pwm_max",
+                                 column="[csv] full_scale")
+    m.csv = spec
 
 
 def _time(m: ImportMap, t: Any, f: str) -> None:

@@ -4,7 +4,14 @@ read with ``pymavlink`` (the optional extra ``aqfg[mavlink]``).
 Both are NED/FRD already. Default messages: tlog ``ATTITUDE`` (or
 ``ATTITUDE_QUATERNION``), ``GPS_RAW_INT`` (or ``GPS2_RAW``), ``SERVO_OUTPUT_RAW``;
 DataFlash ``ATT``, ``GPS`` (accuracy from ``GPA.HAcc``), ``RCOU``. Servo outputs are PWM
-pulse widths, normalised with the map's ``[motors] pwm_min/pwm_trim/pwm_max``.
+pulse widths, normalised with the map's ``[motors] pwm_min/pwm_trim/pwm_max``, else with
+the log's own parameters ``SERVOn_MIN/TRIM/MAX`` of each thruster's output ``n``
+(``PARAM_VALUE`` in a tlog, ``PARM`` in DataFlash), whose ``SERVOn_REVERSED`` then sets
+``[motors] reversed`` unless the map gives it. Depth (``vehicle = "auv"``, tlog) is read
+from the first of ``GLOBAL_POSITION_INT.relative_alt`` (the autopilot's depth estimate),
+``VFR_HUD.alt``, ``SCALED_PRESSURE2`` then ``SCALED_PRESSURE`` (``press_abs`` less its first
+reading, fresh water) that the log holds, unless ``[topics] depth`` names one. A log
+without a GNSS fix is imported with a warning, as a mission without fixes.
 
 Clocks: a tlog's messages carry the time the ground station logged them (unix time, one
 clock for every message; telemetry latency is not removed); DataFlash messages carry
@@ -13,7 +20,9 @@ milliseconds when a GPS message has them.
 """
 from __future__ import annotations
 
+import copy
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +38,8 @@ from aqfg.data.importers.common import (
     scalar_streams,
 )
 from aqfg.data.importers.frames import euler_to_quat
-from aqfg.data.importers.mapfile import ImportMap, TopicSpec
+from aqfg.data.importers.mapfile import ImportMap, PwmRange, TopicSpec
+from aqfg.data.io import MissionWarning
 
 TLOG_DEFAULTS = {"imu": "ATTITUDE", "gnss": "GPS_RAW_INT", "motors": "SERVO_OUTPUT_RAW"}
 DF_DEFAULTS = {"imu": "ATT", "gnss": "GPS", "motors": "RCOU"}
@@ -41,6 +51,12 @@ GPS_EPOCH_UNIX = 315964800            # 1980-01-06T00:00:00Z in unix seconds
 LEAP_SECONDS = ((1136073600, 14), (1230768000, 15), (1341100800, 16), (1435708800, 17),
                 (1483228800, 18))
 DF_MAGIC = b"\xa3\x95"
+G = 9.80665                             # m/s^2
+RHO_WATER = 1000.0                      # kg/m^3: depth from pressure, fresh water
+# default depth sources of a tlog, by priority: message, field, scale to metres down
+TLOG_DEPTH = (("GLOBAL_POSITION_INT", "relative_alt", -1e-3), ("VFR_HUD", "alt", -1.0),
+              ("SCALED_PRESSURE2", "press_abs", 100.0 / (RHO_WATER * G)),
+              ("SCALED_PRESSURE", "press_abs", 100.0 / (RHO_WATER * G)))
 
 
 def read_mavlink(source: str | Path, imap: ImportMap) -> ImportResult:
@@ -68,8 +84,8 @@ def _select(src: str, imap: ImportMap, defaults: dict[str, str], types: dict[str
         if spec is None:
             continue
         if not present.get(spec.topic):
-            if stream == "gnss" and "gnss" not in imap.topics and "usbl" in imap.topics:
-                continue
+            if stream == "gnss" and "gnss" not in imap.topics:
+                continue                 # no GNSS at all: a mission without fixes
             raise LogFormatError(src, f"no {spec.topic} messages in the {what} (it has: "
                                       f"{listing}); map [topics] {stream} to the message "
                                       f"holding the {stream} stream", topic=spec.topic)
@@ -87,6 +103,42 @@ def _generic(src: str, spec: TopicSpec, stream: str, rows: list[Any]) -> dict[st
     except (AttributeError, IndexError, KeyError, TypeError, ValueError) as e:
         raise LogFormatError(src, f"cannot read the {stream} fields of {spec.topic}: {e}",
                              topic=spec.topic) from None
+
+
+def _servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
+    """``imap`` with the PWM range (and, unless mapped, the reversal) of each thruster's
+    output from the log's ``SERVOn_MIN/TRIM/MAX/REVERSED``, when the map gives no range."""
+    n = imap.n_thrusters
+    if imap.pwm is not None or n is None:
+        return imap, []
+    chans = imap.channels or list(range(1, n + 1))
+    try:
+        lo, mid, hi = (np.array([params[f"SERVO{c}_{k}"] for c in chans], dtype=float)
+                       for k in ("MIN", "TRIM", "MAX"))
+    except KeyError:
+        return imap, []
+    if not (np.all(lo < mid) and np.all(mid < hi)):
+        return imap, [f"the log's SERVOn_MIN/TRIM/MAX of outputs {chans} are not increasing; "
+                      "not used"]
+    out = copy.copy(imap)
+    out.pwm = PwmRange(lo, mid, hi)
+    notes = [f"PWM range of outputs {chans} from the log's SERVOn_MIN/TRIM/MAX: "
+             + ", ".join(f"{a:g}/{b:g}/{c:g}" for a, b, c in zip(lo, mid, hi)) + " us"]
+    rev = [bool(params.get(f"SERVO{c}_REVERSED", 0)) for c in chans]
+    if imap.reversed is None and any(rev):
+        out.reversed = rev
+        notes.append(f"reversed thrusters from the log's SERVOn_REVERSED: {rev}")
+    return out, notes
+
+
+def _default_depth(imap: ImportMap, present: dict[str, int]) -> TopicSpec | None:
+    """The depth source of an AUV's tlog when the map names none (module docstring)."""
+    if imap.vehicle != "auv" or "depth" in imap.topics:
+        return None
+    for name, fld, scale in TLOG_DEPTH:
+        if present.get(name):
+            return TopicSpec(name, None, {"field": fld, "scale": scale})
+    return None
 
 
 def _ns(seconds: float) -> int:
@@ -117,9 +169,14 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     if not present:
         raise LogFormatError(src, "no MAVLink messages found; expected a .tlog (8-byte "
                                   "timestamp before each MAVLink message) or a DataFlash .bin")
+    depth = _default_depth(imap, present)
     chosen = _select(src, imap, TLOG_DEFAULTS, TLOG_TYPES, present, "telemetry log")
-    names = {s.topic for s in chosen.values()}
+    if depth is not None:
+        chosen["depth"] = depth
+    names = {s.topic for s in chosen.values()} | {"PARAM_VALUE"}
     rows: dict[str, list[Any]] = {n: [] for n in names}
+    if depth is not None and depth.topic.startswith("SCALED_PRESSURE"):
+        depth.fields["offset"] = None      # the first reading: set once the rows are read
     try:
         while True:
             msg = log.recv_match(type=names)
@@ -129,8 +186,9 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
                 rows[msg.get_type()].append(msg)
     finally:
         log.close()
+    params = {str(m.param_id).rstrip("\x00"): float(m.param_value) for m in rows["PARAM_VALUE"]}
+    imap, notes = _servo_map(imap, params)
     series: dict[str, Series] = {}
-    notes: list[str] = []
     sysid = None
     for stream, spec in chosen.items():
         msgs = rows[spec.topic]
@@ -174,10 +232,30 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
                        {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
                                             what="servo output")})
         else:
+            if spec.fields.get("offset", 0.0) is None:        # pressure: from the first
+                spec.fields["offset"] = -float(getattr(msgs[0], spec.fields["field"])) \
+                    * spec.fields["scale"]
             s.data = _generic(src, spec, stream, msgs)
         series[stream] = s
+    _no_fix(src, series)
     return assemble(src, imap, series, "mavlink", "unix (ground station log time)",
-                    utc_offset=0.0, notes=notes)
+                    utc_offset=0.0, notes=notes, fixes_required=False)
+
+
+def _no_fix(src: str, series: dict[str, Series]) -> None:
+    """A GNSS stream without a single fix is left out, with a warning."""
+    g = series.get("gnss")
+    why = None
+    if g is not None and not len(g.t_ns):
+        del series["gnss"]
+        why = f"no GNSS fix in {g.topic} (" + ", ".join(
+            f"{k}: {v}" for k, v in g.dropped.items() if v) + ")"
+    elif g is None and "usbl" not in series:
+        why = "no GNSS messages"
+    if why is not None:
+        warnings.warn(MissionWarning(src, f"{why}: imported as a mission without position "
+                                          "fixes (a fit needs fixes from another source, e.g. "
+                                          "'aqfg import nmea')"), stacklevel=4)
 
 
 def _tlog_gnss(topic: str, msgs: list[Any], t: np.ndarray) -> Series:
@@ -203,7 +281,7 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
         raise LogFormatError(src, f"cannot read as an ArduPilot DataFlash log: {e}") from None
     present = {n: c for n, c in _df_counts(log).items() if c}
     chosen = _select(src, imap, DF_DEFAULTS, DF_TYPES, present, "DataFlash log")
-    names = {s.topic for s in chosen.values()}
+    names = {s.topic for s in chosen.values()} | {"PARM"}
     if "gnss" in chosen:
         names.add("GPA")
     rows: dict[str, list[Any]] = {n: [] for n in names}
@@ -213,8 +291,9 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
             break
         if msg.get_type() in rows:
             rows[msg.get_type()].append(msg)
+    params = {str(m.Name): float(m.Value) for m in rows["PARM"]}
+    imap, notes = _servo_map(imap, params)
     series: dict[str, Series] = {}
-    notes: list[str] = []
     utc_offset = None
     for stream, spec in chosen.items():
         msgs = rows[spec.topic]
@@ -242,10 +321,11 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
         else:
             s.data = _generic(src, spec, stream, msgs)
         series[stream] = s
+    _no_fix(src, series)
     if utc_offset is None:
         notes.append("no GPS week/time in the log: the mission's UTC time is unknown")
     return assemble(src, imap, series, "mavlink", "boot (DataFlash TimeUS)",
-                    utc_offset=utc_offset, notes=notes)
+                    utc_offset=utc_offset, notes=notes, fixes_required=False)
 
 
 def _df_counts(log) -> dict[str, int]:

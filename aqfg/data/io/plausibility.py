@@ -328,8 +328,17 @@ def _usbl(m: Mission, f) -> list[MissionWarning]:
     return out
 
 
+def _thrusters(m: Mission, f) -> list[MissionWarning]:
+    """A thruster whose demand correlates negatively with the motion it should cause
+    (:mod:`aqfg.data.thrusters`)."""
+    from aqfg.data.thrusters import thruster_findings
+    return [MissionWarning(f("motors"), x.message(),
+                           column=None if x.thruster is None else f"u{x.thruster + 1}")
+            for x in thruster_findings(m)]
+
+
 CHECKS = (_time_units, _input_spans, _imu_gaps, _outside_inputs, _duplicates, _imu_units,
-          _commands, _gnss, _usbl)
+          _commands, _gnss, _usbl, _thrusters)
 
 
 def plausibility_warnings(mission: Mission, where: str | os.PathLike | None = None
