@@ -173,7 +173,7 @@ class Progress:
             self.stream.write(f"\r{self.label} [{'#' * n}{'.' * (24 - n)}] {pct:3d}% "
                               f"{msg[:48]:<48}" + ("\n" if pct >= 100 else ""))
             self.stream.flush()
-            _State.bar_open = pct < 100 and self.stream is sys.stderr
+            _State.bar_open = pct < 100
         elif pct // 10 != self.last // 10 or pct == 100 and self.last != 100:
             log.debug("%s %d%% %s", self.label, pct, msg)
         self.last = pct
