@@ -259,7 +259,7 @@ def _main(argv: list[str] | None) -> int:
         try:
             mod = importlib.import_module(f"aqfg.commands.{getattr(args, 'module', name)}")
             code = int(mod.run(args) or 0)
-            common.summary()
+            common.summary(getattr(args, "missions", None) or ())
             return code
         except KeyboardInterrupt:
             print(f"\naqfg {name}: interrupted", file=sys.stderr)

@@ -38,7 +38,7 @@ def test_fit_of_the_otter_example_says_each_warning_once(otter, tmp_path, capsys
     text = cap.out + cap.err
     assert text.count("`aqfg diagnose") == 1
     last = cap.err.strip().splitlines()[-1]
-    assert last.startswith("aqfg fit: ") and "aqfg diagnose" in last
+    assert last.startswith("aqfg fit: ") and f"`aqfg diagnose {otter} --out DIR`" in last
     if len(warned) > 1:
         assert f"{len(warned)} warnings above" in last
 
@@ -75,7 +75,8 @@ def test_a_repeated_warning_is_said_once_and_advice_to_run_itself_never():
 
     err = run_logged("fit", emit)                      # another command: advice once, last
     assert err.count("sigma inflated 6x") == 1 and err.count("`aqfg diagnose") == 1
-    assert err.strip().splitlines()[-1].startswith("aqfg fit: 2 warnings above; `aqfg diagnose")
+    assert err.strip().splitlines()[-1] == ("aqfg fit: 2 warnings above; `aqfg diagnose MISSION "
+                                            "--out DIR` finds the physics the model is missing")
 
 
 def test_a_warning_does_not_land_inside_the_progress_bar():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
+import shlex
 import sys
 import warnings
 from collections.abc import Sequence
@@ -45,7 +46,8 @@ class _State:
 # physics", ", or `aqfg diagnose`", ": run `aqfg diagnose`" (up to the clause's end)
 _ADVICE = re.compile(r"(?:[;:,]\s*|\s+)(?:or\s+)?(?:run\s+)?`aqfg (\w+)`[^;)]*")
 # what the summary line says for the advice to run each command
-NEXT = {"diagnose": "`aqfg diagnose MISSION --out DIR` finds the physics the model is missing"}
+NEXT = {"diagnose": "`aqfg diagnose {missions} --out DIR` finds the physics the model is "
+                    "missing"}
 
 
 def strip_advice(text: str) -> str:
@@ -134,15 +136,16 @@ def advise(command: str, text: str) -> None:
         f.advice.setdefault(command, text)
 
 
-def summary() -> None:
+def summary(missions: Sequence[str] = ()) -> None:
     """The command's last stderr line where it warned: how many warnings (when several) and
-    the advice they gave, once."""
+    the advice they gave, once (naming ``missions``, the command's inputs)."""
     f = _once()
     if f is None:
         return
     n = len(f.seen)
     parts = [f"{n} warnings above"] if n > 1 else []
-    parts += [NEXT.get(c, a) for c, a in f.advice.items()]
+    named = shlex.join(missions) if missions else "MISSION"
+    parts += [NEXT[c].format(missions=named) if c in NEXT else a for c, a in f.advice.items()]
     if parts:
         log.warning("%s", "; ".join(parts), extra={"summary": True})
 
