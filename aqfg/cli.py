@@ -139,13 +139,20 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--model", metavar="MODEL_JSON",
                            help="start from a learned model (model.json of aqfg diagnose): "
                                 "its effects, and its vehicle parameters as initial values")
-            s.add_argument("--method", choices=["fg", "update-error"], default="fg")
-            s.add_argument("--mode", choices=["batch", "online"], default="batch")
+            s.add_argument("--method", choices=["fg", "update-error"], default="fg",
+                           help="fg: factor-graph smoothing (default); update-error: the "
+                                "paper's EKF method, the baseline (same outputs)")
+            s.add_argument("--mode", choices=["batch", "online"], default="batch",
+                           help="batch: all fixes at once (default); online: fix by fix, "
+                                "causally (fg: fixed-lag smoother; update-error: windowed EKF)")
             s.add_argument("--window", type=float, default=None,
                            help="online window, seconds (fg default 24; update-error: last 3 fixes)")
-            s.add_argument("--estimate", default=None,
-                           help="comma-separated parameters to estimate "
-                                "(default: all six in batch, theta_e,s_x,s_y online)")
+            s.add_argument("--estimate", default=None, metavar="NAMES",
+                           help="comma-separated parameters to estimate (default: batch, the "
+                                "six base parameters and those of the effects; online fg, "
+                                "theta_e,s_x,s_y and the effects' per-mission ones, plus "
+                                "k,k_x,k_yz unless --params-from, --model or --init gives one "
+                                "of them; online update-error, theta_e,s_x,s_y)")
             s.add_argument("--init", action="append", default=[], metavar="NAME=VALUE",
                            type=_effect_setting, help="initial/fixed value of a parameter")
             s.add_argument("--params-from", metavar="JSON",
@@ -203,6 +210,32 @@ def _by_interrupt(e: BaseException) -> bool:
     return False
 
 
+def check_options(ap: argparse.ArgumentParser, argv: list[str]) -> None:
+    """A command's option that it does not have: the command's usage and the closest option
+    it has (argparse itself shows the top-level usage and suggests nothing; its own
+    ``suggest_on_error`` needs Python >= 3.14). Exits 2 as argparse does."""
+    import difflib
+    commands: dict[str, argparse.ArgumentParser] = next(
+        (a.choices for a in ap._actions if isinstance(a, argparse._SubParsersAction)), {})
+    i = next((i for i, tok in enumerate(argv) if tok in commands), None)
+    if i is None:
+        return
+    p = commands[argv[i]]
+    opts = [o for a in p._actions for o in a.option_strings]
+    for tok in argv[i + 1:]:
+        if tok == "--":
+            break
+        name = tok.split("=", 1)[0]
+        if len(name) < 2 or name[0] != "-" or name in opts or p._negative_number_matcher.match(name):
+            continue
+        if name.startswith("--") and any(o.startswith(name) for o in opts):
+            continue                      # an abbreviation: argparse's to take or refuse
+        close = difflib.get_close_matches(name, [o for o in opts if o.startswith("--")], n=1,
+                                          cutoff=0.6)
+        p.error(f"unrecognized option {name}" + (f"; did you mean {close[0]}?" if close else
+                f" (see aqfg {argv[i]} --help)"))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns the exit code."""
     try:
@@ -214,7 +247,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    ap = build_parser()
+    check_options(ap, argv)
+    args = ap.parse_args(argv)
     from aqfg import outputs
     from aqfg.commands import common
     from aqfg.data.io import MissionFormatError
@@ -229,7 +264,9 @@ def _main(argv: list[str] | None) -> int:
         common.setup(name, args.verbosity)
         try:
             mod = importlib.import_module(f"aqfg.commands.{getattr(args, 'module', name)}")
-            return int(mod.run(args) or 0)
+            code = int(mod.run(args) or 0)
+            common.summary(getattr(args, "missions", None) or ())
+            return code
         except KeyboardInterrupt:
             print(f"\naqfg {name}: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED

@@ -1,11 +1,13 @@
-"""The main job end to end: `aqfg demo` simulates, fits by both methods, diagnoses, adds
-the missing effect and refits. Asserts on what it writes, not on what it prints."""
+"""The main job end to end: `aqfg demo` simulates, fits the model as given, diagnoses,
+and fits both methods with and without the missing effect. Asserts on what it writes, and
+that what it prints is what it wrote."""
 import json
 
 import numpy as np
+import pytest
 
 from aqfg.cli import main
-from aqfg.commands.demo import DEMO_EFFECT
+from aqfg.commands.demo import DEMO_EFFECT, table_lines
 from aqfg.data.io import load_mission, load_truth
 
 SIX = {"theta_e", "s_x", "s_y", "k", "k_x", "k_yz"}
@@ -41,6 +43,28 @@ def test_demo_finds_the_hidden_effect_and_the_error_falls(tmp_path, capsys):
         "parameters"]
     name = f"{hidden}.ratio"
     assert abs(with_eff[name]["value"] - truth.params[name]) < 3 * with_eff[name]["sigma"] + 0.02
+    # one story: the console's table and its numbers are demo.json's, whose values are
+    # each fit's parameters.json
+    printed = capsys.readouterr()
+    demo = json.loads((out / "demo.json").read_text())
+    assert demo["missing"] == hidden == top["effect"]
+    for line in table_lines(demo["rows"]):
+        assert line in printed.out
+    fits = [r for r in demo["rows"] if r.get("dir")]
+    assert {(r["model"], r["method"]) for r in fits} == {
+        (m, k) for m in ("as given", f"with {hidden}") for k in ("fg", "update-error")}
+    for r in fits:
+        params = json.loads((out / r["dir"] / "parameters.json").read_text())["parameters"]
+        for n, v in r["values"].items():
+            assert params[n]["value"] == pytest.approx(v, rel=1e-9)
+    # the effect brings both methods' model-only tracks close to the truth's
+    rmse = {(r["model"], r["method"]): r["track_rmse_m"] for r in fits}
+    for k in ("fg", "update-error"):
+        assert rmse[(f"with {hidden}", k)] < 0.6 * rmse[("as given", k)]
+    # the fit's own words come once, in the story, not as stderr warnings
+    for w in demo["fit_warnings"]:
+        assert printed.out.count(w) == 1 and w not in printed.err
+    assert "aqfg diagnose`" not in printed.out + printed.err
     # a second run into the same directory is refused, nothing overwritten
     assert main(["demo", "--out", str(out)]) == 2
     assert "refusing" in capsys.readouterr().err

@@ -14,7 +14,6 @@ import math
 from pathlib import Path
 
 from aqfg.commands.common import UsageError
-from aqfg.data.mission import with_gnss_every
 from aqfg.model.frames import wrap_angle
 from aqfg.result import Result, read_parameter_values
 
@@ -140,7 +139,7 @@ def _check_names(missions, effects, estimate, init) -> None:
 
 
 def run(args) -> int:
-    from aqfg.commands.common import Progress, input_warnings, load_missions, log
+    from aqfg.commands.common import Progress, advise, input_warnings, load_missions, log
     from aqfg.outputs import OutputSet, provenance, unique_safe_names
     from aqfg.result import RESULT_FILES, write_result
     out = Path(args.out)
@@ -152,7 +151,8 @@ def run(args) -> int:
         if not estimate:
             raise UsageError("--estimate: no parameter names given")
     from_file = initial_values([], args.params_from)
-    missions = load_missions(args.missions, args.max_knots)
+    OutputSet(out, [*RESULT_FILES, *PLOTS], force=args.force).check()   # refuse before loading
+    missions = load_missions(args.missions, args.max_knots, gnss_every=args.gnss_every)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
@@ -185,8 +185,6 @@ def run(args) -> int:
     subdirs = unique_safe_names(names) if len(missions) > 1 else []
     outs = OutputSet(out, [*RESULT_FILES, *PLOTS, *subdirs], force=args.force)
     outs.check()                       # refuse now, not after the fit
-    if args.gnss_every:
-        missions = [with_gnss_every(m, args.gnss_every) for m in missions]
     kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
           "window": args.window}
     if args.method == "fg" and getattr(args, "no_auto_effect", False):
@@ -228,7 +226,8 @@ def run(args) -> int:
         print("trajectory smoothed with the process noise x"
               + ", x".join(f"{q:g} ({n})" for n, q in tq.items())
               + ": the model does not explain the motion between fixes (the parameters are "
-                "the nominal noise's fit; `aqfg diagnose` looks for the missing physics)")
+                "the nominal noise's fit)")
+        advise("diagnose", "to find the missing physics")
     t = result.timings
     if "batch" in t:
         n_it = "?" if result.iterations is None else result.iterations

@@ -30,9 +30,11 @@ def run(args) -> int:
     where = f"scheduler {args.scheduler}" if args.scheduler else f"{args.workers} local workers"
     print(f"aqfg fleet: {len(manifest.vehicles)} vehicle(s), {manifest.n_missions} mission(s) "
           f"on {where}", file=sys.stderr)
+    from aqfg.commands.common import Progress
     from aqfg.fg.common import FGSettings
     fr = fit_fleet(manifest, workers=args.workers, scheduler=args.scheduler, effects=effects,
-                   gnss_every=args.gnss_every, diagnose=args.diagnose, progress=True,
+                   gnss_every=args.gnss_every, diagnose=args.diagnose,
+                   progress=Progress("fleet"),     # a bar on a terminal only
                    settings=FGSettings(auto_effect=not args.no_auto_effect))
     save_fleet(fr, out, overwrite=args.force)
     from aqfg.fleet.report import fleet_table

@@ -70,10 +70,36 @@ def _fit_mission(diag, i):
     return split_fixes(diag.missions[i], diag.settings.get("gnss_every", 8.0)).fit
 
 
+# the components a surface vehicle does not have (Mission.planar: it stays on the surface)
+VERTICAL = ("down", "vd", "depth")
+
+
+def for_vehicle(series, mission) -> list:
+    """``series`` (:class:`aqfg.diagnose.compare.SensorSeries`) without the axes the vehicle
+    of ``mission`` does not have (a surface vehicle: depth and vertical motion), dropping a
+    sensor left with none."""
+    from dataclasses import replace
+    if not mission.planar:
+        return list(series)
+    out = []
+    for s in series:
+        keep = np.array([lab not in VERTICAL for lab in s.labels], bool)
+        if not keep.any():
+            continue
+        def sel(a, keep=keep):
+            return None if a is None else a[:, keep]
+        out.append(replace(s, measured=sel(s.measured), predicted=sel(s.predicted),
+                           raw=s.raw[:, keep], normalised=s.normalised[:, keep],
+                           labels=tuple(np.array(s.labels)[keep]),
+                           units=tuple(np.array(s.units)[keep])))
+    return out
+
+
 def fig_sensors(diag, i: int = 0):
-    """Per sensor of mission ``i``: measured vs predicted, and normalised residuals."""
+    """Per sensor of mission ``i``: measured vs predicted, and normalised residuals (the
+    axes the vehicle has)."""
     plt = _plt()
-    series = [s for s in diag.series[diag.missions[i].name]]
+    series = for_vehicle(diag.series[diag.missions[i].name], diag.missions[i])
     rows = sum(s.raw.shape[1] for s in series)
     fig, axes = plt.subplots(rows, 2, figsize=(11, 2.0 * rows + 0.5), squeeze=False)
     r = 0
@@ -195,11 +221,12 @@ def fig_residuals_compare(diag, i: int = 0, window: float = 30.0):
     evs = _compared_fits(diag)
     if len(evs) < 2:
         return None
-    sensors = [s.sensor for s in sensor_series(diag.base.full.missions[i])]
+    mission = diag.missions[i]
+    sensors = [s.sensor for s in for_vehicle(sensor_series(diag.base.full.missions[i]), mission)]
     fig, axes = plt.subplots(len(sensors), 1, figsize=(10, 2.2 * len(sensors)), squeeze=False)
     for ax, name in zip(axes[:, 0], sensors):
         for ev in evs:
-            ss = {s.sensor: s for s in sensor_series(ev.full.missions[i])}
+            ss = {s.sensor: s for s in for_vehicle(sensor_series(ev.full.missions[i]), mission)}
             if name not in ss:
                 continue
             s = ss[name]
