@@ -29,7 +29,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
-from aqfg.fg import noise, observability, plausibility
+from aqfg.fg import lm, noise, observability, plausibility
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
@@ -859,10 +859,68 @@ def _finish_fast(fs: FastSystem, prev: LMOutcome, X: np.ndarray, th: np.ndarray,
                      prev.trials + n_trials, conv, prev.it_times + it_times, ev)
 
 
+class GraphLM:
+    """:class:`aqfg.fg.lm.LMSystem` of a built graph on GTSAM's linearisation: a point is
+    a ``gtsam.Values``. Marquardt's damping on every key, the bounds of the parameter nodes
+    ``bounded`` by an active set (:func:`damped_step`); a candidate is ``project`` of the
+    retracted values. ``pin``: a factor added to every step's system (a node held)."""
+
+    def __init__(self, bg: BuiltGraph, ordering: gtsam.Ordering, bounded, project,
+                 pin: gtsam.JacobianFactor | None = None):
+        self.bg, self.ordering, self.bounded, self.project, self.pin = \
+            bg, ordering, bounded, project, pin
+        self.key_dims = bg.key_dims()
+        self.evaluated: tuple[gtsam.Values | None, float] = (None, np.nan)   # in the cache
+        self.lin_at: gtsam.Values | None = None
+
+    def cost(self, x: gtsam.Values) -> float:
+        """The cost at ``x``; the dynamics cache then holds ``x``."""
+        self.evaluated = (x, self.bg.error(x))
+        return self.evaluated[1]
+
+    def linearize(self, x: gtsam.Values) -> None:
+        if self.evaluated[0] is not x:
+            self.cost(x)
+        self.gfg = self.bg.graph.linearize(x)       # the cache holds the dynamics at x
+        self.lin_at, self.base = x, self.evaluated[1]
+        self.hdiag = hessian_diagonal(self.gfg, self.key_dims)
+        self.system = self.gfg
+        if self.pin is not None:
+            self.system = self.gfg.clone()
+            self.system.add(self.pin)
+
+    def trial(self, x: gtsam.Values, lam: float) -> tuple[gtsam.Values, float, float]:
+        try:
+            delta = damped_step(self.system, self.ordering, self.key_dims, self.hdiag, lam,
+                                self.bg.layout, self.bounded, x)
+        except RuntimeError as e:   # GTSAM's indeterminate system: an ill-conditioned one
+            raise np.linalg.LinAlgError(str(e)) from e
+        cand = self.project(x.retract(delta))
+        return cand, self.cost(cand), self.base
+
+    def settle(self, x: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        """The linearisation at ``x`` (the loop's end), the dynamics cache holding ``x``."""
+        if self.lin_at is not x:
+            self.linearize(x)
+        elif self.evaluated[0] is not x:
+            self.bg.fill(x)
+        return self.gfg
+
+
+def project_nodes(layout: fc.ParamLayout, nodes, values: gtsam.Values) -> gtsam.Values:
+    """``values`` with the parameter ``nodes`` projected onto their bounds (in place)."""
+    for g, k, _ in nodes:
+        v = values.atVector(k)
+        pv = layout.project(g, v)
+        if np.any(pv != v):
+            values.update(k, pv)
+    return values
+
+
 def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,
                         s: FGSettings, progress=None, fs: FastSystem | None = None) -> LMOutcome:
-    """LM driven from Python (GTSAM's optimizers copy all Values into every CustomFactor
-    call): Marquardt's diagonal damping, an active set for the parameter bounds, and the
+    """:func:`aqfg.fg.lm.levenberg_marquardt` of the graph driven from Python (GTSAM's
+    optimizers copy all Values into every CustomFactor call, :class:`GraphLM`), the
     stopping rule of :class:`FGSettings` (an accepted step lowering the cost by less than
     ``max(rel_tol x cost, abs_tol)``). With ``fs`` the same algorithm runs on the numpy
     form of the graph (:mod:`aqfg.fg.fastlm`); ``gfg`` is then None."""
@@ -873,57 +931,12 @@ def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Or
                          it_times, ev)
     if ordering is None:
         ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-    layout, node_list, all_keys = bg.layout, bg.nodes, bg.key_dims()
-
-    def project(vals):
-        for g, k, _ in node_list:
-            v = vals.atVector(k)
-            pv = layout.project(g, v)
-            if np.any(pv != v):
-                vals.update(k, pv)
-        return vals
-
-    err = bg.error(values)
-    gfg = bg.graph.linearize(values)
-    lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
-    converged = False
-    for it in range(s.max_iterations):
-        t_it = time.perf_counter()
-        hdiag = hessian_diagonal(gfg, all_keys)
-        accepted = False
-        while lam < 1e10:
-            n_trials += 1
-            try:
-                delta = damped_step(gfg, ordering, all_keys, hdiag, lam, layout, node_list,
-                                    values)
-            except RuntimeError:
-                # an ill-conditioned damped system (GTSAM's indeterminate-system error):
-                # more damping makes it better posed
-                lam *= 10.0
-                continue
-            cand = project(values.retract(delta))
-            err_c = bg.error(cand)
-            if np.isfinite(err_c) and err_c <= err:
-                accepted = True
-                break
-            lam *= 10.0
-        n_it += 1
-        if not accepted:
-            bg.fill(values)
-            converged = True            # no step lowers the cost: a (local) minimum
-            break
-        gain = err - err_c
-        values, err = cand, err_c
-        lam = max(lam / 10.0, 1e-9)
-        gfg = bg.graph.linearize(values)       # cache holds the dynamics at `values`
-        it_times.append(time.perf_counter() - t_it)
-        if progress is not None:
-            progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
-                     f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
-        if gain < max(s.rel_tol * err, s.abs_tol):
-            converged = True
-            break
-    return LMOutcome(values, float(err), gfg, n_it, n_trials, converged, it_times)
+    system = GraphLM(bg, ordering, bg.nodes,
+                     lambda vals: project_nodes(bg.layout, bg.nodes, vals))
+    out = lm.levenberg_marquardt(system, values, lm.LMParams.of(s),
+                                 lm.batch_progress(progress, s.max_iterations))
+    return LMOutcome(out.x, out.cost, system.settle(out.x), out.iterations, out.trials,
+                     out.converged, out.it_times)
 
 
 def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:

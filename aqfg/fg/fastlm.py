@@ -34,6 +34,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
+from aqfg.fg import lm
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
 
@@ -651,77 +652,71 @@ def _propagator(model, sl):
                                 np.ascontiguousarray(p[:N_DYN], float), *args)
 
 
+class FastLM:
+    """:class:`aqfg.fg.lm.LMSystem` of a :class:`FastSystem`: a point is ``(X, th,
+    evaluation)``. Marquardt's damping from ``diag(J^T J)`` floored per key; the parameter
+    bounds by an active set (components pushed through a bound go exactly to it, the rest
+    of the step re-solved); ``held``: parameter components whose step is held at 0."""
+
+    def __init__(self, fs: FastSystem, held: dict[int, float] | None = None):
+        self.fs, self.held = fs, held
+        self.key_slices = list(fs.node_off.values())
+
+    def cost(self, x) -> float:
+        return x[2]["cost"]
+
+    def linearize(self, x) -> None:
+        D, E, Hsp, Hpp, gs, gp = self.fs.normal(x[2])
+        hs = np.einsum("nii->ni", D)
+        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
+        hp = np.diag(Hpp).copy()
+        for o, d in self.key_slices:
+            v = hp[o:o + d]
+            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
+        self.lin = (D, E, Hsp, Hpp, gs, gp, hs, hp)
+
+    def trial(self, x, lam: float):
+        fs, (X, th, ev) = self.fs, x
+        D, E, Hsp, Hpp, gs, gp, hs, hp = self.lin
+        idx6 = np.arange(6)
+        Dd = D.copy()
+        Dd[:, idx6, idx6] += lam * hs
+        Hppd = Hpp + np.diag(lam * hp)
+        try:
+            fac = fs.factor(Dd, E, Hsp, Hppd)
+            dX, dth = fs.solve(fac, gs, gp, self.held)
+            new = th + dth
+            hit = (new < fs.lo) | (new > fs.hi)
+            if np.any(hit):
+                fix = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
+                       for j in np.flatnonzero(hit)}
+                dX, dth = fs.solve(fac, gs, gp, fix)
+        except ValueError as e:              # a non-finite or not positive definite system
+            raise np.linalg.LinAlgError(str(e)) from e
+        Xc, thc = X + dX, fs.project(th + dth)
+        evc = fs.evaluate(Xc, thc)
+        return (Xc, thc, evc), evc["cost"], ev["cost"]
+
+
 def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, progress=None,
                              start: tuple[np.ndarray, np.ndarray] | None = None,
                              max_iterations: int | None = None,
                              hold_params: bool | Sequence[int] = False):
-    """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
-    (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
-    accepted step and x10 after a rejected one, the active set of the parameter bounds, the
-    same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
-    iteration times). ``start``: (X, th) instead of ``values``; ``max_iterations``: instead
-    of the settings'; ``hold_params``: the states alone move, the parameters stay at
-    ``th`` (or, a sequence of indices into ``th``, those parameters alone stay)."""
-    import time
+    """:func:`aqfg.fg.lm.levenberg_marquardt` on the numpy system (:class:`FastLM`), the
+    settings' stopping rule. Returns (X, th, cost, evaluation, iterations, trials,
+    converged, iteration times). ``start``: (X, th) instead of ``values``;
+    ``max_iterations``: instead of the settings'; ``hold_params``: the states alone move,
+    the parameters stay at ``th`` (or, a sequence of indices into ``th``, those parameters
+    alone stay)."""
     if start is not None:
         X, th = start
     else:
         assert values is not None, "values or start"
         X, th = fs.from_values(values)
-    ev = fs.evaluate(X, th)
-    err = ev["cost"]
-    lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
-    converged = False
-    key_slices = [(o, d) for o, d in fs.node_off.values()]
     held = None if hold_params is False else \
         {j: 0.0 for j in (range(fs.P) if hold_params is True else hold_params)} or None
-    for it in range(s.max_iterations if max_iterations is None else max_iterations):
-        t_it = time.perf_counter()
-        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-        hs = np.einsum("nii->ni", D)
-        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
-        hp = np.diag(Hpp).copy()
-        for o, d in key_slices:
-            v = hp[o:o + d]
-            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
-        accepted = False
-        idx6 = np.arange(6)
-        while lam < 1e10:
-            n_trials += 1
-            Dd = D.copy()
-            Dd[:, idx6, idx6] += lam * hs
-            Hppd = Hpp + np.diag(lam * hp)
-            try:
-                fac = fs.factor(Dd, E, Hsp, Hppd)
-                dX, dth = fs.solve(fac, gs, gp, held)
-                new = th + dth
-                hit = (new < fs.lo) | (new > fs.hi)
-                if np.any(hit):
-                    fix = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
-                           for j in np.flatnonzero(hit)}
-                    dX, dth = fs.solve(fac, gs, gp, fix)
-            except (np.linalg.LinAlgError, ValueError):
-                lam *= 10.0
-                continue
-            Xc, thc = X + dX, fs.project(th + dth)
-            evc = fs.evaluate(Xc, thc)
-            err_c = evc["cost"]
-            if np.isfinite(err_c) and err_c <= err:
-                accepted = True
-                break
-            lam *= 10.0
-        n_it += 1
-        if not accepted:
-            converged = True
-            break
-        gain = err - err_c
-        X, th, err, ev = Xc, thc, err_c, evc
-        lam = max(lam / 10.0, 1e-9)
-        it_times.append(time.perf_counter() - t_it)
-        if progress is not None:
-            progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
-                     f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
-        if gain < max(s.rel_tol * err, s.abs_tol):
-            converged = True
-            break
-    return X, th, float(err), ev, n_it, n_trials, converged, it_times
+    out = lm.levenberg_marquardt(FastLM(fs, held), (X, th, fs.evaluate(X, th)),
+                                 lm.LMParams.of(s, max_iterations),
+                                 lm.batch_progress(progress, s.max_iterations))
+    X, th, ev = out.x
+    return X, th, out.cost, ev, out.iterations, out.trials, out.converged, out.it_times
