@@ -31,6 +31,7 @@ from scipy.stats import chi2
 
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.reference import Steps
 from aqfg.model.retrace import fixes, inertial_track
@@ -96,8 +97,7 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
 
 
 def _huber(r: np.ndarray, c: float) -> float:
-    a = np.abs(r)
-    return float(np.sum(np.where(a <= c, 0.5 * a ** 2, c * (a - 0.5 * c))))
+    return float(np.sum(huber_cost(np.abs(r), c)))
 
 
 def _rms(q: np.ndarray) -> float:
@@ -184,7 +184,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
         e = np.zeros(len(x)); e[c] = h
         J[:, c] = (residuals(x + e) - r) / h
     c_h = HUBER_C * scale
-    w = np.minimum(1.0, c_h / np.maximum(np.abs(r), 1e-300))
+    w = huber_weight(np.abs(r), c_h)
     A = (J * w[:, None]).T @ J
     # per-block scores: segments grouped by mission and start time
     seg_rows = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])

@@ -35,6 +35,7 @@ import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
 from aqfg.fg import lm
+from aqfg.fg.robust import huber_cost, huber_weight, row_norms
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
 
@@ -48,14 +49,6 @@ class _Meas:
     sigma: np.ndarray     # (n, m)
     k: float | None       # Huber threshold (None: plain Gaussian)
     extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
-
-
-def _robust_cost(dist: np.ndarray, k: float | None) -> np.ndarray:
-    """Per-factor cost of whitened residual norms ``dist``: Huber with threshold ``k``, or
-    ``dist^2 / 2`` (``k`` None)."""
-    if k is None:
-        return 0.5 * dist ** 2
-    return np.where(dist > k, k * (dist - 0.5 * k), 0.5 * dist ** 2)
 
 
 def _plain_sensors(p: np.ndarray) -> bool:
@@ -409,10 +402,9 @@ class FastSystem:
                 J = np.zeros((len(r), 1, 6))
                 J[:, 0, 2] = 1.0 / m.sigma[:, 0]
                 J[:, 0, 5] = m.extra / m.sigma[:, 0]
-            dist = np.sqrt(np.sum(r * r, axis=1))
-            w = np.ones(len(r)) if m.k is None else \
-                np.where(dist > m.k, m.k / np.maximum(dist, 1e-300), 1.0)
-            cost += float(np.sum(_robust_cost(dist, m.k)))
+            dist = row_norms(r)
+            w = huber_weight(dist, m.k)
+            cost += float(np.sum(huber_cost(dist, m.k)))
             mres.append((r, J, w))
         out["meas"] = mres
         # linear factors
@@ -436,7 +428,7 @@ class FastSystem:
         rd = ev["dyn_r"]
         sc[self.d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
         for m, (r, _, _) in zip(self.meas, ev["meas"]):
-            np.add.at(sc, m.idx, _robust_cost(np.sqrt(np.sum(r * r, axis=1)), m.k))
+            np.add.at(sc, m.idx, huber_cost(row_norms(r), m.k))
         for mm, (si, _, _) in self.lin_s.items():
             r = ev["lin_s"][mm]
             np.add.at(sc, si, 0.5 * np.sum(r * r, axis=1))
