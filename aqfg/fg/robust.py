@@ -18,6 +18,12 @@ def huber_cost(d: np.ndarray, k: float | None) -> np.ndarray:
     return np.where(d > k, k * (d - 0.5 * k), 0.5 * d ** 2)
 
 
+def huber_cost_squared(u: np.ndarray, k2: float) -> np.ndarray:
+    """:func:`huber_cost` of the norms ``sqrt(u)`` given their squares ``u`` and the
+    threshold's square ``k2`` (a chi-square statistic and its quantile)."""
+    return np.where(u <= k2, 0.5 * u, np.sqrt(k2 * u) - 0.5 * k2)
+
+
 def huber_weight(d: np.ndarray, k: float | None) -> np.ndarray:
     """Per-factor IRLS weight of the residual norms ``d`` (>= 0)."""
     if k is None:
