@@ -35,7 +35,7 @@ from aqfg.fg.common import (
     Measurements,
     check_missions,
     default_estimate,
-    first_knot_prior,
+    first_knot_term,
     initial_states,
     knot_times,
     measurement_factors,
@@ -91,7 +91,8 @@ class BuiltGraph:
     ``graph`` holds every factor; the dynamics factors read their prediction and Jacobians
     from ``cache``, which :meth:`fill` evaluates for given values (one kernel call per
     mission and parameter segment), so always go through :meth:`error` / :meth:`linearize`.
-    ``values`` holds the initial values the build chose.
+    ``values`` holds the initial values the build chose; ``linear`` the graph's linear
+    factors (priors, surface constraint, random walk) in numpy, in the graph's order.
     """
     layout: fc.ParamLayout
     graph: gtsam.NonlinearFactorGraph
@@ -100,6 +101,7 @@ class BuiltGraph:
     cache: fc.DynamicsCache
     nodes: list[ParamNode]
     starts: list[list[Start]] = field(default_factory=list)   # per mission, best first
+    linear: list[fc.LinearTerm] = field(default_factory=list)
 
     def fill(self, values: gtsam.Values) -> None:
         """Evaluate the dynamics of every interval at ``values`` into the cache."""
@@ -197,6 +199,11 @@ class BatchSmoother:
         layout = fc.ParamLayout.build(models[0], est, self.init)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
+        linear: list[fc.LinearTerm] = []
+
+        def add_linear(term: fc.LinearTerm) -> None:
+            linear.append(term)
+            graph.add(term.factor())
         parts: list[MissionPart] = []
         noise_cache: dict = {}
         nf = 0
@@ -239,10 +246,10 @@ class BatchSmoother:
             all_starts.append(starts)
             for k, x in zip(keys, X0):
                 values.insert(k, x)
-            graph.add(first_knot_prior(m, keys[0], X0[0], s))
+            add_linear(first_knot_term(m, keys[0], X0[0], s))
             if m.planar:
                 for k in keys:
-                    graph.add(fc.surface_factor(k, *s.surface_sigma))
+                    add_linear(fc.surface_term(k, *s.surface_sigma))
             parts.append(MissionPart(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
             nf += K
         cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
@@ -264,7 +271,7 @@ class BatchSmoother:
                 f0[names.index("k")] *= rho2     # steady speed ~ sqrt(k / k_x)
             values.insert(k, layout.project("fixed", f0))
             if fixed_prior:
-                graph.add(fc.param_prior(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
+                add_linear(fc.param_prior_term(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
             node_list.append(ParamNode("fixed", k, None))
         for part in parts:
             if "variable" in layout.names:
@@ -281,16 +288,17 @@ class BatchSmoother:
                     values.insert(k, v0)
                     node_list.append(ParamNode("variable", k, part.index))
                     if j == 0:
-                        graph.add(fc.param_prior(layout, "variable", k, s.prior_scale, sigma=s.prior_sigma))
+                        add_linear(fc.param_prior_term(layout, "variable", k, s.prior_scale,
+                                                       sigma=s.prior_sigma))
                     else:
                         sig = np.array([(s.walk_sigma or {}).get(n, 0.0)
                                         for n in layout.names["variable"]])
-                        graph.add(fc.walk_factor(layout, fc.node_key("variable", part.index, j - 1),
-                                                 k, np.maximum(sig, 1e-9), s.walk_segment))
+                        add_linear(fc.walk_term(layout, fc.node_key("variable", part.index, j - 1),
+                                                k, np.maximum(sig, 1e-9), s.walk_segment))
             if "sensor" in layout.names:
                 k = fc.node_key("sensor", part.index)
                 values.insert(k, layout.initial("sensor"))
-                graph.add(fc.param_prior(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
+                add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
                 node_list.append(ParamNode("sensor", k, part.index))
         # dynamics and measurement factors
         dyn_groups = layout.dyn_groups()
@@ -330,7 +338,7 @@ class BatchSmoother:
                 return part.keys[i]
             for f in measurement_factors(part.model, layout, meas, part.knots, knot_key, mkeys, s):
                 graph.add(f)
-        return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts)
+        return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts, linear)
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:

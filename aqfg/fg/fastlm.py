@@ -10,8 +10,8 @@ same problem has a fixed shape that numpy can evaluate in a few array operations
 * GNSS / USBL / depth factors on one knot, with GTSAM's Huber reweighting (``sqrt(w)`` of
   the whitened residual norm on residual and Jacobian, loss ``k |d| - k^2 / 2`` beyond
   ``k``);
-* the graph's linear factors (priors, surface constraint, random walk of parameters), whose
-  whitened ``A`` and ``b`` are read once from GTSAM.
+* the graph's linear factors (priors, surface constraint, random walk of parameters), from
+  the numpy form the build records beside them (:class:`aqfg.fg.factors.LinearTerm`).
 
 The state knots of a mission form a chain, so the normal equations are block-tridiagonal
 in the states plus dense parameter columns: a banded Cholesky (LAPACK ``pbtrf``) of the
@@ -27,7 +27,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import gtsam
 import numpy as np
@@ -82,7 +81,7 @@ class FastSystem:
     meas: list[_Meas]
     lin_s: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]   # rows -> (idx, A, b)
     lin_pA: np.ndarray
-    lin_pf: list[tuple[Any, list[int]]]
+    lin_p: list[fc.LinearTerm]
     D_const: np.ndarray
     Hpp_const: np.ndarray
     _band_src: np.ndarray
@@ -185,66 +184,13 @@ class FastSystem:
                                   m.depth_t[ri] - part.knots[ki]))
         self.meas = meas
         n_meas = sum(len(x.idx) for x in meas)
-        # ---- linear factors read from GTSAM; count the factors this form accounts for
-        n_custom = 0
-        lin_s: list[tuple[int, np.ndarray, np.ndarray]] = []   # (state index, A (m,6), b (m,))
-        lin_p_A, lin_p_f = [], []
-        for i in range(bg.graph.size()):
-            f = bg.graph.at(i)
-            if f is None:
-                continue
-            if isinstance(f, gtsam.CustomFactor):
-                n_custom += 1
-                continue
-            try:
-                nm = f.noiseModel()
-                if isinstance(nm, gtsam.noiseModel.Robust):
-                    return None
-            except AttributeError:
-                pass
-            keys = list(f.keys())
-            v0 = gtsam.Values()
-            dims = []
-            for k in keys:
-                if k in self.state_index:
-                    d = 6
-                elif k in self.node_off:
-                    d = self.node_off[k][1]
-                else:
-                    return None
-                dims.append(d)
-                v0.insert(k, np.zeros(d))
-            jf = f.linearize(v0)
-            A, b = jf.jacobian()
-            if all(k in self.state_index for k in keys) and len(keys) == 1:
-                lin_s.append((self.state_index[keys[0]], A, b))
-            elif all(k in self.node_off for k in keys):
-                Af = np.zeros((A.shape[0], self.P))
-                c = 0
-                for k, d in zip(keys, dims):
-                    o, _ = self.node_off[k]
-                    Af[:, o:o + d] += A[:, c:c + d]
-                    c += d
-                lin_p_A.append(Af)
-                lin_p_f.append((f, keys))
-            else:
-                return None
-        if n_custom != len(self.d0) + n_meas:
-            return None              # a custom factor this form does not know
-        lin_s_rows: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
-        for si, A, b in lin_s:
-            lin_s_rows.setdefault(A.shape[0], []).append((si, A, b))
-        self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
-                          np.array([x[2] for x in v])) for m, v in lin_s_rows.items()}
-        self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
-        # their residuals come from GTSAM itself (a random walk held by sigma ~1e-8 needs
-        # the difference of the values before the whitening, as the factor computes it)
-        self.lin_pf = lin_p_f
-        # constant parts of the state Hessian: linear unary factors
-        self.D_const = np.zeros((self.N, 6, 6))
-        for s_idx, A, _ in self.lin_s.values():
-            np.add.at(self.D_const, s_idx, np.einsum("nji,njl->nil", A, A))
-        self.Hpp_const = self.lin_pA.T @ self.lin_pA
+        # ---- the graph's linear factors, from their numpy form; every factor accounted for
+        factors = [f for f in (bg.graph.at(i) for i in range(bg.graph.size())) if f is not None]
+        n_custom = sum(isinstance(f, gtsam.CustomFactor) for f in factors)
+        if n_custom != len(self.d0) + n_meas or len(factors) != n_custom + len(bg.linear):
+            return None              # a factor this form does not know
+        if not self._linear_terms(bg.linear):
+            return None
         # band layout of the block-tridiagonal state matrix (LAPACK lower storage)
         n = 6 * self.N
         jj = np.arange(n)
@@ -266,6 +212,37 @@ class FastSystem:
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         return self
+
+    def _linear_terms(self, terms: Sequence[fc.LinearTerm]) -> bool:
+        """The whitened ``A`` and ``b`` of the linear factors on one state each (grouped by
+        row count), the parameter ones' rows ``A`` (their residuals computed at each
+        evaluation), and the constant parts of the Hessian they make. False for a factor
+        on other variables."""
+        lin_s_rows: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+        lin_p_A, lin_p = [], []
+        for t in terms:
+            A = t.whitened_jacobians()
+            if len(t.keys) == 1 and t.keys[0] in self.state_index:
+                b = t.mean * (1.0 / t.sigma)
+                lin_s_rows.setdefault(len(b), []).append((self.state_index[t.keys[0]], A[0], b))
+            elif all(k in self.node_off for k in t.keys):
+                Af = np.zeros((len(t.sigma), self.P))
+                for k, Ak in zip(t.keys, A):
+                    o, d = self.node_off[k]
+                    Af[:, o:o + d] += Ak
+                lin_p_A.append(Af)
+                lin_p.append(t)
+            else:
+                return False
+        self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
+                          np.array([x[2] for x in v])) for m, v in lin_s_rows.items()}
+        self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
+        self.lin_p = lin_p
+        self.D_const = np.zeros((self.N, 6, 6))
+        for s_idx, As, _ in self.lin_s.values():
+            np.add.at(self.D_const, s_idx, np.einsum("nji,njl->nil", As, As))
+        self.Hpp_const = self.lin_pA.T @ self.lin_pA
+        return True
 
     def set_process_scale(self, q: float, per_part: np.ndarray | None = None) -> None:
         """Every dynamics factor's process-noise variance times ``q`` on the scaled axes
@@ -436,12 +413,9 @@ class FastSystem:
 
     def _param_residuals(self, nv: dict) -> np.ndarray:
         """Whitened residuals of the linear factors on parameter nodes (priors, walks)."""
-        if not self.lin_pf:
+        if not self.lin_p:
             return np.zeros(0)
-        vals = gtsam.Values()
-        for k, v in nv.items():
-            vals.insert(k, v)
-        return np.concatenate([f.whitenedError(vals) for f, _ in self.lin_pf])
+        return np.concatenate([t.whitened_residual(nv) for t in self.lin_p])
 
     def _dyn_jacobians(self, ev: dict) -> None:
         """Whitened dynamics Jacobian blocks of an evaluation (once, when needed)."""
