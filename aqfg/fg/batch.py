@@ -85,6 +85,18 @@ class ParamNode(NamedTuple):
 
 
 @dataclass
+class _Graph:
+    """A graph being built: its factors, initial values and linear factors' numpy form."""
+    graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    linear: list[fc.LinearTerm] = field(default_factory=list)
+
+    def add_linear(self, term: fc.LinearTerm) -> None:
+        self.linear.append(term)
+        self.graph.add(term.factor())
+
+
+@dataclass
 class BuiltGraph:
     """The batch graph of a set of missions, ready to be linearised at any ``Values``.
 
@@ -193,27 +205,37 @@ class BatchSmoother:
         ``fixed_prior=False`` leaves out the prior on the shared fixed node, for a caller
         that builds missions apart and must count that prior once (:mod:`aqfg.fg.schur`).
         """
-        s = self.settings
         models = [mission_model(self.model, m, self.effects) for m in missions]
         est = self.estimate if self.estimate is not None else default_estimate(models[0], "batch")
         layout = fc.ParamLayout.build(models[0], est, self.init)
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        linear: list[fc.LinearTerm] = []
-
-        def add_linear(term: fc.LinearTerm) -> None:
-            linear.append(term)
-            graph.add(term.factor())
-        parts: list[MissionPart] = []
-        noise_cache: dict = {}
-        nf = 0
-        walk = s.walk_sigma and "variable" in layout.names
-        guesses: list[Start | None] = []
-        all_starts: list[list[Start]] = []
+        out = _Graph()
         # search the dynamics' scale only when all three constants are free
         free = set(layout.names.get("fixed", ()))
         grid = {"k", "k_x", "k_yz"} <= free
         search = grid and not ({"k", "k_x", "k_yz"} & set(self.init))
+        parts, guesses, all_starts = self._mission_parts(missions, models, layout, grid, out)
+        nf = sum(len(p.knots) - 1 for p in parts)
+        cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
+                                 np.zeros((nf, 6, len(models[0].dyn_columns()))))
+        # parameter nodes (started from the data-driven guess where the user gave no
+        # initial value), priors (around the user's / nominal values), random walk
+        node_list = self._param_nodes(layout, parts, guesses, search, fixed_prior, out)
+        self._model_factors(layout, parts, cache, out.graph)
+        return BuiltGraph(layout, out.graph, out.values, parts, cache, node_list, all_starts,
+                          out.linear)
+
+    def _mission_parts(self, missions: list[Mission], models: list[Model],
+                       layout: fc.ParamLayout, grid: bool, out: _Graph
+                       ) -> tuple[list[MissionPart], list[Start | None], list[list[Start]]]:
+        """Each mission's knots, parameter segments and starting states (the closed-form
+        starts, the dynamics' scale searched on ``grid``), with its first-knot prior and
+        surface constraint; its starts, best first."""
+        s = self.settings
+        parts: list[MissionPart] = []
+        nf = 0
+        walk = s.walk_sigma and "variable" in layout.names
+        guesses: list[Start | None] = []
+        all_starts: list[list[Start]] = []
         cur_sig = current_prior(s.prior_sigma)
         for mi, (m, model) in enumerate(zip(missions, models)):
             knots = knot_times(m, s.knot_spacing)
@@ -245,17 +267,20 @@ class BatchSmoother:
             guesses.append(guess)
             all_starts.append(starts)
             for k, x in zip(keys, X0):
-                values.insert(k, x)
-            add_linear(first_knot_term(m, keys[0], X0[0], s))
+                out.values.insert(k, x)
+            out.add_linear(first_knot_term(m, keys[0], X0[0], s))
             if m.planar:
                 for k in keys:
-                    add_linear(fc.surface_term(k, *s.surface_sigma))
+                    out.add_linear(fc.surface_term(k, *s.surface_sigma))
             parts.append(MissionPart(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
             nf += K
-        cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
-                                 np.zeros((nf, 6, len(models[0].dyn_columns()))))
-        # parameter nodes (started from the data-driven guess where the user gave no
-        # initial value), priors (around the user's / nominal values), random walk
+        return parts, guesses, all_starts
+
+    def _param_nodes(self, layout: fc.ParamLayout, parts: list[MissionPart],
+                     guesses: list[Start | None], search: bool, fixed_prior: bool, out: _Graph
+                     ) -> list[ParamNode]:
+        """The parameter nodes, their starting values, priors and random walk."""
+        s = self.settings
         node_list = []
         if "fixed" in layout.names:
             k = fc.node_key("fixed")
@@ -269,9 +294,9 @@ class BatchSmoother:
             elif found and "k" in names and "k" not in self.init and "k_x" not in self.init:
                 rho2 = float(np.median([g.rho for g in found])) ** 2
                 f0[names.index("k")] *= rho2     # steady speed ~ sqrt(k / k_x)
-            values.insert(k, layout.project("fixed", f0))
+            out.values.insert(k, layout.project("fixed", f0))
             if fixed_prior:
-                add_linear(fc.param_prior_term(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
+                out.add_linear(fc.param_prior_term(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
             node_list.append(ParamNode("fixed", k, None))
         for part in parts:
             if "variable" in layout.names:
@@ -285,22 +310,29 @@ class BatchSmoother:
                 v0 = layout.project("variable", v0)
                 for j in range(len(part.seg_starts)):
                     k = fc.node_key("variable", part.index, j)
-                    values.insert(k, v0)
+                    out.values.insert(k, v0)
                     node_list.append(ParamNode("variable", k, part.index))
                     if j == 0:
-                        add_linear(fc.param_prior_term(layout, "variable", k, s.prior_scale,
-                                                       sigma=s.prior_sigma))
+                        out.add_linear(fc.param_prior_term(layout, "variable", k, s.prior_scale,
+                                                           sigma=s.prior_sigma))
                     else:
                         sig = np.array([(s.walk_sigma or {}).get(n, 0.0)
                                         for n in layout.names["variable"]])
-                        add_linear(fc.walk_term(layout, fc.node_key("variable", part.index, j - 1),
-                                                k, np.maximum(sig, 1e-9), s.walk_segment))
+                        k_prev = fc.node_key("variable", part.index, j - 1)
+                        out.add_linear(fc.walk_term(layout, k_prev, k, np.maximum(sig, 1e-9),
+                                                    s.walk_segment))
             if "sensor" in layout.names:
                 k = fc.node_key("sensor", part.index)
-                values.insert(k, layout.initial("sensor"))
-                add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
+                out.values.insert(k, layout.initial("sensor"))
+                out.add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
                 node_list.append(ParamNode("sensor", k, part.index))
-        # dynamics and measurement factors
+        return node_list
+
+    def _model_factors(self, layout: fc.ParamLayout, parts: list[MissionPart],
+                       cache: fc.DynamicsCache, graph: gtsam.NonlinearFactorGraph) -> None:
+        """The dynamics factors (reading ``cache``) and the measurement factors."""
+        s = self.settings
+        noise_cache: dict = {}
         dyn_groups = layout.dyn_groups()
         for part in parts:
             mi = part.index
@@ -338,7 +370,6 @@ class BatchSmoother:
                 return part.keys[i]
             for f in measurement_factors(part.model, layout, meas, part.knots, knot_key, mkeys, s):
                 graph.add(f)
-        return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts, linear)
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:

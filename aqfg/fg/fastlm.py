@@ -115,7 +115,6 @@ class FastSystem:
     @classmethod
     def build(cls, bg, settings) -> FastSystem | None:
         """The numpy form of ``bg``, or None when the graph is not of the supported shape."""
-        from aqfg.fg.common import Measurements, depth_assignment, knot_index
         lay = bg.layout
         sn = settings.sensors
         if sn.robust not in ("huber", "none"):
@@ -160,29 +159,7 @@ class FastSystem:
         self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
         self.ncols = ncols
         # ---- measurements
-        meas: list[_Meas] = []
-        for pi, part in enumerate(bg.parts):
-            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
-            off = self.part_off[pi]
-
-            def k_of(stream):
-                if sn.robust == "none" or stream not in sn.robust_on:
-                    return None
-                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
-            if len(m.gnss_t):
-                ki = off + knot_index(part.knots, m.gnss_t)
-                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
-                                  k_of("gnss")))
-            if len(m.usbl_t):
-                ki = off + knot_index(part.knots, m.usbl_t)
-                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
-                                  np.asarray(m.station, float)))
-            ri, ki = depth_assignment(part.knots, m.depth_t)
-            if len(ri):
-                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
-                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
-                                  m.depth_t[ri] - part.knots[ki]))
-        self.meas = meas
+        self.meas = meas = self._measurements(settings)
         n_meas = sum(len(x.idx) for x in meas)
         # ---- the graph's linear factors, from their numpy form; every factor accounted for
         factors = [f for f in (bg.graph.at(i) for i in range(bg.graph.size())) if f is not None]
@@ -212,6 +189,34 @@ class FastSystem:
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         return self
+
+    def _measurements(self, settings) -> list[_Meas]:
+        """The GNSS, USBL and depth factors of every mission part, by kind."""
+        from aqfg.fg.common import Measurements, depth_assignment, knot_index
+        sn = settings.sensors
+        meas: list[_Meas] = []
+        for pi, part in enumerate(self.bg.parts):
+            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
+            off = self.part_off[pi]
+
+            def k_of(stream):
+                if sn.robust == "none" or stream not in sn.robust_on:
+                    return None
+                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
+            if len(m.gnss_t):
+                ki = off + knot_index(part.knots, m.gnss_t)
+                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
+                                  k_of("gnss")))
+            if len(m.usbl_t):
+                ki = off + knot_index(part.knots, m.usbl_t)
+                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
+                                  np.asarray(m.station, float)))
+            ri, ki = depth_assignment(part.knots, m.depth_t)
+            if len(ri):
+                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
+                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
+                                  m.depth_t[ri] - part.knots[ki]))
+        return meas
 
     def _linear_terms(self, terms: Sequence[fc.LinearTerm]) -> bool:
         """The whitened ``A`` and ``b`` of the linear factors on one state each (grouped by
