@@ -1,5 +1,5 @@
 """The one Levenberg-Marquardt loop (aqfg.fg.lm), the Huber loss (aqfg.fg.robust) and the
-fleet's rounds handed out by a generator (aqfg.fg.schur.joint_lm)."""
+fleet's rounds handed out by a generator (aqfg.fg.schur.joint_lm, aqfg.fg.rounds)."""
 from __future__ import annotations
 
 import threading
@@ -94,7 +94,7 @@ def test_huber_is_gtsams(k):
 
 
 def _lm_threads():
-    return [t for t in threading.enumerate() if t.name == "aqfg-joint-lm"]
+    return [t for t in threading.enumerate() if t.name == "aqfg-rounds"]
 
 
 def test_joint_lm_generator_closed_mid_run_stops_its_loop():

@@ -24,8 +24,6 @@ the rest of the problem holds on ``f`` (:meth:`MissionProblem.result`).
 """
 from __future__ import annotations
 
-import queue
-import threading
 import time
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
@@ -47,6 +45,7 @@ from aqfg.fg.batch import (
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.covariance import honest_covariance, sigma_inflation
 from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.rounds import as_rounds
 from aqfg.result import Result
 
 FIXED = fc.node_key("fixed")
@@ -564,56 +563,15 @@ def run_joint(n: int, settings: FGSettings, ask: Callable[[list[Request]], list[
                     converged, float(total.cost), history, rounds, system.recovered, cov_model_f)
 
 
-class _Closed(BaseException):
-    """The generator handing out a loop's rounds was closed: the loop stops."""
-
-
-def _rounds(run: Callable[[Callable[[list[Request]], list[dict]]], Solution]
-            ) -> Generator[list[Request], list[dict], Solution]:
-    """``run(ask)`` in a helper thread, each of its ``ask(requests) -> replies`` a round of
-    this generator: it yields the requests and is sent the replies; it returns what
-    ``run`` returns (and raises what it raises). One side runs at a time."""
-    out_q: queue.Queue = queue.Queue()
-    in_q: queue.Queue = queue.Queue()
-
-    def ask(reqs: list[Request]) -> list[dict]:
-        out_q.put(("ask", reqs))
-        reps = in_q.get()
-        if reps is _Closed:
-            raise _Closed
-        return reps
-
-    def main() -> None:
-        try:
-            out_q.put(("done", run(ask)))
-        except _Closed:
-            pass
-        except BaseException as e:              # re-raised by the generator
-            out_q.put(("error", e))
-
-    th = threading.Thread(target=main, name="aqfg-joint-lm", daemon=True)
-    th.start()
-    try:
-        while True:
-            kind, v = out_q.get()
-            if kind == "done":
-                return v
-            if kind == "error":
-                raise v
-            in_q.put((yield v))
-    finally:
-        if th.is_alive():
-            in_q.put(_Closed)
-        th.join()
-
-
 def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | None = None
              ) -> Generator[list[Request], list[dict], Solution]:
     """:func:`run_joint` as a generator: it yields a list of ``n`` requests ``(op, args)``
     (one per mission, for :meth:`MissionSession.handle`) and is sent the list of replies;
     it returns the :class:`Solution`. The rounds of several vehicles can so be served
     together (:mod:`aqfg.fleet`)."""
-    return (yield from _rounds(lambda ask: run_joint(n, settings, ask, progress)))
+    def run(ask: Callable[[list[Request]], list[dict]]) -> Solution:
+        return run_joint(n, settings, ask, progress)
+    return (yield from as_rounds(run))
 def combine(sol: Solution, timings: dict | None = None) -> Result:
     """One :class:`Result` for the vehicle, shaped as :meth:`BatchSmoother.run`'s: the
     fixed node's values and sigma, the first mission's variable/sensor values, every
