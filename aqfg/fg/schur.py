@@ -540,7 +540,7 @@ def run_joint(n: int, settings: FGSettings, ask: Callable[[list[Request]], list[
         out = levenberg_marquardt(system, x, params, report)
         x = out.x
         iterations, converged, history = out.iterations, out.converged, out.history
-    else:                                   # nothing shared: the missions' own fits
+    else:       # no fixed parameter estimated: no iteration, the missions at their start
         iterations, converged = 0, True
         history = [(0, system.cost(x), params.lambda_initial)]
     trials = system.trials
@@ -572,6 +572,8 @@ def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | Non
     def run(ask: Callable[[list[Request]], list[dict]]) -> Solution:
         return run_joint(n, settings, ask, progress)
     return (yield from as_rounds(run))
+
+
 def combine(sol: Solution, timings: dict | None = None) -> Result:
     """One :class:`Result` for the vehicle, shaped as :meth:`BatchSmoother.run`'s: the
     fixed node's values and sigma, the first mission's variable/sensor values, every
