@@ -149,6 +149,25 @@ def test_held_parameters_and_the_states_evidence(missions):
     assert parts4[1] == pytest.approx(want, rel=1e-9)
 
 
+def test_held_parameter_stays_when_another_meets_its_bound(missions):
+    """A parameter held (``hold_params``, as the heading profile holds theta_e) keeps its
+    value when the step of the free ones crosses their bounds and is re-solved with them
+    at the bound."""
+    st = FGSettings()
+    bg = BatchSmoother(settings=st).build(missions)
+    fs = FastSystem.build(bg, st)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    # every free parameter boxed tightly around its start: any step crosses a bound
+    fs.lo, fs.hi = th - 1e-6, th + 1e-6
+    fs.lo[0], fs.hi[0] = -np.inf, np.inf
+    X1, th1, *_ = levenberg_marquardt_fast(fs, None, st, start=(X, th), hold_params=[0],
+                                           max_iterations=3)
+    assert th1[0] == th[0]
+    assert np.all(np.abs(th1 - th) <= 1e-6 + 1e-15)
+    assert np.any(th1 != th)                                     # the free ones moved
+
+
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
     b = fit_fg(missions, settings=FGSettings(fast_lm=False))

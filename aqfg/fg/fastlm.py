@@ -659,8 +659,9 @@ class FastLM:
             new = th + dth
             hit = (new < fs.lo) | (new > fs.hi)
             if np.any(hit):
-                fix = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
-                       for j in np.flatnonzero(hit)}
+                fix = {**(self.held or {}),
+                       **{int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
+                          for j in np.flatnonzero(hit)}}
                 dX, dth = fs.solve(fac, gs, gp, fix)
         except ValueError as e:              # a non-finite or not positive definite system
             raise np.linalg.LinAlgError(str(e)) from e
