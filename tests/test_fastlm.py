@@ -149,6 +149,25 @@ def test_held_parameters_and_the_states_evidence(missions):
     assert parts4[1] == pytest.approx(want, rel=1e-9)
 
 
+def test_held_parameter_stays_when_another_meets_its_bound(missions):
+    """A parameter held (``hold_params``, as the heading profile holds theta_e) keeps its
+    value when the step of the free ones crosses their bounds and is re-solved with them
+    at the bound."""
+    st = FGSettings()
+    bg = BatchSmoother(settings=st).build(missions)
+    fs = FastSystem.build(bg, st)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    # every free parameter boxed tightly around its start: any step crosses a bound
+    fs.lo, fs.hi = th - 1e-6, th + 1e-6
+    fs.lo[0], fs.hi[0] = -np.inf, np.inf
+    X1, th1, *_ = levenberg_marquardt_fast(fs, None, st, start=(X, th), hold_params=[0],
+                                           max_iterations=3)
+    assert th1[0] == th[0]
+    assert np.all(np.abs(th1 - th) <= 1e-6 + 1e-15)
+    assert np.any(th1 != th)                                     # the free ones moved
+
+
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
     b = fit_fg(missions, settings=FGSettings(fast_lm=False))
@@ -165,3 +184,23 @@ def test_measurement_effects_keep_the_gtsam_path(missions):
                        estimate=("theta_e", "s_x", "s_y", "lever_arm.x", "lever_arm.y"))
     bg = sm.build(missions[:1])
     assert FastSystem.build(bg, sm.settings) is None
+
+
+def test_linear_terms_are_the_graphs_linear_factors(missions):
+    """The numpy form of the priors, surface constraint and random walk is what GTSAM's
+    factors linearise to (whitened A, b at zero) and evaluate to (whitened error)."""
+    s = FGSettings(walk_sigma={"theta_e": 1e-8, "s_x": 0.003, "s_y": 0.003}, walk_segment=40.0)
+    bg = BatchSmoother(settings=s).build(missions)
+    rng = np.random.default_rng(1)
+    assert {t.kind for t in bg.linear} == {"prior", "linear", "between"}
+    for t in bg.linear:
+        f = t.factor()
+        zero, at, x = gtsam.Values(), gtsam.Values(), {}
+        for k, J in zip(t.keys, t.J):
+            x[k] = 3.0 * rng.normal(size=J.shape[1])
+            zero.insert(k, np.zeros(J.shape[1]))
+            at.insert(k, x[k])
+        A, b = f.linearize(zero).jacobian()
+        assert np.array_equal(A, np.hstack(t.whitened_jacobians()))
+        assert b == pytest.approx(t.mean / t.sigma, rel=1e-15, abs=0.0)
+        assert f.error(at) == pytest.approx(0.5 * np.sum(t.whitened_residual(x) ** 2), rel=1e-12)

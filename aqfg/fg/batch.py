@@ -29,13 +29,13 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
-from aqfg.fg import noise, observability, plausibility
+from aqfg.fg import lm, noise, observability, plausibility
 from aqfg.fg.common import (
     FGSettings,
     Measurements,
     check_missions,
     default_estimate,
-    first_knot_prior,
+    first_knot_term,
     initial_states,
     knot_times,
     measurement_factors,
@@ -85,13 +85,26 @@ class ParamNode(NamedTuple):
 
 
 @dataclass
+class _Graph:
+    """A graph being built: its factors, initial values and linear factors' numpy form."""
+    graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    linear: list[fc.LinearTerm] = field(default_factory=list)
+
+    def add_linear(self, term: fc.LinearTerm) -> None:
+        self.linear.append(term)
+        self.graph.add(term.factor())
+
+
+@dataclass
 class BuiltGraph:
     """The batch graph of a set of missions, ready to be linearised at any ``Values``.
 
     ``graph`` holds every factor; the dynamics factors read their prediction and Jacobians
     from ``cache``, which :meth:`fill` evaluates for given values (one kernel call per
     mission and parameter segment), so always go through :meth:`error` / :meth:`linearize`.
-    ``values`` holds the initial values the build chose.
+    ``values`` holds the initial values the build chose; ``linear`` the graph's linear
+    factors (priors, surface constraint, random walk) in numpy, in the graph's order.
     """
     layout: fc.ParamLayout
     graph: gtsam.NonlinearFactorGraph
@@ -100,6 +113,7 @@ class BuiltGraph:
     cache: fc.DynamicsCache
     nodes: list[ParamNode]
     starts: list[list[Start]] = field(default_factory=list)   # per mission, best first
+    linear: list[fc.LinearTerm] = field(default_factory=list)
 
     def fill(self, values: gtsam.Values) -> None:
         """Evaluate the dynamics of every interval at ``values`` into the cache."""
@@ -191,22 +205,37 @@ class BatchSmoother:
         ``fixed_prior=False`` leaves out the prior on the shared fixed node, for a caller
         that builds missions apart and must count that prior once (:mod:`aqfg.fg.schur`).
         """
-        s = self.settings
         models = [mission_model(self.model, m, self.effects) for m in missions]
         est = self.estimate if self.estimate is not None else default_estimate(models[0], "batch")
         layout = fc.ParamLayout.build(models[0], est, self.init)
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        parts: list[MissionPart] = []
-        noise_cache: dict = {}
-        nf = 0
-        walk = s.walk_sigma and "variable" in layout.names
-        guesses: list[Start | None] = []
-        all_starts: list[list[Start]] = []
+        out = _Graph()
         # search the dynamics' scale only when all three constants are free
         free = set(layout.names.get("fixed", ()))
         grid = {"k", "k_x", "k_yz"} <= free
         search = grid and not ({"k", "k_x", "k_yz"} & set(self.init))
+        parts, guesses, all_starts = self._mission_parts(missions, models, layout, grid, out)
+        nf = sum(len(p.knots) - 1 for p in parts)
+        cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
+                                 np.zeros((nf, 6, len(models[0].dyn_columns()))))
+        # parameter nodes (started from the data-driven guess where the user gave no
+        # initial value), priors (around the user's / nominal values), random walk
+        node_list = self._param_nodes(layout, parts, guesses, search, fixed_prior, out)
+        self._model_factors(layout, parts, cache, out.graph)
+        return BuiltGraph(layout, out.graph, out.values, parts, cache, node_list, all_starts,
+                          out.linear)
+
+    def _mission_parts(self, missions: list[Mission], models: list[Model],
+                       layout: fc.ParamLayout, grid: bool, out: _Graph
+                       ) -> tuple[list[MissionPart], list[Start | None], list[list[Start]]]:
+        """Each mission's knots, parameter segments and starting states (the closed-form
+        starts, the dynamics' scale searched on ``grid``), with its first-knot prior and
+        surface constraint; its starts, best first."""
+        s = self.settings
+        parts: list[MissionPart] = []
+        nf = 0
+        walk = s.walk_sigma and "variable" in layout.names
+        guesses: list[Start | None] = []
+        all_starts: list[list[Start]] = []
         cur_sig = current_prior(s.prior_sigma)
         for mi, (m, model) in enumerate(zip(missions, models)):
             knots = knot_times(m, s.knot_spacing)
@@ -238,17 +267,20 @@ class BatchSmoother:
             guesses.append(guess)
             all_starts.append(starts)
             for k, x in zip(keys, X0):
-                values.insert(k, x)
-            graph.add(first_knot_prior(m, keys[0], X0[0], s))
+                out.values.insert(k, x)
+            out.add_linear(first_knot_term(m, keys[0], X0[0], s))
             if m.planar:
                 for k in keys:
-                    graph.add(fc.surface_factor(k, *s.surface_sigma))
+                    out.add_linear(fc.surface_term(k, *s.surface_sigma))
             parts.append(MissionPart(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
             nf += K
-        cache = fc.DynamicsCache(np.zeros((nf, 6)), np.zeros((nf, 6, 6)),
-                                 np.zeros((nf, 6, len(models[0].dyn_columns()))))
-        # parameter nodes (started from the data-driven guess where the user gave no
-        # initial value), priors (around the user's / nominal values), random walk
+        return parts, guesses, all_starts
+
+    def _param_nodes(self, layout: fc.ParamLayout, parts: list[MissionPart],
+                     guesses: list[Start | None], search: bool, fixed_prior: bool, out: _Graph
+                     ) -> list[ParamNode]:
+        """The parameter nodes, their starting values, priors and random walk."""
+        s = self.settings
         node_list = []
         if "fixed" in layout.names:
             k = fc.node_key("fixed")
@@ -262,9 +294,9 @@ class BatchSmoother:
             elif found and "k" in names and "k" not in self.init and "k_x" not in self.init:
                 rho2 = float(np.median([g.rho for g in found])) ** 2
                 f0[names.index("k")] *= rho2     # steady speed ~ sqrt(k / k_x)
-            values.insert(k, layout.project("fixed", f0))
+            out.values.insert(k, layout.project("fixed", f0))
             if fixed_prior:
-                graph.add(fc.param_prior(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
+                out.add_linear(fc.param_prior_term(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
             node_list.append(ParamNode("fixed", k, None))
         for part in parts:
             if "variable" in layout.names:
@@ -278,21 +310,29 @@ class BatchSmoother:
                 v0 = layout.project("variable", v0)
                 for j in range(len(part.seg_starts)):
                     k = fc.node_key("variable", part.index, j)
-                    values.insert(k, v0)
+                    out.values.insert(k, v0)
                     node_list.append(ParamNode("variable", k, part.index))
                     if j == 0:
-                        graph.add(fc.param_prior(layout, "variable", k, s.prior_scale, sigma=s.prior_sigma))
+                        out.add_linear(fc.param_prior_term(layout, "variable", k, s.prior_scale,
+                                                           sigma=s.prior_sigma))
                     else:
                         sig = np.array([(s.walk_sigma or {}).get(n, 0.0)
                                         for n in layout.names["variable"]])
-                        graph.add(fc.walk_factor(layout, fc.node_key("variable", part.index, j - 1),
-                                                 k, np.maximum(sig, 1e-9), s.walk_segment))
+                        k_prev = fc.node_key("variable", part.index, j - 1)
+                        out.add_linear(fc.walk_term(layout, k_prev, k, np.maximum(sig, 1e-9),
+                                                    s.walk_segment))
             if "sensor" in layout.names:
                 k = fc.node_key("sensor", part.index)
-                values.insert(k, layout.initial("sensor"))
-                graph.add(fc.param_prior(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
+                out.values.insert(k, layout.initial("sensor"))
+                out.add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
                 node_list.append(ParamNode("sensor", k, part.index))
-        # dynamics and measurement factors
+        return node_list
+
+    def _model_factors(self, layout: fc.ParamLayout, parts: list[MissionPart],
+                       cache: fc.DynamicsCache, graph: gtsam.NonlinearFactorGraph) -> None:
+        """The dynamics factors (reading ``cache``) and the measurement factors."""
+        s = self.settings
+        noise_cache: dict = {}
         dyn_groups = layout.dyn_groups()
         for part in parts:
             mi = part.index
@@ -330,7 +370,6 @@ class BatchSmoother:
                 return part.keys[i]
             for f in measurement_factors(part.model, layout, meas, part.knots, knot_key, mkeys, s):
                 graph.add(f)
-        return BuiltGraph(layout, graph, values, parts, cache, node_list, all_starts)
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:
@@ -859,10 +898,68 @@ def _finish_fast(fs: FastSystem, prev: LMOutcome, X: np.ndarray, th: np.ndarray,
                      prev.trials + n_trials, conv, prev.it_times + it_times, ev)
 
 
+class GraphLM:
+    """:class:`aqfg.fg.lm.LMSystem` of a built graph on GTSAM's linearisation: a point is
+    a ``gtsam.Values``. Marquardt's damping on every key, the bounds of the parameter nodes
+    ``bounded`` by an active set (:func:`damped_step`); a candidate is ``project`` of the
+    retracted values. ``pin``: a factor added to every step's system (a node held)."""
+
+    def __init__(self, bg: BuiltGraph, ordering: gtsam.Ordering, bounded, project,
+                 pin: gtsam.JacobianFactor | None = None):
+        self.bg, self.ordering, self.bounded, self.project, self.pin = \
+            bg, ordering, bounded, project, pin
+        self.key_dims = bg.key_dims()
+        self.evaluated: tuple[gtsam.Values | None, float] = (None, np.nan)   # in the cache
+        self.lin_at: gtsam.Values | None = None
+
+    def cost(self, x: gtsam.Values) -> float:
+        """The cost at ``x``; the dynamics cache then holds ``x``."""
+        self.evaluated = (x, self.bg.error(x))
+        return self.evaluated[1]
+
+    def linearize(self, x: gtsam.Values) -> None:
+        if self.evaluated[0] is not x:
+            self.cost(x)
+        self.gfg = self.bg.graph.linearize(x)       # the cache holds the dynamics at x
+        self.lin_at, self.base = x, self.evaluated[1]
+        self.hdiag = hessian_diagonal(self.gfg, self.key_dims)
+        self.system = self.gfg
+        if self.pin is not None:
+            self.system = self.gfg.clone()
+            self.system.add(self.pin)
+
+    def trial(self, x: gtsam.Values, lam: float) -> tuple[gtsam.Values, float, float]:
+        try:
+            delta = damped_step(self.system, self.ordering, self.key_dims, self.hdiag, lam,
+                                self.bg.layout, self.bounded, x)
+        except RuntimeError as e:   # GTSAM's indeterminate system: an ill-conditioned one
+            raise np.linalg.LinAlgError(str(e)) from e
+        cand = self.project(x.retract(delta))
+        return cand, self.cost(cand), self.base
+
+    def settle(self, x: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        """The linearisation at ``x`` (the loop's end), the dynamics cache holding ``x``."""
+        if self.lin_at is not x:
+            self.linearize(x)
+        elif self.evaluated[0] is not x:
+            self.bg.fill(x)
+        return self.gfg
+
+
+def project_nodes(layout: fc.ParamLayout, nodes, values: gtsam.Values) -> gtsam.Values:
+    """``values`` with the parameter ``nodes`` projected onto their bounds (in place)."""
+    for g, k, _ in nodes:
+        v = values.atVector(k)
+        pv = layout.project(g, v)
+        if np.any(pv != v):
+            values.update(k, pv)
+    return values
+
+
 def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,
                         s: FGSettings, progress=None, fs: FastSystem | None = None) -> LMOutcome:
-    """LM driven from Python (GTSAM's optimizers copy all Values into every CustomFactor
-    call): Marquardt's diagonal damping, an active set for the parameter bounds, and the
+    """:func:`aqfg.fg.lm.levenberg_marquardt` of the graph driven from Python (GTSAM's
+    optimizers copy all Values into every CustomFactor call, :class:`GraphLM`), the
     stopping rule of :class:`FGSettings` (an accepted step lowering the cost by less than
     ``max(rel_tol x cost, abs_tol)``). With ``fs`` the same algorithm runs on the numpy
     form of the graph (:mod:`aqfg.fg.fastlm`); ``gfg`` is then None."""
@@ -873,57 +970,12 @@ def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Or
                          it_times, ev)
     if ordering is None:
         ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-    layout, node_list, all_keys = bg.layout, bg.nodes, bg.key_dims()
-
-    def project(vals):
-        for g, k, _ in node_list:
-            v = vals.atVector(k)
-            pv = layout.project(g, v)
-            if np.any(pv != v):
-                vals.update(k, pv)
-        return vals
-
-    err = bg.error(values)
-    gfg = bg.graph.linearize(values)
-    lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
-    converged = False
-    for it in range(s.max_iterations):
-        t_it = time.perf_counter()
-        hdiag = hessian_diagonal(gfg, all_keys)
-        accepted = False
-        while lam < 1e10:
-            n_trials += 1
-            try:
-                delta = damped_step(gfg, ordering, all_keys, hdiag, lam, layout, node_list,
-                                    values)
-            except RuntimeError:
-                # an ill-conditioned damped system (GTSAM's indeterminate-system error):
-                # more damping makes it better posed
-                lam *= 10.0
-                continue
-            cand = project(values.retract(delta))
-            err_c = bg.error(cand)
-            if np.isfinite(err_c) and err_c <= err:
-                accepted = True
-                break
-            lam *= 10.0
-        n_it += 1
-        if not accepted:
-            bg.fill(values)
-            converged = True            # no step lowers the cost: a (local) minimum
-            break
-        gain = err - err_c
-        values, err = cand, err_c
-        lam = max(lam / 10.0, 1e-9)
-        gfg = bg.graph.linearize(values)       # cache holds the dynamics at `values`
-        it_times.append(time.perf_counter() - t_it)
-        if progress is not None:
-            progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
-                     f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
-        if gain < max(s.rel_tol * err, s.abs_tol):
-            converged = True
-            break
-    return LMOutcome(values, float(err), gfg, n_it, n_trials, converged, it_times)
+    system = GraphLM(bg, ordering, bg.nodes,
+                     lambda vals: project_nodes(bg.layout, bg.nodes, vals))
+    out = lm.levenberg_marquardt(system, values, lm.LMParams.of(s),
+                                 lm.batch_progress(progress, s.max_iterations))
+    return LMOutcome(out.x, out.cost, system.settle(out.x), out.iterations, out.trials,
+                     out.converged, out.it_times)
 
 
 def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:

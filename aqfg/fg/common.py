@@ -357,7 +357,8 @@ def initial_states(mission: Mission, knots: np.ndarray) -> np.ndarray:
     return X
 
 
-def first_knot_prior(mission: Mission, key: int, x0: np.ndarray, settings: FGSettings):
+def first_knot_term(mission: Mission, key: int, x0: np.ndarray, settings: FGSettings
+                    ) -> fc.LinearTerm:
     """Prior at the first knot: around the first fix, velocity zero (paper §II-E5)."""
     s = settings
     vert = s.surface_sigma if mission.planar else (max(s.init_pos_sigma, 1.0), s.init_vel_sigma)
@@ -367,7 +368,12 @@ def first_knot_prior(mission: Mission, key: int, x0: np.ndarray, settings: FGSet
     mean[3:] = 0.0
     if mission.planar:
         mean[2] = 0.0
-    return gtsam.PriorFactorVector(key, mean, gtsam.noiseModel.Diagonal.Sigmas(sig))
+    return fc.prior_term(key, mean, sig)
+
+
+def first_knot_prior(mission: Mission, key: int, x0: np.ndarray, settings: FGSettings):
+    """:func:`first_knot_term` as a factor."""
+    return first_knot_term(mission, key, x0, settings).factor()
 
 
 # ---------------------------------------------------------------- measurements of a mission

@@ -23,6 +23,7 @@ stays.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +32,7 @@ from scipy.stats import chi2
 
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.reference import Steps
 from aqfg.model.retrace import fixes, inertial_track
@@ -96,12 +98,81 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
 
 
 def _huber(r: np.ndarray, c: float) -> float:
-    a = np.abs(r)
-    return float(np.sum(np.where(a <= c, 0.5 * a ** 2, c * (a - 0.5 * c))))
+    return float(np.sum(huber_cost(np.abs(r), c)))
+
+
+def _to_x(v: np.ndarray, logs: np.ndarray) -> np.ndarray:
+    """Constants to the fit's variables (the ``logs`` ones by their logarithm)."""
+    return np.where(logs, np.log(np.maximum(v, 1e-12)), v)
+
+
+def _to_v(x: np.ndarray, logs: np.ndarray) -> np.ndarray:
+    return np.where(logs, np.exp(np.clip(x, -300.0, 300.0)), x)
 
 
 def _rms(q: np.ndarray) -> float:
     return float(np.sqrt(np.mean(q ** 2)))
+
+
+def _huber_fit(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, r0: np.ndarray,
+               lo: np.ndarray, hi: np.ndarray, both: np.ndarray, scale: float
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The constants ``x`` minimising the Huber cost of the prediction errors from ``x0``
+    (residuals ``r0``, robust scale ``scale``), refitted once where the scale at the fit
+    differs by more than 20 %: ``(x, residuals, scale)``."""
+    # start: the smoother's constants with thrust and surge drag (``both``) scaled together
+    # (the same top speed, a faster response), the best of a coarse grid by the Huber cost;
+    # the smoother's are sluggish where the model is not the vehicle (10-30x on the Otter)
+    if both.sum() == 2:
+        best = (_huber(r0, HUBER_C * scale), x0)
+        for f in (3.0, 10.0, 30.0):
+            xs = np.clip(x0 + np.where(both, np.log(f), 0.0), lo + 1e-9, hi - 1e-9)
+            cost = _huber(residuals(xs), HUBER_C * scale)
+            if cost < best[0]:
+                best = (cost, xs)
+        x0 = best[1]
+
+    def huber_fit(x_start, scale):
+        return least_squares(residuals, x_start, bounds=(lo, hi), loss="huber",
+                             f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8,
+                             max_nfev=100)
+    sol = huber_fit(x0, scale)
+    r1 = residuals(sol.x)
+    s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
+    if abs(s1 / scale - 1.0) > 0.2:
+        scale = s1
+        sol = huber_fit(sol.x, scale)
+        r1 = residuals(sol.x)
+    return sol.x, r1, scale
+
+
+def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r: np.ndarray,
+                 c_h: float, segs: list, blocks: set, horizon: float):
+    """At the fit ``x`` (residuals ``r``, Huber threshold ``c_h``): the weighted
+    Gauss-Newton information ``A`` (Jacobian by forward differences), the per-block score
+    outer products ``B`` (segments grouped by mission and start time, Bartlett lag 1
+    within a mission), the Huber weights and the sorted block keys."""
+    J = np.empty((len(r), len(x)))
+    for c in range(len(x)):
+        h = 1e-5 * max(1.0, abs(x[c]))
+        e = np.zeros(len(x)); e[c] = h
+        J[:, c] = (residuals(x + e) - r) / h
+    w = huber_weight(np.abs(r), c_h)
+    A = (J * w[:, None]).T @ J
+    seg_rows = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
+    g_seg = np.zeros((len(segs), len(x)))
+    np.add.at(g_seg, seg_rows, J * (w * r)[:, None])
+    keys = sorted(blocks)
+    kpos = {k: j for j, k in enumerate(keys)}
+    G = np.zeros((len(keys), len(x)))
+    for s, g in zip(segs, g_seg):
+        G[kpos[(s.mission, int(s.t0 // horizon))]] += g
+    B = G.T @ G
+    for j in range(len(keys) - 1):          # Bartlett lag 1 within a mission
+        if keys[j][0] == keys[j + 1][0] and keys[j + 1][1] == keys[j][1] + 1:
+            C = np.outer(G[j], G[j + 1])
+            B += 0.5 * (C + C.T)
+    return A, B, w, keys
 
 
 def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
@@ -129,14 +200,8 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     specs = [model.spec(n) for n in names]
     p_missions = [mr.p.copy() for mr in result.missions]
 
-    def to_x(v: np.ndarray) -> np.ndarray:
-        return np.where(logs, np.log(np.maximum(v, 1e-12)), v)
-
-    def to_v(x: np.ndarray) -> np.ndarray:
-        return np.where(logs, np.exp(np.clip(x, -300.0, 300.0)), x)
-
     def residuals(x: np.ndarray) -> np.ndarray:
-        v = to_v(x)
+        v = _to_v(x, logs)
         out = []
         for s in segs:
             p = p_missions[s.mission].copy()
@@ -149,80 +214,24 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     lo = np.array([np.log(max(sp.lower, 1e-12)) if lg else sp.lower for sp, lg in zip(specs, logs)])
     hi = np.array([np.log(sp.upper) if lg and np.isfinite(sp.upper) else
                    (np.inf if lg else sp.upper) for sp, lg in zip(specs, logs)])
-    x_fg = to_x(np.array([result.values[n] for n in names]))
+    x_fg = _to_x(np.array([result.values[n] for n in names]), logs)
     x0 = np.clip(x_fg, lo + 1e-9, hi - 1e-9)
     r0 = residuals(x0)
     scale = max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
-    # start: the smoother's constants with thrust and surge drag scaled together (the same
-    # top speed, a faster response), the best of a coarse grid by the Huber cost; the
-    # smoother's are sluggish where the model is not the vehicle (10-30x on the Otter)
     both = np.array([n in ("k", "k_x") for n in names]) & logs
-    if both.sum() == 2:
-        best = (_huber(r0, HUBER_C * scale), x0)
-        for f in (3.0, 10.0, 30.0):
-            xs = np.clip(x0 + np.where(both, np.log(f), 0.0), lo + 1e-9, hi - 1e-9)
-            cost = _huber(residuals(xs), HUBER_C * scale)
-            if cost < best[0]:
-                best = (cost, xs)
-        x0 = best[1]
-    def huber_fit(x_start, scale):
-        return least_squares(residuals, x_start, bounds=(lo, hi), loss="huber",
-                             f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8,
-                             max_nfev=100)
-    sol = huber_fit(x0, scale)
-    r1 = residuals(sol.x)
-    s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
-    if abs(s1 / scale - 1.0) > 0.2:
-        scale = s1
-        sol = huber_fit(sol.x, scale)
-        r1 = residuals(sol.x)
-    x, r = sol.x, r1
-    # Jacobian (forward differences) and Huber weights at the solution
-    J = np.empty((len(r), len(x)))
-    for c in range(len(x)):
-        h = 1e-5 * max(1.0, abs(x[c]))
-        e = np.zeros(len(x)); e[c] = h
-        J[:, c] = (residuals(x + e) - r) / h
-    c_h = HUBER_C * scale
-    w = np.minimum(1.0, c_h / np.maximum(np.abs(r), 1e-300))
-    A = (J * w[:, None]).T @ J
-    # per-block scores: segments grouped by mission and start time
-    seg_rows = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
-    g_seg = np.zeros((len(segs), len(x)))
-    np.add.at(g_seg, seg_rows, J * (w * r)[:, None])
-    keys = sorted(blocks)
-    kpos = {k: j for j, k in enumerate(keys)}
-    G = np.zeros((len(keys), len(x)))
-    for s, g in zip(segs, g_seg):
-        G[kpos[(s.mission, int(s.t0 // horizon))]] += g
-    B = G.T @ G
-    for j in range(len(keys) - 1):          # Bartlett lag 1 within a mission
-        if keys[j][0] == keys[j + 1][0] and keys[j + 1][1] == keys[j][1] + 1:
-            C = np.outer(G[j], G[j + 1])
-            B += 0.5 * (C + C.T)
+    x, r, scale = _huber_fit(residuals, x0, r0, lo, hi, both, scale)
+    A, B, w, keys = _information(residuals, x, r, HUBER_C * scale, segs, blocks, horizon)
     try:
         Ai = np.linalg.inv(A)
     except np.linalg.LinAlgError:
         info["reason"] = "prediction error does not determine the constants"
         return result
-    n_eff = float(np.sum(w))
-    s2 = float(np.sum(w * r ** 2) / max(n_eff - len(x), 1.0))
-    dof = len(keys) - len(x)
-    cov = honest_covariance({0: s2 * Ai}, {0: Ai @ B @ Ai}, dof)[0]
-    d = x - x_fg
-    # the refined covariance alone (Hausman's would subtract the smoother's, smaller
-    # where it is efficient): a false replacement on a vehicle that is the model costs
-    # little (aqfg's simulator: within 2 sigma of the truth), a missed one on a vehicle
-    # that is not costs half its dead-reckoning accuracy (docs/independent-vehicle.md)
-    try:
-        wald = float(d @ np.linalg.solve(cov, d))
-    except np.linalg.LinAlgError:
-        wald = np.inf
+    cov, cov_model, dof, wald = _wald(Ai, B, w, r, x - x_fg, len(keys))
     thr = float(chi2.ppf(1.0 - WALD_ALPHA, len(x)))
-    v_new = to_v(x)
+    v_new = _to_v(x, logs)
     D = np.where(logs, v_new, 1.0)
     sig_new = np.sqrt(np.maximum(np.diag(cov), 0.0)) * D
-    sig_mod = np.sqrt(np.maximum(np.diag(s2 * Ai), 0.0)) * D
+    sig_mod = np.sqrt(np.maximum(np.diag(cov_model), 0.0)) * D
     info.update({"segments": len(segs), "blocks": len(keys), "dof": int(dof),
                  "wald": wald, "wald_threshold": thr,
                  "before": {n: float(result.values[n]) for n in names},
@@ -240,6 +249,15 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
         return result
     info["applied"] = True
     result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
+    _apply(result, missions, model, names, idx, p_missions, v_new, sig_new, sig_mod)
+    return result
+
+
+def _apply(result: Result, missions: list[Mission], model: Model, names: list[str], idx: np.ndarray,
+           p_missions: list[np.ndarray], v_new: np.ndarray, sig_new: np.ndarray,
+           sig_mod: np.ndarray) -> None:
+    """The refined constants ``names`` (at ``idx`` of each mission's parameter vector
+    ``p_missions``) and their sigmas into ``result``, the inertial re-traces redone."""
     for n, v, sg, sm in zip(names, v_new, sig_new, sig_mod):
         result.values[n] = float(v)
         result.sigma[n] = float(sg)
@@ -249,4 +267,24 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
         mr.p = p_missions[i].copy()
         mr.p[idx] = v_new
         mr.inertial = inertial_track(model, missions[i], mr.p)
-    return result
+
+
+def _wald(Ai: np.ndarray, B: np.ndarray, w: np.ndarray, r: np.ndarray, d: np.ndarray,
+          n_blocks: int) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """The refined constants' covariance (sandwich-inflated, :func:`honest_covariance`),
+    the model's ``s^2 A^-1``, the blocks' degrees of freedom and the Wald statistic of
+    their move ``d`` from the smoother's, from ``A^-1`` (``Ai``), the block scores' ``B``,
+    the Huber weights ``w`` and the residuals ``r``."""
+    n_eff = float(np.sum(w))
+    s2 = float(np.sum(w * r ** 2) / max(n_eff - len(d), 1.0))
+    dof = n_blocks - len(d)
+    cov = honest_covariance({0: s2 * Ai}, {0: Ai @ B @ Ai}, dof)[0]
+    # the refined covariance alone (Hausman's would subtract the smoother's, smaller
+    # where it is efficient): a false replacement on a vehicle that is the model costs
+    # little (aqfg's simulator: within 2 sigma of the truth), a missed one on a vehicle
+    # that is not costs half its dead-reckoning accuracy (docs/independent-vehicle.md)
+    try:
+        wald = float(d @ np.linalg.solve(cov, d))
+    except np.linalg.LinAlgError:
+        wald = np.inf
+    return cov, s2 * Ai, dof, wald

@@ -433,41 +433,102 @@ def depth_factor(kx: int, z: float, dt: float, noise) -> gtsam.CustomFactor:
     return _meas_factor(lambda x, nd: depth_residual(x, z, dt), kx, (), noise)
 
 
+@dataclass(frozen=True)
+class LinearTerm:
+    """A linear factor in numpy: whitened residual ``(sum_k J_k x_k - mean) / sigma`` over
+    the variables ``keys`` (the sum formed before the whitening, as GTSAM's factors do: a
+    random walk held by a sigma of 1e-8 needs the difference of the values).
+
+    ``kind`` is its GTSAM form (:meth:`factor`): "prior" (``PriorFactorVector``, J = I),
+    "between" (``BetweenFactorVector`` of ``x1 - x0``, J = (-I, I)) or "linear" (a
+    ``LinearContainerFactor`` of one key's ``J``)."""
+    kind: str
+    keys: tuple[int, ...]
+    J: tuple[np.ndarray, ...]
+    mean: np.ndarray
+    sigma: np.ndarray
+
+    def factor(self) -> gtsam.NonlinearFactor:
+        """The term as a factor of a GTSAM graph."""
+        nm = gtsam.noiseModel.Diagonal.Sigmas(self.sigma)
+        if self.kind == "prior":
+            return gtsam.PriorFactorVector(self.keys[0], self.mean, nm)
+        if self.kind == "between":
+            return gtsam.BetweenFactorVector(self.keys[0], self.keys[1], self.mean, nm)
+        jf = gtsam.JacobianFactor(self.keys[0], self.J[0], self.mean, nm)
+        lp = gtsam.Values()
+        lp.insert(self.keys[0], np.zeros(self.J[0].shape[1]))
+        return gtsam.LinearContainerFactor(jf, lp)
+
+    def whitened_jacobians(self) -> list[np.ndarray]:
+        """``J_k / sigma`` (rows scaled by ``1 / sigma``, as GTSAM whitens)."""
+        inv = 1.0 / self.sigma
+        return [J * inv[:, None] for J in self.J]
+
+    def whitened_residual(self, x: Mapping[int, np.ndarray]) -> np.ndarray:
+        """The whitened residual at the variables' values ``x`` (by key)."""
+        total = sum(J @ x[k] for k, J in zip(self.keys, self.J))
+        return (total - self.mean) * (1.0 / self.sigma)
+
+
+def prior_term(key: int, mean: np.ndarray, sigma: np.ndarray) -> LinearTerm:
+    """``x ~ N(mean, diag(sigma^2))``."""
+    mean = np.asarray(mean, float)
+    return LinearTerm("prior", (key,), (np.eye(len(mean)),), mean, np.asarray(sigma, float))
+
+
 _SURFACE_A = np.zeros((2, 6))
 _SURFACE_A[0, 2] = _SURFACE_A[1, 5] = 1.0
 
 
-def surface_factor(kx: int, sigma_down: float = 0.01, sigma_vd: float = 0.01):
-    """A surface vehicle stays on the surface: ``down = 0``, ``vd = 0`` (m, m/s).
+def surface_term(kx: int, sigma_down: float = 0.01, sigma_vd: float = 0.01) -> LinearTerm:
+    """A surface vehicle stays on the surface: ``down = 0``, ``vd = 0`` (m, m/s)."""
+    return LinearTerm("linear", (kx,), (_SURFACE_A,), np.zeros(2),
+                      np.array([sigma_down, sigma_vd]))
 
-    Linear, so it is a native ``LinearContainerFactor`` (no Python callback)."""
-    jf = gtsam.JacobianFactor(kx, _SURFACE_A, np.zeros(2),
-                              gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_down, sigma_vd])))
-    lp = gtsam.Values()
-    lp.insert(kx, np.zeros(6))
-    return gtsam.LinearContainerFactor(jf, lp)
+
+def surface_factor(kx: int, sigma_down: float = 0.01, sigma_vd: float = 0.01):
+    """:func:`surface_term` as a factor. Linear, so it is a native ``LinearContainerFactor``
+    (no Python callback)."""
+    return surface_term(kx, sigma_down, sigma_vd).factor()
 
 
 # ---------------------------------------------------------------- parameter priors and bounds
-def param_prior(layout: ParamLayout, group: str, key: int, scale: float,
-                mean: np.ndarray | None = None, sigma: Mapping[str, float] | None = None
-                ) -> gtsam.PriorFactorVector:
+def param_prior_term(layout: ParamLayout, group: str, key: int, scale: float,
+                     mean: np.ndarray | None = None, sigma: Mapping[str, float] | None = None
+                     ) -> LinearTerm:
     """Weak prior on a node: mean = initial values, sigma = ``sigma[name]`` if given, else
     ``scale`` x ParamSpec.scale."""
     sigma = sigma or {}
     sig = np.array([sigma.get(n, scale * layout.model.spec(n).scale)
                     for n in layout.names[group]])
-    m = layout.initial(group) if mean is None else mean
-    return gtsam.PriorFactorVector(key, m, gtsam.noiseModel.Diagonal.Sigmas(sig))
+    return prior_term(key, layout.initial(group) if mean is None else mean, sig)
+
+
+def param_prior(layout: ParamLayout, group: str, key: int, scale: float,
+                mean: np.ndarray | None = None, sigma: Mapping[str, float] | None = None
+                ) -> gtsam.PriorFactorVector:
+    """:func:`param_prior_term` as a factor."""
+    f = param_prior_term(layout, group, key, scale, mean, sigma).factor()
+    assert isinstance(f, gtsam.PriorFactorVector)
+    return f
+
+
+def walk_term(layout: ParamLayout, k0: int, k1: int, sigma: np.ndarray, dt: float
+              ) -> LinearTerm:
+    """Random walk of the variable parameters between consecutive time segments:
+    ``v1 - v0 ~ N(0, diag(sigma^2 dt))``, sigma in units per sqrt(s)."""
+    sig = np.maximum(np.asarray(sigma, float) * np.sqrt(dt), 1e-12)
+    eye = np.eye(len(sig))
+    return LinearTerm("between", (k0, k1), (-eye, eye), np.zeros(len(sig)), sig)
 
 
 def walk_factor(layout: ParamLayout, k0: int, k1: int, sigma: np.ndarray,
                 dt: float) -> gtsam.BetweenFactorVector:
-    """Random walk of the variable parameters between consecutive time segments:
-    ``v1 - v0 ~ N(0, diag(sigma^2 dt))``, sigma in units per sqrt(s)."""
-    sig = np.maximum(np.asarray(sigma, float) * np.sqrt(dt), 1e-12)
-    return gtsam.BetweenFactorVector(k0, k1, np.zeros(len(sig)),
-                                     gtsam.noiseModel.Diagonal.Sigmas(sig))
+    """:func:`walk_term` as a factor."""
+    f = walk_term(layout, k0, k1, sigma, dt).factor()
+    assert isinstance(f, gtsam.BetweenFactorVector)
+    return f
 
 
 def bound_factor(layout: ParamLayout, group: str, key: int, softness: float = 1e-3

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.linalg.lapack import dposv as _posv
 
 from aqfg.fg import factors as fc
+from aqfg.fg.robust import huber_cost, huber_scalar, huber_weight, row_norms
 from aqfg.model.measurements import range_bearing
 from aqfg.model.vehicle import compiled_kernel
 
@@ -298,8 +299,9 @@ class LagWindow:
         cost = 0.0
         if len(gz):
             r = (x[:2] - gz) / gs[:, None]
-            w = _huber(r, self.k_gnss)
-            cost += _huber_cost(r, self.k_gnss)
+            d = row_norms(r)
+            w = huber_weight(d, self.k_gnss)
+            cost += float(np.sum(huber_cost(d, self.k_gnss)))
             Hk[0, 0] = Hk[1, 1] = float(np.sum(w / gs ** 2))
             gk[:2] = np.sum((w / gs)[:, None] * r, axis=0)
         if len(uz):
@@ -308,8 +310,9 @@ class LagWindow:
             raw[:, 1] = fc.wrap_angle(raw[:, 1])
             r = raw / us
             J = Hd / us[:, :, None]
-            w = _huber(r, self.k_usbl)
-            cost += _huber_cost(r, self.k_usbl)
+            d = row_norms(r)
+            w = huber_weight(d, self.k_usbl)
+            cost += float(np.sum(huber_cost(d, self.k_usbl)))
             Jt = J.transpose(0, 2, 1)
             Hk += np.einsum("k,kij->ij", w, np.matmul(Jt, J))
             gk += np.einsum("k,kij,kj->i", w, Jt, r)
@@ -319,8 +322,7 @@ class LagWindow:
         """:meth:`fix_terms` of one GNSS fix, in scalars (numpy calls cost microseconds)."""
         r0, r1 = (float(x[0]) - float(z[0])) / s, (float(x[1]) - float(z[1])) / s
         d = math.hypot(r0, r1)
-        k = self.k_gnss
-        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        w, cost = huber_scalar(d, self.k_gnss)
         Hk = np.zeros((3, 3))
         Hk[0, 0] = Hk[1, 1] = w / (s * s)
         return cost, np.array([w * r0 / s, w * r1 / s, 0.0]), Hk
@@ -336,8 +338,7 @@ class LagWindow:
         r0 = (rng - float(z[0])) / sr
         r1 = float(fc.wrap_angle(math.atan2(de, dn) - float(z[1]))) / sb
         d = math.hypot(r0, r1)
-        k = self.k_usbl
-        w, cost = (1.0, 0.5 * d * d) if k is None or d <= k else (k / d, k * (d - 0.5 * k))
+        w, cost = huber_scalar(d, self.k_usbl)
         rr, hh = max(rng, 1e-9), max(rh2, 1e-12)
         J = np.array([[dn / rr / sr, de / rr / sr, dd / rr / sr],
                       [-de / hh / sb, dn / hh / sb, 0.0]])
@@ -823,19 +824,3 @@ def _small_inv(M: np.ndarray) -> np.ndarray:
         det = a * d - c * c
         return np.array([[d, -c], [-c, a]]) / det
     return np.linalg.inv(M)
-
-
-def _huber(r: np.ndarray, k: float | None) -> np.ndarray:
-    """GTSAM's Huber weight of whitened residual rows ``r`` (n, m): 1 within ``k`` of the
-    row's norm, ``k / |r|`` beyond."""
-    if k is None:
-        return np.ones(len(r))
-    d = np.sqrt(np.sum(r * r, axis=1))
-    return np.where(d > k, k / np.maximum(d, 1e-300), 1.0)
-
-
-def _huber_cost(r: np.ndarray, k: float | None) -> float:
-    d = np.sqrt(np.sum(r * r, axis=1))
-    if k is None:
-        return 0.5 * float(np.sum(d * d))
-    return float(np.sum(np.where(d > k, k * (d - 0.5 * k), 0.5 * d * d)))

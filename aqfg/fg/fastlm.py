@@ -10,8 +10,8 @@ same problem has a fixed shape that numpy can evaluate in a few array operations
 * GNSS / USBL / depth factors on one knot, with GTSAM's Huber reweighting (``sqrt(w)`` of
   the whitened residual norm on residual and Jacobian, loss ``k |d| - k^2 / 2`` beyond
   ``k``);
-* the graph's linear factors (priors, surface constraint, random walk of parameters), whose
-  whitened ``A`` and ``b`` are read once from GTSAM.
+* the graph's linear factors (priors, surface constraint, random walk of parameters), from
+  the numpy form the build records beside them (:class:`aqfg.fg.factors.LinearTerm`).
 
 The state knots of a mission form a chain, so the normal equations are block-tridiagonal
 in the states plus dense parameter columns: a banded Cholesky (LAPACK ``pbtrf``) of the
@@ -27,13 +27,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import gtsam
 import numpy as np
 import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
+from aqfg.fg import lm
+from aqfg.fg.robust import huber_cost, huber_weight, row_norms
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
 
@@ -47,14 +48,6 @@ class _Meas:
     sigma: np.ndarray     # (n, m)
     k: float | None       # Huber threshold (None: plain Gaussian)
     extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
-
-
-def _robust_cost(dist: np.ndarray, k: float | None) -> np.ndarray:
-    """Per-factor cost of whitened residual norms ``dist``: Huber with threshold ``k``, or
-    ``dist^2 / 2`` (``k`` None)."""
-    if k is None:
-        return 0.5 * dist ** 2
-    return np.where(dist > k, k * (dist - 0.5 * k), 0.5 * dist ** 2)
 
 
 def _plain_sensors(p: np.ndarray) -> bool:
@@ -88,7 +81,7 @@ class FastSystem:
     meas: list[_Meas]
     lin_s: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]   # rows -> (idx, A, b)
     lin_pA: np.ndarray
-    lin_pf: list[tuple[Any, list[int]]]
+    lin_p: list[fc.LinearTerm]
     D_const: np.ndarray
     Hpp_const: np.ndarray
     _band_src: np.ndarray
@@ -122,7 +115,6 @@ class FastSystem:
     @classmethod
     def build(cls, bg, settings) -> FastSystem | None:
         """The numpy form of ``bg``, or None when the graph is not of the supported shape."""
-        from aqfg.fg.common import Measurements, depth_assignment, knot_index
         lay = bg.layout
         sn = settings.sensors
         if sn.robust not in ("huber", "none"):
@@ -167,90 +159,15 @@ class FastSystem:
         self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
         self.ncols = ncols
         # ---- measurements
-        meas: list[_Meas] = []
-        for pi, part in enumerate(bg.parts):
-            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
-            off = self.part_off[pi]
-
-            def k_of(stream):
-                if sn.robust == "none" or stream not in sn.robust_on:
-                    return None
-                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
-            if len(m.gnss_t):
-                ki = off + knot_index(part.knots, m.gnss_t)
-                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
-                                  k_of("gnss")))
-            if len(m.usbl_t):
-                ki = off + knot_index(part.knots, m.usbl_t)
-                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
-                                  np.asarray(m.station, float)))
-            ri, ki = depth_assignment(part.knots, m.depth_t)
-            if len(ri):
-                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
-                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
-                                  m.depth_t[ri] - part.knots[ki]))
-        self.meas = meas
+        self.meas = meas = self._measurements(settings)
         n_meas = sum(len(x.idx) for x in meas)
-        # ---- linear factors read from GTSAM; count the factors this form accounts for
-        n_custom = 0
-        lin_s: list[tuple[int, np.ndarray, np.ndarray]] = []   # (state index, A (m,6), b (m,))
-        lin_p_A, lin_p_f = [], []
-        for i in range(bg.graph.size()):
-            f = bg.graph.at(i)
-            if f is None:
-                continue
-            if isinstance(f, gtsam.CustomFactor):
-                n_custom += 1
-                continue
-            try:
-                nm = f.noiseModel()
-                if isinstance(nm, gtsam.noiseModel.Robust):
-                    return None
-            except AttributeError:
-                pass
-            keys = list(f.keys())
-            v0 = gtsam.Values()
-            dims = []
-            for k in keys:
-                if k in self.state_index:
-                    d = 6
-                elif k in self.node_off:
-                    d = self.node_off[k][1]
-                else:
-                    return None
-                dims.append(d)
-                v0.insert(k, np.zeros(d))
-            jf = f.linearize(v0)
-            A, b = jf.jacobian()
-            if all(k in self.state_index for k in keys) and len(keys) == 1:
-                lin_s.append((self.state_index[keys[0]], A, b))
-            elif all(k in self.node_off for k in keys):
-                Af = np.zeros((A.shape[0], self.P))
-                c = 0
-                for k, d in zip(keys, dims):
-                    o, _ = self.node_off[k]
-                    Af[:, o:o + d] += A[:, c:c + d]
-                    c += d
-                lin_p_A.append(Af)
-                lin_p_f.append((f, keys))
-            else:
-                return None
-        if n_custom != len(self.d0) + n_meas:
-            return None              # a custom factor this form does not know
-        lin_s_rows: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
-        for si, A, b in lin_s:
-            lin_s_rows.setdefault(A.shape[0], []).append((si, A, b))
-        self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
-                          np.array([x[2] for x in v])) for m, v in lin_s_rows.items()}
-        self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
-        # their residuals come from GTSAM itself (a random walk held by sigma ~1e-8 needs
-        # the difference of the values before the whitening, as the factor computes it)
-        self.lin_pf = lin_p_f
-        # constant parts of the state Hessian: linear unary factors
-        self.D_const = np.zeros((self.N, 6, 6))
-        for s_idx, A, _ in self.lin_s.values():
-            np.add.at(self.D_const, s_idx, np.einsum("nji,njl->nil", A, A))
-        self.Hpp_const = self.lin_pA.T @ self.lin_pA
+        # ---- the graph's linear factors, from their numpy form; every factor accounted for
+        factors = [f for f in (bg.graph.at(i) for i in range(bg.graph.size())) if f is not None]
+        n_custom = sum(isinstance(f, gtsam.CustomFactor) for f in factors)
+        if n_custom != len(self.d0) + n_meas or len(factors) != n_custom + len(bg.linear):
+            return None              # a factor this form does not know
+        if not self._linear_terms(bg.linear):
+            return None
         # band layout of the block-tridiagonal state matrix (LAPACK lower storage)
         n = 6 * self.N
         jj = np.arange(n)
@@ -272,6 +189,65 @@ class FastSystem:
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         return self
+
+    def _measurements(self, settings) -> list[_Meas]:
+        """The GNSS, USBL and depth factors of every mission part, by kind."""
+        from aqfg.fg.common import Measurements, depth_assignment, knot_index
+        sn = settings.sensors
+        meas: list[_Meas] = []
+        for pi, part in enumerate(self.bg.parts):
+            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
+            off = self.part_off[pi]
+
+            def k_of(stream):
+                if sn.robust == "none" or stream not in sn.robust_on:
+                    return None
+                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
+            if len(m.gnss_t):
+                ki = off + knot_index(part.knots, m.gnss_t)
+                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
+                                  k_of("gnss")))
+            if len(m.usbl_t):
+                ki = off + knot_index(part.knots, m.usbl_t)
+                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
+                                  np.asarray(m.station, float)))
+            ri, ki = depth_assignment(part.knots, m.depth_t)
+            if len(ri):
+                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
+                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
+                                  m.depth_t[ri] - part.knots[ki]))
+        return meas
+
+    def _linear_terms(self, terms: Sequence[fc.LinearTerm]) -> bool:
+        """The whitened ``A`` and ``b`` of the linear factors on one state each (grouped by
+        row count), the parameter ones' rows ``A`` (their residuals computed at each
+        evaluation), and the constant parts of the Hessian they make. False for a factor
+        on other variables."""
+        lin_s_rows: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+        lin_p_A, lin_p = [], []
+        for t in terms:
+            A = t.whitened_jacobians()
+            if len(t.keys) == 1 and t.keys[0] in self.state_index:
+                b = t.mean * (1.0 / t.sigma)
+                lin_s_rows.setdefault(len(b), []).append((self.state_index[t.keys[0]], A[0], b))
+            elif all(k in self.node_off for k in t.keys):
+                Af = np.zeros((len(t.sigma), self.P))
+                for k, Ak in zip(t.keys, A):
+                    o, d = self.node_off[k]
+                    Af[:, o:o + d] += Ak
+                lin_p_A.append(Af)
+                lin_p.append(t)
+            else:
+                return False
+        self.lin_s = {m: (np.array([x[0] for x in v]), np.array([x[1] for x in v]),
+                          np.array([x[2] for x in v])) for m, v in lin_s_rows.items()}
+        self.lin_pA = np.vstack(lin_p_A) if lin_p_A else np.zeros((0, self.P))
+        self.lin_p = lin_p
+        self.D_const = np.zeros((self.N, 6, 6))
+        for s_idx, As, _ in self.lin_s.values():
+            np.add.at(self.D_const, s_idx, np.einsum("nji,njl->nil", As, As))
+        self.Hpp_const = self.lin_pA.T @ self.lin_pA
+        return True
 
     def set_process_scale(self, q: float, per_part: np.ndarray | None = None) -> None:
         """Every dynamics factor's process-noise variance times ``q`` on the scaled axes
@@ -408,10 +384,9 @@ class FastSystem:
                 J = np.zeros((len(r), 1, 6))
                 J[:, 0, 2] = 1.0 / m.sigma[:, 0]
                 J[:, 0, 5] = m.extra / m.sigma[:, 0]
-            dist = np.sqrt(np.sum(r * r, axis=1))
-            w = np.ones(len(r)) if m.k is None else \
-                np.where(dist > m.k, m.k / np.maximum(dist, 1e-300), 1.0)
-            cost += float(np.sum(_robust_cost(dist, m.k)))
+            dist = row_norms(r)
+            w = huber_weight(dist, m.k)
+            cost += float(np.sum(huber_cost(dist, m.k)))
             mres.append((r, J, w))
         out["meas"] = mres
         # linear factors
@@ -435,7 +410,7 @@ class FastSystem:
         rd = ev["dyn_r"]
         sc[self.d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
         for m, (r, _, _) in zip(self.meas, ev["meas"]):
-            np.add.at(sc, m.idx, _robust_cost(np.sqrt(np.sum(r * r, axis=1)), m.k))
+            np.add.at(sc, m.idx, huber_cost(row_norms(r), m.k))
         for mm, (si, _, _) in self.lin_s.items():
             r = ev["lin_s"][mm]
             np.add.at(sc, si, 0.5 * np.sum(r * r, axis=1))
@@ -443,12 +418,9 @@ class FastSystem:
 
     def _param_residuals(self, nv: dict) -> np.ndarray:
         """Whitened residuals of the linear factors on parameter nodes (priors, walks)."""
-        if not self.lin_pf:
+        if not self.lin_p:
             return np.zeros(0)
-        vals = gtsam.Values()
-        for k, v in nv.items():
-            vals.insert(k, v)
-        return np.concatenate([f.whitenedError(vals) for f, _ in self.lin_pf])
+        return np.concatenate([t.whitened_residual(nv) for t in self.lin_p])
 
     def _dyn_jacobians(self, ev: dict) -> None:
         """Whitened dynamics Jacobian blocks of an evaluation (once, when needed)."""
@@ -651,77 +623,72 @@ def _propagator(model, sl):
                                 np.ascontiguousarray(p[:N_DYN], float), *args)
 
 
+class FastLM:
+    """:class:`aqfg.fg.lm.LMSystem` of a :class:`FastSystem`: a point is ``(X, th,
+    evaluation)``. Marquardt's damping from ``diag(J^T J)`` floored per key; the parameter
+    bounds by an active set (components pushed through a bound go exactly to it, the rest
+    of the step re-solved); ``held``: parameter components whose step is held at 0."""
+
+    def __init__(self, fs: FastSystem, held: dict[int, float] | None = None):
+        self.fs, self.held = fs, held
+        self.key_slices = list(fs.node_off.values())
+
+    def cost(self, x) -> float:
+        return x[2]["cost"]
+
+    def linearize(self, x) -> None:
+        D, E, Hsp, Hpp, gs, gp = self.fs.normal(x[2])
+        hs = np.einsum("nii->ni", D)
+        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
+        hp = np.diag(Hpp).copy()
+        for o, d in self.key_slices:
+            v = hp[o:o + d]
+            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
+        self.lin = (D, E, Hsp, Hpp, gs, gp, hs, hp)
+
+    def trial(self, x, lam: float):
+        fs, (X, th, ev) = self.fs, x
+        D, E, Hsp, Hpp, gs, gp, hs, hp = self.lin
+        idx6 = np.arange(6)
+        Dd = D.copy()
+        Dd[:, idx6, idx6] += lam * hs
+        Hppd = Hpp + np.diag(lam * hp)
+        try:
+            fac = fs.factor(Dd, E, Hsp, Hppd)
+            dX, dth = fs.solve(fac, gs, gp, self.held)
+            new = th + dth
+            hit = (new < fs.lo) | (new > fs.hi)
+            if np.any(hit):
+                fix = {**(self.held or {}),
+                       **{int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
+                          for j in np.flatnonzero(hit)}}
+                dX, dth = fs.solve(fac, gs, gp, fix)
+        except ValueError as e:              # a non-finite or not positive definite system
+            raise np.linalg.LinAlgError(str(e)) from e
+        Xc, thc = X + dX, fs.project(th + dth)
+        evc = fs.evaluate(Xc, thc)
+        return (Xc, thc, evc), evc["cost"], ev["cost"]
+
+
 def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, progress=None,
                              start: tuple[np.ndarray, np.ndarray] | None = None,
                              max_iterations: int | None = None,
                              hold_params: bool | Sequence[int] = False):
-    """:func:`aqfg.fg.batch.levenberg_marquardt` on the numpy system: the same algorithm
-    (Marquardt's diagonal damping from ``diag(J^T J)`` floored per key, lambda /10 after an
-    accepted step and x10 after a rejected one, the active set of the parameter bounds, the
-    same stopping rule). Returns (X, th, cost, evaluation, iterations, trials, converged,
-    iteration times). ``start``: (X, th) instead of ``values``; ``max_iterations``: instead
-    of the settings'; ``hold_params``: the states alone move, the parameters stay at
-    ``th`` (or, a sequence of indices into ``th``, those parameters alone stay)."""
-    import time
+    """:func:`aqfg.fg.lm.levenberg_marquardt` on the numpy system (:class:`FastLM`), the
+    settings' stopping rule. Returns (X, th, cost, evaluation, iterations, trials,
+    converged, iteration times). ``start``: (X, th) instead of ``values``;
+    ``max_iterations``: instead of the settings'; ``hold_params``: the states alone move,
+    the parameters stay at ``th`` (or, a sequence of indices into ``th``, those parameters
+    alone stay)."""
     if start is not None:
         X, th = start
     else:
         assert values is not None, "values or start"
         X, th = fs.from_values(values)
-    ev = fs.evaluate(X, th)
-    err = ev["cost"]
-    lam, it_times, n_it, n_trials = 1e-3, [], 0, 0
-    converged = False
-    key_slices = [(o, d) for o, d in fs.node_off.values()]
     held = None if hold_params is False else \
         {j: 0.0 for j in (range(fs.P) if hold_params is True else hold_params)} or None
-    for it in range(s.max_iterations if max_iterations is None else max_iterations):
-        t_it = time.perf_counter()
-        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-        hs = np.einsum("nii->ni", D)
-        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
-        hp = np.diag(Hpp).copy()
-        for o, d in key_slices:
-            v = hp[o:o + d]
-            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
-        accepted = False
-        idx6 = np.arange(6)
-        while lam < 1e10:
-            n_trials += 1
-            Dd = D.copy()
-            Dd[:, idx6, idx6] += lam * hs
-            Hppd = Hpp + np.diag(lam * hp)
-            try:
-                fac = fs.factor(Dd, E, Hsp, Hppd)
-                dX, dth = fs.solve(fac, gs, gp, held)
-                new = th + dth
-                hit = (new < fs.lo) | (new > fs.hi)
-                if np.any(hit):
-                    fix = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
-                           for j in np.flatnonzero(hit)}
-                    dX, dth = fs.solve(fac, gs, gp, fix)
-            except (np.linalg.LinAlgError, ValueError):
-                lam *= 10.0
-                continue
-            Xc, thc = X + dX, fs.project(th + dth)
-            evc = fs.evaluate(Xc, thc)
-            err_c = evc["cost"]
-            if np.isfinite(err_c) and err_c <= err:
-                accepted = True
-                break
-            lam *= 10.0
-        n_it += 1
-        if not accepted:
-            converged = True
-            break
-        gain = err - err_c
-        X, th, err, ev = Xc, thc, err_c, evc
-        lam = max(lam / 10.0, 1e-9)
-        it_times.append(time.perf_counter() - t_it)
-        if progress is not None:
-            progress(min(0.95, 0.05 + 0.9 * (it + 1) / s.max_iterations),
-                     f"iteration {it + 1}: cost {err:.6g} (lambda {lam:.0e})")
-        if gain < max(s.rel_tol * err, s.abs_tol):
-            converged = True
-            break
-    return X, th, float(err), ev, n_it, n_trials, converged, it_times
+    out = lm.levenberg_marquardt(FastLM(fs, held), (X, th, fs.evaluate(X, th)),
+                                 lm.LMParams.of(s, max_iterations),
+                                 lm.batch_progress(progress, s.max_iterations))
+    X, th, ev = out.x
+    return X, th, out.cost, ev, out.iterations, out.trials, out.converged, out.it_times

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aqfg.data.mission import Mission
+from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model import retrace
 from aqfg.model.vehicle import Model
 
@@ -80,15 +81,14 @@ def _robust_fit(C: np.ndarray, y: np.ndarray, win: np.ndarray, nw: int, iters: i
         r = yc - Cc @ c
         res = np.hypot(r[0], r[1])
         scale = 1.4826 * np.median(res) + 1e-3
-        wf_next = np.minimum(1.0, 2.0 * scale / np.maximum(res, 1e-12))
+        wf_next = huber_weight(res, 2.0 * scale)
         # offsets of this step's solution (weighted means of what c leaves per window)
         off = np.stack([onehot @ (wf * (y[a] - C[a] @ c)) / wsum for a in range(2)], 1)
         wf = wf_next
     k = 2.0 * (1.4826 * np.median(res) + 1e-3)
-    huber = np.where(res <= k, 0.5 * res ** 2, k * (res - 0.5 * k))
     # (A: the last step's system)
     cov = np.linalg.pinv(A.T @ A) if iters > 0 else np.full((m, m), np.nan)
-    return c, off, float(np.sqrt(2.0 * np.mean(huber))), cov
+    return c, off, float(np.sqrt(2.0 * np.mean(huber_cost(res, k)))), cov
 
 
 def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray,

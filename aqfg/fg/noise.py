@@ -22,6 +22,7 @@ import numpy.typing as npt
 
 from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
+from aqfg.fg.robust import huber_cost_squared
 
 LR_CHI2_1 = 3.841           # chi-square(1) 95 % quantile
 CHI2_2_99 = 9.21            # chi-square(2) 99 % quantile
@@ -69,7 +70,7 @@ def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
     if len(keep) >= 3 and int(np.count_nonzero(~keep[-3:])) >= 2:
         return float(grid[-1])
     u, v = u[:, keep], v[:, keep]
-    rho = np.where(u <= k, u, 2.0 * np.sqrt(k * u) - k)
+    rho = 2.0 * huber_cost_squared(u, k)
     nll = np.sum(0.5 * rho + np.log(v), axis=1)
     j = int(np.argmin(nll))
     # the nominal noise stays unless a larger one explains the innovations significantly

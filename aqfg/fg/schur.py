@@ -8,10 +8,11 @@ leaves its Schur complement on ``f``, ``S_i = H_ff - H_fl H_ll^-1 H_lf``, and re
 right-hand side ``eta_i`` (:class:`ReducedSystem`); their sum plus the damping of ``f`` is
 the batch's system on ``f`` exactly; its solution ``delta_f`` goes back to each mission,
 whose locals' step follows by back-substitution. Accepting or rejecting the step needs
-only the sum of the missions' costs. :func:`joint_lm` is the batch's loop (same damping,
-active bounds, stopping rule, :func:`aqfg.fg.batch.damped_step` and friends) written as
-rounds of such per-mission requests, so the missions can live in different processes or
-machines (:mod:`aqfg.fleet`); :func:`solve_apart` runs the rounds in this process. Only
+only the sum of the missions' costs. :func:`run_joint` is the batch's loop
+(:func:`aqfg.fg.lm.levenberg_marquardt`: same damping, active bounds, stopping rule) on a
+system whose every operation is a round of such per-mission requests, so the missions can
+live in different processes or machines (:mod:`aqfg.fleet`, through the generator
+:func:`joint_lm`); :func:`solve_apart` serves the rounds in this process. Only
 ``(S_i, eta_i, cost_i)``, a few hundred bytes, travel per mission and round.
 
 A mission whose state was lost (its worker died) is rebuilt and its locals re-solved at
@@ -35,14 +36,16 @@ from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.batch import (
     BatchSmoother,
+    GraphLM,
     ParamNode,
     active_bounds,
-    damped_step,
     diagonal_floor,
     hessian_diagonal,
 )
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.covariance import honest_covariance, sigma_inflation
+from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.rounds import as_rounds
 from aqfg.result import Result
 
 FIXED = fc.node_key("fixed")
@@ -194,36 +197,12 @@ class MissionProblem:
               ) -> tuple[gtsam.Values, float]:
         """The mission's locals at fixed parameters ``f`` (the batch's LM with ``f`` held,
         from ``start``, default the build's initial values): values and cost."""
-        s = self.settings
         f = np.asarray(f, float)
         values = self._project(self.with_fixed(start if start is not None else self.bg.values, f), f)
-        err = self.bg.error(values)
-        gfg = self.bg.graph.linearize(values)
-        lam = 1e-3
-        for _ in range(s.max_iterations):
-            hdiag = hessian_diagonal(gfg, self.key_dims)
-            pinned = gfg.clone()
-            if self.dim:
-                pinned.add(self._pin)
-            accepted = False
-            while lam < 1e10:
-                delta = damped_step(pinned, self.ordering, self.key_dims, hdiag, lam,
-                                    self.layout, self.locals, values)
-                cand = self._project(values.retract(delta), f)
-                err_c = self.bg.error(cand)
-                if err_c <= err:
-                    accepted = True
-                    break
-                lam *= 10.0
-            if not accepted:
-                break
-            gain = err - err_c
-            values, err = cand, err_c
-            lam = max(lam / 10.0, 1e-9)
-            gfg = self.bg.graph.linearize(values)
-            if gain < max(s.rel_tol * err, s.abs_tol):
-                break
-        return values, err
+        system = GraphLM(self.bg, self.ordering, self.locals, lambda vals: self._project(vals, f),
+                         self._pin if self.dim else None)
+        out = levenberg_marquardt(system, values, LMParams.of(self.settings))
+        return out.x, out.cost
 
     def knot_start(self) -> float:
         return float(self.bg.parts[0].knots[0])
@@ -453,115 +432,146 @@ def _joint_sandwich(reps: list[dict], total: ReducedSystem, dim: int) -> dict | 
             "offsets": [int(o) for o in offsets[:-1]]}
 
 
-def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | None = None
-             ) -> Generator[list[Request], list[dict], Solution]:
-    """The batch's Levenberg-Marquardt loop over ``n`` missions held elsewhere.
+class _FleetLM:
+    """:class:`aqfg.fg.lm.LMSystem` of missions held elsewhere, each call one or more
+    rounds of requests (:class:`MissionSession`) through ``ask(requests) -> replies``. A
+    point is ``(f, trial)``: the fixed node's value and the trial whose candidate it is
+    (None: the start). A trial: "sys" (each mission's damped Schur complement, committing
+    the point's candidate) -> the fixed node's step -> "step" (locals by back-substitution,
+    their bounds, the candidate's cost); redone where a mission was lost."""
 
-    A generator: it yields a list of ``n`` requests ``(op, args)`` (one per mission, for
-    :meth:`MissionSession.handle`) and is sent the list of replies; it returns the
-    :class:`Solution`. Per trial: "sys" (each mission's damped Schur complement) ->
-    the fixed node's step -> "step" (locals by back-substitution, their bounds, the
-    candidate's cost) -> accept or raise lambda, as :meth:`BatchSmoother.run`.
-    """
-    s = settings
-    rounds, recovered = 0, 0
+    def __init__(self, n: int, layout: fc.ParamLayout, ask: Callable[[list[Request]], list[dict]],
+                 lam0: float):
+        self.n, self.layout, self.ask, self.lam0 = n, layout, ask, lam0
+        self.dim = layout.dim("fixed")
+        self.nodes = [ParamNode("fixed", FIXED, None)]
+        self.trials = 0                       # id of the last trial
+        self.holds: int | None = None         # the trial whose candidate the missions hold
+        self.recovered = 0
+        self.kept: tuple | None = None        # (point, lam, systems) of a "sys" round unused
 
-    def ask(reqs):
+    def sys(self, x: tuple[np.ndarray, int | None], lam: float,
+            extra: Sequence[dict] | None = None) -> list[dict]:
+        """One "sys" round at ``x`` damped by ``lam`` (``extra``: more arguments, per
+        mission): the missions' replies."""
+        self.trials += 1
+        commit = x[1] if x[1] != self.holds else None
+        args = {"f": x[0], "lam": lam, "trial": self.trials, "commit": commit,
+                "start": self.trials == 1}
+        reps = self.ask([("sys", {**args, **e}) for e in (extra or [{}] * self.n)])
+        self.holds = x[1]
+        self.recovered += sum(bool(r["recovered"]) for r in reps)
+        return reps
+
+    def cost(self, x) -> float:
+        systems = [r["system"] for r in self.sys(x, self.lam0)]
+        self.kept = (x, self.lam0, systems)
+        return ReducedSystem.total(systems).cost
+
+    def linearize(self, x) -> None:
+        """(The missions linearise where they are asked for a "sys" at a new point.)"""
+
+    def trial(self, x, lam: float):
+        while True:
+            if self.kept is not None and self.kept[0] is x and self.kept[1] == lam:
+                systems = self.kept[2]
+            else:
+                systems = [r["system"] for r in self.sys(x, lam)]
+            self.kept = None
+            total = ReducedSystem.total(systems)
+            out = self._step(x[0], lam, systems, total)
+            if out is not None:
+                return (out[0], self.trials), out[1], total.cost
+            # a mission was lost: redo the trial
+
+    def _step(self, f: np.ndarray, lam: float, systems: list[ReducedSystem],
+              total: ReducedSystem) -> tuple[np.ndarray, float] | None:
+        """The candidate ``f`` and its cost, or None where a mission was lost."""
+        layout = self.layout
+        df = _fixed_system(total, lam)
+        vals = gtsam.Values()
+        vals.insert(FIXED, f)
+        dv = gtsam.VectorValues()
+        dv.insert(FIXED, df)
+        fclamps = active_bounds(layout, self.nodes, vals, dv)
+        f_new = layout.project("fixed", f + df)
+        mode = "probe" if fclamps else "try"
+        reps = self.ask([("step", {"trial": self.trials, "delta_f": df, "f_new": f_new,
+                                   "mode": mode})] * self.n)
+        if any(r.get("lost") for r in reps):
+            return None
+        clamped = [i for i, r in enumerate(reps) if "clamped" in r]
+        if fclamps or clamped:
+            for i in clamped:
+                systems[i] = reps[i]["clamped"]
+            df = _fixed_system(ReducedSystem.total(systems), lam, fclamps)
+            f_new = layout.project("fixed", f + df)
+            reps = self.ask([("step", {"trial": self.trials, "delta_f": df, "f_new": f_new,
+                                       "mode": "final"})] * self.n)
+            if any(r.get("lost") for r in reps):
+                return None
+        return f_new, float(sum(r["cost"] for r in reps))
+
+
+def run_joint(n: int, settings: FGSettings, ask: Callable[[list[Request]], list[dict]],
+              progress: Callable[[str], None] | None = None) -> Solution:
+    """The batch's Levenberg-Marquardt loop (:func:`aqfg.fg.lm.levenberg_marquardt` on
+    :class:`_FleetLM`) over ``n`` missions served by ``ask(requests) -> replies`` (one
+    request per mission, for :meth:`MissionSession.handle`), then the undamped system at
+    the solution: the fixed node's covariance and each mission's result."""
+    rounds = 0
+
+    def counted(reqs: list[Request]) -> list[dict]:
         nonlocal rounds
         rounds += 1
-        return (yield reqs)
-
-    opened = yield from ask([("open", {})] * n)
+        return ask(reqs)
+    opened = counted([("open", {})] * n)
     layout = opened[0]["layout"]
-    nodes = [ParamNode("fixed", FIXED, None)]
     dim = layout.dim("fixed")
     f = np.median(np.array([r["f0"] for r in opened], float), axis=0) if dim else np.zeros(0)
-    lam, trial, commit, start = 1e-3, 0, None, True
-    iterations, trials, converged = 0, 0, False
-    history: list = []
-    cost = None
-    while True:
-        # ---- one outer iteration: trials at rising lambda until a step lowers the cost
-        accepted = False
-        while lam < 1e10 and iterations < s.max_iterations and not converged:
-            trial += 1
-            trials += 1
-            reps = yield from ask([("sys", {"f": f, "lam": lam, "trial": trial, "commit": commit,
-                                            "start": start})] * n)
-            start, commit = False, None
-            systems = [r["system"] for r in reps]
-            recovered += sum(bool(r["recovered"]) for r in reps)
-            total = ReducedSystem.total(systems)
-            cost = total.cost                         # at the current values
-            if not history:
-                history.append((0, cost, lam))
-            if not dim:
-                converged = True
-                break
-            df = _fixed_system(total, lam)
-            vals = gtsam.Values()
-            vals.insert(FIXED, f)
-            dv = gtsam.VectorValues()
-            dv.insert(FIXED, df)
-            fclamps = active_bounds(layout, nodes, vals, dv)
-            f_new = layout.project("fixed", f + df)
-            mode = "probe" if fclamps else "try"
-            reps = yield from ask([("step", {"trial": trial, "delta_f": df, "f_new": f_new,
-                                             "mode": mode})] * n)
-            if any(r.get("lost") for r in reps):
-                continue                              # a mission was lost: redo the trial
-            clamped = [i for i, r in enumerate(reps) if "clamped" in r]
-            if fclamps or clamped:
-                for i in clamped:
-                    systems[i] = reps[i]["clamped"]
-                df = _fixed_system(ReducedSystem.total(systems), lam, fclamps)
-                f_new = layout.project("fixed", f + df)
-                reps = yield from ask([("step", {"trial": trial, "delta_f": df, "f_new": f_new,
-                                                 "mode": "final"})] * n)
-                if any(r.get("lost") for r in reps):
-                    continue
-            cost_c = float(sum(r["cost"] for r in reps))
-            if cost_c <= cost:
-                accepted = True
-                break
-            lam *= 10.0
-        if converged or not dim:
-            break
-        iterations += 1
-        if not accepted:
-            break
-        assert cost is not None               # set by the trial that was accepted
-        gain = cost - cost_c
-        f, cost, commit = f_new, cost_c, trial
-        lam = max(lam / 10.0, 1e-9)
-        history.append((iterations, cost, lam))
-        if progress:
-            progress(f"iteration {iterations}: cost {cost:.6g} (lambda {lam:.0e})")
-        if gain < max(s.rel_tol * cost, s.abs_tol):
-            converged = True
-            break
-        if iterations >= s.max_iterations:
-            break
+    params = LMParams.of(settings)
+    system = _FleetLM(n, layout, counted, params.lambda_initial)
+    x: tuple[np.ndarray, int | None] = (f, None)
+
+    def report(it: int, cost: float, lam: float) -> None:
+        if progress is not None:
+            progress(f"iteration {it}: cost {cost:.6g} (lambda {lam:.0e})")
+    if dim:
+        out = levenberg_marquardt(system, x, params, report)
+        x = out.x
+        iterations, converged, history = out.iterations, out.converged, out.history
+    else:       # no fixed parameter estimated: no iteration, the missions at their start
+        iterations, converged = 0, True
+        history = [(0, system.cost(x), params.lambda_initial)]
+    trials = system.trials
     # ---- the undamped system at the solution: covariances, then each mission's result
-    trial += 1
-    block = s.sandwich_block
-    reps = yield from ask([("sys", {"f": f, "lam": 0.0, "trial": trial, "commit": commit,
-                                    "sandwich": (float(r["t0"]), block) if block else None})
-                           for r in opened])
+    block = settings.sandwich_block
+    reps = system.sys(x, 0.0, [{"sandwich": (float(r["t0"]), block) if block else None}
+                               for r in opened])
     systems = [r["system"] for r in reps]
-    recovered += sum(bool(r["recovered"]) for r in reps)
     total = ReducedSystem.total(systems)
     cov_f = np.linalg.inv(total.H) if dim else np.zeros((0, 0))
     cov_model_f = cov_f
     sw = _joint_sandwich(reps, total, dim) if block else None
     if sw is not None and dim:
         cov_f = honest_covariance({FIXED: cov_f}, {FIXED: sw["cov_f"]}, sw["dof"])[FIXED]
-    reps = yield from ask([("result", {"f": f, "others": (total.H - si.H) if dim else None,
-                                       "sandwich": None if sw is None
-                                       else {**sw, "offset": sw["offsets"][i]}})
-                           for i, si in enumerate(systems)])
-    return Solution(layout, f, cov_f, [r["result"] for r in reps], iterations, trials,
-                    converged, float(total.cost), history, rounds, recovered, cov_model_f)
+    reps = counted([("result", {"f": x[0], "others": (total.H - si.H) if dim else None,
+                                "sandwich": None if sw is None
+                                else {**sw, "offset": sw["offsets"][i]}})
+                    for i, si in enumerate(systems)])
+    return Solution(layout, x[0], cov_f, [r["result"] for r in reps], iterations, trials,
+                    converged, float(total.cost), history, rounds, system.recovered, cov_model_f)
+
+
+def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | None = None
+             ) -> Generator[list[Request], list[dict], Solution]:
+    """:func:`run_joint` as a generator: it yields a list of ``n`` requests ``(op, args)``
+    (one per mission, for :meth:`MissionSession.handle`) and is sent the list of replies;
+    it returns the :class:`Solution`. The rounds of several vehicles can so be served
+    together (:mod:`aqfg.fleet`)."""
+    def run(ask: Callable[[list[Request]], list[dict]]) -> Solution:
+        return run_joint(n, settings, ask, progress)
+    return (yield from as_rounds(run))
 
 
 def combine(sol: Solution, timings: dict | None = None) -> Result:
@@ -620,5 +630,5 @@ def solve_apart(smoother: BatchSmoother, missions: Sequence[Mission],
 
     def serve(reqs):
         return [s.handle(op, args) for s, (op, args) in zip(sessions, reqs)]
-    sol = drive(joint_lm(len(sessions), smoother.settings, progress), serve)
+    sol = run_joint(len(sessions), smoother.settings, serve, progress)
     return combine(sol, {"batch": [time.perf_counter() - t0]})
