@@ -13,6 +13,7 @@ from aqfg.data.io import load_mission, load_truth
 SIX = {"theta_e", "s_x", "s_y", "k", "k_x", "k_yz"}
 
 
+@pytest.mark.slow
 def test_demo_finds_the_hidden_effect_and_the_error_falls(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out)]) == 0

@@ -231,6 +231,7 @@ def test_system_gradient_is_the_cost_derivative_and_marginalisation_is_exact():
     assert np.allclose(step, full[keep], rtol=0, atol=1e-8 * np.abs(full).max())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("usbl,seed", [(False, 2), (True, 2), (False, 3)])
 def test_numpy_engine_agrees_with_gtsam_engine_and_truth(usbl, seed):
     m, truth, init = _mission(seed, usbl)

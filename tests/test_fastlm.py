@@ -168,6 +168,7 @@ def test_held_parameter_stays_when_another_meets_its_bound(missions):
     assert np.any(th1 != th)                                     # the free ones moved
 
 
+@pytest.mark.slow
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
     b = fit_fg(missions, settings=FGSettings(fast_lm=False))

@@ -130,6 +130,7 @@ def test_map_file_has_mission_toml_shape_and_names_bad_keys(tmp_path):
 
 # ------------------------------------------------------------------ round trips + fit
 
+@pytest.mark.slow
 @pytest.mark.parametrize("version,storage", [("ros2", "mcap"), ("ros2", "sqlite3"),
                                              ("ros1", None)])
 def test_ros_bags_round_trip_and_fit(sim, fit0, tmp_path, version, storage):
@@ -143,6 +144,7 @@ def test_ros_bags_round_trip_and_fit(sim, fit0, tmp_path, version, storage):
     assert abs(np.degrees(fit_fg(r.mission).values["theta_e"] - fit0)) < THETA_TOL_DEG
 
 
+@pytest.mark.slow
 def test_mavlink_tlog_and_dataflash_round_trip_and_fit(sim, fit0, tmp_path):
     m, _ = sim
     imap = imap_for(m, motors=PWM_MAP)
@@ -199,6 +201,7 @@ def test_nmea_adds_fixes_to_an_imported_mission(sim, tmp_path, capsys):
         import_log("nmea", tmp_path / "fixes.nmea", imap_for(m), base=load_mission(out2))
 
 
+@pytest.mark.slow
 def test_auv_depth_and_usbl_from_mapped_topics(tmp_path):
     m, _ = simulate("auv", seed=4, duration=300.0, gnss_period=None, usbl=True)
     bag = lw.write_ros_bag(m, tmp_path / "bag")
@@ -249,6 +252,7 @@ def _fit_theta(mission_dir, out):
     return json.loads((out / "parameters.json").read_text())["parameters"]["theta_e"]["value"]
 
 
+@pytest.mark.slow
 def test_cli_mcap_bag_and_tlog_fit_like_the_csv_mission(sim, tmp_path, capsys):
     m, tr = sim
     csv = save_mission(m, tmp_path / "csv", truth=tr)
@@ -311,6 +315,7 @@ def _shift(topic, after_s, by_s, header=True, record=False):
     return edit
 
 
+@pytest.mark.slow
 def test_clock_jump_and_out_of_order_stamps_name_topic_and_time(sim, tmp_path):
     m, _ = sim
     # the IMU's clock jumps an hour ahead at t = 100 s (the recorder's does not)

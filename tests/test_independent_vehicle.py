@@ -124,6 +124,7 @@ def test_the_batch_track_follows_the_fixes_where_the_model_is_not_the_vehicle():
     assert np.sqrt(np.mean(r_on ** 2)) < np.sqrt(np.mean(r_off ** 2))
 
 
+@pytest.mark.slow
 def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
     from aqfg.sim.simulator import simulate
     m, _ = simulate("asv", seed=4, duration=300.0, usbl=True)
@@ -192,6 +193,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
         assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]
 
 
+@pytest.mark.slow
 def test_online_sigma_holds_a_short_batch_heading_profile():
     """The online smoother's re-initialisation batches walk the heading profile too: on
     seed 66 at 8-s fixes with calm-b's constants, the 15.5-s batch's basin claimed
@@ -220,6 +222,7 @@ def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
     assert e <= 3 * h.sigma[k10, i]
 
 
+@pytest.mark.slow
 def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
     """otter-dev-calm-a at 4-s GNSS with the paper's constants: a re-initialisation batch
     restarts the smoother where other basins fit as well (its sigma over them is many times
@@ -241,6 +244,7 @@ def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
         assert h.sigma[k, i] >= b["sigma_theta_e"], (b, h.sigma[k, i])
 
 
+@pytest.mark.slow
 def test_released_constants_at_their_bounds_are_caught_before_the_track_runs_away(monkeypatch):
     """otter-heldout-201 (a 0.23 m/s current, the offset drifting 0.042 deg/s), 8-s GNSS, the
     paper's constants, all six free: after the 160-s re-initialisation batch the released
@@ -598,6 +602,7 @@ def test_one_outlying_fix_does_not_make_a_held_model_fail():
     assert free.n_fix < 6 and not free._reinit_due(float(free.knots[-1]))
 
 
+@pytest.mark.slow
 def test_process_noise_adapts_only_when_the_model_is_wrong():
     """With the true parameters the fixes are explained and the process noise stays
     nominal; with the paper's parameters of another vehicle it grows."""
@@ -800,6 +805,7 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
     assert len(out - gross) <= 2, f"good fixes left out: {sorted(out - gross)}"
 
 
+@pytest.mark.slow
 def test_the_fix_of_a_re_initialisation_reports_the_re_initialised_estimate():
     """At 4-s GNSS the first batch runs at the fix at 20 s; that fix's entry of the history
     is the batch's heading (data up to it, none later), not the held start value with its
@@ -1014,6 +1020,7 @@ def test_a_reseed_keeps_the_thrust_gain_where_the_speed_scale_is_not_determined(
     assert e["k_after"] > 10.0 * e["k_before"], e
 
 
+@pytest.mark.slow
 def test_three_fixes_with_a_usbl_fix_reseed_neither_heading_nor_gain():
     """The same crop with its USBL, the third fix (a USBL fix, 6.5 s) made a 17-m range
     outlier, as on a fresh Otter mission where it gave a speed scale of 13 +- 3.8 (k x 170,
@@ -1037,6 +1044,7 @@ def test_three_fixes_with_a_usbl_fix_reseed_neither_heading_nor_gain():
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 50.0
 
 
+@pytest.mark.slow
 def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternative():
     """otter-heldout-52-300s (the first 300 s of a held-out mission, 1-s GNSS), online with
     the default constants: the 256-s re-initialisation batch slides 16 deg off the thrust
@@ -1217,6 +1225,7 @@ def test_a_held_heading_is_not_reseeded_from_three_fixes_with_a_usbl_fix():
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 17.0
 
 
+@pytest.mark.slow
 def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     """otter-heldout-281-60s, 8-s GNSS, the paper's constants (another vehicle's): while the
     parameters are held at start values no data chose (before the first batch), the model's

@@ -61,6 +61,7 @@ def fit(*args: str) -> int:
 
 # ------------------------------------------------------------ inputs the format allows
 
+@pytest.mark.slow
 def test_nan_and_tiny_gnss_sigma_fit_and_diagnose(pair, tmp_path, capsys):
     m, tr = pair
     m = __import__("copy").deepcopy(m)
@@ -133,6 +134,7 @@ def test_one_day_gap_refused_and_the_override(pair, tmp_path, capsys):
 
 # ----------------------------------------------------------------------- atomic sets
 
+@pytest.mark.slow
 def test_interrupt_while_saving_keeps_the_previous_set(mission_dir, tmp_path, capsys,
                                                        monkeypatch):
     out = tmp_path / "fit"
@@ -185,6 +187,7 @@ def test_sigint_at_any_moment_leaves_a_complete_set(mission_dir, tmp_path):
         assert not [q for q in tmp_path.iterdir() if ".aqfg-" in q.name]
 
 
+@pytest.mark.slow
 def test_force_replaces_the_whole_set_and_keeps_other_files(mission_dir, tmp_path, capsys):
     out = tmp_path / "fit"
     assert fit(mission_dir, "--out", out, "--gnss-every", "8") == 0
@@ -355,6 +358,7 @@ def test_exit_codes_and_one_line_errors(mission_dir, tmp_path, capsys, monkeypat
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_quiet_verbose_and_no_progress_frames_in_a_pipe(mission_dir, tmp_path, capsys):
     assert fit(mission_dir, "--out", tmp_path / "a", "--no-plots", "-q") == 0
     assert capsys.readouterr().err == ""

@@ -95,6 +95,7 @@ def test_batch_single_asv_mission(asv8):
     assert np.sqrt(C[0, 0]) == pytest.approx(res.sigma["k"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("vehicle,usbl,seed0", [("asv", False, 30), ("auv", False, 40),
                                                 ("asv", True, 50), ("auv", True, 60)])
 def test_batch_recovers_parameters(vehicle, usbl, seed0):
@@ -170,6 +171,7 @@ def test_result_does_not_depend_much_on_knot_spacing(asv8):
         assert abs(a.values[n] - b.values[n]) < 0.5 * a.sigma[n], n
 
 
+@pytest.mark.slow
 def test_random_walk_follows_heading_drift():
     """With the variable parameters as a random walk over 60 s segments, the heading
     offset follows a drift of 0.03 rad/min; a constant offset cannot."""
@@ -188,6 +190,7 @@ def test_random_walk_follows_heading_drift():
     assert res.values["theta_e"] == pytest.approx(h.values[-1, 0])
 
 
+@pytest.mark.slow
 def test_user_effect_in_python_is_estimated():
     """A user's Python effect (numpy path, finite-difference derivatives) is fitted; its
     parameter is found near its true null value."""

@@ -17,6 +17,7 @@ VAR = ("theta_e", "s_x", "s_y")
 AS_GIVEN = FGSettings(auto_effect=False)     # the model as given: no effect added
 
 
+@pytest.mark.slow
 def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
     """The Otter has linear surge drag, which the paper's model lacks: the score test at
     the batch's solution names it, the one-step shift of the current and heading offset

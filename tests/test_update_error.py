@@ -74,6 +74,7 @@ def offline(vehicle: str, fixes: str, seed: int = 1, **kw):
 #   AUV USBL only  0.05 0.04 0.14  0.039  0.18  2.8  0.070
 # (USBL-only currents carry a bias of the update-error metric itself: with
 # metric="whitened" the current errors of the same runs fall to ~0.01 m/s.)
+@pytest.mark.slow
 @pytest.mark.parametrize("vehicle,fixes", [("asv", "gnss"), ("auv", "gnss"), ("asv", "usbl"),
                                            ("auv", "usbl")])
 def test_offline_recovers_fixed_parameters_and_beats_the_old_ones(vehicle, fixes):
@@ -232,6 +233,7 @@ def _online_heading_errors(seed: int, **kw):
     return r, H, d
 
 
+@pytest.mark.slow
 def test_online_paper_window_with_the_papers_gradient_descent_does_not_wander():
     """The paper's 3-fix window, GNSS every 8 s, 30 deg initial heading error (the
     experiments' Figs. 7/8 setting). With the Gauss-Newton solver the heading and current
@@ -250,6 +252,7 @@ def test_online_paper_window_with_the_papers_gradient_descent_does_not_wander():
     assert np.mean(meds) < 12.0, meds                        # Gauss-Newton: 28
 
 
+@pytest.mark.slow
 def test_online_on_an_independent_vehicle_with_fixed_parameters_from_another_mission():
     """Otter (not the model), GNSS every 8 s plus USBL every 4.5 s, fixed parameters from a
     batch fit of another mission of the same vehicle: the heading offset stays within 10
