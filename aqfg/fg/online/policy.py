@@ -32,7 +32,10 @@ class HoldPolicy:
     ``phase``: HELD or RELEASED; ``next_reinit``: s after the start at which the next
     scheduled batch is due; ``batch_tried``: a batch has run; ``forced_at``: time of the
     last forced re-initialisation (attempt); ``reinit_batches``: a record per batch
-    solved; ``replaying``: the smoother is replaying the fixes so far after a restart."""
+    solved; ``replaying``: the smoother is replaying the fixes so far after a restart;
+    ``replay_prior``, ``replay_centre``: the last replay's start priors (sigmas by name of
+    the batch's reference) and the values the smoother first started from
+    (:class:`aqfg.fg.online.report.ParamPriors`)."""
     settings: FGSettings
     next_reinit: float
     phase: Phase = Phase.RELEASED
@@ -40,6 +43,8 @@ class HoldPolicy:
     forced_at: float = -math.inf
     reinit_batches: list[dict] = field(default_factory=list)
     replaying: bool = False
+    replay_prior: dict[str, float] = field(default_factory=dict)
+    replay_centre: dict[str, float] | None = None
 
     @property
     def held(self) -> bool:

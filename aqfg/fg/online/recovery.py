@@ -16,8 +16,8 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import observability, plausibility
 from aqfg.fg.common import knot_times
-from aqfg.fg.online.gtsam_engine import GTSAM_ERRORS
 from aqfg.fg.online import policy as hold_policy
+from aqfg.fg.online.gtsam_engine import GTSAM_ERRORS
 from aqfg.fg.online.views import mission_until
 from aqfg.model.params import difference
 
@@ -55,8 +55,8 @@ def reinit_due(fl: FixedLagSmoother, t_fix: float) -> str:
     forward because the held model fails; :meth:`HoldPolicy.due`)."""
     pol = fl.policy
     failing = pol.held_failing(fl.noise.q_scale, fl.gate.taken_m2)
-    return pol.due(t_fix - fl.knots[0], fl.n_fix, pol.scheduled(fl._theta_est, fl.init),
-                   failing, fl._constants_given)
+    return pol.due(t_fix - fl.knots[0], fl.n_fix, pol.scheduled(fl.theta_estimated, fl.init),
+                   failing, fl.constants_given)
 
 
 def troubled(fl: FixedLagSmoother, t_fix: float) -> bool:
@@ -65,7 +65,7 @@ def troubled(fl: FixedLagSmoother, t_fix: float) -> bool:
     own recoveries are not enough (a track that ran to 1e7 m after a failed release), so
     the fixes so far are solved as a batch and replayed."""
     bad = any(e["event"] in ("fix skipped", "prediction diverged", "restarted (broad priors)")
-              for e in fl.events[fl._ev_mark:])
+              for e in fl.events[fl.events_mark:])
     return bad and fl.policy.may_force(t_fix, fl.n_fix, fl.init)
 
 
@@ -85,9 +85,9 @@ def implausible_released(fl: FixedLagSmoother, t_fix: float) -> bool:
     # (a few comparisons on the latest estimates per update, against the bounds check's
     # own limits; the check in words only where one is at its bound)
     lay = fl.layout
-    watch = fl._bound_watch
+    watch = fl.bound_watch
     if watch is None:
-        watch = fl._bound_watch = [
+        watch = fl.bound_watch = [
             (g, lay.names[g].index(n), *plausibility.limits(fl.model, n))
             for g in lay.groups for n in lay.names[g] if n in ("k", "k_x", "s_x", "s_y")]
     if not any(g in fl.last_params and not lo < abs(fl.last_params[g][j]) < hi
@@ -216,7 +216,7 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
         return None
     uni = _take_batch_noise_and_sigma(fl, bres)
     ref_v, ref_s, alt, own_ref, slip, undetermined = _reference(fl, bres, uni, own)
-    free = _constants_discrepancy(fl, view, ref_v) if fl._constants_given else None
+    free = _constants_discrepancy(fl, view, ref_v) if fl.constants_given else None
     if free:
         for n, d in free["difference"].items():
             if not free["theta_e_determined"]:
@@ -312,7 +312,7 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
             "reasons": [r for v in bres.info.get("plausibility", {}).values()
                         for r in v.get("reasons", [])]})
         return None
-    if fl.policy.held and not fl._constants_given \
+    if fl.policy.held and not fl.constants_given \
             and float(bres.info.get("process_noise_scale", 1.0)) >= fl.settings.adapt_max:
         # the evidence put the process noise at its bound: the model explains none of
         # the fixes so far, and its free constants and heading are whatever the noise
@@ -477,8 +477,8 @@ def replay(fl: FixedLagSmoother, t_fix: float, new_init: dict[str, float],
               list(fl.filtered), list(fl.pred_t), list(fl.pred_x))
     saved = fl.init
     fl.init = new_init
-    fl._prior_override = prior
-    fl._prior_centre = dict(saved)
+    fl.policy.replay_prior = prior
+    fl.policy.replay_centre = dict(saved)
     try:
         fl.policy.replaying = True
         fl.start(fl.mission, plan=fl.steps.planned)

@@ -99,9 +99,6 @@ class FixedLagSmoother:
         self._estimate_vehicle = False
         self.policy = HoldPolicy(self.settings, self.settings.online_init_after)
         self.report = SigmaReport()
-        # a replay's start priors (recovery.replay): sigmas by name, and the original init
-        self._prior_override: dict[str, float] = {}
-        self._prior_centre: dict[str, float] | None = None
         self._t_call = time.perf_counter()
 
     # ---------------------------------------------------------------- setup
@@ -130,20 +127,20 @@ class FixedLagSmoother:
             est = tuple(dict.fromkeys((*est, *VEHICLE)))
         self.layout = fc.ParamLayout.build(self.model, est, self.init)
         # per-update constants of the layout (its properties build tuples on each call)
-        self._theta_est = "theta_e" in self.layout.estimated
-        self._bound_watch: list | None = None      # see recovery.implausible_released
+        self.theta_estimated = "theta_e" in self.layout.estimated
+        self.bound_watch: list | None = None      # see recovery.implausible_released
         # no thrust/drag constant estimated (given by init, or held fixed)
-        self._constants_given = not any(n in self.layout.estimated for n in FIXED_BASE)
+        self.constants_given = not any(n in self.layout.estimated for n in FIXED_BASE)
         self._scales = np.array([self.model.spec(n).scale for n in self.layout.estimated])
         self.fix_t = np.unique(mission.fix_times())
         if not len(self.fix_t):
             raise ValueError(f"mission {mission.name!r} has no GNSS or USBL fix")
-        hold = replaying or self.policy.scheduled(self._theta_est, self.init)
+        hold = replaying or self.policy.scheduled(self.theta_estimated, self.init)
         if not replaying:
             self._new_session(mission, hold)
         self._reset_run(plan)
         self.priors = ParamPriors(self.model, self.layout, self.settings,
-                                  self._prior_override, self._prior_centre, replaying)
+                                  self.policy.replay_prior, self.policy.replay_centre, replaying)
         # held parameters are reported with their prior's sigma (the batch's, replaying):
         # the hold priors' tiny marginal would claim a certainty no data gave
         self.report.held = self.priors.held_report() if hold else None
@@ -212,7 +209,7 @@ class FixedLagSmoother:
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
         self.events: list[dict] = []               # recoveries and other notable events
-        self._ev_mark = 0
+        self.events_mark = 0
         self._diverged_at: set[tuple[float, float]] = set()   # corrected_track's, noted
         self.last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
         self.policy.phase = Phase.RELEASED         # until the start's hold priors are in
@@ -244,6 +241,16 @@ class FixedLagSmoother:
         return self.backend.name
 
     @property
+    def reinit_batches(self) -> list[dict]:
+        """A record per batch re-initialisation solved (``info["reinit_batches"]``)."""
+        return self.policy.reinit_batches
+
+    @property
+    def q_scale(self) -> float:
+        """The process-noise variance factor in use (adaptive; ``info["process_noise_scale"]``)."""
+        return self.noise.q_scale
+
+    @property
     def held(self) -> bool:
         """The parameters are held at their start values (hold priors)."""
         return self.policy.held
@@ -273,7 +280,7 @@ class FixedLagSmoother:
                 raise ValueError("no fix left to process")
             t_fix = float(self.fix_t[self.n_fix])
         self._t_call = time.perf_counter()
-        self._ev_mark = len(self.events)
+        self.events_mark = len(self.events)
         t_last = self.knots[-1]
         if t_fix <= t_last + 1e-9:
             raise ValueError(f"fix time {t_fix} s is not after the last processed time {t_last} s")
