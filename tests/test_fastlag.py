@@ -38,8 +38,8 @@ def _engine(usbl: bool, n_fix: int = 12, window: float = 1e9):
     fl.start(m, plan=True)
     while fl.n_fix < n_fix:
         fl.update()
-    assert fl.engine == "numpy" and fl._fast is not None
-    return fl, fl._fast
+    assert fl.engine == "numpy"
+    return fl, fl.backend.win
 
 
 def _fd(f, x, h):
@@ -330,7 +330,7 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
     fl.start(m, plan=True)
     while fl.n_fix < 14:                  # ~100 s of 8-s fixes: knots have left the window
         fl.update()
-    eng = fl._fast
+    eng = fl.backend.win
     w = eng._walk_idx
     # the heading offset walks too (FGSettings.online_heading_walk, a plain walk)
     assert [eng.names[j] for j in w] == ["theta_e", "s_x", "s_y"]

@@ -12,6 +12,7 @@ import pytest
 
 from aqfg.data.mission import with_gnss_every, without_gnss
 from aqfg.fg.fit import BatchSmoother, FGSettings, FixedLagSmoother, fit_fg
+from aqfg.fg.online.policy import Phase
 from aqfg.sim.simulator import simulate
 
 VAR = ("theta_e", "s_x", "s_y")
@@ -90,7 +91,7 @@ def test_step_by_step_api_window_and_past_correction():
     while fl.pending():
         info = fl.update()
         assert info.seconds > 0 and info.n_new_knots >= 1
-        n_states.append(sum(1 for k in fl.smoother.calculateEstimate().keys()
+        n_states.append(sum(1 for k in fl.backend.smoother.calculateEstimate().keys()
                             if chr(np.uint64(k) >> np.uint64(56)) == "x"))
         if fl.n_fix == 8:
             # past-trajectory correction after 8 fixes: re-traced with the current
@@ -268,16 +269,17 @@ def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch, e
     st = FGSettings(online_engine=engine) if engine == "gtsam" else None
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
     target = float(m.usbl.t[30])
-    gate = FixedLagSmoother._gate
+    from aqfg.fg.online.gate import UsblGate
+    gate = UsblGate.check
     seen = []
 
-    def off_prediction(self, t_fix, dt, x_pred):      # the prediction 12 m off at one fix
+    def off_prediction(self, t_fix, dt, x_pred, *a, **k):   # the prediction 12 m off at one fix
         if abs(t_fix - target) < 1e-9:
             x_pred = x_pred + np.array([12.0, 0, 0, 0, 0, 0])
-            seen.append(gate(self, t_fix, dt, x_pred))
+            seen.append(gate(self, t_fix, dt, x_pred, *a, **k))
             return seen[-1]
-        return gate(self, t_fix, dt, x_pred)
-    monkeypatch.setattr(FixedLagSmoother, "_gate", off_prediction)
+        return gate(self, t_fix, dt, x_pred, *a, **k)
+    monkeypatch.setattr(UsblGate, "check", off_prediction)
     res = fit_fg([m], mode="online", init=fixed, settings=st)
     assert res.info["engine"] == engine
     assert seen and seen[0], "the shifted prediction should have been gated"
@@ -295,19 +297,19 @@ def test_the_gate_leaves_nothing_out_while_the_parameters_sit_at_their_start_val
                      gnss_period=8.0)
     fl = FixedLagSmoother(init=fixed_truth(tr))
     fl.start(m)
-    while fl.pending() and fl._hold_idx:
+    while fl.pending() and fl.held:
         t_next = float(fl.fix_t[fl.n_fix])
-        if round(t_next, 6) in fl._usbl_tab and fl.n_fix > 1:
+        if fl.gate.is_usbl(t_next) and fl.n_fix > 1:
             break
         fl.update()
-    assert fl._hold_idx, "the test needs a USBL fix before the first batch"
+    assert fl.held, "the test needs a USBL fix before the first batch"
     t_u = float(fl.fix_t[fl.n_fix])
     far = np.array([1e3, 1e3, 0, 0, 0, 0.0])
-    fl.q_scale = 256.0
-    assert not fl._gate(t_u, 4.5, far)
-    fl._hold_idx = []                       # as after the release
-    fl._rejects = 0
-    assert fl._gate(t_u, 4.5, far)
+    fl.noise.q_scale = 256.0
+    assert not fl.gate.check(t_u, 4.5, far, fl.noise, held=fl.held)
+    fl.policy.phase = Phase.RELEASED        # as after the release
+    fl.gate.rejects = 0
+    assert fl.gate.check(t_u, 4.5, far, fl.noise, held=fl.held)
 
 
 def test_a_held_model_that_fails_its_fixes_brings_the_first_batch_forward():

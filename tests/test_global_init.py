@@ -79,7 +79,7 @@ def test_closed_form_rho_variance_is_the_spread_of_rho():
     is wider than that spread, as it carries the current's prior too (on a straight leg the
     current's drift and the speed scale are the same direction). The online re-seed scales
     the thrust gain by rho^2 only where rho is detected and differs from 1 by this sigma
-    (FixedLagSmoother._reseed)."""
+    (aqfg.fg.online.recovery.reseed)."""
     theta = np.radians(40.0)
     for keep_t in ((0.0, 8.0, 16.0), None):
         rhos, var = [], []

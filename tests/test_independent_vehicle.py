@@ -17,6 +17,7 @@ from aqfg.data.mission import with_gnss_every
 from aqfg.fg import BatchSmoother, FGSettings, FixedLagSmoother, fit_fg
 from aqfg.fg.common import robust_fix_table
 from aqfg.fg.kinematic import KinematicFilter, baseline_tracks
+from aqfg.fg.online import policy, recovery
 from aqfg.result import Track
 
 DEG = np.pi / 180
@@ -374,7 +375,7 @@ def test_the_released_window_solves_the_batchs_own_problem():
     while fl.hist_t[-1] < 24.0 - 1e-9:   # to the fix after the 20-s batch
         fl.update()
     assert [b["t"] for b in fl.reinit_batches] == [20.0] and fl.reinit_batches[0]["restarted"]
-    eng = fl._fast
+    eng = fl.backend.win
     assert eng is not None and eng.hold_w is None            # released
     j = [eng.names.index(n) for n in ("s_x", "s_y")]
     assert np.all(eng.mu0[j] == 0.0)      # the current's prior: zero-mean, as the batch's
@@ -424,8 +425,8 @@ def test_online_random_walk_survives_failed_releases():
     class Troubled(FixedLagSmoother):
         injected = False
 
-        def _update(self, graph, vals, stamps, t_fix, n_new):
-            info = super()._update(graph, vals, stamps, t_fix, n_new)
+        def _solve(self, t_fix, n_new):
+            info = super()._solve(t_fix, n_new)
             if 100.0 <= t_fix and not Troubled.injected:
                 Troubled.injected = True
                 self.events.append({"t": float(t_fix), "event": "fix skipped",
@@ -502,7 +503,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     fl.start(m, plan=True)
     for _ in range(5):
         fl.update()
-    real = type(fl.smoother).update
+    real = type(fl.backend.smoother).update
     calls = {"n": 0}
 
     def flaky(self, *a):
@@ -510,7 +511,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
         if calls["n"] == 1:
             raise RuntimeError("Indeterminate linear system detected while working near variable")
         return real(self, *a)
-    monkeypatch.setattr(type(fl.smoother), "update", flaky)
+    monkeypatch.setattr(type(fl.backend.smoother), "update", flaky)
     while fl.pending():
         fl.update()
     res = fl.result()
@@ -531,14 +532,15 @@ def test_restart_while_held_keeps_the_hold_and_the_release_removes_only_it():
     fl.start(m, plan=True)
     for _ in range(3):
         fl.update()
-    assert fl._hold_idx
-    fl._restart(fl.knots[-1])
-    fg = fl.smoother.getFactors()
-    nodes = {fl._node(g) for g in fl.layout.groups}
-    assert len(fl._hold_idx) == len(fl.layout.groups)
-    for i in fl._hold_idx:                     # the new smoother's own hold priors
+    eng = fl.backend
+    assert fl.held and eng.hold_idx
+    eng.restart(fl.knots[-1])
+    fg = eng.smoother.getFactors()
+    nodes = {eng.node(g) for g in fl.layout.groups}
+    assert len(eng.hold_idx) == len(fl.layout.groups)
+    for i in eng.hold_idx:                     # the new smoother's own hold priors
         assert isinstance(fg.at(i), gtsam.PriorFactorVector) and set(fg.at(i).keys()) <= nodes
-    fl._release(fl.knots[-1])
+    fl.release(fl.knots[-1])
     assert fl.events[-1]["event"] == "parameters released"
     while fl.pending():
         fl.update()
@@ -553,7 +555,6 @@ def test_a_failing_held_model_is_rescued_from_the_fourth_fix(gnss_period, t_firs
     model fails its fixes from the start. Its heading is re-seeded at the third fix (the
     GNSS fixes are scored without USBL too); where the re-seed cannot help, the first batch
     used to wait for six fixes (20 s at 4-s GNSS, 40 s at 8 s) and now runs at the fourth."""
-    from aqfg.fg import fixed_lag
     from aqfg.sim import simulate
     m, tr = simulate("asv", seed=12, duration=60.0, params={"theta_e": np.radians(150.0)},
                      gnss_period=gnss_period)
@@ -569,7 +570,7 @@ def test_a_failing_held_model_is_rescued_from_the_fourth_fix(gnss_period, t_firs
     ev = run()
     assert ev and ev[0]["event"].startswith("held heading re-seeded"), ev
     assert abs(ev[0]["t"] - (t_first - gnss_period)) < 1e-6, ev
-    monkeypatch.setattr(fixed_lag.FixedLagSmoother, "_reseed", lambda self, t: None)
+    monkeypatch.setattr(recovery, "reseed", lambda fl, t: None)
     ev = run()
     first = [e["t"] for e in ev if e["event"].startswith(("re-initialised", "parameters released"))]
     assert first and abs(first[0] - t_first) < 1e-6, ev
@@ -586,20 +587,20 @@ def test_one_outlying_fix_does_not_make_a_held_model_fail():
     fl.start(m, plan=True)
     for _ in range(4):
         fl.update()
-    assert fl._hold_idx and not fl._batch_tried
+    assert fl.held and not fl.policy.batch_tried
     t = float(fl.knots[-1])
-    fl._taken_m2 = [1.0, 2.0, 120.0]
-    assert not fl._reinit_due(t)
-    fl._taken_m2 = [1.0, 30.0, 120.0]
-    assert fl._reinit_due(t)
+    fl.gate.taken_m2 = [1.0, 2.0, 120.0]
+    assert not recovery.reinit_due(fl, t)
+    fl.gate.taken_m2 = [1.0, 30.0, 120.0]
+    assert recovery.reinit_due(fl, t)
     # with the thrust/drag constants free the rescue waits for the sixth fix (a batch of
     # the first 8 s of heldout-32 with all six free came out 60 deg off)
     free = FixedLagSmoother()
     free.start(m, plan=True)
     for _ in range(4):
         free.update()
-    free._taken_m2 = [1.0, 30.0, 120.0]
-    assert free.n_fix < 6 and not free._reinit_due(float(free.knots[-1]))
+    free.gate.taken_m2 = [1.0, 30.0, 120.0]
+    assert free.n_fix < 6 and not recovery.reinit_due(free, float(free.knots[-1]))
 
 
 @pytest.mark.slow
@@ -936,7 +937,6 @@ def test_a_held_heading_that_misses_the_third_fix_is_reseeded_there(monkeypatch)
     there, from the closed form of three fixes with the current held at zero, instead of at
     the fourth, the causal track's first 40 s are 2.0 m RMS from the truth instead of 3.6."""
     from aqfg.data.mission import between
-    from aqfg.fg import fixed_lag
     full, truth = mission("remus-heldout-13", 0.0)
     m = with_gnss_every(between(full, full.t0 + 3.0, full.t1), 8.0)
     third = float(np.unique(m.fix_times())[2])
@@ -950,7 +950,7 @@ def test_a_held_heading_that_misses_the_third_fix_is_reseeded_there(monkeypatch)
         return seeds, float(np.sqrt(np.mean(e ** 2)))
     seeds, rmse = early_rmse()
     assert seeds and seeds[0] == pytest.approx(third), (seeds, third)
-    monkeypatch.setattr(fixed_lag, "RESEED_EARLY_FIXES", 4)     # from the fourth fix
+    monkeypatch.setattr(policy, "RESEED_EARLY_FIXES", 4)     # from the fourth fix
     seeds4, rmse4 = early_rmse()
     assert seeds4 and seeds4[0] > third + 1.0
     assert rmse < 0.7 * rmse4, (rmse, rmse4)
@@ -966,7 +966,6 @@ def test_gnss_only_a_reseed_takes_the_speed_scale_and_beats_the_baseline(monkeyp
     import dataclasses
 
     from aqfg.ekf import fit_update_error
-    from aqfg.fg import fixed_lag
     full, truth = mission("otter-heldout-93-40s", 0.0)
     m = with_gnss_every(dataclasses.replace(full, usbl=None), 8.0)
     third = float(np.unique(m.fix_times())[2])
@@ -989,7 +988,7 @@ def test_gnss_only_a_reseed_takes_the_speed_scale_and_beats_the_baseline(monkeyp
     t_u, e_u = causal(fit_update_error([m], mode="online"))
     assert rmse < float(np.sqrt(np.mean(e_u ** 2))), (rmse, float(np.sqrt(np.mean(e_u ** 2))))
     assert after < 2.5, after
-    monkeypatch.setattr(fixed_lag, "RESEED_RHO", (0.0, np.inf))     # the heading alone
+    monkeypatch.setattr(recovery, "RESEED_RHO", (0.0, np.inf))     # the heading alone
     _, rmse_h, after_h = run()
     assert after_h > 2.0 * after, (after_h, after)
 
