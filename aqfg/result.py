@@ -230,7 +230,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         e = {"value": float(result.values[n]), "sigma": s if np.isfinite(s) else None,
              "unit": unit(n)}
         if not np.isfinite(s):
-            e["sigma_note"] = NO_SIGMA
+            e["sigma_note"] = (result.info.get("sigma_notes") or {}).get(n) or NO_SIGMA
         est[n] = e
     names = (model.active_names if model is not None and hasattr(model, "active_names")
              else tuple(result.values))
@@ -284,6 +284,9 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
+    if result.info.get("heading_check"):
+        # the fitted heading against the accelerometer's (aqfg.identifiability)
+        doc["heading_check"] = result.info["heading_check"]
     if provenance is not None:
         doc["provenance"] = provenance
     return doc

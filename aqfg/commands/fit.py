@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 from aqfg.commands.common import UsageError
+from aqfg.commands.options import parameter_value
 from aqfg.data.mission import with_gnss_every
 from aqfg.model.frames import wrap_angle
 from aqfg.result import Result, read_parameter_values
@@ -23,16 +24,15 @@ PLOTS = ("map.png", "parameters.png")
 
 def _float(name: str, text: str, where: str) -> float:
     try:
-        v = float(text)
-    except ValueError:
-        raise UsageError(f"{where}: value of {name!r} must be a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise UsageError(f"{where}: value of {name!r} must be finite, got {text!r}")
-    return v
+        return parameter_value(name, text, where)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict[str, float]:
-    """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``."""
+    """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``;
+    each checked by :func:`aqfg.commands.options.parameter_value` (a bad value in the file
+    is a data error, on the command line a usage error)."""
     out: dict[str, float] = {}
     if params_from:
         from aqfg.outputs import read_json
@@ -41,9 +41,10 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
         if not isinstance(data, dict):
             raise ValueError(f"--params-from {p}: expected a parameters.json document")
         try:
-            out.update(read_parameter_values(data))
+            values = read_parameter_values(data)
         except ValueError as e:
             raise ValueError(f"--params-from {p}: {e}") from None
+        out.update({n: parameter_value(n, v, f"--params-from {p}") for n, v in values.items()})
     for name, text in init:
         if not name or not text:
             raise UsageError(f"--init expects NAME=VALUE, got {name!r}={text!r}")
@@ -91,6 +92,10 @@ def vehicle_values(values: dict[str, float], mission, effects: tuple[str, ...],
     return {n: v for n, v in values.items() if n not in dropped}
 
 
+def _sigma_text(s: float) -> str:
+    return f"{s:>12.3g}" if math.isfinite(s) else "  (not determined)"
+
+
 def parameter_table(result: Result) -> str:
     """The short table ``aqfg fit`` prints: name, value, 1-sigma (per mission for the
     per-mission parameters when several missions were fitted)."""
@@ -102,10 +107,11 @@ def parameter_table(result: Result) -> str:
             for mname, vals in per.items():
                 if n in vals:
                     e = vals[n]
-                    lines.append(f"{n + ' [' + mname + ']':<26}{e.value:>12.5g}{e.sigma:>12.3g}")
+                    lines.append(f"{n + ' [' + mname + ']':<26}{e.value:>12.5g}"
+                                 f"{_sigma_text(e.sigma)}")
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"
-                         f"{result.sigma.get(n, float('nan')):>12.3g}")
+                         f"{_sigma_text(result.sigma.get(n, float('nan')))}")
     # (the values hold every parameter of the model, an effect's switched off too)
     rate = result.values.get("heading_drift.rate") \
         if "heading_drift" in (result.effects or ()) else None
@@ -201,6 +207,9 @@ def run(args) -> int:
     else:
         from aqfg.ekf.estimator import fit_update_error
         result = fit_update_error(missions, progress=True, **kw)
+    from aqfg.identifiability import settle
+    for w in settle(result, missions):
+        log.warning("%s: %s", args.method, w)
     model = result.model
     prov = provenance(
         method=result.method, mode=result.mode, effects=result.effects,
