@@ -234,7 +234,7 @@ def _main(argv: list[str] | None) -> int:
     name = args.command
 
     def fail(code: int, msg: object, kind: str = "error") -> int:
-        print(f"aqfg {name}: {kind}: {msg}", file=sys.stderr)
+        print(f"aqfg {name}: {kind}: {common.printable(msg)}", file=sys.stderr)
         return code
 
     with warnings.catch_warnings():

@@ -19,6 +19,19 @@ EXIT_INTERRUPTED = 130     # Ctrl-C (128 + SIGINT)
 log = logging.getLogger("aqfg")
 
 
+_CONTROL = dict.fromkeys([*range(0x20), 0x7F, *range(0x80, 0xA0)])
+
+
+def printable(text: object) -> str:
+    """``text`` safe for a terminal: control characters (escape sequences, newlines,
+    carriage returns) written as ``\\xNN`` escapes, so a name read from a file can neither
+    recolour nor rewrite the screen, nor fake a line of output."""
+    s = str(text)
+    if not any(ord(c) in _CONTROL for c in s):
+        return s
+    return "".join(f"\\x{ord(c):02x}" if ord(c) in _CONTROL else c for c in s)
+
+
 class UsageError(ValueError):
     """The command line is wrong: an option value, a name, a combination (exit 2)."""
 
@@ -30,7 +43,7 @@ class _Format(logging.Formatter):
 
     def format(self, record: logging.LogRecord) -> str:
         level = "" if record.levelno == logging.INFO else record.levelname.lower() + ": "
-        return self.prefix + level + record.getMessage()
+        return self.prefix + level + printable(record.getMessage())
 
 
 class _State:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from aqfg.commands.common import UsageError
+from aqfg.commands.common import UsageError, printable
 from aqfg.commands.options import parameter_value
 from aqfg.data.mission import with_gnss_every
 from aqfg.model.frames import wrap_angle
@@ -107,7 +107,7 @@ def parameter_table(result: Result) -> str:
             for mname, vals in per.items():
                 if n in vals:
                     e = vals[n]
-                    lines.append(f"{n + ' [' + mname + ']':<26}{e.value:>12.5g}"
+                    lines.append(f"{n + ' [' + printable(mname) + ']':<26}{e.value:>12.5g}"
                                  f"{_sigma_text(e.sigma)}")
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"

@@ -11,11 +11,25 @@ import argparse
 import sys
 from pathlib import Path
 
-from aqfg.data.importers import MissingExtraError, import_log, load_map
-from aqfg.data.io import MISSION_FILES, load_mission, load_truth, save_mission
+from aqfg.commands.common import printable
+from aqfg.data.importers import LogFormatError, MissingExtraError, import_log, load_map
+from aqfg.data.io import MISSION_FILES, MissionFormatError, load_mission, load_truth, save_mission
 from aqfg.outputs import OutputSet
 
 EXIT_MISSING_EXTRA = 2
+
+
+def _read(fmt: str, source: str, imap, base=None):
+    """:func:`import_log`, with a reader's own failure on a damaged file (a third-party
+    parser's IndexError, AttributeError...) turned into a data error naming the file."""
+    try:
+        return import_log(fmt, source, imap, base=base)
+    except (MissionFormatError, MissingExtraError, OSError, MemoryError):
+        raise
+    except Exception as e:  # noqa: BLE001 - the parsers raise anything on bad bytes
+        raise LogFormatError(source, f"cannot decode as a {fmt} log: the file is damaged, "
+                                     f"truncated or not such a log ({type(e).__name__} in "
+                                     "its reader)") from e
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
             if base.gnss is not None and not args.force:
                 raise FileExistsError(f"{out} already has GNSS fixes (gnss.csv); pass --force "
                                       "to replace them with the NMEA log's")
-            result = import_log("nmea", args.source, imap, base=base)
+            result = _read("nmea", args.source, imap, base=base)
             with OutputSet(out, MISSION_FILES, force=True) as stage:   # whole set, or none
                 save_mission(result.mission, stage, truth)
         else:
@@ -41,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
                                       "overwrite it")
             outs = OutputSet(out, MISSION_FILES, force=args.force)
             outs.check()
-            result = import_log(args.format, args.source, imap)
+            result = _read(args.format, args.source, imap)
             with outs as stage:               # the mission appears whole, or not at all
                 save_mission(result.mission, stage)
     except MissingExtraError as e:
@@ -49,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_MISSING_EXTRA
     m = result.mission
     what = "added GNSS fixes to" if args.format == "nmea" else "imported"
-    print(f"{what} {m.vehicle} mission '{m.name}' from {args.source} ({args.format}) -> {out}")
+    print(printable(f"{what} {m.vehicle} mission '{m.name}' from {args.source} "
+                    f"({args.format}) -> {out}"))
     print(result.summary())
     return 0

@@ -46,6 +46,18 @@ def _keep(s, sel):
     return Depth(s.t[sel], s.depth[sel])
 
 
+def _check_spans(mission: Mission) -> None:
+    """The inputs must span time: imu.csv and motors.csv each need rows at two different
+    times (one row, or every row at one time, says nothing about the motion between)."""
+    for name, s in (("imu.csv", mission.imu), ("motors.csv", mission.motors)):
+        t = np.asarray(s.t, dtype=float)
+        if len(t) == 0 or not t[-1] > t[0]:
+            what = (f"{len(t)} row" + ("s, every one" if len(t) > 1 else "")
+                    + (f" at t = {t[0]:g} s" if len(t) else ""))
+            raise ValueError(f"mission {mission.name!r}, {name}: {what}: the inputs span no "
+                             "time; a fit needs rows at two different times at least")
+
+
 def prepare(mission: Mission) -> tuple[Mission, list[str]]:
     """A copy of ``mission`` ready for the estimators, and one note per change made.
 
@@ -56,8 +68,9 @@ def prepare(mission: Mission) -> tuple[Mission, list[str]]:
       estimator's default applies;
     - GNSS ``sigma`` below :data:`GNSS_SIGMA_FLOOR` is raised to it.
 
-    The input mission is not modified.
+    ValueError when imu.csv or motors.csv spans no time. The input mission is not modified.
     """
+    _check_spans(mission)
     m = copy.copy(mission)
     notes: list[str] = []
     t0, t1 = mission.t0, mission.t1
