@@ -111,10 +111,11 @@ class Progress:
 
 
 def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
-                  knot_spacing: float = 1.0):
+                  knot_spacing: float = 1.0, window: float | None = None):
     """Load ``paths`` (input warnings are logged), prepare them for the estimators
-    (:func:`aqfg.data.preflight.prepare`), estimate the cost and refuse above
-    ``max_knots`` (None or 0: no limit). Returns the prepared missions."""
+    (:func:`aqfg.data.preflight.prepare`), estimate the cost (``window``: of an online
+    fit) and refuse above ``max_knots`` (None or 0: no limit). Returns the prepared
+    missions."""
     from aqfg.data.io import load_mission
     from aqfg.data.preflight import check_cost, estimate_cost, prepare
     missions = []
@@ -123,7 +124,7 @@ def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
         for n in notes:
             log.info("%s", n)
         missions.append(m)
-    cost = estimate_cost(missions, knot_spacing=knot_spacing, fits=fits)
+    cost = estimate_cost(missions, knot_spacing=knot_spacing, fits=fits, window=window)
     log.info("estimate: %s", cost.describe())
     check_cost(cost, max_knots or None)
     return missions

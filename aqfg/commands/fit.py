@@ -158,7 +158,10 @@ def run(args) -> int:
         if not estimate:
             raise UsageError("--estimate: no parameter names given")
     from_file = initial_values([], args.params_from)
-    missions = load_missions(args.missions, args.max_knots)
+    window = None
+    if args.mode == "online":          # the window each fix re-solves (fg's default 24 s)
+        window = args.window or (24.0 if args.method == "fg" else None)
+    missions = load_missions(args.missions, args.max_knots, window=window)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")

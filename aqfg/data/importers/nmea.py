@@ -100,6 +100,10 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                 if not ok or p.lat in ("", None) or p.time in ("", None):
                     n_bad += 1
                     continue
+                if not (abs(float(p.lat)) <= 90.0 and abs(float(p.lon)) <= 180.0):
+                    n_bad += 1
+                    reason = "latitude or longitude out of range"
+                    continue
                 tod = _tod(p.time)
                 ref = _nearest(tod, ref)
                 t_utc.append(ref)
@@ -114,6 +118,9 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                f"checksum, {raw - bad_sum} with a field out of range, e.g. a latitude beyond "
                "90 degrees)" if raw else "")
         raise LogFormatError(src, f"no {kind} sentences in the log{why}", topic=kind)
+    if not t_utc:
+        raise LogFormatError(src, f"none of the log's {seen} {kind} sentences holds a usable "
+                                  f"fix (the last reason: {reason})", topic=kind)
     t_ns = np.array([round(u * 1e6) * 1000 for u in t_utc], dtype=np.int64)
     s = Series("gnss", kind, f"NMEA {kind}", t_ns,
                {"lat": np.array(lat), "lon": np.array(lon),
