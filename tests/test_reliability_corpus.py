@@ -361,3 +361,22 @@ def test_leftover_of_a_killed_run_is_restored_or_removed_and_said(tmp_path, capl
     assert not [p for p in os.listdir(tmp_path) if ".aqfg-" in p]
     said = caplog.text
     assert "restored the previous outputs" in said and "removed" in said
+
+
+# ------------------------------------------------------------ the fleet's scratch files
+
+@pytest.mark.slow
+def test_a_fleet_run_leaves_no_scratch_files(otter, tmp_path, monkeypatch, capsys):
+    pytest.importorskip("distributed")
+    import tempfile
+
+    from aqfg.fleet import write_manifest
+    crop(otter, tmp_path / "m", t_end=120.0)
+    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": ["m"]})
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    code, err = run("fleet", p, "--out", tmp_path / "out", "--workers", "1",
+                    "--no-auto-effect", capsys=capsys)
+    assert code == 0, err
+    assert list(scratch.iterdir()) == []
