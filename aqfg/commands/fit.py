@@ -161,7 +161,10 @@ def run(args) -> int:
     window = None
     if args.mode == "online":          # the window each fix re-solves (fg's default 24 s)
         window = args.window or (24.0 if args.method == "fg" else None)
-    missions = load_missions(args.missions, args.max_knots, window=window)
+    # a batch factor-graph fit with the effect step fits again with the effect it tries
+    fits = 2 if (args.method == "fg" and args.mode == "batch" and estimate is None
+                 and not getattr(args, "no_auto_effect", False)) else 1
+    missions = load_missions(args.missions, args.max_knots, fits=fits, window=window)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
