@@ -165,6 +165,15 @@ def test_params_from_out_of_bounds_is_a_data_error(mission, tmp_path, capsys, en
     assert "Initial guess" not in err and not (tmp_path / "out").exists()
 
 
+def test_a_track_file_never_holds_a_non_number(caplog):
+    from aqfg.result import Track, finite_track
+    pos = np.zeros((5, 3))
+    pos[3, 0] = np.nan                       # a re-trace diverging at t = 3 s
+    tr = finite_track(Track(np.arange(5.0), pos, np.zeros((5, 3))), "inertial.csv")
+    assert len(tr.t) == 3 and np.isfinite(tr.pos).all()
+    assert "inertial.csv" in caplog.text and "t = 3 s" in caplog.text
+
+
 def test_online_cost_estimate_covers_the_window(mission):
     from aqfg.data.io import load_mission
     from aqfg.data.preflight import estimate_cost
