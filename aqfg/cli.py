@@ -240,6 +240,8 @@ def _main(argv: list[str] | None) -> int:
     with warnings.catch_warnings():
         common.setup(name, args.verbosity)
         try:
+            from aqfg.commands.options import check_parsed
+            check_parsed(args)
             mod = importlib.import_module(f"aqfg.commands.{getattr(args, 'module', name)}")
             return int(mod.run(args) or 0)
         except KeyboardInterrupt:

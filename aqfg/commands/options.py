@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 MAX_SECONDS = 86_400.0   # one day: the longest duration, window or fix period an option takes
 ABSURD = 1e6             # a parameter value beyond ABSURD x its typical magnitude is no value
@@ -31,20 +32,36 @@ def parse(text: str, lo: float, hi: float, *, lo_open: bool = False,
     return v
 
 
+@dataclass(frozen=True)
+class Invalid:
+    """A numeric option's value that did not validate: :func:`check_parsed` turns it into
+    a usage error (one line, exit 2, as every other bad option value)."""
+    text: str
+    problem: str
+
+
 def number(lo: float, hi: float, *, lo_open: bool = False,
-           integer: bool = False) -> Callable[[str], float | int]:
-    """The ``argparse`` type of a numeric option: :func:`parse` with these bounds."""
-    def convert(text: str) -> float | int:
+           integer: bool = False) -> Callable[[str], float | int | Invalid]:
+    """The ``argparse`` type of a numeric option: :func:`parse` with these bounds (an
+    :class:`Invalid` for a value that does not validate)."""
+    def convert(text: str) -> float | int | Invalid:
         try:
             v = parse(text, lo, hi, lo_open=lo_open, integer=integer)
         except ValueError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
+            return Invalid(text, str(e))
         return int(v) if integer else v
-    convert.__name__ = "integer" if integer else "number"     # argparse names it on error
     return convert
 
 
-def seconds(*, zero: bool = False) -> Callable[[str], float | int]:
+def check_parsed(args: argparse.Namespace) -> None:
+    """UsageError naming the first option whose value did not validate."""
+    from aqfg.commands.common import UsageError
+    for dest, v in vars(args).items():
+        if isinstance(v, Invalid):
+            raise UsageError(f"--{dest.replace('_', '-')}: {v.problem}")
+
+
+def seconds(*, zero: bool = False) -> Callable[[str], float | int | Invalid]:
     """A duration option in seconds: positive (or 0 when ``zero`` means "off"), at most
     :data:`MAX_SECONDS`."""
     return number(0.0, MAX_SECONDS, lo_open=not zero)
