@@ -389,3 +389,31 @@ def test_a_fleet_run_leaves_no_scratch_files(otter, tmp_path, monkeypatch, capsy
                     "--no-auto-effect", capsys=capsys)
     assert code == 0, err
     assert list(scratch.iterdir()) == []
+
+
+@pytest.mark.parametrize("fmt,name", [("ulog", "x.ulg"), ("mavlink", "x.tlog"),
+                                      ("mavlink", "x.bin")])
+def test_a_truncated_log_is_said_to_be(tmp_path, capsys, fmt, name):
+    pytest.importorskip("pyulog" if fmt == "ulog" else "pymavlink")
+    import log_writers as lw
+
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=3, duration=60.0)
+    pwm = "channels = [1, 3]\npwm_min = 1100\npwm_trim = 1500\npwm_max = 1900"
+    (tmp_path / "map.toml").write_text(lw.map_toml(m) if fmt == "ulog" else
+                                       lw.map_toml(m, motors=pwm))
+    log = tmp_path / name
+    if name.endswith(".ulg"):
+        lw.write_ulog(log, lw.ulog_records(m))
+    elif name.endswith(".tlog"):
+        lw.write_tlog(log, lw.tlog_records(m))
+    else:
+        lw.write_dataflash(log, lw.dataflash_records(m))
+    whole = log.read_bytes()
+    code, err = run("import", fmt, log, "--out", tmp_path / "a", "--map", tmp_path / "map.toml",
+                    capsys=capsys)
+    assert code == 0 and "truncated" not in err, err
+    log.write_bytes(whole[:len(whole) // 2 + 7])
+    code, err = run("import", fmt, log, "--out", tmp_path / "b", "--map", tmp_path / "map.toml",
+                    capsys=capsys)
+    assert code == 0 and "truncated?" in err, err

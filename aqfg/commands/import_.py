@@ -11,8 +11,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from aqfg.commands.common import printable
+from aqfg.commands.common import log, printable
 from aqfg.data.importers import LogFormatError, MissingExtraError, import_log, load_map
+from aqfg.data.importers.truncation import cut_short
 from aqfg.data.io import MISSION_FILES, MissionFormatError, load_mission, load_truth, save_mission
 from aqfg.outputs import OutputSet
 
@@ -23,7 +24,16 @@ def _read(fmt: str, source: str, imap, base=None):
     """:func:`import_log`, with a reader's own failure on a damaged file (a third-party
     parser's IndexError, AttributeError...) turned into a data error naming the file."""
     try:
-        return import_log(fmt, source, imap, base=base)
+        result = import_log(fmt, source, imap, base=base)
+        end = cut_short(fmt, source)
+        if end is not None:         # the parsers stop quietly at a message cut short
+            size = Path(source).stat().st_size
+            words = (f"{source}: the log ends in the middle of a message (complete messages "
+                     f"end at byte {end:,} of {size:,}): truncated? imported as far as it "
+                     f"reads, to mission t = {result.mission.t1:.1f} s")
+            log.warning("%s", words)
+            result.notes.append(words)
+        return result
     except (MissionFormatError, MissingExtraError, OSError, MemoryError):
         raise
     except Exception as e:  # noqa: BLE001 - the parsers raise anything on bad bytes
