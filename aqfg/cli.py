@@ -36,14 +36,15 @@ def _max_knots(text: str) -> int:
     return v
 
 
-def _directory(text: str) -> str:
+def _directory(text: str):
     """An output directory's path: not empty (which would write into the working
-    directory), no NUL character."""
+    directory), no NUL character (else an ``Invalid``: a usage error)."""
+    from aqfg.commands.options import Invalid
     if not text.strip():
-        raise argparse.ArgumentTypeError("expected a directory path, got an empty string "
-                                         "(write into the current directory with '.')")
+        return Invalid(text, "expected a directory path, got an empty string (write into "
+                             "the current directory with '.')")
     if "\0" in text:
-        raise argparse.ArgumentTypeError("a path cannot hold a NUL character")
+        return Invalid(text, "a path cannot hold a NUL character")
     return text
 
 

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 MAX_SECONDS = 86_400.0   # one day: the longest duration, window or fix period an option takes
+POSITIONAL = ("out_dir",)   # the positional arguments a check may name
 ABSURD = 1e6             # a parameter value beyond ABSURD x its typical magnitude is no value
 
 
@@ -58,7 +59,8 @@ def check_parsed(args: argparse.Namespace) -> None:
     from aqfg.commands.common import UsageError
     for dest, v in vars(args).items():
         if isinstance(v, Invalid):
-            raise UsageError(f"--{dest.replace('_', '-')}: {v.problem}")
+            name = dest.upper() if dest in POSITIONAL else f"--{dest.replace('_', '-')}"
+            raise UsageError(f"{name}: {v.problem}")
 
 
 def seconds(*, zero: bool = False) -> Callable[[str], float | int | Invalid]:
