@@ -225,11 +225,13 @@ def test_symlinked_csv_error_echoes_no_content(mission, tmp_path, capsys):
 def test_control_characters_in_a_name_are_escaped(mission, tmp_path, capsys):
     edit_toml(mission / "mission.toml", 'name = "otter-example"',
               'name = "ev\\u001b[31mil\\nFAKE LINE"')
-    code, err = run("info", mission, capsys=capsys)
-    out = capsys.readouterr().out
-    code2, err2 = run("fit", mission, mission, "--out", tmp_path / "o", capsys=capsys)
-    for text in (out, err, err2):
+    assert main(["info", str(mission)]) == 0
+    shown = capsys.readouterr()
+    assert main(["fit", str(mission), str(mission), "--out", str(tmp_path / "o")]) == 3
+    again = capsys.readouterr()
+    for text in (shown.out, shown.err, again.out, again.err):
         assert "\x1b" not in text and "\nFAKE" not in text, text
+    assert "FAKE LINE" in shown.out and "FAKE LINE" in again.err     # escaped, not dropped
 
 
 # ------------------------------------------------------------ logs
@@ -266,6 +268,43 @@ def test_random_bytes_as_a_log_are_a_data_error(map_file, tmp_path, capsys, fmt,
                         capsys=capsys)
         assert code == 3, err
         assert str(log) in err and "internal error" not in err, err
+
+
+def test_a_log_whose_messages_do_not_decode_is_a_data_error(tmp_path, capsys):
+    pytest.importorskip("pymavlink")
+    import log_writers as lw
+
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=3, duration=20.0)
+    log = lw.write_tlog(tmp_path / "x.tlog", lw.tlog_records(m))
+    b = bytearray(log.read_bytes())
+    pos = 0
+    while pos < len(b):                       # every MAVLink checksum made wrong
+        magic, n = b[pos + 8], b[pos + 9]
+        head = 6 if magic == 0xFE else 10
+        b[pos + 8 + head + n] ^= 0xFF
+        pos += 8 + head + n + 2 + (13 if magic == 0xFD and b[pos + 10] & 1 else 0)
+    log.write_bytes(bytes(b))
+    pwm = "channels = [1, 3]\npwm_min = 1100\npwm_trim = 1500\npwm_max = 1900"
+    (tmp_path / "map.toml").write_text(lw.map_toml(m, motors=pwm))
+    code, err = run("import", "mavlink", log, "--out", tmp_path / "m", "--map",
+                    tmp_path / "map.toml", capsys=capsys)
+    assert code == 3 and "could be decoded" in err and "internal error" not in err, err
+
+
+def test_a_reader_failing_on_bad_bytes_is_a_data_error(map_file, tmp_path, capsys,
+                                                       monkeypatch):
+    import aqfg.commands.import_ as imp
+
+    def reader_fault(*a, **k):                # as a parser meeting bytes it cannot frame
+        raise AttributeError("'NoneType' object has no attribute 'header'")
+    monkeypatch.setattr(imp, "import_log", reader_fault)
+    log = tmp_path / "x.bag"
+    log.write_bytes(b"\0" * 64)
+    code, err = run("import", "ros1", log, "--out", tmp_path / "m", "--map", map_file,
+                    capsys=capsys)
+    assert code == 3 and str(log) in err and "damaged" in err, err
+    assert "NoneType" not in err
 
 
 def test_nmea_without_a_readable_fix_says_why(mission, tmp_path, capsys):
