@@ -35,6 +35,7 @@ WINDOW_KNOT_SECONDS = 0.3e-3
 # and memory of the streams held (50-Hz IMU, 10-Hz motors and truth).
 SIM_SECONDS = 2e-3
 SIM_BYTES = 10e3
+SIM_START = 0.2     # s: the simulator's and the writer's set-up, whatever the duration
 
 
 class CostLimitError(ValueError):
@@ -196,7 +197,7 @@ def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
 def estimate_simulation(duration: float) -> str:
     """Rough memory and time of ``aqfg simulate`` for ``duration`` s of mission."""
     return (f"{_hours(duration)} of mission: about {_bytes(duration * SIM_BYTES)} and "
-            f"{_duration(duration * SIM_SECONDS)}")
+            f"{_duration(SIM_START + duration * SIM_SECONDS)}")
 
 
 def check_cost(cost: Cost, max_knots: int | None = DEFAULT_MAX_KNOTS,
