@@ -28,7 +28,7 @@ MIN_WINDOWS = 30        # fewer averaged windows: no verdict from the accelerome
 MIN_AGREEMENT = 0.5     # |correlation| of the two accelerations at their best rotation
 DISAGREE_DEG = 45.0     # the accelerometer puts the heading this far from the fit's: not determined
 FLIPPED_DEG = 120.0     # ... this far: the vehicle moves against its thrust
-GRAVITY = 9.81
+LARGE_OFFSET_DEG = 90.0  # without an accelerometer: a heading offset this large is questioned
 
 
 @dataclass(frozen=True)
@@ -157,6 +157,11 @@ def settle(result, missions=()) -> list[str]:
             th = float(mr.p[INDEX["theta_e"]])
             chk = heading_against_accelerometer(m, mr.track, th)
             if chk is None:
+                if abs(math.remainder(th, 2 * math.pi)) > math.radians(LARGE_OFFSET_DEG):
+                    new.append(f"{mr.name}: the heading offset is {math.degrees(th):.0f} deg: "
+                               "unless the compass is that far off, the vehicle moves against "
+                               "its thrust (a thruster's command sign or [thrusters] direction "
+                               "reversed); the IMU has no accelerometer columns to tell")
                 continue
             checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
                                "agreement": round(chk.agreement, 3), "windows": chk.windows}

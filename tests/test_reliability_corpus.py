@@ -111,6 +111,17 @@ def test_reversed_thruster_direction_reported_as_moving_against_thrust(mission, 
     _reversal(mission, tmp_path, capsys)
 
 
+def test_without_an_accelerometer_a_reversal_is_still_questioned(mission, tmp_path, capsys):
+    edit_csv(mission / "motors.csv", lambda c: [c[0], *(f"{-float(x):.6f}" for x in c[1:])])
+    lines = (mission / "imu.csv").read_text().splitlines()
+    (mission / "imu.csv").write_text("\n".join(",".join(ln.split(",")[:5]) for ln in lines)
+                                     + "\n")                 # t, qw..qz only
+    code, err = run("fit", mission, "--out", tmp_path / "out", "--no-plots",
+                    "--no-auto-effect", capsys=capsys)
+    assert code == 0, err
+    assert "unless the compass is that far off" in err and "no accelerometer" in err, err
+
+
 def test_the_intact_mission_agrees_with_its_accelerometer(mission, tmp_path, capsys):
     out = tmp_path / "out"
     code, err = run("fit", mission, "--out", out, "--no-plots", capsys=capsys)
