@@ -80,6 +80,17 @@ def test_all_commands_zero_theta_e_not_determined(mission, tmp_path, capsys):
     assert "propellers" in p["theta_e"]["sigma_note"]
 
 
+def test_one_fix_leaves_everything_not_determined(otter, tmp_path, capsys):
+    m = crop(otter, tmp_path / "m", t_end=120.0)
+    (m / "usbl.csv").unlink()
+    out = tmp_path / "out"
+    code, err = run("fit", m, "--out", out, "--no-plots", "--gnss-every", "86400",
+                    "--no-auto-effect", capsys=capsys)
+    assert code == 0, err
+    for n, e in params(out).items():
+        assert e["sigma"] is None and "only 1 absolute fix" in e["sigma_note"], (n, e)
+
+
 def test_every_motor_row_at_one_time_is_a_data_error(mission, tmp_path, capsys):
     edit_csv(mission / "motors.csv", lambda c: ["0.0", *c[1:]])
     code, err = run("fit", mission, "--out", tmp_path / "out", capsys=capsys)

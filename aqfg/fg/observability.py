@@ -37,6 +37,7 @@ class Excitation:
     moving: float        # share of fix intervals with ground speed > 0.1 m/s
     heading_spread: float  # circular spread of the yaw while moving (rad, 0 = one heading)
     speed_cv: float      # coefficient of variation of the ground speed while moving
+    fixes: int = 3       # absolute fixes (GNSS, USBL) the motion is measured by
 
     def as_dict(self) -> dict:
         return {"thrust": self.thrust, "moving": self.moving,
@@ -62,7 +63,7 @@ def excitation(mission: Mission) -> Excitation:
     thrust = thrust_share(mission)
     t, p = retrace.fixes(mission)
     if len(t) < 3:
-        return Excitation(thrust, 0.0, 0.0, 0.0)
+        return Excitation(thrust, 0.0, 0.0, 0.0, len(t))
     dt = np.diff(t)
     ok = dt > 1e-3
     v = np.linalg.norm(np.diff(p[:, :2], axis=0)[ok], axis=1) / dt[ok]
@@ -84,7 +85,7 @@ def excitation(mission: Mission) -> Excitation:
         R = np.abs(np.mean(np.exp(1j * yaw)))
         spread = float(np.sqrt(max(-2.0 * np.log(max(R, 1e-12)), 0.0)))
         cv = float(np.std(v[mov]) / max(np.mean(v[mov]), 1e-9))
-    return Excitation(thrust, moving, spread, cv)
+    return Excitation(thrust, moving, spread, cv, len(t))
 
 
 def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
@@ -96,6 +97,7 @@ def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
     moving = max(e.moving for e in ex)
     spread = max(e.heading_spread for e in ex)
     speed_cv = max(e.speed_cv for e in ex)
+    fixes = max(e.fixes for e in ex)
     out: dict[str, dict] = {}
     for n in estimated:
         sp = prior_sigma.get(n, np.inf)
@@ -124,6 +126,9 @@ def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
             elif spread < np.radians(10):
                 no_excitation = ("the vehicle kept one heading: a heading offset and a "
                                  "cross current look alike")
+        if fixes < 3:
+            no_excitation = (f"only {fixes} absolute fix{'es' if fixes != 1 else ''} (GNSS, "
+                             "USBL): nothing measures the motion between them")
         if no_excitation:
             verdict, reason = NOT, no_excitation
         elif not np.isfinite(info) or info < 0.5:
