@@ -36,9 +36,23 @@ def _max_knots(text: str) -> int:
     return v
 
 
+def _directory(text: str):
+    """An output directory's path: not empty (which would write into the working
+    directory), no NUL character (else an ``Invalid``: a usage error)."""
+    from aqfg.commands.options import Invalid
+    if not text.strip():
+        return Invalid(text, "expected a directory path, got an empty string (write into "
+                             "the current directory with '.')")
+    if "\0" in text:
+        return Invalid(text, "a path cannot hold a NUL character")
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     from aqfg import __version__
+    from aqfg.commands.options import MAX_SECONDS, number, seconds
     from aqfg.data.preflight import DEFAULT_MAX_KNOTS
+    count = number(1, 1024, integer=True)
     ap = argparse.ArgumentParser(
         prog="aqfg",
         description="Estimate the motion-model parameters of small AUVs/ASVs from their logs "
@@ -63,16 +77,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate a mission (with optional hidden effects)",
                        description="Simulate an ASV or AUV mission in aqfg-mission/1 format.")
-    s.add_argument("out_dir", metavar="OUT_DIR")
+    s.add_argument("out_dir", metavar="OUT_DIR", type=_directory)
     s.add_argument("--vehicle", choices=["asv", "auv"], default="asv")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--duration", type=float, default=600.0, help="seconds (default 600)")
+    s.add_argument("--seed", type=number(0, 2**32 - 1, integer=True), default=0)
+    s.add_argument("--duration", type=seconds(), default=600.0,
+                   help=f"seconds (default 600, at most {MAX_SECONDS:g})")
     s.add_argument("--effect", action="append", default=[], metavar="NAME[=VALUE]",
                    type=_effect_setting,
                    help="hidden effect, e.g. thrust_asymmetry=0.8 or lever_arm.x=0.4; repeatable")
     s.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    type=_effect_setting, help="true base parameter, e.g. theta_e=0.5; repeatable")
-    s.add_argument("--gnss-period", type=float, default=1.0,
+    s.add_argument("--gnss-period", type=seconds(zero=True), default=1.0,
                    help="seconds between GNSS fixes; 0 = no GNSS (default 1)")
     s.add_argument("--usbl", action="store_true", help="record USBL range/bearing every 4.5 s")
     s.add_argument("--force", action="store_true", help="overwrite OUT_DIR if it holds a mission")
@@ -90,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("source", metavar="SOURCE", nargs="+",
                    help="the log file (or ROS 2 bag directory); csv: one or more files, one "
                         "mission each")
-    s.add_argument("--out", required=True, metavar="MISSION",
+    s.add_argument("--out", required=True, metavar="MISSION", type=_directory,
                    help="mission directory to write (csv with several files: the directory "
                         "that receives one mission per file, named after the file)")
     s.add_argument("--map", metavar="MAP.toml",
@@ -106,10 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
                       ("diagnose", "find which physical effect the model is missing")):
         s = sub.add_parser(name, help=hlp, description=hlp[0].upper() + hlp[1:] + ".")
         s.add_argument("missions", nargs="+", metavar="MISSION")
-        s.add_argument("--out", required=True, metavar="DIR", help="output directory")
+        s.add_argument("--out", required=True, metavar="DIR", type=_directory,
+                       help="output directory")
         s.add_argument("--effect", action="append", default=[], metavar="NAME",
                        help="add a model effect (repeatable)")
-        s.add_argument("--gnss-every", type=float, default=0.0, metavar="S",
+        s.add_argument("--gnss-every", type=seconds(zero=True), default=0.0, metavar="S",
                        help="use one GNSS fix every S seconds (default: all)" if name == "fit"
                        else "held-out split: fit on one GNSS fix every S seconds (and every "
                             "other USBL fix), test dead reckoning on the rest (default 8)")
@@ -127,12 +143,12 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--auto", action="store_true",
                            help="diagnose, add the missing effect, refit, and again until "
                                 "nothing more is confirmed; writes model.json")
-            s.add_argument("--max-steps", type=int, default=6, metavar="N",
+            s.add_argument("--max-steps", type=count, default=6, metavar="N",
                            help="--auto: add at most N effects (default 6)")
             s.add_argument("--stop-when-consistent", action="store_true",
                            help="--auto: also stop once the held-out fixes are consistent "
                                 "with the model")
-            s.add_argument("--jobs", type=int, default=None, metavar="N",
+            s.add_argument("--jobs", type=count, default=None, metavar="N",
                            help="worker processes for the candidates' refits "
                                 "(default: the CPUs available, at most 4)")
         if name == "fit":
@@ -145,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--mode", choices=["batch", "online"], default="batch",
                            help="batch: all fixes at once (default); online: fix by fix, "
                                 "causally (fg: fixed-lag smoother; update-error: windowed EKF)")
-            s.add_argument("--window", type=float, default=None,
+            s.add_argument("--window", type=seconds(), default=None,
                            help="online window, seconds (fg default 24; update-error: last 3 fixes)")
             s.add_argument("--estimate", default=None, metavar="NAMES",
                            help="comma-separated parameters to estimate (default: batch, the "
@@ -166,15 +182,16 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Each vehicle's joint fit over its missions (a TOML "
                                    "manifest), solved in parallel on Dask.")
     s.add_argument("manifest", metavar="MANIFEST")
-    s.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    s.add_argument("--workers", type=int, default=2,
+    s.add_argument("--out", required=True, metavar="DIR", type=_directory,
+                   help="output directory")
+    s.add_argument("--workers", type=count, default=2,
                    help="local worker processes (default 2; ignored with --scheduler)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="a running Dask scheduler, e.g. tcp://host:8786")
     s.add_argument("--diagnose", action="store_true", help="also diagnose each mission")
     s.add_argument("--effect", action="append", default=[], metavar="NAME",
                    help="add a model effect (repeatable)")
-    s.add_argument("--gnss-every", type=float, default=0.0, metavar="S",
+    s.add_argument("--gnss-every", type=seconds(zero=True), default=0.0, metavar="S",
                    help="use one GNSS fix every S seconds (default: all)")
     s.add_argument("--no-auto-effect", action="store_true",
                    help="fit the model as given, without adding the effect the vehicles' "
@@ -184,15 +201,16 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="the main job on a built-in simulated mission",
                        description="Simulate a mission, fit it with the factor graph and the "
                                    "update-error baseline, diagnose it, and write a report.")
-    s.add_argument("--out", default="aqfg-demo", metavar="DIR")
+    s.add_argument("--out", default="aqfg-demo", metavar="DIR", type=_directory)
     s.add_argument("--force", action="store_true", help="overwrite DIR")
 
     s = sub.add_parser("bench", help="quick benchmarks (medians of repeated runs)",
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
-    s.add_argument("--repeat", type=int, default=5)
+    s.add_argument("--repeat", type=count, default=5)
     s.add_argument("--quick", action="store_true",
                    help="a 20-minute online stream instead of 2 hours (the other figures alike)")
-    s.add_argument("--out", default=None, metavar="DIR", help="also write bench.md here")
+    s.add_argument("--out", default=None, metavar="DIR", type=_directory,
+                   help="also write bench.md here")
     s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")
     return ap
 
@@ -257,12 +275,14 @@ def _main(argv: list[str] | None) -> int:
     name = args.command
 
     def fail(code: int, msg: object, kind: str = "error") -> int:
-        print(f"aqfg {name}: {kind}: {msg}", file=sys.stderr)
+        print(f"aqfg {name}: {kind}: {common.printable(msg)}", file=sys.stderr)
         return code
 
     with warnings.catch_warnings():
         common.setup(name, args.verbosity)
         try:
+            from aqfg.commands.options import check_parsed
+            check_parsed(args)
             mod = importlib.import_module(f"aqfg.commands.{getattr(args, 'module', name)}")
             code = int(mod.run(args) or 0)
             common.summary(getattr(args, "missions", None) or ())

@@ -1,8 +1,10 @@
 """Output directories that hold a complete set of results or nothing new.
 
 - :class:`OutputSet` stages every file of a run in a temporary directory beside the
-  destination and moves the whole set in at the end (renames, with Ctrl-C held off for
-  those microseconds); a run that fails or is interrupted leaves the destination as it was.
+  destination and swaps the whole directory in at the end in one atomic step (Ctrl-C held
+  off for it); a run that fails, is interrupted or is killed leaves the destination as it
+  was or complete with the new set, and the next run removes (or restores, see
+  :func:`recover`) what a killed one left beside it.
   Existing outputs of the set are refused unless ``force``; with ``force`` the previous
   set is replaced as a whole (no stale file of an earlier run survives); files that are not
   outputs of the set are never touched.
@@ -23,6 +25,7 @@ import re
 import shlex
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -148,6 +151,7 @@ class OutputSet:
     def check(self, also: Iterable[str] = ()) -> None:
         """FileExistsError if ``out`` is not a directory, or holds outputs (or entries
         named in ``also``) and not force."""
+        recover(self.out)
         if self.out.exists() and not self.out.is_dir():
             raise FileExistsError(f"{self.out} exists and is not a directory")
         old = self.existing()
@@ -163,7 +167,7 @@ class OutputSet:
         self.check()
         parent = self.out.resolve().parent
         parent.mkdir(parents=True, exist_ok=True)
-        self.stage = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.aqfg-new-", dir=parent))
+        self.stage = Path(tempfile.mkdtemp(prefix=_staging_prefix(self.out, "new"), dir=parent))
         return self.stage
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -176,6 +180,10 @@ class OutputSet:
             self.stage = None
 
     def _commit(self, stage: Path) -> None:
+        """Make ``stage`` the complete new ``out`` (the new set, and links to every entry
+        of ``out`` outside the set), then swap it in with one atomic exchange of the two
+        directories (``renameat2(RENAME_EXCHANGE)``; where the system lacks it, two
+        renames, which :func:`recover` completes after a kill between them)."""
         written = sorted(os.listdir(stage))
         (stage / MANIFEST).write_text("".join(f"{e}\n" for e in written))
         for root, _dirs, files in os.walk(stage):
@@ -185,31 +193,125 @@ class OutputSet:
         self.check(also=written)                       # again: something may have appeared
         if not self.out.exists():
             with _interrupts_held():
-                os.rename(stage, self.out)
+                os.rename(stage, self.out)             # the one step
             stage.mkdir()                              # for __exit__'s cleanup
             return
-        old = self._previous() | (set(written) | {MANIFEST}) & set(os.listdir(self.out))
-        aside = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.aqfg-old-",
-                                      dir=self.out.resolve().parent))
-        moved_out: list[str] = []
-        moved_in: list[str] = []
+        dest = self.out.resolve()                      # a link to a directory stays a link
+        replaced = self._previous() | set(written) | {MANIFEST}
+        for e in sorted(set(os.listdir(dest)) - replaced):
+            _link_entry(dest / e, stage / e)           # files that are not ours, kept
+        os.chmod(stage, stat.S_IMODE(os.stat(dest).st_mode))
+        with _interrupts_held():
+            if not _exchange(stage, dest):             # the one step: stage now holds the old
+                aside = Path(tempfile.mkdtemp(prefix=_staging_prefix(self.out, "old"),
+                                              dir=stage.parent))
+                os.rename(dest, aside / "set")
+                os.rename(stage, dest)
+                os.rename(aside / "set", stage)
+                aside.rmdir()
+
+
+# ---------------------------------------------------------------- leftovers of a kill
+
+_LEFTOVER = re.compile(r"^\.(?P<name>.*)\.aqfg-(?P<kind>new|old)-(?:(?P<pid>[0-9]+)-)?[^/]*$")
+
+
+def _staging_prefix(out: Path, kind: str) -> str:
+    """``.OUT.aqfg-new-PID-`` (a staged set) or ``.OUT.aqfg-old-PID-`` (a set moved aside):
+    the process id tells a live run's folder from one a killed run left."""
+    return f".{out.name}.aqfg-{kind}-{os.getpid()}-"
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                  # another user's process
+        return True
+    return True
+
+
+def leftovers(out: str | os.PathLike) -> list[Path]:
+    """Staging folders beside ``out`` that a run killed during its final move left
+    (those of a live process excluded)."""
+    o = Path(out)
+    parent = o.resolve().parent
+    if not parent.is_dir():
+        return []
+    found = []
+    for e in sorted(os.listdir(parent)):
+        m = _LEFTOVER.match(e)
+        if m is None or m["name"] != o.name or not (parent / e).is_dir():
+            continue
+        if m["pid"] is not None and _alive(int(m["pid"])):
+            continue
+        found.append(parent / e)
+    return found
+
+
+def recover(out: str | os.PathLike) -> list[str]:
+    """Restore or remove what a killed run left beside ``out``; returns (and logs as
+    warnings) one sentence per folder. ``out`` missing and a complete set moved aside
+    (a kill between the two renames of a system without an atomic exchange): that set
+    becomes ``out`` again. Every other leftover is a set that was never moved in, or the
+    previous set after the new one was: removed."""
+    import logging
+    o = Path(out)
+    said = []
+    for p in leftovers(o):
+        inner = p / "set" if (p / "set").is_dir() else p
+        if not o.exists() and (inner / MANIFEST).is_file() and "-old-" in p.name:
+            os.rename(inner, o)
+            if inner != p:
+                shutil.rmtree(p, ignore_errors=True)
+            said.append(f"{o}: restored the previous outputs from {p.name}, left by a run "
+                        "killed while moving its outputs in")
+        else:
+            shutil.rmtree(p, ignore_errors=True)
+            said.append(f"{o}: removed {p.name}, left by a run killed while moving its "
+                        "outputs in")
+    for line in said:
+        logging.getLogger("aqfg").warning("%s", line)
+    return said
+
+
+def _link_entry(src: Path, dst: Path) -> None:
+    """``dst`` the same content as ``src``: hard links of files (copies where a link is
+    refused), directories rebuilt, symbolic links as links."""
+    def link(a: str, b: str) -> None:
         try:
-            with _interrupts_held():
-                try:
-                    for e in sorted(old):
-                        os.rename(self.out / e, aside / e)
-                        moved_out.append(e)
-                    for e in [*written, MANIFEST]:
-                        os.rename(stage / e, self.out / e)
-                        moved_in.append(e)
-                except BaseException:                  # put everything back as it was
-                    for e in reversed(moved_in):
-                        os.rename(self.out / e, stage / e)
-                    for e in reversed(moved_out):
-                        os.rename(aside / e, self.out / e)
-                    raise
-        finally:
-            shutil.rmtree(aside, ignore_errors=True)
+            os.link(a, b, follow_symlinks=False)
+        except OSError:
+            shutil.copy2(a, b, follow_symlinks=False)
+    if src.is_symlink():
+        os.symlink(os.readlink(src), dst)
+    elif src.is_dir():
+        shutil.copytree(src, dst, symlinks=True, copy_function=link)
+    else:
+        link(str(src), str(dst))
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the directories ``a`` and ``b`` atomically (Linux ``renameat2`` with
+    ``RENAME_EXCHANGE``); False where the system or file system does not offer it."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+    import errno
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
 
 
 # ------------------------------------------------------------------------- strict JSON

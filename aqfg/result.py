@@ -230,7 +230,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         e = {"value": float(result.values[n]), "sigma": s if np.isfinite(s) else None,
              "unit": unit(n)}
         if not np.isfinite(s):
-            e["sigma_note"] = NO_SIGMA
+            e["sigma_note"] = (result.info.get("sigma_notes") or {}).get(n) or NO_SIGMA
         est[n] = e
     names = (model.active_names if model is not None and hasattr(model, "active_names")
              else tuple(result.values))
@@ -284,6 +284,9 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
+    if result.info.get("heading_check"):
+        # the fitted heading against the accelerometer's (aqfg.identifiability)
+        doc["heading_check"] = result.info["heading_check"]
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
@@ -358,6 +361,7 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
         m = by_name.get(mr.name)
         origin = m.origin if m is not None else None
         for name, tr in (("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)):
+            tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}")
             (d / name).write_text(export.track_csv(tr, origin))
             written.append(d / name)
         if tum and m is not None:
@@ -367,6 +371,22 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
             written.append(write_json(d / "track.geojson",
                                       export.geojson_track(result, mr, m, provenance)))
     return written
+
+
+def finite_track(track: Track, where: str) -> Track:
+    """``track`` up to its first state that is not finite (a track file never holds a
+    non-number), with a warning naming ``where`` and the time it ends (the model's
+    re-trace diverged there)."""
+    ok = np.all(np.isfinite(track.pos), axis=1) & np.all(np.isfinite(track.vel), axis=1) \
+        & np.isfinite(track.t)
+    if ok.all():
+        return track
+    n = int(np.argmin(ok))
+    import logging
+    logging.getLogger("aqfg").warning(
+        "%s: the track is not finite from t = %.6g s (the model's re-trace diverged): written "
+        "up to there, %d of %d rows", where, float(track.t[n]), n, len(track.t))
+    return Track(track.t[:n], track.pos[:n], track.vel[:n])
 
 
 def save_result(result: Result, out_dir: str | os.PathLike, overwrite: bool = False,

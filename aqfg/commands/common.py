@@ -21,6 +21,19 @@ EXIT_INTERRUPTED = 130     # Ctrl-C (128 + SIGINT)
 log = logging.getLogger("aqfg")
 
 
+_CONTROL = dict.fromkeys([*range(0x20), 0x7F, *range(0x80, 0xA0)])
+
+
+def printable(text: object) -> str:
+    """``text`` safe for a terminal: control characters (escape sequences, newlines,
+    carriage returns) written as ``\\xNN`` escapes, so a name read from a file can neither
+    recolour nor rewrite the screen, nor fake a line of output."""
+    s = str(text)
+    if not any(ord(c) in _CONTROL for c in s):
+        return s
+    return "".join(f"\\x{ord(c):02x}" if ord(c) in _CONTROL else c for c in s)
+
+
 class UsageError(ValueError):
     """The command line is wrong: an option value, a name, a combination (exit 2)."""
 
@@ -33,7 +46,7 @@ class _Format(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         level = "" if record.levelno == logging.INFO or getattr(record, "summary", False) \
             else record.levelname.lower() + ": "
-        return self.prefix + level + record.getMessage()
+        return self.prefix + level + printable(record.getMessage())
 
 
 class _State:
@@ -183,11 +196,12 @@ class Progress:
 
 
 def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
-                  knot_spacing: float = 1.0, gnss_every: float = 0.0):
+                  knot_spacing: float = 1.0, gnss_every: float = 0.0,
+                  window: float | None = None):
     """Load ``paths`` (input warnings are logged), prepare them for the estimators
     (:func:`aqfg.data.preflight.prepare`), keep one GNSS fix every ``gnss_every`` s (0:
-    all), estimate the cost of what will be fitted and refuse above ``max_knots`` (None or
-    0: no limit). Returns the prepared missions."""
+    all), estimate the cost of what will be fitted (``window``: of an online fit) and
+    refuse above ``max_knots`` (None or 0: no limit). Returns the prepared missions."""
     from aqfg.data.io import load_mission
     from aqfg.data.mission import with_gnss_every
     from aqfg.data.preflight import check_cost, estimate_cost, prepare
@@ -197,7 +211,7 @@ def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
         for n in notes:
             log.info("%s", n)
         missions.append(with_gnss_every(m, gnss_every) if gnss_every else m)
-    cost = estimate_cost(missions, knot_spacing=knot_spacing, fits=fits)
+    cost = estimate_cost(missions, knot_spacing=knot_spacing, fits=fits, window=window)
     log.info("estimate: %s", cost.describe())
     check_cost(cost, max_knots or None)
     return missions

@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from aqfg.commands.common import UsageError
+from aqfg.commands.common import UsageError, printable
+from aqfg.commands.options import parameter_value
 from aqfg.model.frames import wrap_angle
 from aqfg.result import Result, read_parameter_values
 
@@ -22,16 +23,15 @@ PLOTS = ("map.png", "parameters.png")
 
 def _float(name: str, text: str, where: str) -> float:
     try:
-        v = float(text)
-    except ValueError:
-        raise UsageError(f"{where}: value of {name!r} must be a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise UsageError(f"{where}: value of {name!r} must be finite, got {text!r}")
-    return v
+        return parameter_value(name, text, where)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict[str, float]:
-    """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``."""
+    """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``;
+    each checked by :func:`aqfg.commands.options.parameter_value` (a bad value in the file
+    is a data error, on the command line a usage error)."""
     out: dict[str, float] = {}
     if params_from:
         from aqfg.outputs import read_json
@@ -40,9 +40,10 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
         if not isinstance(data, dict):
             raise ValueError(f"--params-from {p}: expected a parameters.json document")
         try:
-            out.update(read_parameter_values(data))
+            values = read_parameter_values(data)
         except ValueError as e:
             raise ValueError(f"--params-from {p}: {e}") from None
+        out.update({n: parameter_value(n, v, f"--params-from {p}") for n, v in values.items()})
     for name, text in init:
         if not name or not text:
             raise UsageError(f"--init expects NAME=VALUE, got {name!r}={text!r}")
@@ -90,6 +91,10 @@ def vehicle_values(values: dict[str, float], mission, effects: tuple[str, ...],
     return {n: v for n, v in values.items() if n not in dropped}
 
 
+def _sigma_text(s: float) -> str:
+    return f"{s:>12.3g}" if math.isfinite(s) else "  (not determined)"
+
+
 def parameter_table(result: Result) -> str:
     """The short table ``aqfg fit`` prints: name, value, 1-sigma (per mission for the
     per-mission parameters when several missions were fitted)."""
@@ -101,10 +106,11 @@ def parameter_table(result: Result) -> str:
             for mname, vals in per.items():
                 if n in vals:
                     e = vals[n]
-                    lines.append(f"{n + ' [' + mname + ']':<26}{e.value:>12.5g}{e.sigma:>12.3g}")
+                    lines.append(f"{n + ' [' + printable(mname) + ']':<26}{e.value:>12.5g}"
+                                 f"{_sigma_text(e.sigma)}")
         else:
             lines.append(f"{n:<26}{result.values[n]:>12.5g}"
-                         f"{result.sigma.get(n, float('nan')):>12.3g}")
+                         f"{_sigma_text(result.sigma.get(n, float('nan')))}")
     # (the values hold every parameter of the model, an effect's switched off too)
     rate = result.values.get("heading_drift.rate") \
         if "heading_drift" in (result.effects or ()) else None
@@ -152,7 +158,14 @@ def run(args) -> int:
             raise UsageError("--estimate: no parameter names given")
     from_file = initial_values([], args.params_from)
     OutputSet(out, [*RESULT_FILES, *PLOTS], force=args.force).check()   # refuse before loading
-    missions = load_missions(args.missions, args.max_knots, gnss_every=args.gnss_every)
+    window = None
+    if args.mode == "online":          # the window each fix re-solves (fg's default 24 s)
+        window = args.window or (24.0 if args.method == "fg" else None)
+    # a batch factor-graph fit with the effect step fits again with the effect it tries
+    fits = 2 if (args.method == "fg" and args.mode == "batch" and estimate is None
+                 and not getattr(args, "no_auto_effect", False)) else 1
+    missions = load_missions(args.missions, args.max_knots, fits=fits, window=window,
+                             gnss_every=args.gnss_every)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
@@ -199,6 +212,9 @@ def run(args) -> int:
     else:
         from aqfg.ekf.estimator import fit_update_error
         result = fit_update_error(missions, progress=True, **kw)
+    from aqfg.identifiability import settle
+    for w in settle(result, missions):
+        log.warning("%s: %s", args.method, w)
     model = result.model
     prov = provenance(
         method=result.method, mode=result.mode, effects=result.effects,

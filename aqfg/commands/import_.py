@@ -16,10 +16,18 @@ import sys
 import warnings
 from pathlib import Path
 
-from aqfg.commands.common import UsageError
-from aqfg.data.importers import ImportMap, MissingExtraError, import_log, load_map
+from aqfg.commands.common import UsageError, log, printable
+from aqfg.data.importers import (
+    ImportMap,
+    LogFormatError,
+    MissingExtraError,
+    import_log,
+    load_map,
+)
+from aqfg.data.importers.truncation import cut_short
 from aqfg.data.io import (
     MISSION_FILES,
+    MissionFormatError,
     load_mission,
     load_truth,
     plausibility_warnings,
@@ -28,6 +36,28 @@ from aqfg.data.io import (
 from aqfg.outputs import OutputSet
 
 EXIT_MISSING_EXTRA = 2
+
+
+def _read(fmt: str, source: str, imap, base=None):
+    """:func:`import_log`, with a reader's own failure on a damaged file (a third-party
+    parser's IndexError, AttributeError...) turned into a data error naming the file."""
+    try:
+        result = import_log(fmt, source, imap, base=base)
+        end = cut_short(fmt, source)
+        if end is not None:         # the parsers stop quietly at a message cut short
+            size = Path(source).stat().st_size
+            words = (f"{source}: the log ends in the middle of a message (complete messages "
+                     f"end at byte {end:,} of {size:,}): truncated? imported as far as it "
+                     f"reads, to mission t = {result.mission.t1:.1f} s")
+            log.warning("%s", words)
+            result.notes.append(words)
+        return result
+    except (MissionFormatError, MissingExtraError, OSError, MemoryError):
+        raise
+    except Exception as e:  # noqa: BLE001 - the parsers raise anything on bad bytes
+        raise LogFormatError(source, f"cannot decode as a {fmt} log: the file is damaged, "
+                                     f"truncated or not such a log ({type(e).__name__} in "
+                                     "its reader)") from e
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                                   "overwrite it")
         outs = OutputSet(out, MISSION_FILES, force=args.force)
         outs.check()
-        result = import_log(args.format, sources[0], imap)
+        result = _read(args.format, sources[0], imap)
         with outs as stage:               # the mission appears whole, or not at all
             save_mission(result.mission, stage)
     except MissingExtraError as e:
@@ -67,7 +97,7 @@ def _nmea(args: argparse.Namespace, source: str, out: Path, imap: ImportMap) -> 
     if base.gnss is not None and not args.force:
         raise FileExistsError(f"{out} already has GNSS fixes (gnss.csv); pass --force "
                               "to replace them with the NMEA log's")
-    result = import_log("nmea", source, imap, base=base)
+    result = _read("nmea", source, imap, base=base)
     with OutputSet(out, MISSION_FILES, force=True) as stage:   # whole set, or none
         save_mission(result.mission, stage, truth)
     _report("added GNSS fixes to", result, source, "nmea", out)
@@ -97,7 +127,7 @@ def _many(args: argparse.Namespace, sources: list[str], out: Path, imap: ImportM
     for src, stem in zip(sources, stems):
         m = copy.copy(imap)
         m.name = f"{imap.name}-{stem}" if imap.name else stem
-        results.append(import_log("csv", src, m))
+        results.append(_read("csv", src, m))
     out.mkdir(parents=True, exist_ok=True)
     for o, r in zip(outsets, results):
         with o as stage:
@@ -109,7 +139,7 @@ def _many(args: argparse.Namespace, sources: list[str], out: Path, imap: ImportM
 
 def _report(what: str, result, source: str, fmt: str, out: Path) -> None:
     m = result.mission
-    print(f"{what} {m.vehicle} mission '{m.name}' from {source} ({fmt}) -> {out}")
+    print(printable(f"{what} {m.vehicle} mission '{m.name}' from {source} ({fmt}) -> {out}"))
     print(result.summary())
     for w in plausibility_warnings(m, out):
         warnings.warn(w, stacklevel=2)

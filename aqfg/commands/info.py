@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from aqfg.commands.common import printable
 from aqfg.data.io import load_mission, truth_sources
 from aqfg.data.mission import FORMAT, Mission
 
@@ -67,7 +68,7 @@ def _stream_line(name: str, s: StreamStats, cols: str = "") -> str:
 
 def describe(m: Mission, truth_parts: list[str] | None = None) -> str:
     """The text ``aqfg info`` prints for a loaded mission."""
-    out = [f"mission    {m.name}", f"format     {FORMAT}",
+    out = [f"mission    {printable(m.name)}", f"format     {FORMAT}",
            f"vehicle    {m.vehicle} ("
            + ("surface vehicle: no vertical motion" if m.planar else "underwater vehicle") + ")"]
     side = {1.0: "starboard", -1.0: "port", 0.0: "centre"}

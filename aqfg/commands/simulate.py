@@ -74,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out_dir)
     outs = OutputSet(out, io.MISSION_FILES, force=args.force)
     outs.check()
+    from aqfg.commands.common import log
+    from aqfg.data.preflight import estimate_simulation
+    log.info("estimate: %s", estimate_simulation(args.duration))
     progress = Progress("simulate") if args.duration >= PROGRESS_MIN_DURATION else None
     try:                  # everything simulate() is given comes from the command line
         mission, truth = simulate(args.vehicle, seed=args.seed, duration=args.duration,

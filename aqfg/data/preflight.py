@@ -28,6 +28,14 @@ log = logging.getLogger(__name__)
 KNOT_BYTES = 40e3           # peak resident memory per knot, bytes (update-error; graph 15e3)
 KNOT_SECONDS = 3.5e-3       # wall time per knot and fit, s (one core)
 DEFAULT_MAX_KNOTS = 50_000   # about 14 h of mission at one knot per second: ~2 GB, ~3 min
+# Online fits re-solve their window at every fix: measured 0.24-0.26 ms per window knot and
+# update for both methods (docs/reliability.md, "Cost estimate").
+WINDOW_KNOT_SECONDS = 0.3e-3
+# ``aqfg simulate``: per second of simulated mission, time (simulation and CSV writing)
+# and memory of the streams held (50-Hz IMU, 10-Hz motors and truth).
+SIM_SECONDS = 2e-3
+SIM_BYTES = 10e3
+SIM_START = 0.2     # s: the simulator's and the writer's set-up, whatever the duration
 
 
 class CostLimitError(ValueError):
@@ -46,6 +54,18 @@ def _keep(s, sel):
     return Depth(s.t[sel], s.depth[sel])
 
 
+def _check_spans(mission: Mission) -> None:
+    """The inputs must span time: imu.csv and motors.csv each need rows at two different
+    times (one row, or every row at one time, says nothing about the motion between)."""
+    for name, s in (("imu.csv", mission.imu), ("motors.csv", mission.motors)):
+        t = np.asarray(s.t, dtype=float)
+        if len(t) == 0 or not t[-1] > t[0]:
+            what = (f"{len(t)} row" + ("s, every one" if len(t) > 1 else "")
+                    + (f" at t = {t[0]:g} s" if len(t) else ""))
+            raise ValueError(f"mission {mission.name!r}, {name}: {what}: the inputs span no "
+                             "time; a fit needs rows at two different times at least")
+
+
 def prepare(mission: Mission) -> tuple[Mission, list[str]]:
     """A copy of ``mission`` ready for the estimators, and one note per change made.
 
@@ -56,8 +76,9 @@ def prepare(mission: Mission) -> tuple[Mission, list[str]]:
       estimator's default applies;
     - GNSS ``sigma`` below :data:`GNSS_SIGMA_FLOOR` is raised to it.
 
-    The input mission is not modified.
+    ValueError when imu.csv or motors.csv spans no time. The input mission is not modified.
     """
+    _check_spans(mission)
     m = copy.copy(mission)
     notes: list[str] = []
     t0, t1 = mission.t0, mission.t1
@@ -108,10 +129,19 @@ class Cost:
     fits: int                # how many times the graph is built and solved
     memory_bytes: float      # rough peak memory of one fit
     seconds: float           # rough wall time of all fits
+    window: float | None = None   # online: the window (s) re-solved at every fix
+
+    @property
+    def work(self) -> int:
+        """The work in batch state knots: the knots, or for an online fit the knots its
+        windows re-solve, in knots of the same time (what ``--max-knots`` bounds)."""
+        return max(self.knots, math.ceil(self.seconds / max(self.fits, 1) / KNOT_SECONDS))
 
     def describe(self) -> str:
+        online = (f", a {self.window:g}-s window re-solved at each fix" if self.window
+                  else "")
         return (f"{self.knots:,} state knots ({_hours(self.duration)} of mission), "
-                f"{self.inputs:,} input rows, {self.fixes:,} fixes: about "
+                f"{self.inputs:,} input rows, {self.fixes:,} fixes{online}: about "
                 f"{_bytes(self.memory_bytes)} and {_duration(self.seconds)}"
                 + (f" for {self.fits} fits" if self.fits > 1 else ""))
 
@@ -132,14 +162,19 @@ def _bytes(b: float) -> str:
 
 
 def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
-                  fits: int = 1) -> Cost:
+                  fits: int = 1, window: float | None = None) -> Cost:
     """Knots of a graph with one knot every ``knot_spacing`` s (plus one per fix) from each
     mission's first fix to the end of its inputs, and the rough memory and time they need
-    (:data:`KNOT_BYTES`, :data:`KNOT_SECONDS`) for ``fits`` solves."""
-    if knot_spacing <= 0:
+    (:data:`KNOT_BYTES`, :data:`KNOT_SECONDS`) for ``fits`` solves. ``window`` (s): an
+    online fit, which re-solves the window's knots (the mission's, where shorter) at every
+    fix (:data:`WINDOW_KNOT_SECONDS`); its time is the larger of that and a batch fit's."""
+    if not knot_spacing > 0:
         raise ValueError(f"knot spacing must be positive, got {knot_spacing}")
+    if window is not None and not window > 0:
+        raise ValueError(f"window must be positive, got {window}")
     knots = inputs = fixes = 0
     duration = 0.0
+    window_work = 0.0
     for m in missions:
         t0, t1 = m.t0, m.t1
         tf = m.fix_times()
@@ -150,17 +185,33 @@ def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
         knots += math.ceil(span / knot_spacing) + 1 + len(np.unique(tf))
         inputs += len(m.imu.t) + len(m.motors.t)
         fixes += len(tf)
-    return Cost(duration, knots, inputs, fixes, fits, knots * KNOT_BYTES,
-                knots * KNOT_SECONDS * fits)
+        if window is not None:
+            window_work += len(tf) * math.ceil(min(window, span) / knot_spacing)
+    seconds = knots * KNOT_SECONDS
+    if window is not None:
+        seconds = max(seconds, window_work * WINDOW_KNOT_SECONDS)
+    return Cost(duration, knots, inputs, fixes, fits, knots * KNOT_BYTES, seconds * fits,
+                window)
+
+
+def estimate_simulation(duration: float) -> str:
+    """Rough memory and time of ``aqfg simulate`` for ``duration`` s of mission."""
+    return (f"{_hours(duration)} of mission: about {_bytes(duration * SIM_BYTES)} and "
+            f"{_duration(SIM_START + duration * SIM_SECONDS)}")
 
 
 def check_cost(cost: Cost, max_knots: int | None = DEFAULT_MAX_KNOTS,
                override: str = "--max-knots") -> None:
     """Raise :class:`CostLimitError` when ``cost.knots`` exceeds ``max_knots`` (None: no
     limit); the message gives the estimate, the likely cause and the override."""
-    if max_knots is None or cost.knots <= max_knots:
+    if max_knots is None or cost.work <= max_knots:
         return
+    if cost.knots <= max_knots:           # the online windows, not the mission, are too long
+        raise CostLimitError(
+            f"refusing an online fit of {cost.describe()}: the windows re-solve as many "
+            f"knots as a batch graph of {cost.work:,}; the limit is {max_knots:,}. Pass a "
+            f"shorter --window, or {override} {cost.work} to fit anyway")
     raise CostLimitError(
         f"refusing to build a graph of {cost.describe()}; the limit is {max_knots:,} knots. "
         "Are the times in seconds (not milliseconds), and is there no long gap between "
-        f"streams? To fit anyway, pass {override} {cost.knots}")
+        f"streams? To fit anyway, pass {override} {cost.work}")

@@ -33,10 +33,11 @@ NOT = "not determined"
 @dataclass
 class Excitation:
     """What a mission's inputs and fixes excite (fractions of the mission time)."""
-    thrust: float        # share of samples with a non-negligible command
+    thrust: float        # share of the mission time with a non-negligible command
     moving: float        # share of fix intervals with ground speed > 0.1 m/s
     heading_spread: float  # circular spread of the yaw while moving (rad, 0 = one heading)
     speed_cv: float      # coefficient of variation of the ground speed while moving
+    fixes: int = 3       # absolute fixes (GNSS, USBL) the motion is measured by
 
     def as_dict(self) -> dict:
         return {"thrust": self.thrust, "moving": self.moving,
@@ -44,13 +45,25 @@ class Excitation:
                 "speed_cv": self.speed_cv}
 
 
+def thrust_share(mission: Mission, threshold: float = 0.05) -> float:
+    """Share of the mission's span (its inputs' ``t0 .. t1``) during which some command
+    exceeds ``threshold`` (commands held between rows; none outside the motors' rows, so
+    commands that span no time excite nothing)."""
+    mo = mission.motors
+    if mo is None or len(mo.t) < 2 or not mo.t[-1] > mo.t[0] or not mission.t1 > mission.t0:
+        return 0.0
+    grid = np.linspace(mission.t0, mission.t1, 4001)
+    on = np.max(np.abs(mo.u), axis=1) > threshold
+    j = np.clip(np.searchsorted(mo.t, grid, side="right") - 1, 0, len(on) - 1)
+    return float(np.mean(on[j] & (grid >= mo.t[0]) & (grid <= mo.t[-1])))
+
+
 def excitation(mission: Mission) -> Excitation:
     """Excitation measures of one mission (see :class:`Excitation`)."""
-    u = mission.motors.u if mission.motors is not None else np.zeros((0, 1))
-    thrust = float(np.mean(np.max(np.abs(u), axis=1) > 0.05)) if len(u) else 0.0
+    thrust = thrust_share(mission)
     t, p = retrace.fixes(mission)
     if len(t) < 3:
-        return Excitation(thrust, 0.0, 0.0, 0.0)
+        return Excitation(thrust, 0.0, 0.0, 0.0, len(t))
     dt = np.diff(t)
     ok = dt > 1e-3
     v = np.linalg.norm(np.diff(p[:, :2], axis=0)[ok], axis=1) / dt[ok]
@@ -72,7 +85,7 @@ def excitation(mission: Mission) -> Excitation:
         R = np.abs(np.mean(np.exp(1j * yaw)))
         spread = float(np.sqrt(max(-2.0 * np.log(max(R, 1e-12)), 0.0)))
         cv = float(np.std(v[mov]) / max(np.mean(v[mov]), 1e-9))
-    return Excitation(thrust, moving, spread, cv)
+    return Excitation(thrust, moving, spread, cv, len(t))
 
 
 def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
@@ -84,6 +97,7 @@ def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
     moving = max(e.moving for e in ex)
     spread = max(e.heading_spread for e in ex)
     speed_cv = max(e.speed_cv for e in ex)
+    fixes = max(e.fixes for e in ex)
     out: dict[str, dict] = {}
     for n in estimated:
         sp = prior_sigma.get(n, np.inf)
@@ -103,11 +117,18 @@ def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
                 no_excitation = ("one speed on one heading: thrust and drag are seen only "
                                  "as their ratio")
         if n in ("theta_e", "s_x", "s_y", "heading_drift.rate"):
-            if moving < 0.1:
+            if n in ("theta_e", "heading_drift.rate") and thrust < 0.05:
+                # no push through the water: the heading offset turns nothing the model
+                # predicts (as aqfg.ekf.uncertainty.no_motion_through_water)
+                no_excitation = "the propellers were (almost) never commanded"
+            elif moving < 0.1:
                 no_excitation = "the vehicle (almost) never moved over ground"
             elif spread < np.radians(10):
                 no_excitation = ("the vehicle kept one heading: a heading offset and a "
                                  "cross current look alike")
+        if fixes < 3:
+            no_excitation = (f"only {fixes} absolute fix{'es' if fixes != 1 else ''} (GNSS, "
+                             "USBL): nothing measures the motion between them")
         if no_excitation:
             verdict, reason = NOT, no_excitation
         elif not np.isfinite(info) or info < 0.5:

@@ -9,6 +9,8 @@ goes on (see :class:`aqfg.fg.schur.MissionSession`).
 """
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 import uuid
 from collections.abc import Sequence
@@ -61,20 +63,28 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
     show = progress_fn(progress)
     made = client is None          # a client (and cluster) made here is closed here
     own = None
+    scratch = None
     if made:
-        client, own = _client(workers, scheduler)
+        # the workers' spill and lock files in a folder of this run, removed after it
+        # (Dask's default, $TMPDIR/dask-scratch-space, keeps them)
+        scratch = None if scheduler else tempfile.mkdtemp(prefix="aqfg-dask-")
+        client, own = _client(workers, scheduler, scratch)
     try:
         return _fit(client, manifest, settings or FGSettings(), tuple(effects),
                     None if estimate is None else tuple(estimate), dict(init or {}),
                     float(gnss_every), diagnose, show, timeout)
     finally:
-        if made:
-            client.close()
-        if own is not None:
-            own.close()
+        try:
+            if made:
+                client.close()
+            if own is not None:
+                own.close()
+        finally:
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _client(workers: int, scheduler: str | None):
+def _client(workers: int, scheduler: str | None, scratch: str | None = None):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
@@ -88,8 +98,11 @@ def _client(workers: int, scheduler: str | None):
             raise FleetError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
     if workers < 1:
         raise FleetError(f"--workers must be at least 1, got {workers}")
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+    import dask
+    with dask.config.set({"temporary-directory": scratch}):    # the scheduler's files too
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR,
+                               local_directory=scratch)
     return Client(cluster), cluster
 
 

@@ -166,6 +166,12 @@ def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
 def _mission_tables(m: ImportMap, raw: dict[str, Any], f: str) -> None:
     """[thrusters], [usbl], [origin]: parsed by the mission reader itself (so the shape is
     exactly mission.toml's), from a minimal mission written to a scratch directory."""
+    org = raw.get("origin")
+    if isinstance(org, dict):            # a typo here would silently drop the origin
+        for k in org:
+            if k not in ("lat", "lon"):
+                raise MissionFormatError(f, "unknown key; [origin] holds lat and lon (degrees "
+                                            "WGS84)", column=f"[origin] {k}")
     meta: dict[str, Any] = {"format": FORMAT, "vehicle": m.vehicle or VEHICLES[0]}
     meta.update({k: raw[k] for k in MISSION_TABLES if k in raw})
     meta.setdefault("thrusters", {"direction": [[1.0, 0.0, 0.0]]})   # placeholder only

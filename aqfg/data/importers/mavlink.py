@@ -192,6 +192,10 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     sysid = None
     for stream, spec in chosen.items():
         msgs = rows[spec.topic]
+        if not msgs:                   # indexed, but none decodes: damaged bytes
+            raise LogFormatError(src, f"no {spec.topic} message could be decoded (the log's "
+                                      f"index counts {present.get(spec.topic, 0)}); a damaged "
+                                      "or truncated log?", topic=spec.topic)
         systems = sorted({m.get_srcSystem() for m in msgs})
         want = spec.instance if spec.instance is not None else sysid
         if want is None:

@@ -100,6 +100,10 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                 if not ok or p.lat in ("", None) or p.time in ("", None):
                     n_bad += 1
                     continue
+                if not (abs(float(p.lat)) <= 90.0 and abs(float(p.lon)) <= 180.0):
+                    n_bad += 1
+                    reason = "latitude or longitude out of range"
+                    continue
                 tod = _tod(p.time)
                 ref = _nearest(tod, ref)
                 t_utc.append(ref)
@@ -108,8 +112,15 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                 lon.append(float(p.lon))
     except (OSError, ValueError) as e:
         raise LogFormatError(src, f"cannot read as NMEA 0183: {e}") from None
+    raw, bad_sum = _raw_count(source, kind)
     if not seen:
-        raise LogFormatError(src, f"no {kind} sentences in the log", topic=kind)
+        why = (f": {raw} look like {kind} but none is readable ({bad_sum} with a wrong "
+               f"checksum, {raw - bad_sum} with a field out of range, e.g. a latitude beyond "
+               "90 degrees)" if raw else "")
+        raise LogFormatError(src, f"no {kind} sentences in the log{why}", topic=kind)
+    if not t_utc:
+        raise LogFormatError(src, f"none of the log's {seen} {kind} sentences holds a usable "
+                                  f"fix (the last reason: {reason})", topic=kind)
     t_ns = np.array([round(u * 1e6) * 1000 for u in t_utc], dtype=np.int64)
     s = Series("gnss", kind, f"NMEA {kind}", t_ns,
                {"lat": np.array(lat), "lon": np.array(lon),
@@ -119,6 +130,9 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
     check_stamps(src, s, int(t_ns[0]) if len(t_ns) else zero_ns, imap.max_gap)
     t = (t_ns - zero_ns).astype(float) * 1e-9
     notes: list[str] = []
+    if raw > seen:
+        notes.append(f"gnss: {raw - seen} of {raw} {kind} sentences unreadable and left out "
+                     f"({bad_sum} with a wrong checksum)")
     if t[-1] < base.t0 or t[0] > base.t1:
         raise LogFormatError(src, f"the fixes (mission t {t[0]:.1f} .. {t[-1]:.1f} s, from the "
                                   f"UTC start {utc_zero:.3f}) do not overlap the mission "
@@ -150,6 +164,25 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
     if imap.utc_zero is not None:
         m.extra["source"]["utc_zero"] = utc_zero
     return ImportResult(m, {"gnss": s}, zero_ns, notes)
+
+
+def _raw_count(source: Path, kind: str) -> tuple[int, int]:
+    """Lines of the log that look like ``$..<kind>`` sentences, and how many of them have
+    a wrong checksum (what the reader skipped without a word)."""
+    n = bad = 0
+    with open(source, "rb") as fh:
+        for line in fh:
+            line = line.strip()
+            if not line.startswith(b"$") or line[3:6] != kind.encode() or line[6:7] != b",":
+                continue
+            n += 1
+            body, star, given = line[1:].partition(b"*")
+            calc = 0
+            for c in body:
+                calc ^= c
+            if not star or given[:2].upper() != f"{calc:02X}".encode():
+                bad += 1
+    return n, bad
 
 
 def _date(p: Any) -> dt.date | None:

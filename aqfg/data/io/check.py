@@ -21,6 +21,10 @@ KNOWN_TABLES = ("thrusters", "usbl", "origin")     # parsed into Mission fields
 KNOWN_KEYS = ("format", "name", "vehicle")
 DIRECTION_TOL = 1e-3        # |norm - 1| allowed for a thruster direction ("unit axis")
 QUAT_TOL = 0.05             # |norm - 1| allowed for an IMU quaternion (never renormalised)
+# Largest magnitude of a distance (m): a coordinate, a slant range, a depth. Twice the
+# Earth's circumference: beyond it a value is no position on Earth, and squaring it in a
+# least-squares solve overflows or stalls (UTM/ECEF coordinates, ~1e7 m, stay well inside).
+MAX_DISTANCE = 1e8
 
 
 class MissionFormatError(ValueError):
@@ -133,10 +137,18 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         if tp.shape != (n_thr, 3) or not np.all(np.isfinite(tp)):
             raise MissionFormatError(ft, f"thruster_pos shape {tp.shape}; expected ({n_thr}, 3) "
                                          "finite", column="[thrusters] position")
+        if np.max(np.abs(tp)) > MAX_DISTANCE:
+            raise MissionFormatError(ft, f"a position of {np.max(np.abs(tp)):g} m; expected "
+                                         "metres from the vehicle's reference point",
+                                     column="[thrusters] position")
     if m.usbl_station is not None:
         st = np.asarray(m.usbl_station, dtype=float)
         if st.shape != (3,) or not np.all(np.isfinite(st)):
             raise MissionFormatError(ft, "expected [north, east, down], finite",
+                                     column="[usbl] station")
+        if np.max(np.abs(st)) > MAX_DISTANCE:
+            raise MissionFormatError(ft, f"got {st.tolist()}; expected metres within "
+                                         f"+-{MAX_DISTANCE:g} of the origin",
                                      column="[usbl] station")
     if m.origin is not None:
         lat, lon = m.origin
@@ -183,7 +195,8 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         cols = ("lat", "lon") if m.gnss_latlon else ("north", "east")
         _check_shape(f, g.ne, len(g.t), 2, cols[0])
         _check_shape(f, g.sigma, len(g.t), None, "sigma")
-        check_rows(f, g.ne, cols)
+        check_rows(f, g.ne, cols, lo=-MAX_DISTANCE, hi=MAX_DISTANCE,
+                   what=f"metres within +-{MAX_DISTANCE:g} of the origin")
         check_rows(f, g.sigma, ("sigma",), required=False, lo=0.0, lo_open=True,
                    what="a positive 1-sigma error in metres")
         if getattr(g, "latlon", None) is not None:
@@ -201,14 +214,16 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
         _check_time(f, u.t)
         for arr, col in ((u.range, "range"), (u.bearing, "bearing"), (u.elevation, "elevation")):
             _check_shape(f, arr, len(u.t), None, col)
-        check_rows(f, u.range, ("range",), lo=0.0, what="a slant range >= 0 m")
+        check_rows(f, u.range, ("range",), lo=0.0, hi=MAX_DISTANCE,
+                   what=f"a slant range in metres, 0 to {MAX_DISTANCE:g}")
         check_rows(f, u.bearing, ("bearing",))
         check_rows(f, u.elevation, ("elevation",), required=False)
     if m.depth is not None:
         f = p(STREAM_FILES["depth"])
         _check_time(f, m.depth.t)
         _check_shape(f, m.depth.depth, len(m.depth.t), None, "depth")
-        check_rows(f, m.depth.depth, ("depth",))
+        check_rows(f, m.depth.depth, ("depth",), lo=-MAX_DISTANCE, hi=MAX_DISTANCE,
+                   what=f"metres below the surface, within +-{MAX_DISTANCE:g}")
 
 
 def check_truth(truth: Truth, file: str | os.PathLike = STREAM_FILES["truth"]) -> None:

@@ -86,13 +86,13 @@ def _read_csv(path: Path, required: Iterable[str], optional_groups: Iterable[tup
         if c not in seen:
             raise MissionFormatError(
                 f, f"missing required column; expected columns {', '.join(want)} "
-                   f"(header has: {', '.join(header)})", row=1, column=c)
+                   f"({_header_text(header)})", row=1, column=c)
     if one_of is not None:
         present = [g for g in one_of if any(c in seen for c in g)]
         alts = " or ".join("(" + ", ".join(g) + ")" for g in one_of)
         if not present:
             raise MissionFormatError(f, f"missing position columns; expected {alts} "
-                                        f"(header has: {', '.join(header)})", row=1,
+                                        f"({_header_text(header)})", row=1,
                                      column=one_of[0][0])
         if len(present) > 1:
             raise MissionFormatError(f, f"ambiguous: both {alts} present; expected one form",
@@ -123,6 +123,17 @@ def _read_csv(path: Path, required: Iterable[str], optional_groups: Iterable[tup
         except ValueError:
             data = _parse_slow(f, header, body, idx, quoted)
     return {c: np.ascontiguousarray(data[:, k]) for k, c in enumerate(want)}
+
+
+_COLUMN_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,31}")
+
+
+def _header_text(header: list[str]) -> str:
+    """The header's column names for an error, when the first line is a list of column
+    names; otherwise not a word of it (the file may not be a CSV at all)."""
+    if len(header) <= 32 and all(_COLUMN_NAME.fullmatch(h) for h in header):
+        return "header has: " + ", ".join(header)
+    return "the first line is not a list of column names"
 
 
 def _parse_slow(f: str, header: list[str], body: list[str], idx: list[int],
