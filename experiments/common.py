@@ -118,6 +118,18 @@ def run_tasks(fn: Callable, tasks: Sequence, jobs: int = 1, label: str = "") -> 
 
 
 # ---------------------------------------------------------------- the two methods
+def lines_to_results(one: Callable, jobs: Sequence, name: str) -> None:
+    """Run ``one(job)`` for every job on two processes, print each returned line as it
+    comes, and write them, stamped, to ``results/<name>``."""
+    lines = [stamp(), ""]
+    with ProcessPoolExecutor(2) as ex:
+        for line in ex.map(one, jobs):
+            print(line, flush=True)
+            lines.append(line)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / name).write_text("\n".join(lines) + "\n")
+
+
 def fit(method: str, missions, **kw):
     """Run one method: ``fg`` -> :func:`aqfg.fg.fit.fit_fg`, ``update-error`` ->
     :func:`aqfg.ekf.estimator.fit_update_error`; returns ``(Result, wall seconds)``."""

@@ -12,7 +12,6 @@ factor graph and of the update-error method.
 from __future__ import annotations
 
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -75,13 +74,7 @@ def one(args) -> str:
 
 def main() -> None:
     jobs = [(n, c, g) for n in MISSIONS for c in CROPS for g in (4.0, 8.0)]
-    lines = [C.stamp(), ""]
-    with ProcessPoolExecutor(2) as ex:
-        for line in ex.map(one, jobs):
-            print(line, flush=True)
-            lines.append(line)
-    C.RESULTS.mkdir(exist_ok=True)
-    (C.RESULTS / "crop_generality.txt").write_text("\n".join(lines) + "\n")
+    C.lines_to_results(one, jobs, "crop_generality.txt")
 
 
 if __name__ == "__main__":

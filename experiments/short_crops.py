@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 import traceback
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -58,13 +57,7 @@ def one(args) -> str:
 def main() -> None:
     jobs = [(n, a, span, g) for n in iv.MISSIONS for a in (60.0, 200.0, 400.0, 600.0)
             for span in (150.0, 300.0) for g in (1.0, 8.0)]
-    lines = [C.stamp(), ""]
-    with ProcessPoolExecutor(2) as ex:
-        for line in ex.map(one, jobs):
-            print(line, flush=True)
-            lines.append(line)
-    C.RESULTS.mkdir(exist_ok=True)
-    (C.RESULTS / "short_crops.txt").write_text("\n".join(lines) + "\n")
+    C.lines_to_results(one, jobs, "short_crops.txt")
 
 
 if __name__ == "__main__":
