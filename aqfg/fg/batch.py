@@ -20,14 +20,30 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
-from aqfg.fg import lm, noise, observability, plausibility
+from aqfg.fg import noise, observability, plausibility
+from aqfg.fg.basins import (
+    MISFIT_INFLATION as MISFIT_INFLATION,
+)
+from aqfg.fg.basins import (
+    ambiguity_margin as ambiguity_margin,
+)
+from aqfg.fg.basins import (
+    ambiguity_variance,
+    as_good_a_basin,
+    basin_rank,
+    basin_spread,
+    basin_summary,
+    batch_warnings,
+    sigma_by_name,
+    widen_by_profile,
+)
 from aqfg.fg.common import (
     FGSettings,
     check_missions,
@@ -50,13 +66,25 @@ from aqfg.fg.graph import (
 from aqfg.fg.graph import (
     solution_values as solution_values,
 )
+from aqfg.fg.graph_lm import (
+    GraphLM as GraphLM,
+)
+from aqfg.fg.graph_lm import (
+    active_bounds as active_bounds,
+)
+from aqfg.fg.graph_lm import (
+    diagonal_floor as diagonal_floor,
+)
+from aqfg.fg.graph_lm import fast_covariance, finish_fast, levenberg_marquardt
+from aqfg.fg.graph_lm import (
+    hessian_diagonal as hessian_diagonal,
+)
 from aqfg.fg.init import (
     Start,
     distinct_headings,
     start_states,
 )
 from aqfg.fg.plausibility import Plausibility
-from aqfg.fg.profile import heading_profile, worth_walking
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, ParamHistory, Result, Track
 from aqfg.threads import blas_threads
@@ -154,13 +182,13 @@ class BatchSmoother:
             if adapt:
                 q_scale = q_ev
                 if q_scale != 1.0:
-                    out = _finish_fast(fs, out, Xq, thq, s)
+                    out = finish_fast(fs, out, Xq, thq, s)
             else:
                 # back to the nominal noise and its solution (the search leaves the system
                 # at the factor it chose; one converged LM pass refreshes the evaluation)
                 q_tried = {}
                 fs.set_process_scale(1.0)
-                out = _finish_fast(fs, out, X0, th0, s)
+                out = finish_fast(fs, out, X0, th0, s)
         # where the evidence chooses the noise, basins are ranked by their evidence, each
         # under the noise its own misfit asks for (noise.basin_evidence): the peak height
         # under the noise one basin chose favours a sliding hull on a short crop, which
@@ -172,7 +200,7 @@ class BatchSmoother:
         by_ev = bool(np.isfinite(le_out))
         q_out = q_scale
         verdicts = self.check_plausibility(bg, out.values)
-        basins = [_basin(bg, out, verdicts, "user start" if "theta_e" in self.init
+        basins = [basin_summary(bg, out, verdicts, "user start" if "theta_e" in self.init
                          else "closed-form start" if all(bg.starts)
                          else "null heading start (no closed form)")]
         if by_ev:
@@ -184,11 +212,11 @@ class BatchSmoother:
                 le_o, q_o, Xo, tho = noise.basin_evidence(fs, *fs.from_values(o.values),
                                                           o.fast, s)
                 if q_o != q_out:
-                    o = _finish_fast(fs, o, Xo, tho, s)
+                    o = finish_fast(fs, o, Xo, tho, s)
                     assert o.fast is not None       # the numpy path's evaluation
                     le_o = fs.log_evidence(o.fast)
             v = self.check_plausibility(bg, o.values)
-            basins.append(_basin(bg, o, v, label))
+            basins.append(basin_summary(bg, o, v, label))
             if by_ev:
                 basins[-1].update(log_evidence=float(le_o), process_noise_scale=q_o)
             # (lower by more than round-off: a start that ends in the same basin keeps the
@@ -240,7 +268,7 @@ class BatchSmoother:
             shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
         if out.fast is not None:
             assert fs is not None           # the numpy path ran: its system was built
-            cov_model, cov_sw = _fast_covariance(fs, out.fast, node_list, layout, key_time, s)
+            cov_model, cov_sw = fast_covariance(fs, out.fast, node_list, layout, key_time, s)
         else:
             assert gfg is not None          # the GTSAM path ran: its linearisation
             try:
@@ -258,7 +286,7 @@ class BatchSmoother:
         res.timings = {"batch": [t_end - t_start], "build": [t_built - t_start],
                        "iteration": it_times, "covariance": [t_end - t_cov]}
         res.info["sigma_model"] = {n: float(v) for n, v in
-                                   _sigma_by_name(layout, node_list, cov_model).items()}
+                                   sigma_by_name(layout, node_list, cov_model).items()}
         res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
         prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
                        for n in layout.estimated}
@@ -267,7 +295,7 @@ class BatchSmoother:
             res.info["sigma_model"], prior_sigma)
         res.info["basins"] = basins
         ok = [b for b in basins if b["plausible"]]
-        best = min((_rank(b) for b in ok), default=None)
+        best = min((basin_rank(b) for b in ok), default=None)
         res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
                                  and as_good_a_basin(b, best, basins[0])]
         if res.info["ambiguous"]:
@@ -281,20 +309,20 @@ class BatchSmoother:
             for name, pm in res.info["per_mission"].items():
                 th = pm.get("theta_e")
                 if th is not None and len(parts) > 1:
-                    d2 = _spread({"theta_e": th["value"]},
-                                 [({"theta_e": b["theta_e"][name]}, _rank(b))
+                    d2 = basin_spread({"theta_e": th["value"]},
+                                 [({"theta_e": b["theta_e"][name]}, basin_rank(b))
                                   for b in res.info["ambiguous"] if name in b["theta_e"]],
                                  float(err))["theta_e"]
                     th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
         if short and s.heading_profile and fs is not None and out.fast is not None:
-            _widen_by_profile(res, fs, bg, node_list, values, s)
+            widen_by_profile(res, fs, bg, node_list, values, s)
         res.info["plausible"] = all(v.plausible for v in verdicts)
         res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                     for i, v in enumerate(verdicts)}
         res.info["hit_iteration_limit"] = (not converged) and n_it >= s.max_iterations
         res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
         n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
-        res.info["warnings"] = _warnings(res.info, n_it)
+        res.info["warnings"] = batch_warnings(res.info, n_it)
         if n_out:
             res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
                                         "down-weighted as outliers (listed in info['outliers'])")
@@ -601,214 +629,6 @@ class BatchSmoother:
                       effects=tuple(e.name for e in model0.effects), model=model0)
 
 
-@dataclass
-class LMOutcome:
-    """Result of one Levenberg-Marquardt solve of a built graph."""
-    values: gtsam.Values
-    cost: float
-    gfg: gtsam.GaussianFactorGraph | None   # linearised at ``values`` (GTSAM path)
-    iterations: int
-    trials: int
-    converged: bool
-    it_times: list[float]
-    fast: dict | None = None               # numpy path: its evaluation at ``values``
-
-
-def _fast_covariance(fs: FastSystem, ev: dict, node_list, layout, key_time, s: FGSettings):
-    """Hessian and sandwich covariances of the parameter nodes from the numpy system
-    (the same quantities as the Bayes tree's marginals and :func:`block_sandwich`)."""
-    D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-    try:
-        fac = fs.factor(D, E, Hsp, Hpp)
-        C = fs.param_covariance(fac)
-    except np.linalg.LinAlgError:
-        cov = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
-        return cov, None
-    cov = {}
-    for _, k, _ in node_list:
-        o, d = fs.node_off[k]
-        cov[k] = C[o:o + d, o:o + d].copy()
-    sw = fs.sandwich(ev, fac, key_time, s.sandwich_block) if s.sandwich_block else None
-    return cov, sw
-
-
-def _finish_fast(fs: FastSystem, prev: LMOutcome, X: np.ndarray, th: np.ndarray,
-                 s: FGSettings) -> LMOutcome:
-    """LM on the numpy system from ``(X, th)`` to convergence (after the process-noise
-    factor changed); iteration counts and times add to ``prev``'s."""
-    X, th, cost, ev, n_it, n_trials, conv, it_times = levenberg_marquardt_fast(
-        fs, None, s, start=(X, th))
-    return LMOutcome(fs.to_values(X, th, prev.values), cost, None, prev.iterations + n_it,
-                     prev.trials + n_trials, conv, prev.it_times + it_times, ev)
-
-
-class GraphLM:
-    """:class:`aqfg.fg.lm.LMSystem` of a built graph on GTSAM's linearisation: a point is
-    a ``gtsam.Values``. Marquardt's damping on every key, the bounds of the parameter nodes
-    ``bounded`` by an active set (:func:`damped_step`); a candidate is ``project`` of the
-    retracted values. ``pin``: a factor added to every step's system (a node held)."""
-
-    def __init__(self, bg: BuiltGraph, ordering: gtsam.Ordering, bounded, project,
-                 pin: gtsam.JacobianFactor | None = None):
-        self.bg, self.ordering, self.bounded, self.project, self.pin = \
-            bg, ordering, bounded, project, pin
-        self.key_dims = bg.key_dims()
-        self.evaluated: tuple[gtsam.Values | None, float] = (None, np.nan)   # in the cache
-        self.lin_at: gtsam.Values | None = None
-
-    def cost(self, x: gtsam.Values) -> float:
-        """The cost at ``x``; the dynamics cache then holds ``x``."""
-        self.evaluated = (x, self.bg.error(x))
-        return self.evaluated[1]
-
-    def linearize(self, x: gtsam.Values) -> None:
-        if self.evaluated[0] is not x:
-            self.cost(x)
-        self.gfg = self.bg.graph.linearize(x)       # the cache holds the dynamics at x
-        self.lin_at, self.base = x, self.evaluated[1]
-        self.hdiag = hessian_diagonal(self.gfg, self.key_dims)
-        self.system = self.gfg
-        if self.pin is not None:
-            self.system = self.gfg.clone()
-            self.system.add(self.pin)
-
-    def trial(self, x: gtsam.Values, lam: float) -> tuple[gtsam.Values, float, float]:
-        try:
-            delta = damped_step(self.system, self.ordering, self.key_dims, self.hdiag, lam,
-                                self.bg.layout, self.bounded, x)
-        except RuntimeError as e:   # GTSAM's indeterminate system: an ill-conditioned one
-            raise np.linalg.LinAlgError(str(e)) from e
-        cand = self.project(x.retract(delta))
-        return cand, self.cost(cand), self.base
-
-    def settle(self, x: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        """The linearisation at ``x`` (the loop's end), the dynamics cache holding ``x``."""
-        if self.lin_at is not x:
-            self.linearize(x)
-        elif self.evaluated[0] is not x:
-            self.bg.fill(x)
-        return self.gfg
-
-
-def project_nodes(layout: fc.ParamLayout, nodes, values: gtsam.Values) -> gtsam.Values:
-    """``values`` with the parameter ``nodes`` projected onto their bounds (in place)."""
-    for g, k, _ in nodes:
-        v = values.atVector(k)
-        pv = layout.project(g, v)
-        if np.any(pv != v):
-            values.update(k, pv)
-    return values
-
-
-def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Ordering | None,
-                        s: FGSettings, progress=None, fs: FastSystem | None = None) -> LMOutcome:
-    """:func:`aqfg.fg.lm.levenberg_marquardt` of the graph driven from Python (GTSAM's
-    optimizers copy all Values into every CustomFactor call, :class:`GraphLM`), the
-    stopping rule of :class:`FGSettings` (an accepted step lowering the cost by less than
-    ``max(rel_tol x cost, abs_tol)``). With ``fs`` the same algorithm runs on the numpy
-    form of the graph (:mod:`aqfg.fg.fastlm`); ``gfg`` is then None."""
-    if fs is not None:
-        X, th, cost, ev, n_it, n_trials, conv, it_times = levenberg_marquardt_fast(
-            fs, values, s, progress)
-        return LMOutcome(fs.to_values(X, th, values), cost, None, n_it, n_trials, conv,
-                         it_times, ev)
-    if ordering is None:
-        ordering = gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-    system = GraphLM(bg, ordering, bg.nodes,
-                     lambda vals: project_nodes(bg.layout, bg.nodes, vals))
-    out = lm.levenberg_marquardt(system, values, lm.LMParams.of(s),
-                                 lm.batch_progress(progress, s.max_iterations))
-    return LMOutcome(out.x, out.cost, system.settle(out.x), out.iterations, out.trials,
-                     out.converged, out.it_times)
-
-
-def _basin(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
-    """Summary of one solve for ``Result.info["basins"]``."""
-    th: dict[str, float] = {}
-    if "variable" in bg.layout.names and "theta_e" in bg.layout.names["variable"]:
-        i = bg.layout.names["variable"].index("theta_e")
-        for n in bg.nodes:
-            if n.group == "variable" and n.mission is not None:
-                th.setdefault(bg.parts[n.mission].mission.name, float(out.values.atVector(n.key)[i]))
-    # the parameter values of the first mission (and the shared ones), by name
-    vals: dict[str, float] = {}
-    for n in bg.nodes:
-        if n.mission in (None, 0):
-            vals.update(zip(bg.layout.names[n.group], map(float, out.values.atVector(n.key))))
-    return {"start": label, "cost": out.cost, "theta_e": th, "values": vals,
-            "converged": out.converged,
-            "iterations": out.iterations,
-            "plausible": all(v.plausible for v in verdicts),
-            "checks": {bg.parts[i].mission.name: v.as_dict() for i, v in enumerate(verdicts)}}
-
-def damped_step(gfg: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering, key_dims,
-                hdiag: dict, lam: float, layout: fc.ParamLayout, nodes, values: gtsam.Values
-                ) -> gtsam.VectorValues:
-    """One Levenberg-Marquardt step of the linear system ``gfg`` at ``values``.
-
-    Marquardt's damping ``lam * diag(J^T J)`` (``hdiag`` from :func:`hessian_diagonal`) on
-    every key of ``key_dims``, and an active set for the bounds of the parameter ``nodes``:
-    parameters pushed through a bound go exactly to it and the rest of the step is re-solved
-    consistently (a bare projection made LM crawl: 59 iterations with a drag term pinned at
-    zero).
-    """
-    damped = gfg.clone()
-    for k, d in key_dims:
-        damped.add(gtsam.JacobianFactor(k, np.diag(np.sqrt(lam * hdiag[k])),
-                                        np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
-    delta = damped.eliminateMultifrontal(ordering).optimize()
-    clamps = active_bounds(layout, nodes, values, delta)
-    if clamps:
-        for k, A, b in clamps:
-            damped.add(gtsam.JacobianFactor(k, A, b, gtsam.noiseModel.Unit.Create(len(b))))
-        delta = damped.eliminateMultifrontal(ordering).optimize()
-    return delta
-
-
-def active_bounds(layout, node_list, values, delta, weight: float = 1e8) -> list:
-    """Constraints ``(key, A, b)`` fixing the step of parameters that it would push
-    beyond their bounds: ``delta_j = bound_j - v_j`` (whitened by ``weight``)."""
-    out = []
-    for g, k, _ in node_list:
-        v = values.atVector(k)
-        d = delta.at(k)
-        lo, hi = layout.bounds(g)
-        new = v + d
-        hit = (new < lo) | (new > hi)
-        if not np.any(hit):
-            continue
-        idx = np.flatnonzero(hit)
-        A = np.zeros((len(idx), len(v)))
-        A[np.arange(len(idx)), idx] = weight
-        target = np.where(new[idx] < lo[idx], lo[idx], hi[idx]) - v[idx]
-        out.append((k, A, weight * target))
-    return out
-
-
-def hessian_diagonal(gfg: gtsam.GaussianFactorGraph, key_dims, floor: bool = True) -> dict:
-    """Diagonal of the Gauss-Newton Hessian A^T A per key (Marquardt's damping scale),
-    from the whitened sparse Jacobian (columns in sorted key order, then b); with ``floor``
-    at least 1e-9 x the key's largest entry (or 1e-9)."""
-    ij = gfg.sparseJacobian_()
-    col = ij[1].astype(np.int64) - 1
-    d = np.bincount(col, weights=ij[2] ** 2)
-    out, c = {}, 0
-    for k, n in sorted(key_dims):
-        v = d[c:c + n] if c + n <= len(d) else np.zeros(n)
-        out[k] = diagonal_floor(v) if floor else v.copy()
-        c += n
-    return out
-
-
-def diagonal_floor(v: np.ndarray) -> np.ndarray:
-    """The damping scale of one key: its diag(J^T J), at least 1e-9 x its largest entry."""
-    return np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
-
-
-_active_bounds = active_bounds
-_hessian_diagonal = hessian_diagonal
-
-
 def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSettings):
     """Whitened dynamics residuals x[i+1] - f(x[i], p) per interval (diagnostics)."""
     from aqfg.result import Residuals
@@ -826,24 +646,6 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
     return Residuals(part.knots[1:].copy(), raw, norm)
 
 
-def _sigma_by_name(layout, node_list, cov) -> dict:
-    """1-sigma of the first mission's nodes by parameter name (as Result.sigma)."""
-    out: dict[str, float] = {}
-    for g, k, mi in node_list:
-        if mi not in (None, 0) or k not in cov:
-            continue
-        for n, c in zip(layout.names[g], np.sqrt(np.maximum(np.diag(cov[k]), 0.0))):
-            out.setdefault(n, c)
-    return out
-
-
-# rad: solutions this far apart in heading are different basins
-AMBIGUOUS_GAP = np.radians(10.0)
-# the honest sigma this many times the model's: the fixes are not explained as the noise
-# model says (warned; the structural sigma is looked for, aqfg.diagnose.structure)
-MISFIT_INFLATION = 3.0
-
-
 def _set_variable(vals: gtsam.Values, bg: BuiltGraph, part: MissionPart,
                   values: dict[str, float]) -> None:
     """Write ``values`` (those of the layout's variable group among them) into every
@@ -857,21 +659,6 @@ def _set_variable(vals: gtsam.Values, bg: BuiltGraph, part: MissionPart,
             if n in names:
                 v[names.index(n)] = val
         vals.update(key, bg.layout.project("variable", v))
-
-
-def ambiguity_margin(best_cost: float) -> float:
-    """Cost (1/2 chi-square) within which another basin explains the fixes as well as the
-    best one: 2 (a likelihood ratio of e^2), or 1 % of the cost when the model misses
-    physics and the cost is large."""
-    return max(2.0, 0.01 * float(best_cost))
-
-
-def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
-    """Basin ``b`` (``info["basins"]`` entry) explains the fixes as well as the best cost
-    (:func:`ambiguity_margin`) and is another heading basin than ``other`` (more than
-    ``AMBIGUOUS_GAP`` apart)."""
-    return (_rank(b) - best_cost < ambiguity_margin(best_cost)
-            and _heading_gap(b, other) > AMBIGUOUS_GAP)
 
 
 def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None, effects=(),
@@ -890,124 +677,3 @@ def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None,
     mr = res.missions[0]
     return mr.track, mr.residuals, float(res.info.get("track_noise_scale", {}).get(mission.name, 1.0))
 
-
-def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: float
-                       ) -> dict[str, float]:
-    """Variance to add to each parameter's sigma when other basins (``info["ambiguous"]``
-    entries) explain the fixes as well as the chosen solution (``chosen`` values, cost
-    ``cost``): the second moment about the chosen value of the mixture of the solutions,
-    weighted by their likelihood ratios ``exp(cost - cost_b)`` (the chosen one weight 1);
-    angles (theta_e) wrapped. Names: those of the basins' ``values`` (the first mission's
-    and the shared parameters)."""
-    return _spread(chosen, [(b["values"], _rank(b)) for b in ambiguous], cost)
-
-
-def _widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, values,
-                      s: FGSettings) -> None:
-    """:attr:`FGSettings.heading_profile`: the heading offset's profile over the circle
-    (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
-    ``info["heading_profile"]``; each sigma of the first mission's parameters widened to
-    the profile's spread about the fit where that is larger (the former sigmas in
-    ``info["sigma_before_profile"]``)."""
-    lay = bg.layout
-    if "theta_e" not in lay.estimated:
-        return
-    js = [fs.node_off[n.key][0] + lay.names["variable"].index("theta_e")
-          for n in node_list if n.group == "variable"]
-    if len(js) != 1 or not worth_walking(float(res.sigma.get("theta_e", np.inf))):
-        return
-    held = [fs.node_off[n.key][0] + i for n in node_list if n.group == "fixed"
-            for i in range(lay.dim("fixed"))]
-    X0, th0 = fs.from_values(values)
-    prof = heading_profile(fs, X0, th0, js[0], s, held)
-    res.info["heading_profile"] = prof.as_dict()
-    before = {}
-    for g, k, mi in node_list:
-        if mi not in (None, 0):
-            continue
-        o, _ = fs.node_off[k]
-        for i, n in enumerate(lay.names[g]):
-            v = prof.heading_spread() if o + i == js[0] else prof.spread(o + i)
-            sd = float(np.sqrt(v))
-            if n in res.sigma and sd > res.sigma[n]:
-                before[n] = res.sigma[n]
-                res.sigma[n] = sd
-    res.info["sigma_before_profile"] = before
-    res.info["heading_profile"]["sigma_theta_e"] = float(res.sigma["theta_e"])
-    # one basin's sigma stays the unimodal one (the online smoother's priors and its
-    # restart tolerance; the spread is added to what it reports until its next batch)
-    res.info["sigma_unimodal"] = {**before, **res.info.get("sigma_unimodal", {})}
-    if not res.info["sigma_unimodal"]:
-        del res.info["sigma_unimodal"]
-    for e in res.info.get("per_mission", {}).values():
-        for n in before:
-            if isinstance(e.get(n), dict) and "sigma" in e[n]:
-                e[n]["sigma"] = max(float(e[n]["sigma"]), res.sigma[n])
-
-
-def _rank(b: dict) -> float:
-    """A basin's (``info["basins"]`` entry) cost for comparing it with the chosen one: its
-    ``rank`` where the basins were ranked by evidence, else its cost."""
-    return float(b.get("rank", b["cost"]))
-
-
-def _spread(chosen: dict[str, float], others: list[tuple[dict[str, float], float]],
-            cost: float) -> dict[str, float]:
-    w = np.array([1.0] + [np.exp(min(cost - c, 50.0)) for _, c in others])
-    w /= w.sum()
-    out = {}
-    for n, v in chosen.items():
-        if not all(n in o for o, _ in others):
-            continue
-        d = np.array([float(o[n]) - float(v) for o, _ in others])
-        if n == "theta_e":
-            d = np.angle(np.exp(1j * d))
-        out[n] = float(np.sum(w[1:] * d ** 2))
-    return out
-
-
-def _heading_gap(a: dict, b: dict) -> float:
-    """Largest heading difference (rad) between two basins' missions."""
-    gaps = [abs(np.angle(np.exp(1j * (a["theta_e"][n] - b["theta_e"].get(n, a["theta_e"][n])))))
-            for n in a["theta_e"]]
-    return max(gaps, default=0.0)
-
-
-def _warnings(info: dict, n_it: int) -> list[str]:
-    """What a user must be told about a batch fit, in words."""
-    out = []
-    if info.get("hit_iteration_limit"):
-        out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
-                   "the estimate may not be a minimum (raise max_iterations or check the data)")
-    if not info.get("plausible", True):
-        for name, chk in info.get("plausibility", {}).items():
-            for r in chk.get("reasons", []):
-                out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "
-                           "(the model may lack the vehicle's physics: run `aqfg diagnose`)")
-    for b in info.get("ambiguous", []):
-        th = ", ".join(f"{n} {np.degrees(v):.1f} deg" for n, v in b["theta_e"].items())
-        ev = (f", {b['rank']:.1f} with its evidence's noise"
-              if abs(_rank(b) - float(b["cost"])) > 0.05 else "")
-        out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
-                   f"{b['cost']:.1f}{ev}): the heading offset is ambiguous")
-    if info.get("ambiguous") and "theta_e" in info.get("sigma_unimodal", {}):
-        out.append("the sigmas cover the basins that fit as well (theta_e's "
-                   f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
-                   "chosen basin)")
-    before = info.get("sigma_before_profile", {}).get("theta_e")
-    prof = info.get("heading_profile", {})
-    if before is not None and prof.get("sigma_theta_e", 0.0) > 2.0 * before:
-        out.append(f"these fixes hardly determine the heading offset: its evidence over the "
-                   f"whole circle gives sigma {np.degrees(prof['sigma_theta_e']):.0f} deg "
-                   f"({np.degrees(before):.1f} deg within the chosen basin)")
-    for n, v in info.get("observability", {}).items():
-        if v["verdict"] == observability.NOT:
-            out.append(f"{n} is not determined by this data: {v['reason']}")
-    infl = info.get("sigma_inflation", {})
-    big = {n: f for n, f in infl.items() if f > MISFIT_INFLATION}
-    if big:
-        worst = max(big, key=lambda n: big[n])
-        out.append(f"the model does not explain the fixes as its noise model says: sigma "
-                   f"inflated up to {big[worst]:.1f}x ({worst}) to stay honest; run "
-                   "`aqfg diagnose` to find the missing physics")
-    return out
