@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -69,13 +69,13 @@ from aqfg.fg.graph import (
 from aqfg.fg.graph_lm import (
     GraphLM as GraphLM,
 )
+from aqfg.fg.graph_lm import LMOutcome, fast_covariance, finish_fast, levenberg_marquardt
 from aqfg.fg.graph_lm import (
     active_bounds as active_bounds,
 )
 from aqfg.fg.graph_lm import (
     diagonal_floor as diagonal_floor,
 )
-from aqfg.fg.graph_lm import fast_covariance, finish_fast, levenberg_marquardt
 from aqfg.fg.graph_lm import (
     hessian_diagonal as hessian_diagonal,
 )
@@ -158,55 +158,87 @@ class BatchSmoother:
         t_start = time.perf_counter()
         self.progress(0.0, "building the graph")
         bg = self.build(missions)
-        layout, graph, values, parts, node_list = bg.layout, bg.graph, bg.values, bg.parts, bg.nodes
         t_built = time.perf_counter()
-        all_keys = bg.key_dims()
+        sol, verdicts, basins = self._search_basins(bg, _first_solve(bg, s, self.progress))
+        out, fs = sol.out, sol.fs
+        slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
+        held = None
+        if not all(v.plausible for v in verdicts):
+            held = self._hold_sway(missions, bg, basins, verdicts)
+            if held is not None:
+                if self.log_warnings:
+                    for x in held.info["warnings"]:
+                        log.warning("fg: %s", x)
+                return held if self.defer_track else self.smooth_tracks(held)
+        elif slips and max(slips) > plausibility.SUSPECT_SLIP:
+            held = self._hold_sway(missions, bg, basins, verdicts)
+        # marginal covariances of the parameter nodes from the undamped Bayes tree
+        t_cov = time.perf_counter()
+        cov_model, cov = _covariances(bg, sol, s)
+        t_end = time.perf_counter()
+        res = self.make_result(bg.layout, out.values, bg.parts, bg.nodes, cov)
+        res.timings = {"batch": [t_end - t_start], "build": [t_built - t_start],
+                       "iteration": out.it_times, "covariance": [t_end - t_cov]}
+        _sigma_info(res, bg, cov_model, s)
+        _ambiguity_info(res, basins, out.cost, len(bg.parts))
+        if sol.short and s.heading_profile and fs is not None and out.fast is not None:
+            widen_by_profile(res, fs, bg, bg.nodes, out.values, s)
+        _verdict_info(res, bg, out, verdicts, s)
+        if held is not None:
+            _held_sway_info(res, held, out.cost, slips)
+        if self.log_warnings:
+            for w in res.info["warnings"]:
+                log.warning("fg: %s", w)
+        res.info["process_noise_scale"] = sol.q_scale
+        res.info["process_noise_measured"] = sol.q_measured
+        res.info["process_noise_evidence"] = sol.q_tried
+        res.info.update({"iterations": out.iterations, "trials": out.trials,
+                         "converged": out.converged, "cost": float(out.cost),
+                         "n_states": sum(len(p.keys) for p in bg.parts),
+                         "n_factors": int(bg.graph.size()),
+                         "kernel": "cpp" if bg.parts[0].model.uses_cpp else "numpy",
+                         "settings": s})
+        self._track_job = None
+        # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
+        self.fast_solution = ((fs, out.fast) if sol.q_scale == 1.0 and fs is not None
+                              and out.fast is not None else None)
+        # data too short for the sandwich: its solution at the evidence's noise, for the
+        # structural sigma (the only misfit check left there, aqfg.fg.fit.structural_sigma)
+        self.short_solution = ((fs, out.fast) if sol.short and fs is not None
+                               and out.fast is not None else None)
+        res.info["too_short_for_sandwich"] = bool(sol.short)
+        if s.adapt_track and self.fast_solution is not None:
+            self._track_job = (fs, out, bg.layout, bg.parts, bg.nodes, cov)
+        if not self.defer_track:
+            self.smooth_tracks(res)
+        self.progress(1.0, f"done: {out.iterations} iterations, {t_end - t_start:.2f} s")
+        return res
 
-        fs = FastSystem.build(bg, s) if s.fast_lm else None
-        ordering = None if fs is not None else \
-            gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-        out = levenberg_marquardt(bg, values, ordering, s, self.progress, fs)
-        q_scale, q_tried = 1.0, dict[float, float]()
-        # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
-        # noise is the honest sigma there (docs/independent-vehicle.md)
-        short = too_short_for_sandwich(bg, s)
-        adapt = short if s.adapt_batch is None else s.adapt_batch
-        q_measured = None
-        if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
-            # how much process noise the model needs (aqfg.fg.noise): a model that is not
-            # the vehicle's bends the parameters under the nominal noise; measured only
-            # (measure_noise), the solution stays the nominal one
-            X0, th0 = fs.from_values(out.values)
-            q_ev, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
-            q_measured = q_ev
-            if adapt:
-                q_scale = q_ev
-                if q_scale != 1.0:
-                    out = finish_fast(fs, out, Xq, thq, s)
-            else:
-                # back to the nominal noise and its solution (the search leaves the system
-                # at the factor it chose; one converged LM pass refreshes the evaluation)
-                q_tried = {}
-                fs.set_process_scale(1.0)
-                out = finish_fast(fs, out, X0, th0, s)
+    def _search_basins(self, bg: BuiltGraph, sol: _Solve
+                       ) -> tuple[_Solve, list[Plausibility], list[dict]]:
+        """The first solve ``sol`` against those from the other starts worth trying
+        (:meth:`_alternatives`, ``also_start``): the chosen one (a plausible solution before
+        an implausible one, then the lower cost or the larger evidence), its plausibility
+        verdicts and every basin's summary (``info["basins"]``)."""
+        s, fs, out = self.settings, sol.fs, sol.out
         # where the evidence chooses the noise, basins are ranked by their evidence, each
         # under the noise its own misfit asks for (noise.basin_evidence): the peak height
         # under the noise one basin chose favours a sliding hull on a short crop, which
         # ranked a basin 43 deg off 7 lower in cost and 14.5 lower in evidence
         # (docs/independent-vehicle.md)
         le_out = np.nan
-        if adapt and s.rank_by_evidence and fs is not None and out.fast is not None:
+        if sol.adapt and s.rank_by_evidence and fs is not None and out.fast is not None:
             le_out = fs.log_evidence(out.fast)
         by_ev = bool(np.isfinite(le_out))
-        q_out = q_scale
+        q_out = sol.q_scale
         verdicts = self.check_plausibility(bg, out.values)
         basins = [basin_summary(bg, out, verdicts, "user start" if "theta_e" in self.init
-                         else "closed-form start" if all(bg.starts)
-                         else "null heading start (no closed form)")]
+                                else "closed-form start" if all(bg.starts)
+                                else "null heading start (no closed form)")]
         if by_ev:
             basins[0].update(log_evidence=float(le_out), process_noise_scale=q_out)
-        for label, alt in [*self._alternatives(bg, verdicts, short), *self._given_start(bg)]:
-            o = levenberg_marquardt(bg, alt, ordering, s, None, fs)
+        for label, alt in [*self._alternatives(bg, verdicts, sol.short), *self._given_start(bg)]:
+            o = levenberg_marquardt(bg, alt, sol.ordering, s, None, fs)
             le_o, q_o = np.nan, q_out
             if by_ev and fs is not None and o.fast is not None:
                 le_o, q_o, Xo, tho = noise.basin_evidence(fs, *fs.from_values(o.values),
@@ -231,145 +263,18 @@ class BatchSmoother:
                 out, verdicts, le_out, q_out = o, v, le_o, q_o
             if by_ev and fs is not None:
                 fs.set_process_scale(q_out)
-        if by_ev:
-            # the noise measured is the chosen basin's (the first basin's may differ: a
-            # 20-s batch of heldout-231 chose a basin at q = 1 after the first asked 64,
-            # and an online smoother replaying that solution at 64 ran 24 deg from it)
-            q_scale = q_measured = q_out
-            # each basin's cost on the chosen one's scale, by evidence: the chosen one's
-            # cost plus its evidence lead (what the ambiguity margin compares)
-            for bas in basins:
-                le_b = bas.get("log_evidence", np.nan)
-                bas["rank"] = float(out.cost + (le_out - le_b)) \
-                    if np.isfinite(le_b) and np.isfinite(le_out) else float(bas["cost"])
-        slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
-        held = None
-        if not all(v.plausible for v in verdicts):
-            held = self._hold_sway(missions, bg, basins, verdicts)
-            if held is not None:
-                if self.log_warnings:
-                    for x in held.info["warnings"]:
-                        log.warning("fg: %s", x)
-                return held if self.defer_track else self.smooth_tracks(held)
-        elif slips and max(slips) > plausibility.SUSPECT_SLIP:
-            held = self._hold_sway(missions, bg, basins, verdicts)
-        values, err, gfg = out.values, out.cost, out.gfg
-        n_it, n_trials, converged, it_times = out.iterations, out.trials, out.converged, out.it_times
-        # marginal covariances of the parameter nodes from the undamped Bayes tree
-        t_cov = time.perf_counter()
-        # each mission's blocks are its own: its times shifted past the previous missions'
-        key_time, shift = {}, 0.0
-        for part in parts:
-            t_first = float(part.knots[0])
-            key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
-            # next mission from a block boundary: its blocks start at its own start, as in
-            # the fleet's per-mission solve (aqfg.fg.schur)
-            b = s.sandwich_block or 1.0
-            shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
-        if out.fast is not None:
-            assert fs is not None           # the numpy path ran: its system was built
-            cov_model, cov_sw = fast_covariance(fs, out.fast, node_list, layout, key_time, s)
-        else:
-            assert gfg is not None          # the GTSAM path ran: its linearisation
-            try:
-                bt = gfg.eliminateMultifrontal(ordering)
-                cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
-            except RuntimeError:
-                # the undamped system is singular: no parameter is determined by the Hessian
-                cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
-            cov_sw = block_sandwich(gfg, all_keys, key_time, [n.key for n in node_list],
-                                    s.sandwich_block) if s.sandwich_block else None
-        cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
-                                cov_sw[1] if cov_sw else None)
-        t_end = time.perf_counter()
-        res = self.make_result(layout, values, parts, node_list, cov)
-        res.timings = {"batch": [t_end - t_start], "build": [t_built - t_start],
-                       "iteration": it_times, "covariance": [t_end - t_cov]}
-        res.info["sigma_model"] = {n: float(v) for n, v in
-                                   sigma_by_name(layout, node_list, cov_model).items()}
-        res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
-        prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
-                       for n in layout.estimated}
-        res.info["observability"] = observability.verdicts(
-            parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
-            res.info["sigma_model"], prior_sigma)
-        res.info["basins"] = basins
-        ok = [b for b in basins if b["plausible"]]
-        best = min((basin_rank(b) for b in ok), default=None)
-        res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
-                                 and as_good_a_basin(b, best, basins[0])]
-        if res.info["ambiguous"]:
-            # the sigma of a multimodal fit: the chosen basin's, widened by the spread of
-            # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
-            # 130 deg off: docs/independent-vehicle.md)
-            extra = ambiguity_variance(res.values, res.info["ambiguous"], float(err))
-            res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
-            res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
-                              for n, v in res.info["sigma_unimodal"].items()})
-            for name, pm in res.info["per_mission"].items():
-                th = pm.get("theta_e")
-                if th is not None and len(parts) > 1:
-                    d2 = basin_spread({"theta_e": th["value"]},
-                                 [({"theta_e": b["theta_e"][name]}, basin_rank(b))
-                                  for b in res.info["ambiguous"] if name in b["theta_e"]],
-                                 float(err))["theta_e"]
-                    th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
-        if short and s.heading_profile and fs is not None and out.fast is not None:
-            widen_by_profile(res, fs, bg, node_list, values, s)
-        res.info["plausible"] = all(v.plausible for v in verdicts)
-        res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
-                                    for i, v in enumerate(verdicts)}
-        res.info["hit_iteration_limit"] = (not converged) and n_it >= s.max_iterations
-        res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
-        n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
-        res.info["warnings"] = batch_warnings(res.info, n_it)
-        if n_out:
-            res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
-                                        "down-weighted as outliers (listed in info['outliers'])")
-        if held is not None:
-            # a plausible but sliding fit: the non-sliding alternative, said, not chosen
-            th_f, th_h = res.values.get("theta_e"), held.values.get("theta_e")
-            # named when it explains the fixes almost as well (cost within 50 %): on the
-            # Otter crops +19-28 %; on aqfg's simulator, whose vehicle does slide, +200 %
-            c_h = float(held.info.get("cost", np.inf))
-            if th_f is not None and th_h is not None and c_h <= 1.5 * float(err) and \
-                    abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
-                res.info["alternative_held_sway"] = {
-                    "values": dict(held.values), "sigma": dict(held.sigma),
-                    "sigma_unimodal": {**held.sigma, **held.info.get("sigma_unimodal", {})},
-                    "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
-                res.info["warnings"].append(
-                    f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
-                    f"with the sway drag held high (no sliding) theta_e is "
-                    f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "
-                    f"(cost {held.info.get('cost', np.nan):.1f} against {err:.1f}): if this hull "
-                    f"does not slide, pass --init k_yz={held.values['k_yz']:.3g} and leave "
-                    "k_yz out of --estimate")
-        if self.log_warnings:
-            for w in res.info["warnings"]:
-                log.warning("fg: %s", w)
-        res.info["process_noise_scale"] = q_scale
-        res.info["process_noise_measured"] = q_measured
-        res.info["process_noise_evidence"] = q_tried
-        res.info.update({"iterations": n_it, "trials": n_trials, "converged": converged,
-                         "cost": float(err), "n_states": sum(len(p.keys) for p in parts),
-                         "n_factors": int(graph.size()), "kernel": "cpp" if parts[0].model.uses_cpp
-                         else "numpy", "settings": s})
-        self._track_job = None
-        # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
-        self.fast_solution = ((fs, out.fast) if q_scale == 1.0 and fs is not None
-                              and out.fast is not None else None)
-        # data too short for the sandwich: its solution at the evidence's noise, for the
-        # structural sigma (the only misfit check left there, aqfg.fg.fit.structural_sigma)
-        self.short_solution = ((fs, out.fast) if short and fs is not None
-                               and out.fast is not None else None)
-        res.info["too_short_for_sandwich"] = bool(short)
-        if s.adapt_track and self.fast_solution is not None:
-            self._track_job = (fs, out, layout, parts, node_list, cov)
-        if not self.defer_track:
-            self.smooth_tracks(res)
-        self.progress(1.0, f"done: {n_it} iterations, {t_end - t_start:.2f} s")
-        return res
+        if not by_ev:
+            return replace(sol, out=out), verdicts, basins
+        # each basin's cost on the chosen one's scale, by evidence: the chosen one's
+        # cost plus its evidence lead (what the ambiguity margin compares)
+        for bas in basins:
+            le_b = bas.get("log_evidence", np.nan)
+            bas["rank"] = float(out.cost + (le_out - le_b)) \
+                if np.isfinite(le_b) and np.isfinite(le_out) else float(bas["cost"])
+        # the noise measured is the chosen basin's (the first basin's may differ: a
+        # 20-s batch of heldout-231 chose a basin at q = 1 after the first asked 64,
+        # and an online smoother replaying that solution at 64 ran 24 deg from it)
+        return replace(sol, out=out, q_scale=q_out, q_measured=q_out), verdicts, basins
 
     def smooth_tracks(self, res: Result) -> Result:
         """:attr:`FGSettings.adapt_track`: the tracks and their residuals of the result
@@ -677,3 +582,162 @@ def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None,
     mr = res.missions[0]
     return mr.track, mr.residuals, float(res.info.get("track_noise_scale", {}).get(mission.name, 1.0))
 
+
+@dataclass
+class _Solve:
+    """A batch run's solution between its steps: the numpy system (None on the GTSAM
+    path), the elimination ordering (GTSAM path), the LM outcome, whether the data are
+    too short for the sandwich and whether the evidence chooses the process noise, and
+    that noise: its factor, the factors tried (factor -> log-evidence) and the one measured
+    (None where not measured)."""
+    fs: FastSystem | None
+    ordering: gtsam.Ordering | None
+    out: LMOutcome
+    short: bool
+    adapt: bool
+    q_scale: float = 1.0
+    q_tried: dict = field(default_factory=dict)
+    q_measured: float | None = None
+
+
+def _first_solve(bg: BuiltGraph, s: FGSettings, progress) -> _Solve:
+    """LM from the graph's initial values, then the process noise its evidence chooses
+    (:attr:`FGSettings.adapt_batch`) or measures (:attr:`FGSettings.measure_noise`)."""
+    fs = FastSystem.build(bg, s) if s.fast_lm else None
+    ordering = None if fs is not None else \
+        gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(bg.values))
+    out = levenberg_marquardt(bg, bg.values, ordering, s, progress, fs)
+    q_scale, q_tried = 1.0, dict[float, float]()
+    # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
+    # noise is the honest sigma there (docs/independent-vehicle.md)
+    short = too_short_for_sandwich(bg, s)
+    adapt = short if s.adapt_batch is None else s.adapt_batch
+    q_measured = None
+    if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
+        # how much process noise the model needs (aqfg.fg.noise): a model that is not
+        # the vehicle's bends the parameters under the nominal noise; measured only
+        # (measure_noise), the solution stays the nominal one
+        X0, th0 = fs.from_values(out.values)
+        q_ev, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
+        q_measured = q_ev
+        if adapt:
+            q_scale = q_ev
+            if q_scale != 1.0:
+                out = finish_fast(fs, out, Xq, thq, s)
+        else:
+            # back to the nominal noise and its solution (the search leaves the system
+            # at the factor it chose; one converged LM pass refreshes the evaluation)
+            q_tried = {}
+            fs.set_process_scale(1.0)
+            out = finish_fast(fs, out, X0, th0, s)
+    return _Solve(fs, ordering, out, short, adapt, q_scale, q_tried, q_measured)
+
+
+def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict]:
+    """The parameter nodes' covariances at the solution: the model's (the undamped
+    Hessian's) and the honest one (with the sandwich's, :func:`honest_covariance`)."""
+    out, fs, layout, node_list = sol.out, sol.fs, bg.layout, bg.nodes
+    # each mission's blocks are its own: its times shifted past the previous missions'
+    key_time, shift = {}, 0.0
+    for part in bg.parts:
+        t_first = float(part.knots[0])
+        key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
+        # next mission from a block boundary: its blocks start at its own start, as in
+        # the fleet's per-mission solve (aqfg.fg.schur)
+        b = s.sandwich_block or 1.0
+        shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
+    if out.fast is not None:
+        assert fs is not None           # the numpy path ran: its system was built
+        cov_model, cov_sw = fast_covariance(fs, out.fast, node_list, layout, key_time, s)
+    else:
+        gfg = out.gfg
+        assert gfg is not None          # the GTSAM path ran: its linearisation
+        try:
+            bt = gfg.eliminateMultifrontal(sol.ordering)
+            cov_model = {k: bt.marginalCovariance(k) for _, k, _ in node_list}
+        except RuntimeError:
+            # the undamped system is singular: no parameter is determined by the Hessian
+            cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
+        cov_sw = block_sandwich(gfg, bg.key_dims(), key_time, [n.key for n in node_list],
+                                s.sandwich_block) if s.sandwich_block else None
+    cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
+                            cov_sw[1] if cov_sw else None)
+    return cov_model, cov
+
+
+def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> None:
+    """The model's sigmas, the honest ones' inflation over them and each parameter's
+    observability verdict into ``res.info``."""
+    layout, parts = bg.layout, bg.parts
+    res.info["sigma_model"] = {n: float(v) for n, v in
+                               sigma_by_name(layout, bg.nodes, cov_model).items()}
+    res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
+    prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
+                   for n in layout.estimated}
+    res.info["observability"] = observability.verdicts(
+        parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
+        res.info["sigma_model"], prior_sigma)
+
+
+def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:
+    """The basins and those as good as the chosen one (cost ``err``) into ``res.info``;
+    the sigmas widened by their spread where there are any."""
+    res.info["basins"] = basins
+    ok = [b for b in basins if b["plausible"]]
+    best = min((basin_rank(b) for b in ok), default=None)
+    res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
+                             and as_good_a_basin(b, best, basins[0])]
+    if not res.info["ambiguous"]:
+        return
+    # the sigma of a multimodal fit: the chosen basin's, widened by the spread of
+    # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
+    # 130 deg off: docs/independent-vehicle.md)
+    extra = ambiguity_variance(res.values, res.info["ambiguous"], float(err))
+    res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
+    res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
+                      for n, v in res.info["sigma_unimodal"].items()})
+    for name, pm in res.info["per_mission"].items():
+        th = pm.get("theta_e")
+        if th is not None and n_missions > 1:
+            d2 = basin_spread({"theta_e": th["value"]},
+                              [({"theta_e": b["theta_e"][name]}, basin_rank(b))
+                               for b in res.info["ambiguous"] if name in b["theta_e"]],
+                              float(err))["theta_e"]
+            th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
+
+
+def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
+                  s: FGSettings) -> None:
+    """Plausibility, the iteration limit, the outliers and the warnings into ``res.info``."""
+    res.info["plausible"] = all(v.plausible for v in verdicts)
+    res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
+                                for i, v in enumerate(verdicts)}
+    res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
+    res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
+    n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
+    res.info["warnings"] = batch_warnings(res.info, out.iterations)
+    if n_out:
+        res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
+                                    "down-weighted as outliers (listed in info['outliers'])")
+
+
+def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -> None:
+    """A plausible but sliding fit (cost ``err``, ``slips`` deg): the non-sliding
+    alternative ``held`` said in ``res.info``, not chosen."""
+    th_f, th_h = res.values.get("theta_e"), held.values.get("theta_e")
+    # named when it explains the fixes almost as well (cost within 50 %): on the
+    # Otter crops +19-28 %; on aqfg's simulator, whose vehicle does slide, +200 %
+    c_h = float(held.info.get("cost", np.inf))
+    if th_f is not None and th_h is not None and c_h <= 1.5 * float(err) and \
+            abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
+        res.info["alternative_held_sway"] = {
+            "values": dict(held.values), "sigma": dict(held.sigma),
+            "sigma_unimodal": {**held.sigma, **held.info.get("sigma_unimodal", {})},
+            "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
+        res.info["warnings"].append(
+            f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
+            f"with the sway drag held high (no sliding) theta_e is "
+            f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "
+            f"(cost {held.info.get('cost', np.nan):.1f} against {err:.1f}): if this hull "
+            f"does not slide, pass --init k_yz={held.values['k_yz']:.3g} and leave "
+            "k_yz out of --estimate")
