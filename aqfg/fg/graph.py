@@ -192,6 +192,7 @@ def build_graph(missions: list[Mission], *, model: Model | None, effects: tuple,
     return BuiltGraph(layout, out.graph, out.values, parts, cache, node_list, all_starts,
                       out.linear)
 
+
 def _mission_parts(missions: list[Mission], models: list[Model],
                    layout: fc.ParamLayout, grid: bool, out: _Graph, s: FGSettings
                    ) -> tuple[list[MissionPart], list[Start | None], list[list[Start]]]:
@@ -243,6 +244,7 @@ def _mission_parts(missions: list[Mission], models: list[Model],
         nf += K
     return parts, guesses, all_starts
 
+
 def _param_nodes(layout: fc.ParamLayout, parts: list[MissionPart],
                  guesses: list[Start | None], search: bool, fixed_prior: bool, out: _Graph,
                  s: FGSettings, init: dict) -> list[ParamNode]:
@@ -293,6 +295,7 @@ def _param_nodes(layout: fc.ParamLayout, parts: list[MissionPart],
             out.add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
             node_list.append(ParamNode("sensor", k, part.index))
     return node_list
+
 
 def _model_factors(layout: fc.ParamLayout, parts: list[MissionPart],
                    cache: fc.DynamicsCache, graph: gtsam.NonlinearFactorGraph,
