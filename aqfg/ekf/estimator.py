@@ -73,21 +73,21 @@ from typing import Any
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.ekf.history import DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History, build_history
-from aqfg.ekf.optim import Counter, Entry, Objective, Solution, Window, bounds, default_optimiser, minimise
-from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
+from aqfg.ekf.history import GNSS, USBL, EkfConfig, History, build_history
+from aqfg.ekf.optim import Counter, Entry, Objective, Window, bounds, default_optimiser, minimise
+from aqfg.ekf.report import NONCONV_N, NodeLog, finite_or_none, online_verdicts, verdict_info
+from aqfg.ekf.uncertainty import assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
+from aqfg.result import MissionResult, ParamHistory, Result, Track
 
 log = logging.getLogger(__name__)
 
 ONLINE_DEFAULT = ("theta_e", "s_x", "s_y")
 BATCH_DEFAULT = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
 CORRECT = ("window", "all", "none")
-NONCONV_N = 3   # §III-F: std of the last n = 3 estimates
 
 
 def _as_list(missions) -> list[Mission]:
@@ -239,7 +239,7 @@ class UpdateErrorEstimator:
         for wi, m in enumerate(self.missions):
             per_mission[m.name] = {
                 e.name: {"value": float(sol.theta[i]),
-                         "sigma": _finite(unc.sigma[i]) if unc else None,
+                         "sigma": finite_or_none(unc.sigma[i]) if unc else None,
                          **({"verdict": unc.verdict[i]} if unc else {}),
                          **({"note": unc.note[i]} if unc and unc.note[i] else {})}
                 for i, e in enumerate(entries) if wi in e.windows}
@@ -251,7 +251,7 @@ class UpdateErrorEstimator:
                 "message": sol.message, "preset": self.preset, "metric": self.metric,
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
-        info.update(_verdict_info(unc, names, first, sol, sigma))
+        info.update(verdict_info(unc, names, first, sol, sigma))
         for w in info["warnings"]:
             log.warning("update-error: %s", w)
         return Result(
@@ -321,7 +321,7 @@ class UpdateErrorEstimator:
                 "per_mission": {m.name: {n: {"value": float(r.p[self.models[i].index(n)])}
                                          for n in estimate}
                                 for i, (m, r) in enumerate(zip(self.missions, mres))}}
-        info.update(_online_verdicts(unc0, names, nonconv[0], sigma))
+        info.update(online_verdicts(unc0, names, nonconv[0], sigma))
         for w in info["warnings"]:
             log.warning("update-error: %s", w)
         return Result(
@@ -344,7 +344,7 @@ class UpdateErrorEstimator:
         X_corr = np.full((K, 9), np.nan)
         a0 = h.anchors[h.k_start]
         X_filt[h.k_start] = X_corr[h.k_start] = a0.x
-        nodes = _NodeLog(h)
+        nodes = NodeLog(h)
         entries = self._entries(estimate, 1, joint=False)
         idx = [model.index(e.name) for e in entries]
         i_th = [i for i, e in enumerate(entries) if e.name == "theta_e"]
@@ -453,7 +453,7 @@ class UpdateErrorEstimator:
         filt = None if X_filt is None else Track(t.copy(), X_filt[:, :3].copy(),
                                                  X_filt[:, 3:6].copy())
         if nodes is None:
-            nodes = _NodeLog(h)
+            nodes = NodeLog(h)
             nodes.store(out)
         res = nodes.residuals()
         inertial = inertial_track(h.model, h.mission, p)
@@ -503,101 +503,6 @@ def _thrust_in(h: History, k0: int, k1: int) -> bool:
     i0 = max(int(np.searchsorted(m.t, t0, side="right")) - 1, 0)
     i1 = int(np.searchsorted(m.t, t1, side="right"))
     return bool(np.any(np.abs(m.u[i0:i1]) > 0.0))
-
-
-def _finite(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
-
-
-def _verdict_info(unc: Uncertainty | None, names: list[str], cols: list[int], sol: Solution,
-                  sigma: bool) -> dict:
-    """``info`` entries of a batch fit: the sigma method, per-parameter observability
-    verdicts and notes, the measured consistency, convergence, and plain-text warnings."""
-    warn: list[str] = []
-    if not sol.converged:
-        warn.append(f"the optimiser stopped without converging ({sol.message}): the "
-                    "estimates are where it stopped, not an optimum")
-    out: dict[str, Any] = {"converged": bool(sol.converged)}
-    if unc is None:
-        out.update({"sigma_method": "none", "warnings": warn})
-        return out
-    obs = {n: unc.verdict[i] for n, i in zip(names, cols)}
-    notes = {n: unc.note[i] for n, i in zip(names, cols) if unc.note[i]}
-    for n, v in obs.items():
-        if v in ("not determined", "at bound"):
-            warn.append(f"{n}: {v} ({notes[n]})")
-    if unc.consistency > 4.0:
-        warn.append(f"the fixes are not explained by the model: mean squared whitened "
-                    f"innovation {unc.consistency:.1f} per degree of freedom (1 expected)")
-    out.update({
-        "sigma_method": (f"sandwich over {unc.blocks} fix blocks" if unc.method == "sandwich"
-                         else "gauss-newton on whitened innovations x consistency"),
-        "observability": obs, "sigma_notes": notes, "consistency": unc.consistency,
-        "warnings": warn})
-    return out
-
-
-def _online_verdicts(unc: Uncertainty | None, names: list[str], nonconv: np.ndarray,
-                     sigma: bool) -> dict:
-    """``info`` entries of an online run: the last window's verdicts and notes, and the
-    paper's non-convergence measure (§III-F) turned into a per-parameter flag."""
-    out: dict = {"sigma_method": ("gauss-newton on whitened innovations x consistency, per "
-                                  "window" if sigma else "none")}
-    warn: list[str] = []
-    if unc is None:
-        out.update({"converged": {}, "warnings": warn})
-        return out
-    last_nc = nonconv[-1] if len(nonconv) else np.full(len(names), np.nan)
-    conv = {}
-    for i, n in enumerate(names):
-        ok = bool(np.isfinite(last_nc[i]) and np.isfinite(unc.sigma[i])
-                  and last_nc[i] <= 2.0 * unc.sigma[i])
-        conv[n] = ok
-        if not ok:
-            sg = f"{unc.sigma[i]:.3g}" if np.isfinite(unc.sigma[i]) else "not determined"
-            warn.append(f"{n}: not converged (std of the last {NONCONV_N} estimates "
-                        f"{last_nc[i]:.3g}, last window's 1-sigma {sg})")
-    out.update({"converged": conv,
-                "observability": {n: unc.verdict[i] for i, n in enumerate(names)},
-                "sigma_notes": {n: unc.note[i] for i, n in enumerate(names) if unc.note[i]},
-                "consistency": unc.consistency, "warnings": warn})
-    return out
-
-
-class _NodeLog:
-    """Innovations of every measurement node, as the filter saw them, for the residuals."""
-
-    def __init__(self, h: History):
-        self.h = h
-        M = len(h.node_kind)
-        self.nu = np.full((M, 3), np.nan)
-        self.s = np.full((M, 3), np.nan)
-        self.status = np.full(M, -1, dtype=np.int8)
-
-    def store(self, out: WindowOut) -> None:
-        sl = slice(out.node_lo, out.node_hi)
-        self.nu[sl] = out.nu
-        self.s[sl] = out.s
-        self.status[sl] = out.status
-
-    def residuals(self) -> dict[str, Residuals]:
-        """``{"gnss", "usbl", "depth", "imu_acc"}``: innovation (raw) and innovation / its
-        std (normalised). USBL residuals are those of the fix converted to north/east."""
-        h = self.h
-        t = h.node_tm + h.mission.t0
-        out = {}
-        for kind, d in ((GNSS, 2), (USBL, 2), (DEPTH, 1), (IMU_ACC, 3)):
-            sel = (h.node_kind == kind) & (self.status >= 0)
-            if not sel.any():
-                continue
-            raw = self.nu[sel, :d]
-            norm = raw / self.s[sel, :d]
-            meas = pred = None
-            if kind in (GNSS, DEPTH, IMU_ACC):
-                meas = h.node_z[sel, :d]
-                pred = meas - raw
-            out[KIND_NAMES[kind]] = Residuals(t[sel], raw, norm, meas, pred)
-        return out
 
 
 def fit_update_error(missions: list[Mission], *, mode: str = "batch",
