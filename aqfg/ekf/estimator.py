@@ -74,9 +74,18 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.ekf.history import GNSS, USBL, EkfConfig, History, build_history
-from aqfg.ekf.optim import Counter, Entry, Objective, Window, bounds, default_optimiser, minimise
+from aqfg.ekf.optim import (
+    Counter,
+    Entry,
+    Objective,
+    Solution,
+    Window,
+    bounds,
+    default_optimiser,
+    minimise,
+)
 from aqfg.ekf.report import NONCONV_N, NodeLog, finite_or_none, online_verdicts, verdict_info
-from aqfg.ekf.uncertainty import assess, no_motion_through_water
+from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
@@ -348,8 +357,6 @@ class UpdateErrorEstimator:
         entries = self._entries(estimate, 1, joint=False)
         idx = [model.index(e.name) for e in entries]
         i_th = [i for i, e in enumerate(entries) if e.name == "theta_e"]
-        scales = self._scales(entries)
-        specs = [model.spec(e.name) for e in entries]
         t_hist, v_hist, s_hist, nonconv, t_eval, t_opt, n_eval = [], [], [], [], [], [], []
         unc = None
         x, P, rej = a0.x, a0.P, a0.rejects
@@ -361,54 +368,23 @@ class UpdateErrorEstimator:
             nodes.store(out)
             self.store_anchors(h, out, F[n - 1], rej)
             x, P, rej = out.x, out.P, out.rejects
-            if window is not None:
-                t_lo = h.knots[F[n]] - window
-                j = int(np.searchsorted(h.knots[F[:n + 1]], t_lo + 1e-9, side="right") - 1)
-                j = max(j, 0)
-            elif per_stream:
-                j = window_start(h.knots[F], streams, n, window_fixes)
-            else:
-                j = max(0, n - window_fixes)
+            j = _window_from(h.knots[F], streams, n, window, window_fixes, per_stream)
             if n - j < min_fixes or n % every:
                 continue
             a = h.anchors[int(F[j])]
             win = Window(h, int(F[j]), int(F[n]), a.x, a.P, p.copy(), a.rejects)
-            obj = Objective([win], entries, self.metric, self.use_cpp, self.counter)
-            theta0 = p[idx]
-            for i in i_th:
-                theta0[i] = wrap_angle(theta0[i])
-            lo, hi = bounds(self.preset, entries, model, theta0, self.user_bounds)
-            sol = minimise(obj, theta0, lo, hi, self.preset, scales, max_nfev, optimiser)
-            theta = sol.theta.copy()
-            for i in i_th:
-                theta[i] = wrap_angle(theta[i])
+            theta, sol, evals, unc = self._fit_window(win, model, p[idx], entries, i_th,
+                                                      max_nfev, optimiser, sigma)
             p[idx] = theta
-            t_eval += obj.counter.times[-sol.evaluations:]
+            t_eval += evals
             t_opt.append(sol.seconds)
             n_eval.append(sol.evaluations)
-            if sigma:
-                unc = assess(Objective([win], entries, self.metric, self.use_cpp), sol.theta,
-                             scales, specs, lo, hi)
-                unc = no_motion_through_water(unc, specs, _thrust_in(h, win.k0, win.k1))
-                sg = unc.sigma
-            else:
-                sg = np.full(len(idx), np.nan)
             t_hist.append(float(h.knots[F[n]]))
             v_hist.append(theta)
-            s_hist.append(sg)
-            last = np.array(v_hist[-NONCONV_N:])
-            if i_th and len(last):       # spread of a circular quantity: about the last one
-                last[:, i_th] = last[-1, i_th] + wrap_angle(last[:, i_th] - last[-1, i_th])
-            nonconv.append(last.std(axis=0) if len(last) == NONCONV_N
-                           else np.full(len(idx), np.nan))
+            s_hist.append(unc.sigma if unc is not None else np.full(len(idx), np.nan))
+            nonconv.append(_last_spread(v_hist, i_th, len(idx)))
             # past-trajectory correction (§III-D) and the state to carry on from
-            k_from = {"window": int(F[j]), "all": int(F[0]), "none": int(F[j])}[correct]
-            a = h.anchors[k_from]
-            out = run_window(h, p, a.x, a.P, k_from, int(F[n]), record=True, use_cpp=self.use_cpp,
-                             rejects=a.rejects)
-            if correct != "none":
-                X_corr[k_from:F[n] + 1] = out.X
-            self.store_anchors(h, out, k_from, a.rejects)
+            out = self._correct(h, p, int(F[j]), int(F[0]), int(F[n]), correct, X_corr)
             x, P, rej = out.x, out.P, out.rejects
             self._log(f"{h.mission.name} t={h.knots[F[n]]:.1f}: "
                       + ", ".join(f"{e.name}={v:.4g}" for e, v in zip(entries, theta))
@@ -427,6 +403,45 @@ class UpdateErrorEstimator:
         return {"mission": mr, "history": hist, "t_eval": t_eval, "t_opt": t_opt,
                 "n_eval": n_eval, "nonconv": np.array(nonconv).reshape(-1, len(names)),
                 "last": unc}
+
+    def _fit_window(self, win: Window, model: Model, theta0: np.ndarray, entries: list[Entry],
+                    i_th: list[int], max_nfev: int | None, optimiser: str, sigma: bool
+                    ) -> tuple[np.ndarray, Solution, list[float], Uncertainty | None]:
+        """Minimise ``E`` over the window ``win`` from ``theta0`` (the entries' current
+        values; the heading offset wrapped): the estimate (wrapped), the solution, the
+        times of its evaluations and, with ``sigma``, its uncertainty (else None)."""
+        obj = Objective([win], entries, self.metric, self.use_cpp, self.counter)
+        for i in i_th:
+            theta0[i] = wrap_angle(theta0[i])
+        scales = self._scales(entries)
+        lo, hi = bounds(self.preset, entries, model, theta0, self.user_bounds)
+        sol = minimise(obj, theta0, lo, hi, self.preset, scales, max_nfev, optimiser)
+        theta = sol.theta.copy()
+        for i in i_th:
+            theta[i] = wrap_angle(theta[i])
+        evals = obj.counter.times[-sol.evaluations:]
+        if not sigma:
+            return theta, sol, evals, None
+        specs = [model.spec(e.name) for e in entries]
+        unc = assess(Objective([win], entries, self.metric, self.use_cpp), sol.theta,
+                     scales, specs, lo, hi)
+        unc = no_motion_through_water(unc, specs, _thrust_in(win.hist, win.k0, win.k1))
+        return theta, sol, evals, unc
+
+    def _correct(self, h: History, p: np.ndarray, k_window: int, k_first: int, k_fix: int,
+                 correct: str, X_corr: np.ndarray) -> WindowOut:
+        """The past re-run with the parameters ``p`` up to the fix knot ``k_fix`` (from the
+        window's start ``k_window``, or the first fix ``k_first`` where ``correct`` is
+        "all") into ``X_corr`` (not where "none"), with the anchors it passes stored; the
+        pass, whose end is the state to carry on from."""
+        k_from = {"window": k_window, "all": k_first, "none": k_window}[correct]
+        a = h.anchors[k_from]
+        out = run_window(h, p, a.x, a.P, k_from, k_fix, record=True, use_cpp=self.use_cpp,
+                         rejects=a.rejects)
+        if correct != "none":
+            X_corr[k_from:k_fix + 1] = out.X
+        self.store_anchors(h, out, k_from, a.rejects)
+        return out
 
     @staticmethod
     def store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
@@ -503,6 +518,29 @@ def _thrust_in(h: History, k0: int, k1: int) -> bool:
     i0 = max(int(np.searchsorted(m.t, t0, side="right")) - 1, 0)
     i1 = int(np.searchsorted(m.t, t1, side="right"))
     return bool(np.any(np.abs(m.u[i0:i1]) > 0.0))
+
+def _window_from(t_fix: np.ndarray, streams: dict[int, np.ndarray], n: int,
+                 window: float | None, window_fixes: int, per_stream: bool) -> int:
+    """Index into the fix times ``t_fix`` where the window ending at fix ``n`` starts: the
+    fix ``window`` seconds back when given, else :func:`window_start` (``per_stream``) or
+    ``window_fixes`` fixes back in the merged stream."""
+    if window is not None:
+        t_lo = t_fix[n] - window
+        j = int(np.searchsorted(t_fix[:n + 1], t_lo + 1e-9, side="right") - 1)
+        return max(j, 0)
+    if per_stream:
+        return window_start(t_fix, streams, n, window_fixes)
+    return max(0, n - window_fixes)
+
+
+def _last_spread(v_hist: list[np.ndarray], i_th: list[int], n: int) -> np.ndarray:
+    """§III-F's non-convergence measure: the standard deviation of the last
+    ``NONCONV_N`` estimates (the heading offset's about the last one, wrapped); NaN before
+    there are that many."""
+    last = np.array(v_hist[-NONCONV_N:])
+    if i_th and len(last):       # spread of a circular quantity: about the last one
+        last[:, i_th] = last[-1, i_th] + wrap_angle(last[:, i_th] - last[-1, i_th])
+    return last.std(axis=0) if len(last) == NONCONV_N else np.full(n, np.nan)
 
 
 def fit_update_error(missions: list[Mission], *, mode: str = "batch",
