@@ -15,6 +15,7 @@ Pieces (one module each):
 * :mod:`aqfg.ekf.optim` -- ``E(P)`` (Eq. 14), its bounded minimisation (Eq. 15), the
   bound presets ("physical", "paper") and optimisers ("trf", "ceres", "gradient");
 * :mod:`aqfg.ekf.uncertainty` -- sigma and per-parameter observability verdicts;
+* :mod:`aqfg.ekf.report` -- the residuals and the info verdicts of a fit;
 * this module -- the user API::
 
       est = UpdateErrorEstimator(None, missions)          # model built from the missions
