@@ -15,6 +15,7 @@ Pieces (one module each):
 * :mod:`aqfg.ekf.optim` -- ``E(P)`` (Eq. 14), its bounded minimisation (Eq. 15), the
   bound presets ("physical", "paper") and optimisers ("trf", "ceres", "gradient");
 * :mod:`aqfg.ekf.uncertainty` -- sigma and per-parameter observability verdicts;
+* :mod:`aqfg.ekf.report` -- the residuals and the info verdicts of a fit;
 * this module -- the user API::
 
       est = UpdateErrorEstimator(None, missions)          # model built from the missions
@@ -73,21 +74,30 @@ from typing import Any
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.ekf.history import DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, EkfConfig, History, build_history
-from aqfg.ekf.optim import Counter, Entry, Objective, Solution, Window, bounds, default_optimiser, minimise
+from aqfg.ekf.history import GNSS, USBL, EkfConfig, History, build_history
+from aqfg.ekf.optim import (
+    Counter,
+    Entry,
+    Objective,
+    Solution,
+    Window,
+    bounds,
+    default_optimiser,
+    minimise,
+)
+from aqfg.ekf.report import NONCONV_N, NodeLog, finite_or_none, online_verdicts, verdict_info
 from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
+from aqfg.result import MissionResult, ParamHistory, Result, Track
 
 log = logging.getLogger(__name__)
 
 ONLINE_DEFAULT = ("theta_e", "s_x", "s_y")
 BATCH_DEFAULT = ("theta_e", "s_x", "s_y", "k", "k_x", "k_yz")
 CORRECT = ("window", "all", "none")
-NONCONV_N = 3   # §III-F: std of the last n = 3 estimates
 
 
 def _as_list(missions) -> list[Mission]:
@@ -239,7 +249,7 @@ class UpdateErrorEstimator:
         for wi, m in enumerate(self.missions):
             per_mission[m.name] = {
                 e.name: {"value": float(sol.theta[i]),
-                         "sigma": _finite(unc.sigma[i]) if unc else None,
+                         "sigma": finite_or_none(unc.sigma[i]) if unc else None,
                          **({"verdict": unc.verdict[i]} if unc else {}),
                          **({"note": unc.note[i]} if unc and unc.note[i] else {})}
                 for i, e in enumerate(entries) if wi in e.windows}
@@ -251,7 +261,7 @@ class UpdateErrorEstimator:
                 "message": sol.message, "preset": self.preset, "metric": self.metric,
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
-        info.update(_verdict_info(unc, names, first, sol, sigma))
+        info.update(verdict_info(unc, names, first, sol, sigma))
         for w in info["warnings"]:
             log.warning("update-error: %s", w)
         return Result(
@@ -321,7 +331,7 @@ class UpdateErrorEstimator:
                 "per_mission": {m.name: {n: {"value": float(r.p[self.models[i].index(n)])}
                                          for n in estimate}
                                 for i, (m, r) in enumerate(zip(self.missions, mres))}}
-        info.update(_online_verdicts(unc0, names, nonconv[0], sigma))
+        info.update(online_verdicts(unc0, names, nonconv[0], sigma))
         for w in info["warnings"]:
             log.warning("update-error: %s", w)
         return Result(
@@ -344,12 +354,10 @@ class UpdateErrorEstimator:
         X_corr = np.full((K, 9), np.nan)
         a0 = h.anchors[h.k_start]
         X_filt[h.k_start] = X_corr[h.k_start] = a0.x
-        nodes = _NodeLog(h)
+        nodes = NodeLog(h)
         entries = self._entries(estimate, 1, joint=False)
         idx = [model.index(e.name) for e in entries]
         i_th = [i for i, e in enumerate(entries) if e.name == "theta_e"]
-        scales = self._scales(entries)
-        specs = [model.spec(e.name) for e in entries]
         t_hist, v_hist, s_hist, nonconv, t_eval, t_opt, n_eval = [], [], [], [], [], [], []
         unc = None
         x, P, rej = a0.x, a0.P, a0.rejects
@@ -361,54 +369,23 @@ class UpdateErrorEstimator:
             nodes.store(out)
             self.store_anchors(h, out, F[n - 1], rej)
             x, P, rej = out.x, out.P, out.rejects
-            if window is not None:
-                t_lo = h.knots[F[n]] - window
-                j = int(np.searchsorted(h.knots[F[:n + 1]], t_lo + 1e-9, side="right") - 1)
-                j = max(j, 0)
-            elif per_stream:
-                j = window_start(h.knots[F], streams, n, window_fixes)
-            else:
-                j = max(0, n - window_fixes)
+            j = _window_from(h.knots[F], streams, n, window, window_fixes, per_stream)
             if n - j < min_fixes or n % every:
                 continue
             a = h.anchors[int(F[j])]
             win = Window(h, int(F[j]), int(F[n]), a.x, a.P, p.copy(), a.rejects)
-            obj = Objective([win], entries, self.metric, self.use_cpp, self.counter)
-            theta0 = p[idx]
-            for i in i_th:
-                theta0[i] = wrap_angle(theta0[i])
-            lo, hi = bounds(self.preset, entries, model, theta0, self.user_bounds)
-            sol = minimise(obj, theta0, lo, hi, self.preset, scales, max_nfev, optimiser)
-            theta = sol.theta.copy()
-            for i in i_th:
-                theta[i] = wrap_angle(theta[i])
+            theta, sol, evals, unc = self._fit_window(win, model, p[idx], entries, i_th,
+                                                      max_nfev, optimiser, sigma)
             p[idx] = theta
-            t_eval += obj.counter.times[-sol.evaluations:]
+            t_eval += evals
             t_opt.append(sol.seconds)
             n_eval.append(sol.evaluations)
-            if sigma:
-                unc = assess(Objective([win], entries, self.metric, self.use_cpp), sol.theta,
-                             scales, specs, lo, hi)
-                unc = no_motion_through_water(unc, specs, _thrust_in(h, win.k0, win.k1))
-                sg = unc.sigma
-            else:
-                sg = np.full(len(idx), np.nan)
             t_hist.append(float(h.knots[F[n]]))
             v_hist.append(theta)
-            s_hist.append(sg)
-            last = np.array(v_hist[-NONCONV_N:])
-            if i_th and len(last):       # spread of a circular quantity: about the last one
-                last[:, i_th] = last[-1, i_th] + wrap_angle(last[:, i_th] - last[-1, i_th])
-            nonconv.append(last.std(axis=0) if len(last) == NONCONV_N
-                           else np.full(len(idx), np.nan))
+            s_hist.append(unc.sigma if unc is not None else np.full(len(idx), np.nan))
+            nonconv.append(_last_spread(v_hist, i_th, len(idx)))
             # past-trajectory correction (§III-D) and the state to carry on from
-            k_from = {"window": int(F[j]), "all": int(F[0]), "none": int(F[j])}[correct]
-            a = h.anchors[k_from]
-            out = run_window(h, p, a.x, a.P, k_from, int(F[n]), record=True, use_cpp=self.use_cpp,
-                             rejects=a.rejects)
-            if correct != "none":
-                X_corr[k_from:F[n] + 1] = out.X
-            self.store_anchors(h, out, k_from, a.rejects)
+            out = self._correct(h, p, int(F[j]), int(F[0]), int(F[n]), correct, X_corr)
             x, P, rej = out.x, out.P, out.rejects
             self._log(f"{h.mission.name} t={h.knots[F[n]]:.1f}: "
                       + ", ".join(f"{e.name}={v:.4g}" for e, v in zip(entries, theta))
@@ -427,6 +404,45 @@ class UpdateErrorEstimator:
         return {"mission": mr, "history": hist, "t_eval": t_eval, "t_opt": t_opt,
                 "n_eval": n_eval, "nonconv": np.array(nonconv).reshape(-1, len(names)),
                 "last": unc}
+
+    def _fit_window(self, win: Window, model: Model, theta0: np.ndarray, entries: list[Entry],
+                    i_th: list[int], max_nfev: int | None, optimiser: str, sigma: bool
+                    ) -> tuple[np.ndarray, Solution, list[float], Uncertainty | None]:
+        """Minimise ``E`` over the window ``win`` from ``theta0`` (the entries' current
+        values; the heading offset wrapped): the estimate (wrapped), the solution, the
+        times of its evaluations and, with ``sigma``, its uncertainty (else None)."""
+        obj = Objective([win], entries, self.metric, self.use_cpp, self.counter)
+        for i in i_th:
+            theta0[i] = wrap_angle(theta0[i])
+        scales = self._scales(entries)
+        lo, hi = bounds(self.preset, entries, model, theta0, self.user_bounds)
+        sol = minimise(obj, theta0, lo, hi, self.preset, scales, max_nfev, optimiser)
+        theta = sol.theta.copy()
+        for i in i_th:
+            theta[i] = wrap_angle(theta[i])
+        evals = obj.counter.times[-sol.evaluations:]
+        if not sigma:
+            return theta, sol, evals, None
+        specs = [model.spec(e.name) for e in entries]
+        unc = assess(Objective([win], entries, self.metric, self.use_cpp), sol.theta,
+                     scales, specs, lo, hi)
+        unc = no_motion_through_water(unc, specs, _thrust_in(win.hist, win.k0, win.k1))
+        return theta, sol, evals, unc
+
+    def _correct(self, h: History, p: np.ndarray, k_window: int, k_first: int, k_fix: int,
+                 correct: str, X_corr: np.ndarray) -> WindowOut:
+        """The past re-run with the parameters ``p`` up to the fix knot ``k_fix`` (from the
+        window's start ``k_window``, or the first fix ``k_first`` where ``correct`` is
+        "all") into ``X_corr`` (not where "none"), with the anchors it passes stored; the
+        pass, whose end is the state to carry on from."""
+        k_from = {"window": k_window, "all": k_first, "none": k_window}[correct]
+        a = h.anchors[k_from]
+        out = run_window(h, p, a.x, a.P, k_from, k_fix, record=True, use_cpp=self.use_cpp,
+                         rejects=a.rejects)
+        if correct != "none":
+            X_corr[k_from:k_fix + 1] = out.X
+        self.store_anchors(h, out, k_from, a.rejects)
+        return out
 
     @staticmethod
     def store_anchors(h: History, out: WindowOut, k0: int, rejects: int) -> None:
@@ -453,7 +469,7 @@ class UpdateErrorEstimator:
         filt = None if X_filt is None else Track(t.copy(), X_filt[:, :3].copy(),
                                                  X_filt[:, 3:6].copy())
         if nodes is None:
-            nodes = _NodeLog(h)
+            nodes = NodeLog(h)
             nodes.store(out)
         res = nodes.residuals()
         inertial = inertial_track(h.model, h.mission, p)
@@ -504,100 +520,28 @@ def _thrust_in(h: History, k0: int, k1: int) -> bool:
     i1 = int(np.searchsorted(m.t, t1, side="right"))
     return bool(np.any(np.abs(m.u[i0:i1]) > 0.0))
 
-
-def _finite(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
-
-
-def _verdict_info(unc: Uncertainty | None, names: list[str], cols: list[int], sol: Solution,
-                  sigma: bool) -> dict:
-    """``info`` entries of a batch fit: the sigma method, per-parameter observability
-    verdicts and notes, the measured consistency, convergence, and plain-text warnings."""
-    warn: list[str] = []
-    if not sol.converged:
-        warn.append(f"the optimiser stopped without converging ({sol.message}): the "
-                    "estimates are where it stopped, not an optimum")
-    out: dict[str, Any] = {"converged": bool(sol.converged)}
-    if unc is None:
-        out.update({"sigma_method": "none", "warnings": warn})
-        return out
-    obs = {n: unc.verdict[i] for n, i in zip(names, cols)}
-    notes = {n: unc.note[i] for n, i in zip(names, cols) if unc.note[i]}
-    for n, v in obs.items():
-        if v in ("not determined", "at bound"):
-            warn.append(f"{n}: {v} ({notes[n]})")
-    if unc.consistency > 4.0:
-        warn.append(f"the fixes are not explained by the model: mean squared whitened "
-                    f"innovation {unc.consistency:.1f} per degree of freedom (1 expected)")
-    out.update({
-        "sigma_method": (f"sandwich over {unc.blocks} fix blocks" if unc.method == "sandwich"
-                         else "gauss-newton on whitened innovations x consistency"),
-        "observability": obs, "sigma_notes": notes, "consistency": unc.consistency,
-        "warnings": warn})
-    return out
+def _window_from(t_fix: np.ndarray, streams: dict[int, np.ndarray], n: int,
+                 window: float | None, window_fixes: int, per_stream: bool) -> int:
+    """Index into the fix times ``t_fix`` where the window ending at fix ``n`` starts: the
+    fix ``window`` seconds back when given, else :func:`window_start` (``per_stream``) or
+    ``window_fixes`` fixes back in the merged stream."""
+    if window is not None:
+        t_lo = t_fix[n] - window
+        j = int(np.searchsorted(t_fix[:n + 1], t_lo + 1e-9, side="right") - 1)
+        return max(j, 0)
+    if per_stream:
+        return window_start(t_fix, streams, n, window_fixes)
+    return max(0, n - window_fixes)
 
 
-def _online_verdicts(unc: Uncertainty | None, names: list[str], nonconv: np.ndarray,
-                     sigma: bool) -> dict:
-    """``info`` entries of an online run: the last window's verdicts and notes, and the
-    paper's non-convergence measure (§III-F) turned into a per-parameter flag."""
-    out: dict = {"sigma_method": ("gauss-newton on whitened innovations x consistency, per "
-                                  "window" if sigma else "none")}
-    warn: list[str] = []
-    if unc is None:
-        out.update({"converged": {}, "warnings": warn})
-        return out
-    last_nc = nonconv[-1] if len(nonconv) else np.full(len(names), np.nan)
-    conv = {}
-    for i, n in enumerate(names):
-        ok = bool(np.isfinite(last_nc[i]) and np.isfinite(unc.sigma[i])
-                  and last_nc[i] <= 2.0 * unc.sigma[i])
-        conv[n] = ok
-        if not ok:
-            sg = f"{unc.sigma[i]:.3g}" if np.isfinite(unc.sigma[i]) else "not determined"
-            warn.append(f"{n}: not converged (std of the last {NONCONV_N} estimates "
-                        f"{last_nc[i]:.3g}, last window's 1-sigma {sg})")
-    out.update({"converged": conv,
-                "observability": {n: unc.verdict[i] for i, n in enumerate(names)},
-                "sigma_notes": {n: unc.note[i] for i, n in enumerate(names) if unc.note[i]},
-                "consistency": unc.consistency, "warnings": warn})
-    return out
-
-
-class _NodeLog:
-    """Innovations of every measurement node, as the filter saw them, for the residuals."""
-
-    def __init__(self, h: History):
-        self.h = h
-        M = len(h.node_kind)
-        self.nu = np.full((M, 3), np.nan)
-        self.s = np.full((M, 3), np.nan)
-        self.status = np.full(M, -1, dtype=np.int8)
-
-    def store(self, out: WindowOut) -> None:
-        sl = slice(out.node_lo, out.node_hi)
-        self.nu[sl] = out.nu
-        self.s[sl] = out.s
-        self.status[sl] = out.status
-
-    def residuals(self) -> dict[str, Residuals]:
-        """``{"gnss", "usbl", "depth", "imu_acc"}``: innovation (raw) and innovation / its
-        std (normalised). USBL residuals are those of the fix converted to north/east."""
-        h = self.h
-        t = h.node_tm + h.mission.t0
-        out = {}
-        for kind, d in ((GNSS, 2), (USBL, 2), (DEPTH, 1), (IMU_ACC, 3)):
-            sel = (h.node_kind == kind) & (self.status >= 0)
-            if not sel.any():
-                continue
-            raw = self.nu[sel, :d]
-            norm = raw / self.s[sel, :d]
-            meas = pred = None
-            if kind in (GNSS, DEPTH, IMU_ACC):
-                meas = h.node_z[sel, :d]
-                pred = meas - raw
-            out[KIND_NAMES[kind]] = Residuals(t[sel], raw, norm, meas, pred)
-        return out
+def _last_spread(v_hist: list[np.ndarray], i_th: list[int], n: int) -> np.ndarray:
+    """§III-F's non-convergence measure: the standard deviation of the last
+    ``NONCONV_N`` estimates (the heading offset's about the last one, wrapped); NaN before
+    there are that many."""
+    last = np.array(v_hist[-NONCONV_N:])
+    if i_th and len(last):       # spread of a circular quantity: about the last one
+        last[:, i_th] = last[-1, i_th] + wrap_angle(last[:, i_th] - last[-1, i_th])
+    return last.std(axis=0) if len(last) == NONCONV_N else np.full(n, np.nan)
 
 
 def fit_update_error(missions: list[Mission], *, mode: str = "batch",

@@ -112,6 +112,51 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
     scales = np.asarray(scales, float)
     t0 = obj.node_terms(theta)
     acc = t0.status == ACCEPTED
+    Jr, Jw, flipped = _jacobians(obj, theta, scales, lo, hi, t0)
+    Jw[~acc] = 0.0
+    nw = int(_dims(t0.kind)[acc].sum())
+    chi2 = float(np.sum(t0.nu_w[acc] ** 2))
+    consistency = chi2 / max(nw - p, 1)
+
+    A = np.einsum("ndi,ndj->ij", Jr, Jr)
+    # information directions: of the metric (A) for the update error; a parameter that
+    # moves no residual at all has a zero column
+    lam, V = np.linalg.eigh(A)
+    null = lam <= RCOND * max(lam.max(initial=0.0), 1e-300)
+    load_null = np.sum(V[:, null] ** 2, axis=1) if null.any() else np.zeros(p)
+
+    fixes = np.isin(t0.kind, FIX_KINDS)
+    n_fix = int(fixes.sum())
+    if sandwich and n_fix >= 2 * MIN_BLOCKS and obj.metric != "innovation":
+        cov_s, blocks = _block_sandwich(t0, Jr, fixes, _pinv(lam, V, null))
+        method = "sandwich"
+    else:
+        method, blocks = "model", 0
+        Iw = np.einsum("ndi,ndj->ij", Jw, Jw)
+        lw, Vw = np.linalg.eigh(Iw)
+        nullw = lw <= RCOND * max(lw.max(initial=0.0), 1e-300)
+        cov_s = _pinv(lw, Vw, nullw) * max(1.0, consistency)
+        if nullw.any():
+            load_null = np.maximum(load_null, np.sum(Vw[:, nullw] ** 2, axis=1))
+
+    sig_s = np.sqrt(np.clip(np.diag(cov_s), 0.0, None))
+    sigma = sig_s * scales
+    verdict, note = _verdicts(theta, specs, scales, sigma, lo, hi, flipped, load_null)
+    bad = np.array([t is not None for t in note])
+    sigma = np.where(bad, np.nan, sigma)
+    cov = cov_s * np.outer(scales, scales)
+    cov[bad, :] = np.nan
+    cov[:, bad] = np.nan
+    return Uncertainty(sigma, verdict, note, method, float(consistency), blocks, cov)
+
+
+def _jacobians(obj: Objective, theta: np.ndarray, scales: np.ndarray,
+               lo: np.ndarray | None, hi: np.ndarray | None, t0
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Forward-difference derivatives, per unit of each parameter's scale, of the metric's
+    rows (n, d, p) and of the whitened innovations (n, 3, p) at ``theta`` (terms ``t0``);
+    and which parameters flip a gated fix's decision (no derivative, their columns zero)."""
+    p = len(theta)
     n, d = t0.rows.shape
     Jr = np.zeros((n, d, p))
     Jw = np.zeros((n, 3, p))
@@ -125,54 +170,40 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
         # derivatives per unit of the parameter's scale (dimensionless columns)
         Jr[:, :, i] = (t.rows - t0.rows) / step * scales[i]
         Jw[:, :, i] = (t.nu_w - t0.nu_w) / step * scales[i]
-    Jw[~acc] = 0.0
-    nw = int(_dims(t0.kind)[acc].sum())
-    chi2 = float(np.sum(t0.nu_w[acc] ** 2))
-    consistency = chi2 / max(nw - p, 1)
+    return Jr, Jw, flipped
 
-    A = np.einsum("ndi,ndj->ij", Jr, Jr)
-    Iw = np.einsum("ndi,ndj->ij", Jw, Jw)
-    # information directions: of the metric (A) for the update error; a parameter that
-    # moves no residual at all has a zero column
-    lam, V = np.linalg.eigh(A)
-    null = lam <= RCOND * max(lam.max(initial=0.0), 1e-300)
-    load_null = np.sum(V[:, null] ** 2, axis=1) if null.any() else np.zeros(p)
 
-    fixes = np.isin(t0.kind, FIX_KINDS)
+def _block_sandwich(t0, Jr: np.ndarray, fixes: np.ndarray, Ai: np.ndarray
+                    ) -> tuple[np.ndarray, int]:
+    """Sandwich covariance ``A^-1 B A^-1`` (scaled units; ``Ai`` = ``A^-1``) with ``B``
+    from the metric's gradient summed over blocks of consecutive fixes (about sqrt(n_fix)
+    blocks, at least ``MIN_BLOCKS``, never across windows); and the number of blocks."""
+    n = t0.rows.shape[0]
+    p = Jr.shape[2]
     n_fix = int(fixes.sum())
     G = max(MIN_BLOCKS, int(np.sqrt(n_fix)))
-    method = "model"
-    cov_s = None
-    if sandwich and n_fix >= 2 * MIN_BLOCKS and obj.metric != "innovation":
-        per = int(np.ceil(n_fix / G))
-        # block id: window, then running fix count within it
-        blk = np.zeros(n, int)
-        base = 0
-        for w in np.unique(t0.window):
-            sel = t0.window == w
-            cnt = np.cumsum(fixes[sel]) - fixes[sel]           # fixes before each node
-            b = cnt // per
-            blk[sel] = base + b
-            base += int(b.max(initial=0)) + 1
-        g = np.einsum("ndi,nd->ni", Jr, t0.rows)
-        nb = int(blk.max()) + 1
-        gb = np.zeros((nb, p))
-        np.add.at(gb, blk, g)
-        B = gb.T @ gb * nb / max(nb - 1, 1)
-        Ai = _pinv(lam, V, null)
-        cov_s = Ai @ B @ Ai
-        method = "sandwich"
-        blocks = nb
-    else:
-        blocks = 0
-        lw, Vw = np.linalg.eigh(Iw)
-        nullw = lw <= RCOND * max(lw.max(initial=0.0), 1e-300)
-        cov_s = _pinv(lw, Vw, nullw) * max(1.0, consistency)
-        if nullw.any():
-            load_null = np.maximum(load_null, np.sum(Vw[:, nullw] ** 2, axis=1))
+    per = int(np.ceil(n_fix / G))
+    # block id: window, then running fix count within it
+    blk = np.zeros(n, int)
+    base = 0
+    for w in np.unique(t0.window):
+        sel = t0.window == w
+        cnt = np.cumsum(fixes[sel]) - fixes[sel]           # fixes before each node
+        b = cnt // per
+        blk[sel] = base + b
+        base += int(b.max(initial=0)) + 1
+    g = np.einsum("ndi,nd->ni", Jr, t0.rows)
+    nb = int(blk.max()) + 1
+    gb = np.zeros((nb, p))
+    np.add.at(gb, blk, g)
+    B = gb.T @ gb * nb / max(nb - 1, 1)
+    return Ai @ B @ Ai, nb
 
-    sig_s = np.sqrt(np.clip(np.diag(cov_s), 0.0, None))
-    sigma = sig_s * scales
+
+def _verdicts(theta: np.ndarray, specs: list, scales: np.ndarray, sigma: np.ndarray,
+              lo: np.ndarray | None, hi: np.ndarray | None, flipped: np.ndarray,
+              load_null: np.ndarray) -> tuple[list[str], list[str | None]]:
+    """Each parameter's observability verdict and, where it has no usable sigma, why."""
     verdict: list[str] = []
     note: list[str | None] = []
     for i, spec in enumerate(specs):
@@ -200,12 +231,7 @@ def assess(obj: Objective, theta: np.ndarray, scales: np.ndarray, specs: list,
         else:
             verdict.append("determined" if sigma[i] <= DETERMINED * m else "weakly determined")
             note.append(None)
-    bad = np.array([t is not None for t in note])
-    sigma = np.where(bad, np.nan, sigma)
-    cov = cov_s * np.outer(scales, scales)
-    cov[bad, :] = np.nan
-    cov[:, bad] = np.nan
-    return Uncertainty(sigma, verdict, note, method, float(consistency), blocks, cov)
+    return verdict, note
 
 
 def _pinv(lam: np.ndarray, V: np.ndarray, null: np.ndarray) -> np.ndarray:

@@ -184,13 +184,7 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     full = cfg.cov_model == "full"
 
     tau = float(p[I_TAU])
-    s0 = int(hist.offsets[k0])
-    w0 = hist.warm_start(k0)
-    nst = len(st.h)
-    f = st.dem[min(w0, nst - 1)].astype(float).copy() if nst else np.zeros(0)
-    df = np.zeros_like(f)
-    for j in range(w0, s0):
-        _, _, f, df = ref.filter_step(f, df, st.dem[j].astype(float), float(st.h[j]), tau)
+    f, df = _warm_filter(hist, k0, tau)
 
     x = np.array(x0, float)
     P = np.array(P0, float)
@@ -235,27 +229,8 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
             P = predict_covariance(P, Sx, Sv, T, J_ab, cfg, planar)
             Sx, Sv, T = np.zeros((3, 3)), np.eye(3), 0.0
         for i in range(m, b):
-            kind = int(hist.node_kind[i])
-            z = hist.node_z[i]
             r = i - lo
-            ok = None
-            if kind == GNSS:
-                zp = sensor_position(x[:3], hist.node_R[i].reshape(3, 3), hist.node_tm[i], p)[0]
-                ok, e, nu, nw, s, x, P = _update(x, P, [0, 1], z[:2], zp[:2],
-                                                 z[2] ** 2 * np.eye(2), cfg.gate_gnss)
-            elif kind == USBL:
-                zp = sensor_position(x[:3], hist.node_R[i].reshape(3, 3), hist.node_tm[i], p)[0]
-                zpos, Rm = usbl_to_position(z, hist.station, p, cfg.sigma_range, cfg.sigma_bearing,
-                                            predicted=zp[:2])
-                gate = cfg.gate_usbl if rejects < cfg.max_rejects else np.inf
-                ok, e, nu, nw, s, x, P = _update(x, P, [0, 1], zpos, zp[:2], Rm, gate)
-                rejects = 0 if ok else rejects + 1
-            elif kind == DEPTH:
-                ok, e, nu, nw, s, x, P = _update(x, P, [2], z[:1], x[2:3],
-                                                 np.array([[z[1] ** 2]]), np.inf)
-            elif kind == IMU_ACC:
-                ok, e, nu, nw, s, x, P = _update(x, P, [6, 7, 8], z[:3], x[6:9],
-                                                 z[3] ** 2 * np.eye(3), np.inf)
+            ok, e, nu, nw, s, x, P, rejects = _node_update(hist, i, x, P, p, rejects)
             if ok is not None:
                 status[r] = ACCEPTED if ok else REJECTED
                 e_all[r] = e
@@ -273,6 +248,48 @@ def window_ref(hist: History, p: np.ndarray, x0: np.ndarray, P0: np.ndarray, k0:
     return WindowOut(lo, hi, e_all, nu_all, nuw_all, s_all, status,
                      np.concatenate([pos, vel, ab]), P, X if record else None,
                      Pn if record else None, rejects)
+
+
+def _warm_filter(hist: History, k0: int, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """The thrust filter's state (and its rate) at knot ``k0``, run from the history's
+    warm start for ``k0`` with time constant ``tau``."""
+    st = hist.steps
+    s0 = int(hist.offsets[k0])
+    w0 = hist.warm_start(k0)
+    nst = len(st.h)
+    f = st.dem[min(w0, nst - 1)].astype(float).copy() if nst else np.zeros(0)
+    df = np.zeros_like(f)
+    for j in range(w0, s0):
+        _, _, f, df = ref.filter_step(f, df, st.dem[j].astype(float), float(st.h[j]), tau)
+    return f, df
+
+
+def _node_update(hist: History, i: int, x: np.ndarray, P: np.ndarray, p: np.ndarray,
+                 rejects: int) -> tuple:
+    """The EKF update (Eq. 11, gated) of measurement node ``i`` from ``(x, P)``:
+    ``(ok, e, nu, nu_w, s, x, P, rejects)`` with ``rejects`` the consecutive USBL
+    rejections after it; ``ok`` None (and ``x``, ``P`` unchanged) for a node that updates
+    nothing (a motor command)."""
+    cfg = hist.config
+    kind = int(hist.node_kind[i])
+    z = hist.node_z[i]
+    if kind == GNSS:
+        zp = sensor_position(x[:3], hist.node_R[i].reshape(3, 3), hist.node_tm[i], p)[0]
+        return (*_update(x, P, [0, 1], z[:2], zp[:2], z[2] ** 2 * np.eye(2), cfg.gate_gnss),
+                rejects)
+    if kind == USBL:
+        zp = sensor_position(x[:3], hist.node_R[i].reshape(3, 3), hist.node_tm[i], p)[0]
+        zpos, Rm = usbl_to_position(z, hist.station, p, cfg.sigma_range, cfg.sigma_bearing,
+                                    predicted=zp[:2])
+        gate = cfg.gate_usbl if rejects < cfg.max_rejects else np.inf
+        ok, e, nu, nw, s, x, P = _update(x, P, [0, 1], zpos, zp[:2], Rm, gate)
+        return ok, e, nu, nw, s, x, P, 0 if ok else rejects + 1
+    if kind == DEPTH:
+        return (*_update(x, P, [2], z[:1], x[2:3], np.array([[z[1] ** 2]]), np.inf), rejects)
+    if kind == IMU_ACC:
+        return (*_update(x, P, [6, 7, 8], z[:3], x[6:9], z[3] ** 2 * np.eye(3), np.inf),
+                rejects)
+    return None, None, None, None, None, x, P, rejects
 
 
 def kernel_settings(cfg):

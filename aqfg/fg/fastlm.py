@@ -26,7 +26,6 @@ different knots): the caller then keeps the GTSAM path.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -34,31 +33,12 @@ import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
 from aqfg.fg import lm
+from aqfg.fg.common import Measurements, depth_assignment, knot_index
+from aqfg.fg.fastlm_ops import Meas, propagator, sandwich, scatter_add, tri
+from aqfg.fg.fastlm_ops import plain_sensors as _plain_sensors
 from aqfg.fg.robust import huber_cost, huber_weight, row_norms
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
-
-
-@dataclass
-class _Meas:
-    """Measurement factors on one knot each, of one kind."""
-    kind: str             # "gnss", "usbl", "depth"
-    idx: np.ndarray       # (n,) global state index
-    z: np.ndarray         # (n, m)
-    sigma: np.ndarray     # (n, m)
-    k: float | None       # Huber threshold (None: plain Gaussian)
-    extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
-
-
-def _plain_sensors(p: np.ndarray) -> bool:
-    """True when the measurement effects at ``p`` are null (no lever arm, no USBL
-    distortion), so a fix measures the knot position itself."""
-    from aqfg.model.measurements import USBL_TERMS, sensor_position
-    ps = sensor_position(np.zeros(3), np.eye(3), 0.0, p)[0]
-    if np.any(ps != 0.0):
-        return False
-    z = np.array([10.0, 0.3])
-    return all(np.array_equal(e.distort(z, p[sl]), z) for e, sl in USBL_TERMS)
 
 
 class FastSystem:
@@ -78,7 +58,7 @@ class FastSystem:
     d0: np.ndarray                # (K,) state index of each interval's first knot
     gcols: dict[str, np.ndarray]  # per dynamics group: (K, dim) parameter columns
     ncols: int
-    meas: list[_Meas]
+    meas: list[Meas]
     lin_s: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]   # rows -> (idx, A, b)
     lin_pA: np.ndarray
     lin_p: list[fc.LinearTerm]
@@ -182,7 +162,7 @@ class FastSystem:
             nxt = ok & (I == J + 1) & (J < self.N - 1)
             src[d, nxt] = (nD + J * 36 + a * 6 + bb)[nxt]
         self._band_src = src
-        self._kernels = [[_propagator(part.model, sl) if sl is not None else None
+        self._kernels = [[propagator(part.model, sl) if sl is not None else None
                           for sl in part.seg_slices] for part in bg.parts]
         self.lo = np.concatenate([bg.layout.bounds(n.group)[0] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
@@ -190,11 +170,10 @@ class FastSystem:
             if bg.nodes else np.zeros(0)
         return self
 
-    def _measurements(self, settings) -> list[_Meas]:
+    def _measurements(self, settings) -> list[Meas]:
         """The GNSS, USBL and depth factors of every mission part, by kind."""
-        from aqfg.fg.common import Measurements, depth_assignment, knot_index
         sn = settings.sensors
-        meas: list[_Meas] = []
+        meas: list[Meas] = []
         for pi, part in enumerate(self.bg.parts):
             m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
             off = self.part_off[pi]
@@ -205,15 +184,15 @@ class FastSystem:
                 return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
             if len(m.gnss_t):
                 ki = off + knot_index(part.knots, m.gnss_t)
-                meas.append(_Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
+                meas.append(Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
                                   k_of("gnss")))
             if len(m.usbl_t):
                 ki = off + knot_index(part.knots, m.usbl_t)
-                meas.append(_Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
+                meas.append(Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
                                   np.asarray(m.station, float)))
             ri, ki = depth_assignment(part.knots, m.depth_t)
             if len(ri):
-                meas.append(_Meas("depth", off + ki, m.depth_z[ri][:, None],
+                meas.append(Meas("depth", off + ki, m.depth_z[ri][:, None],
                                   np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
                                   m.depth_t[ri] - part.knots[ki]))
         return meas
@@ -481,10 +460,10 @@ class FastSystem:
         gp = Apf.T @ rd.ravel() + self.lin_pA.T @ ev["lin_p"]
         for m, (r, J, w) in zip(self.meas, ev["meas"]):
             Jt = J.transpose(0, 2, 1)
-            _scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
-            _scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
+            scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
+            scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
         for mm, (si, A, _) in self.lin_s.items():
-            _scatter_add(gs, si,
+            scatter_add(gs, si,
                          np.matmul(A.transpose(0, 2, 1), ev["lin_s"][mm][:, :, None])[:, :, 0])
         return D, E, Hsp, Hpp, gs, gp
 
@@ -498,7 +477,7 @@ class FastSystem:
         ``np.linalg.LinAlgError`` when the system is not positive definite."""
         cb = sla.cholesky_banded(self._band(D, E), lower=True, check_finite=False)
         Hsp2 = Hsp.reshape(6 * self.N, self.P)
-        Z = _tri(cb, Hsp2) if self.P else Hsp2            # L^-1 H_sp
+        Z = tri(cb, Hsp2) if self.P else Hsp2            # L^-1 H_sp
         S = Hpp - Z.T @ Z
         return cb, Hsp2, Z, S
 
@@ -506,7 +485,7 @@ class FastSystem:
         """Step ``delta`` minimising the quadratic model with the parameter components in
         ``fix`` held at the given values. Returns (dX (N,6), dth (P,))."""
         cb, Hsp2, Z, S = fac
-        u = _tri(cb, -gs.reshape(-1, 1))                     # L^-1 (-g_s)
+        u = tri(cb, -gs.reshape(-1, 1))                     # L^-1 (-g_s)
         rhs = -gp - Z.T @ u[:, 0]
         dth = np.zeros(self.P)
         free = np.ones(self.P, bool)
@@ -519,7 +498,7 @@ class FastSystem:
             rf = rhs[free] - S[np.ix_(free, ~free)] @ dth[~free]
             c = sla.cho_factor(Sf, check_finite=False)
             dth[free] = sla.cho_solve(c, rf, check_finite=False)
-        dX = _tri(cb, u - (Z @ dth)[:, None], trans=True)  # L^-T (u - Z dth)
+        dX = tri(cb, u - (Z @ dth)[:, None], trans=True)  # L^-T (u - Z dth)
         return dX.reshape(self.N, 6), dth
 
     def param_covariance(self, fac) -> np.ndarray:
@@ -529,98 +508,9 @@ class FastSystem:
 
     # ------------------------------------------------------------------ sandwich
     def sandwich(self, ev: dict, fac, key_time: dict, block: float):
-        """:func:`aqfg.fg.covariance.block_sandwich` from this system: per-block score
-        ``g_b`` (factors assigned to the block of their latest knot, parameter-only factors
-        left out), ``Z = H^-1 G``. Returns ({node key: cov}, dof) or None."""
-        t_state = np.empty(self.N)
-        for p, o in zip(self.bg.parts, self.part_off):
-            t_state[o:o + len(p.keys)] = [key_time[k] for k in p.keys]
-        t0 = float(t_state.min())
-        blk_state = ((t_state - t0) // block).astype(np.int64)
-        self._dyn_jacobians(ev)
-        d0 = self.d0
-        rows_s, rows_b, vals_s = [], [], []     # state gradient contributions
-        pg_b, pg_v = [], []                     # parameter gradient contributions
-        A0, Ap, rd, W = ev["A0"], ev["Ap"], ev["dyn_r"], self.W
-        bd = blk_state[d0 + 1]
-        rows_s += [d0, d0 + 1]
-        rows_b += [bd, bd]
-        vals_s += [np.einsum("kji,kj->ki", A0, rd), np.einsum("kji,kj->ki", W, rd)]
-        pg_b.append(bd)
-        pg_v.append(np.einsum("kji,kj->ki", Ap, rd))
-        for m, (r, J, w) in zip(self.meas, ev["meas"]):
-            rows_s.append(m.idx)
-            rows_b.append(blk_state[m.idx])
-            vals_s.append(w[:, None] * np.einsum("nji,nj->ni", J, r))
-        for mm, (si, A, _) in self.lin_s.items():
-            rows_s.append(si)
-            rows_b.append(blk_state[si])
-            vals_s.append(np.einsum("nji,nj->ni", A, ev["lin_s"][mm]))
-        allb = np.concatenate(rows_b)
-        ids = np.unique(allb)
-        nb = len(ids)
-        n_p = self.P
-        if nb < n_p + 2:
-            return None
-        loc = {int(b): i for i, b in enumerate(ids)}
-        lut = np.zeros(int(ids.max()) + 1, np.int64)
-        for b, i in loc.items():
-            lut[b] = i
-        Gs = np.zeros((self.N, 6, nb))
-        for ri, rb, v in zip(rows_s, rows_b, vals_s):
-            np.add.at(Gs, (ri[:, None], np.arange(6), lut[rb][:, None]), v)
-        Gp = np.zeros((self.P, nb))
-        for rb, v in zip(pg_b, pg_v):
-            np.add.at(Gp, (np.arange(self.P)[:, None], lut[rb]), v.T)
-        cb, Hsp2, _, S = fac
-        Gs2 = Gs.reshape(6 * self.N, nb)
-        ys = sla.cho_solve_banded((cb, True), Gs2, check_finite=False)
-        Zp = np.linalg.solve(S, Gp - Hsp2.T @ ys)
-        scale = nb / max(nb - n_p, 1)
-        out = {}
-        for k, (o, d) in self.node_off.items():
-            zk = Zp[o:o + d]
-            zk = zk - zk.mean(axis=1, keepdims=True)
-            out[k] = scale * zk @ zk.T
-        return out, nb - n_p
-
-
-def _scatter_add(out: np.ndarray, idx: np.ndarray, v: np.ndarray) -> None:
-    """``out[idx] += v`` with repeated indices summed (``np.add.at``, which is slow, only
-    when ``idx`` repeats)."""
-    if len(idx) < 2 or np.all(np.diff(idx) > 0):
-        out[idx] += v
-    else:
-        np.add.at(out, idx, v)
-
-
-def _tri(cb: np.ndarray, B: np.ndarray, trans: bool = False) -> np.ndarray:
-    """``L^-1 B`` (or ``L^-T B``) for the lower banded Cholesky factor ``cb``."""
-    x, info = sla.lapack.dtbtrs(cb, B, uplo="L", trans="T" if trans else "N")
-    if info != 0:
-        raise np.linalg.LinAlgError(f"banded triangular solve failed (info {info})")
-    return x
-
-
-def _propagator(model, sl):
-    """``f(X0, p) -> (X1, J_x0, J_p)`` of one parameter segment's intervals, with the
-    kernel's step arguments converted once (:meth:`Model.propagate_many`)."""
-    a, b, steps, offs = sl
-    if not model.uses_cpp:
-        return lambda X0, p: model.propagate_many(X0, p, steps, offs)
-    from aqfg.model.params import N_DYN
-    from aqfg.model.vehicle import compiled_kernel
-    cpp = compiled_kernel()
-    assert cpp is not None                      # model.uses_cpp
-    g = model.geometry
-    args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
-            np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
-            np.ascontiguousarray(steps.tm, float), np.ascontiguousarray(offs, np.int64),
-            np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
-            bool(g.planar))
-    kernel = cpp.propagate_many
-    return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
-                                np.ascontiguousarray(p[:N_DYN], float), *args)
+        """:func:`aqfg.fg.covariance.block_sandwich` from this system
+        (:func:`aqfg.fg.fastlm_ops.sandwich`): ({node key: cov}, dof) or None."""
+        return sandwich(self, ev, fac, key_time, block)
 
 
 class FastLM:
