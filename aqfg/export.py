@@ -1,4 +1,5 @@
-"""Trajectories in formats other tools read (format doc, "Outputs").
+"""The result's files (format doc, "Outputs"): :func:`save_result` writes a
+:class:`~aqfg.result.Result` as one set; the trajectories in formats other tools read:
 
 - :func:`track_csv`: ``t, north, east, down, vn, ve, vd`` and, when the mission has an
   ``[origin]``, ``lat, lon`` (degrees WGS84, :mod:`aqfg.data.geodesy`);
@@ -10,13 +11,17 @@
 """
 from __future__ import annotations
 
+import logging
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from aqfg.data.geodesy import ne_to_latlon
 from aqfg.data.mission import Mission
-from aqfg.result import MissionResult, Result, Track
+from aqfg.outputs import OutputSet, inside, unique_safe_names, write_json
+from aqfg.result import RESULT_FILES, MissionResult, Result, Track, parameters_document
 
 TRACK_HEADER = "t,north,east,down,vn,ve,vd"
 
@@ -99,3 +104,69 @@ def geojson_track(result: Result, mr: MissionResult, mission: Mission,
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
+
+
+def mission_dirs(result: Result) -> list[str]:
+    """Output sub-directory of each mission: "" for a single mission, otherwise its name
+    made safe as one path component (distinct)."""
+    if len(result.missions) == 1:
+        return [""]
+    return unique_safe_names(m.name for m in result.missions)
+
+
+def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
+                 tum: bool = False, provenance: dict | None = None) -> list[Path]:
+    """Write the result files into ``out_dir`` (a fresh directory; see :func:`save_result`).
+
+    ``parameters.json``; per mission ``trajectory.csv`` (+ ``lat, lon`` with an
+    ``[origin]``), ``inertial.csv``, ``track.geojson`` (with an ``[origin]``) and, with
+    ``tum``, ``trajectory.tum``. ``missions`` (the fitted Mission objects, matched by name)
+    give the origin and the attitude. Returns the paths written.
+    """
+    out = Path(out_dir)
+    written = [write_json(out / "parameters.json", parameters_document(result, provenance))]
+    by_name = {m.name: m for m in (missions or ())}
+    for sub, mr in zip(mission_dirs(result), result.missions):
+        d = inside(out, out / sub) if sub else out
+        d.mkdir(parents=True, exist_ok=True)
+        m = by_name.get(mr.name)
+        origin = m.origin if m is not None else None
+        for name, tr in (("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)):
+            tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}")
+            (d / name).write_text(track_csv(tr, origin))
+            written.append(d / name)
+        if tum and m is not None:
+            (d / "trajectory.tum").write_text(tum_text(result, mr, m))
+            written.append(d / "trajectory.tum")
+        if origin is not None and m is not None:
+            written.append(write_json(d / "track.geojson",
+                                      geojson_track(result, mr, m, provenance)))
+    return written
+
+
+def finite_track(track: Track, where: str) -> Track:
+    """``track`` up to its first state that is not finite (a track file never holds a
+    non-number), with a warning naming ``where`` and the time it ends (the model's
+    re-trace diverged there)."""
+    ok = np.all(np.isfinite(track.pos), axis=1) & np.all(np.isfinite(track.vel), axis=1) \
+        & np.isfinite(track.t)
+    if ok.all():
+        return track
+    n = int(np.argmin(ok))
+    logging.getLogger("aqfg").warning(
+        "%s: the track is not finite from t = %.6g s (the model's re-trace diverged): written "
+        "up to there, %d of %d rows", where, float(track.t[n]), n, len(track.t))
+    return Track(track.t[:n], track.pos[:n], track.vel[:n])
+
+
+def save_result(result: Result, out_dir: str | os.PathLike, overwrite: bool = False,
+                missions=None, tum: bool = False, provenance: dict | None = None) -> Path:
+    """Write the result files (:func:`write_result`) into ``out_dir`` as one set: staged
+    beside it and moved in whole, so ``out_dir`` holds the complete new set or is left as
+    it was. Refuses to replace existing outputs unless ``overwrite``; with ``overwrite``
+    the previous set is replaced as a whole. With several missions, the tracks go into
+    ``out_dir/<mission name>/`` (names made safe path components)."""
+    names = [*RESULT_FILES, *(d for d in mission_dirs(result) if d)]
+    with OutputSet(out_dir, names, force=overwrite) as stage:
+        write_result(result, stage, missions=missions, tum=tum, provenance=provenance)
+    return Path(out_dir)

@@ -1,13 +1,12 @@
-"""The one result type every estimator returns, and its writer (format doc, "Outputs").
+"""The one result type every estimator returns, as plain data, and the documents it is
+written as (its files: :mod:`aqfg.export`; format doc, "Outputs").
 
 Diagnosis, plots, the report and the benchmarks read a :class:`Result` and never care
 which estimator produced it.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -330,74 +329,3 @@ def read_parameter_values(doc: dict) -> dict[str, float]:
             raise ValueError(f"value of {name!r} must be a number, got {v!r}")  # noqa: TRY004
         out[name] = float(v)
     return out
-
-
-def mission_dirs(result: Result) -> list[str]:
-    """Output sub-directory of each mission: "" for a single mission, otherwise its name
-    made safe as one path component (distinct)."""
-    from aqfg.outputs import unique_safe_names
-    if len(result.missions) == 1:
-        return [""]
-    return unique_safe_names(m.name for m in result.missions)
-
-
-def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
-                 tum: bool = False, provenance: dict | None = None) -> list[Path]:
-    """Write the result files into ``out_dir`` (a fresh directory; see :func:`save_result`).
-
-    ``parameters.json``; per mission ``trajectory.csv`` (+ ``lat, lon`` with an
-    ``[origin]``), ``inertial.csv``, ``track.geojson`` (with an ``[origin]``) and, with
-    ``tum``, ``trajectory.tum``. ``missions`` (the fitted Mission objects, matched by name)
-    give the origin and the attitude. Returns the paths written.
-    """
-    from aqfg import export
-    from aqfg.outputs import inside, write_json
-    out = Path(out_dir)
-    written = [write_json(out / "parameters.json", parameters_document(result, provenance))]
-    by_name = {m.name: m for m in (missions or ())}
-    for sub, mr in zip(mission_dirs(result), result.missions):
-        d = inside(out, out / sub) if sub else out
-        d.mkdir(parents=True, exist_ok=True)
-        m = by_name.get(mr.name)
-        origin = m.origin if m is not None else None
-        for name, tr in (("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)):
-            tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}")
-            (d / name).write_text(export.track_csv(tr, origin))
-            written.append(d / name)
-        if tum and m is not None:
-            (d / "trajectory.tum").write_text(export.tum_text(result, mr, m))
-            written.append(d / "trajectory.tum")
-        if origin is not None and m is not None:
-            written.append(write_json(d / "track.geojson",
-                                      export.geojson_track(result, mr, m, provenance)))
-    return written
-
-
-def finite_track(track: Track, where: str) -> Track:
-    """``track`` up to its first state that is not finite (a track file never holds a
-    non-number), with a warning naming ``where`` and the time it ends (the model's
-    re-trace diverged there)."""
-    ok = np.all(np.isfinite(track.pos), axis=1) & np.all(np.isfinite(track.vel), axis=1) \
-        & np.isfinite(track.t)
-    if ok.all():
-        return track
-    n = int(np.argmin(ok))
-    import logging
-    logging.getLogger("aqfg").warning(
-        "%s: the track is not finite from t = %.6g s (the model's re-trace diverged): written "
-        "up to there, %d of %d rows", where, float(track.t[n]), n, len(track.t))
-    return Track(track.t[:n], track.pos[:n], track.vel[:n])
-
-
-def save_result(result: Result, out_dir: str | os.PathLike, overwrite: bool = False,
-                missions=None, tum: bool = False, provenance: dict | None = None) -> Path:
-    """Write the result files (:func:`write_result`) into ``out_dir`` as one set: staged
-    beside it and moved in whole, so ``out_dir`` holds the complete new set or is left as
-    it was. Refuses to replace existing outputs unless ``overwrite``; with ``overwrite``
-    the previous set is replaced as a whole. With several missions, the tracks go into
-    ``out_dir/<mission name>/`` (names made safe path components)."""
-    from aqfg.outputs import OutputSet
-    names = [*RESULT_FILES, *(d for d in mission_dirs(result) if d)]
-    with OutputSet(out_dir, names, force=overwrite) as stage:
-        write_result(result, stage, missions=missions, tum=tum, provenance=provenance)
-    return Path(out_dir)

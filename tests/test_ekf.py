@@ -13,7 +13,7 @@ from aqfg.ekf.window import (ACCEPTED, NOOP, REJECTED, HAVE_CPP_EKF, run_window,
                              usbl_to_position, window_ref)
 from aqfg.data.mission import without_gnss
 from aqfg.model.vehicle import Model, euler_to_quat
-from aqfg.result import save_result
+from aqfg.export import save_result
 from aqfg.model.retrace import rollout
 from ekf_synth import synth_mission
 

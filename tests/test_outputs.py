@@ -263,7 +263,7 @@ def test_safe_name():
 
 def test_parameters_json_strict_with_provenance_and_null_sigma(mission_dir, tmp_path):
     from aqfg.fg.fit import fit_fg
-    from aqfg.result import save_result
+    from aqfg.export import save_result
     m = load_mission(mission_dir)
     res = fit_fg([m], mode="batch", estimate=("theta_e", "s_x", "s_y"), init={"k": 9.0})
     res.sigma["s_x"] = float("nan")                # e.g. a parameter the data cannot fix

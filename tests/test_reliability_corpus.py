@@ -190,7 +190,8 @@ def test_params_from_out_of_bounds_is_a_data_error(mission, tmp_path, capsys, en
 
 
 def test_a_track_file_never_holds_a_non_number(caplog):
-    from aqfg.result import Track, finite_track
+    from aqfg.export import finite_track
+    from aqfg.result import Track
     pos = np.zeros((5, 3))
     pos[3, 0] = np.nan                       # a re-trace diverging at t = 3 s
     tr = finite_track(Track(np.arange(5.0), pos, np.zeros((5, 3))), "inertial.csv")

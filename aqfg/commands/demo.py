@@ -86,13 +86,13 @@ def _demo(out: Path, stage: Path) -> None:
     from aqfg.diagnose.workflow import diagnose, save_diagnosis
     from aqfg.ekf.estimator import fit_update_error
     from aqfg.evaluate import inertial_rmse
+    from aqfg.export import write_result
     from aqfg.fg.common import FGSettings
     from aqfg.fg.fit import fit_fg
     from aqfg.model.params import OLD_PARAMS
     from aqfg.model.vehicle import Model
     from aqfg.outputs import provenance, write_json
     from aqfg.plots import plot_fit
-    from aqfg.result import write_result
     from aqfg.sim.simulator import simulate
 
     t_start = time.perf_counter()

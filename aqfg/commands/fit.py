@@ -146,8 +146,9 @@ def _check_names(missions, effects, estimate, init) -> None:
 
 def run(args) -> int:
     from aqfg.commands.common import Progress, advise, input_warnings, load_missions, log
+    from aqfg.export import write_result
     from aqfg.outputs import OutputSet, provenance, unique_safe_names
-    from aqfg.result import RESULT_FILES, write_result
+    from aqfg.result import RESULT_FILES
     out = Path(args.out)
     if args.gnss_every < 0:
         raise UsageError(f"--gnss-every must be positive, got {args.gnss_every}")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult
 from aqfg.result import (
     PARAMETERS_FORMAT,
@@ -20,7 +21,6 @@ from aqfg.result import (
     dead_reckoning_document,
     effect_step_document,
     without_effect_document,
-    write_result,
 )
 
 
@@ -111,7 +111,7 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
     """Write the fleet outputs into ``out_dir`` as one set (staged beside it and moved in
     whole, :class:`aqfg.outputs.OutputSet`): ``fleet.json``, ``fleet.html`` and per vehicle
     ``<vehicle>/parameters.json`` (its fixed parameters, ``aqfg-parameters/1``) and
-    ``<vehicle>/<mission>/`` (the files of :func:`aqfg.result.write_result`). Refuses to
+    ``<vehicle>/<mission>/`` (the files of :func:`aqfg.export.write_result`). Refuses to
     replace existing outputs unless ``overwrite``. Returns the files written."""
     from aqfg.outputs import OutputSet, inside, provenance, write_json
     out = Path(out_dir)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from aqfg.model.rotation import rot_z
 from aqfg.model.spec import ParamSpec
 
 
@@ -208,7 +209,6 @@ class GroundForceTerm(Effect):
     def ground_jacobians(self, v: np.ndarray, R: np.ndarray, d: np.ndarray, tm: float,
                          q: np.ndarray, eps: float = 1e-6):
         """d a/d v (3x3), d a/d q (3, nq) and d a/d theta (3,) (a turn of ``R`` about down)."""
-        from aqfg.model.frames import rot_z
         f = self.ground_accel
         Jv, Jq = self.central_differences(v, R, d, tm, q, eps)
         Jth = (f(v, rot_z(eps) @ R, d, tm, q) - f(v, rot_z(-eps) @ R, d, tm, q)) / (2 * eps)
@@ -505,7 +505,6 @@ class UserEffect(GroundForceTerm):
         return self.sample_accel(v, R, d, tm, q)
 
     def ground_jacobians(self, v, R, d, tm, q, eps: float = 1e-6):
-        from aqfg.model.frames import rot_z
         Jv, Jq = self.jacobians(v, R, d, tm, q)
         Jth = (self.sample_accel(v, rot_z(eps) @ R, d, tm, q)
                - self.sample_accel(v, rot_z(-eps) @ R, d, tm, q)) / (2 * eps)

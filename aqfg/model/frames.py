@@ -19,26 +19,13 @@ import numpy as np
 
 from aqfg.model.effects import HeadingTerm
 from aqfg.model.params import DYNAMICS_EFFECTS, INDEX, SLICE
+from aqfg.model.rotation import rot_z
 
 I_THETA = INDEX["theta_e"]
 HEADING_TERMS: tuple[tuple[HeadingTerm, slice], ...] = tuple(
     (e, SLICE[e.name]) for e in DYNAMICS_EFFECTS if isinstance(e, HeadingTerm))
 # the parameters theta depends on
 HEADING_PARAMS: tuple[str, ...] = ("theta_e",) + tuple(n for e, _ in HEADING_TERMS for n in e.params)
-
-# d Rz(theta) / d theta = E_Z @ Rz(theta)
-E_Z = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-
-
-def rot_z(theta) -> np.ndarray:
-    """Rotation (3x3, or (n, 3, 3) for an array) by ``theta`` (rad) about the down axis
-    (yaw, clockwise seen from above)."""
-    c, s = np.cos(theta), np.sin(theta)
-    if np.ndim(theta) == 0:
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    R = np.zeros(np.shape(theta) + (3, 3))
-    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
-    return R
 
 
 def heading(p: np.ndarray, tm):

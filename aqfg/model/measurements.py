@@ -22,8 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 from aqfg.model.effects import SensorOffsetTerm, UsblTerm
-from aqfg.model.frames import E_Z, corrected_attitude, heading_jacobian
+from aqfg.model.frames import corrected_attitude, heading_jacobian
 from aqfg.model.params import MEASUREMENT_EFFECTS, N_PARAMS, SLICE
+from aqfg.model.rotation import E_Z
 
 OFFSET_TERMS: tuple[tuple[SensorOffsetTerm, slice], ...] = tuple(
     (e, SLICE[e.name]) for e in MEASUREMENT_EFFECTS if isinstance(e, SensorOffsetTerm))

@@ -38,9 +38,10 @@ from aqfg.model.effects import (
     ThrustGainTerm,
     abs_command,
 )
-from aqfg.model.frames import E_Z, heading, heading_jacobian, rot_z
+from aqfg.model.frames import heading, heading_jacobian
 from aqfg.model.frames import wrap_angle as wrap_angle  # re-exported for existing callers
 from aqfg.model.params import DYNAMICS_EFFECTS, INDEX, N_DYN, SLICE
+from aqfg.model.rotation import E_Z, rot_z
 
 I_SX, I_SY, I_K, I_KX, I_KYZ = (INDEX[n] for n in ("s_x", "s_y", "k", "k_x", "k_yz"))
 # indices of the catalogue's dynamics parameters, for the vectorised mirror
