@@ -34,7 +34,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
-from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
 
 
@@ -128,7 +128,8 @@ class FastSystem:
         if sn.robust not in ("huber", "none"):
             return None
         for part in bg.parts:
-            if any(isinstance(e, (SensorOffsetTerm, UsblTerm)) for e in part.model.effects):
+            if any(isinstance(e, (SensorOffsetTerm, UsblTerm, FixDelayTerm))
+                   for e in part.model.effects):
                 return None
         if lay.meas_groups("gnss") or lay.meas_groups("usbl"):
             return None
