@@ -159,7 +159,8 @@ def fig_growth(diag, evs=None):
         n = np.bincount(j, minlength=10)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(np.bincount(j, e ** 2, minlength=10) / n)
-        ax.plot(0.5 * (bins[:-1] + bins[1:]), rms, "o-", label=f"{ev.label} (DR error {ev.rmse:.2f} m)")
+        ax.plot(0.5 * (bins[:-1] + bins[1:]), rms, "o-",
+                label=f"{ev.label} (RMS {ev.rmse_raw:.2f} m)")
     noise = (np.concatenate([h.noise[h.used] for h in diag.base.long]) if diag.base.long
              else np.zeros(0))
     if len(noise):
