@@ -297,8 +297,8 @@ def _beyond(ev) -> str:
 
 
 def _gain(c) -> str:
-    from aqfg.diagnose.workflow import _gain as g
-    return html.escape(g(c))
+    from aqfg.diagnose.workflow import gain_cell
+    return html.escape(gain_cell(c))
 
 
 def _fmt(x, f=".3g") -> str:
