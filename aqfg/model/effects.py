@@ -498,25 +498,27 @@ class _StreamDelay(BuiltinEffect, FixDelayTerm):
 
 class GnssDelay(_StreamDelay):
     name = "gnss_delay"
-    description = "GNSS fixes are stamped late: a fix at t is the antenna's position at t - tau"
+    description = ("GNSS time offset: a fix stamped t is the antenna's position at t - tau "
+                   "(tau > 0: stamped late against the IMU/motor clock)")
     stream = "gnss"
     streams = ("gnss",)
     needs = ("gnss",)
     absorbs = "a lever arm along the track, or a thrust/drag scale error"
     parameters = (_param("tau", "s", 0.0, -3.0, 3.0, "sensor", 0.2, 0.8,
-                         "GNSS time offset (latency) against the IMU/motor clock", (-0.5, 2.0)),)
+                         "GNSS time offset (latency) against the IMU/motor clock", (-2.0, 2.0)),)
 
 
 class UsblDelay(_StreamDelay):
     name = "usbl_delay"
-    description = "USBL fixes are stamped late: a fix at t is the transponder's position at t - tau"
+    description = ("USBL time offset: a fix stamped t is the transponder's position at t - tau "
+                   "(tau > 0: stamped late against the IMU/motor clock)")
     stream = "usbl"
     streams = ("usbl",)
     needs = ("usbl",)
     absorbs = "a lever arm along the track, or a thrust/drag scale error"
     parameters = (_param("tau", "s", 0.0, -5.0, 5.0, "sensor", 0.3, 1.0,
                          "USBL time offset (acoustic travel and processing latency) against "
-                         "the IMU/motor clock", (-0.5, 4.0)),)
+                         "the IMU/motor clock", (-2.0, 4.0)),)
 
 
 BUILTIN: dict[str, Effect] = {e.name: e for e in (
