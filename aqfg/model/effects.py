@@ -503,7 +503,7 @@ class GnssDelay(_StreamDelay):
     stream = "gnss"
     streams = ("gnss",)
     needs = ("gnss",)
-    absorbs = "a lever arm along the track, or a thrust/drag scale error"
+    absorbs = "a lever arm along the track, a thrust lag, or a thrust/drag scale error"
     parameters = (_param("tau", "s", 0.0, -3.0, 3.0, "sensor", 0.2, 0.8,
                          "GNSS time offset (latency) against the IMU/motor clock", (-2.0, 2.0)),)
 
@@ -515,7 +515,7 @@ class UsblDelay(_StreamDelay):
     stream = "usbl"
     streams = ("usbl",)
     needs = ("usbl",)
-    absorbs = "a lever arm along the track, or a thrust/drag scale error"
+    absorbs = "a lever arm along the track, a thrust lag, or a thrust/drag scale error"
     parameters = (_param("tau", "s", 0.0, -5.0, 5.0, "sensor", 0.3, 1.0,
                          "USBL time offset (acoustic travel and processing latency) against "
                          "the IMU/motor clock", (-2.0, 4.0)),)
