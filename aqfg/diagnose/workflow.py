@@ -510,7 +510,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
              candidates: Sequence | None = None, extra_candidates: Sequence = (),
              gnss_every: float = 8.0, horizon: float = 60.0, window: float = 60.0,
              alpha: float = 0.01, min_gain: float = MIN_GAIN, n_refit: int = 1,
-             max_refit: int = 4, n_boot: int = 200,
+             max_refit: int = 4, max_rivals: int = 2, n_boot: int = 200,
              n_blocks: int = 20, memory: float = 8.0, settings: FGSettings | None = None,
              jobs: int | None = None, progress=None, base_eval: FitEval | None = None,
              base_screen: Screen | None = None) -> Diagnosis:
@@ -525,7 +525,9 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     held-out dead-reckoning error beyond the fixes' noise must fall for an effect to be
     named missing (:data:`~aqfg.diagnose.confirm.MIN_GAIN`). The candidates with a significant score,
     and the top ``n_refit`` whatever their score, are refitted best score first until one
-    is confirmed, at most ``max(n_refit, max_refit)`` of them.
+    is confirmed, at most ``max(n_refit, max_refit)`` of them; then at most ``max_rivals``
+    significant candidates never refitted whose evidence the confirmed one explains away are
+    refitted, and one of them confirmed with a lower BIC is the missing effect instead.
     ``memory`` (s): how far back conditions are averaged before each residual. ``jobs``:
     processes for a refit (default 2 where two CPUs are available; 1 = no worker).
     ``base_eval`` / ``base_screen``: the model's evaluation and score tests when already
@@ -598,11 +600,27 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     next_scr = None
     if best is not None:
         prog(0.85, f"testing the others with {best.effect} added")
-        best.status = "missing"
-        others = [c for c in cands if c.name != best.effect]
         assert best.refit is not None and scr.proj is not None
-        next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
-        cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+        swaps = 0
+        while True:
+            others = [c for c in cands if c.name != best.effect]
+            assert best.refit is not None
+            next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
+            cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+            rival = _rival(ranking, best, cond, alpha, max_rivals) if swaps < 2 else []
+            for c in rival:
+                prog(0.87, f"refitting {c.effect}, which {best.effect} explains away")
+                c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
+                                   f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
+                _judge(c, base, len(ranking), alpha, window, cand_of[c.effect], missions,
+                       min_gain)
+            better = [c for c in rival if c.confirmed and c.dbic < best.dbic]
+            if not better:
+                break
+            best = min(better, key=lambda c: c.dbic)     # the one the echo stood for
+            swaps += 1
+        assert best.refit is not None
+        best.status = "missing"
         for c in ranking:
             if c is best:
                 continue
@@ -638,12 +656,29 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     prog(1.0, "done")
     sett = {"gnss_every": gnss_every, "horizon": horizon, "window": window, "alpha": alpha,
             "min_gain": min_gain,
-            "max_refit": max_refit, "n_blocks": n_blocks, "n_boot": n_boot, "memory": memory,
+            "max_refit": max_refit, "max_rivals": max_rivals, "n_blocks": n_blocks,
+            "n_boot": n_boot, "memory": memory,
             "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
             "jobs": jobs}
     return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
                      series, before, names if base_eval is None else (), sett, timings,
                      next_scr)
+
+
+def _rival(ranking: list[Candidate], best: Candidate, cond: dict, alpha: float,
+           n: int) -> list[Candidate]:
+    """Significant candidates never refitted whose evidence ``best`` explains away (echoes
+    of it), best score first, at most ``n``: one of them may be the effect ``best`` stood
+    in for (a late GNSS imitates a thrust lag), and is named missing instead when its refit
+    is confirmed with a lower BIC."""
+    out = []
+    for c in ranking:
+        if c is best or c.refit is not None or not c.significant:
+            continue
+        p = cond.get(c.effect, (None, float("nan")))[1]
+        if not (np.isfinite(p) and p < alpha):
+            out.append(c)
+    return out[:n]
 
 
 def _fits_but(c: Candidate) -> str:
