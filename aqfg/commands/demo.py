@@ -129,7 +129,7 @@ def _demo(out: Path, stage: Path) -> None:
         after = diagnose([mission], effects=(eff,), gnss_every=GNSS_EVERY)
         save_diagnosis(after, stage / f"diagnosis-with-{eff}")
         b, a = diag.base, after.base
-        from aqfg.diagnose.workflow import heldout_change
+        from aqfg.diagnose.wording import heldout_change
         _say(f"    {heldout_change(b, a)}; "
              f"consistency test {'passed' if b.consistency and b.consistency.passed else 'failed'}"
              f" -> {'passed' if a.consistency and a.consistency.passed else 'failed'}")

@@ -192,3 +192,29 @@ def wald_statistic(delta: np.ndarray, cov: np.ndarray) -> float:
     if not len(delta) or not np.all(np.isfinite(cov)):
         return float("nan")
     return float(delta @ np.linalg.pinv(np.asarray(cov, float)) @ delta)
+
+
+def rivals(ranking: list, best, cond: dict, alpha: float, n: int) -> list:
+    """Significant candidates (of ``ranking``, best score first) never refitted whose
+    evidence ``best`` explains away (their Holm-adjusted score p-value with ``best`` in the
+    model, ``cond[effect][1]``, is not below ``alpha``), at most ``n``: one of them may be
+    the effect ``best`` stood in for (a late GNSS imitates a thrust lag), and is named
+    missing instead when its refit is confirmed with a lower BIC."""
+    out = []
+    for c in ranking:
+        if c is best or c.refit is not None or not c.significant:
+            continue
+        p = cond.get(c.effect, (None, float("nan")))[1]
+        if not (np.isfinite(p) and p < alpha):
+            out.append(c)
+    return out[:n]
+
+
+def fits_but(c) -> str:
+    """"implausible" or "negligible" for a candidate whose refit passes the statistical
+    tests but not the plausibility or the practical-gain test (its ``evidence``), else
+    ""."""
+    e = c.evidence
+    if e is None or not e.statistical:
+        return ""
+    return "implausible" if not e.plausible else "negligible" if not e.practical else ""

@@ -297,7 +297,7 @@ def _beyond(ev) -> str:
 
 
 def _gain(c) -> str:
-    from aqfg.diagnose.workflow import gain_cell
+    from aqfg.diagnose.wording import gain_cell
     return html.escape(gain_cell(c))
 
 

@@ -34,11 +34,11 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.diagnose.fiteval import FitEval, blas_threads
+from aqfg.diagnose.wording import heldout_change
 from aqfg.diagnose.workflow import (
     Diagnosis,
     candidate_effects,
     diagnose,
-    heldout_change,
     json_num,
     json_ready,
 )

@@ -79,9 +79,11 @@ from aqfg.diagnose.confirm import (
     Evidence,
     HeldoutGain,
     direction_agrees,
+    fits_but,
     heldout_gain,
     implausible,
     practical_gain,
+    rivals,
     wald_statistic,
 )
 from aqfg.diagnose.consistency import ConsistencyTest
@@ -95,6 +97,7 @@ from aqfg.diagnose.score import (
     score_tests,
     shared_information,
 )
+from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
 from aqfg.model.effects import BUILTIN, Effect, resolve
 
@@ -357,15 +360,6 @@ class Diagnosis:
         return "\n".join(L)
 
 
-def gain_cell(c: Candidate) -> str:
-    """The held-out gain of a refitted candidate for a table cell: "-35%", "within noise"."""
-    if not np.isfinite(c.gain_frac):
-        return "n/a"
-    if c.within_noise:
-        return "within noise"
-    return f"{-100 * c.gain_frac:+.0f}%"
-
-
 def _ho(c: Candidate) -> bool:
     return c.refit is not None and c.refit.has_heldout
 
@@ -392,31 +386,6 @@ def json_ready(o: Any) -> Any:
     if isinstance(o, np.bool_):
         return bool(o)
     return o
-
-
-def heldout_change(b: FitEval, a: FitEval) -> str:
-    """The held-out dead-reckoning comparison of two evaluations in words: the RMS
-    distance to the held-out fixes beside their noise floor, and the error beyond that noise
-    (never a change quoted from an error within the noise), e.g. "held-out RMS distance
-    1.77 -> 1.62 m (noise floor 1.50 m; beyond the noise 0.94 -> 0.61 m, -35%)"."""
-    out = (f"held-out RMS distance {b.rmse_raw:.2f} -> {a.rmse_raw:.2f} m (noise floor "
-           f"{b.noise_floor:.2f} m; ")
-    if not (np.isfinite(b.rmse) and np.isfinite(a.rmse)):
-        return out + "no error beyond the noise to compare)"
-    if b.rmse <= 0 and a.rmse <= 0:
-        return out + "both within the noise)"
-    if b.rmse <= 0:
-        return out + f"beyond the noise: none -> {a.rmse:.2f} m)"
-    if a.rmse <= 0:
-        return out + f"beyond the noise {b.rmse:.2f} m -> within the noise)"
-    return out + f"beyond the noise {b.rmse:.2f} -> {a.rmse:.2f} m, {percent_change(b.rmse, a.rmse)})"
-
-
-def percent_change(a: float, b: float) -> str:
-    """The change from ``a`` to ``b`` in percent of ``a`` ("+12%"), "n/a" if undefined."""
-    if not (np.isfinite(a) and np.isfinite(b)) or a <= 0:
-        return "n/a"
-    return f"{100 * (b - a) / a:+.0f}%"
 
 
 def _ok(c: ConsistencyTest | None) -> str:
@@ -607,7 +576,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
             assert best.refit is not None
             next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
             cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
-            rival = _rival(ranking, best, cond, alpha, max_rivals) if swaps < 2 else []
+            rival = rivals(ranking, best, cond, alpha, max_rivals) if swaps < 2 else []
             for c in rival:
                 prog(0.87, f"refitting {c.effect}, which {best.effect} explains away")
                 c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
@@ -626,8 +595,8 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
                 continue
             c.conditional, c.p_conditional = cond.get(c.effect, (None, float("nan")))
             c.shared = shared_information(scr.proj, best.params, c.params)
-            if _fits_but(c):
-                c.status = _fits_but(c)
+            if fits_but(c):
+                c.status = fits_but(c)
             elif np.isfinite(c.p_conditional) and c.p_conditional < alpha:
                 c.status = "independent"
             elif c.significant:
@@ -636,7 +605,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
                 c.status = "not significant"
     else:
         for c in ranking:
-            c.status = (_fits_but(c) or ("not significant" if not c.significant else
+            c.status = (fits_but(c) or ("not significant" if not c.significant else
                                          "rejected" if c.refit is not None else "untested"))
     order = {"missing": 0, "independent": 1, "implausible": 2, "negligible": 3, "echo": 4,
              "rejected": 5, "untested": 6, "not significant": 7}
@@ -663,31 +632,6 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
                      series, before, names if base_eval is None else (), sett, timings,
                      next_scr)
-
-
-def _rival(ranking: list[Candidate], best: Candidate, cond: dict, alpha: float,
-           n: int) -> list[Candidate]:
-    """Significant candidates never refitted whose evidence ``best`` explains away (echoes
-    of it), best score first, at most ``n``: one of them may be the effect ``best`` stood
-    in for (a late GNSS imitates a thrust lag), and is named missing instead when its refit
-    is confirmed with a lower BIC."""
-    out = []
-    for c in ranking:
-        if c is best or c.refit is not None or not c.significant:
-            continue
-        p = cond.get(c.effect, (None, float("nan")))[1]
-        if not (np.isfinite(p) and p < alpha):
-            out.append(c)
-    return out[:n]
-
-
-def _fits_but(c: Candidate) -> str:
-    """"implausible" or "negligible" for a refit that passes the statistical tests but not
-    the plausibility or the practical-gain test, else ""."""
-    e = c.evidence
-    if e is None or not e.statistical:
-        return ""
-    return "implausible" if not e.plausible else "negligible" if not e.practical else ""
 
 
 def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
