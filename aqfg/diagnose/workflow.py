@@ -22,7 +22,9 @@ The steps (each in its own module):
    score) are refitted in score order (forward selection by the score statistic),
    warm-started from the base fits
    (:mod:`aqfg.diagnose.refit`; the fit to all fixes and the held-out fit in two
-   processes with ``jobs > 1``), until one is confirmed or ``max_refit`` were tried.
+   processes with ``jobs > 1``), until one is confirmed or ``max_refit`` were tried;
+   then up to ``max_rivals`` significant candidates never refitted whose evidence the
+   confirmed one explains away, in case one of them explains the data better (lower BIC).
 5. **Verdict** (:mod:`aqfg.diagnose.confirm`): a candidate is *confirmed* when its
    refit's likelihood ratio (Bonferroni over all candidates) and BIC, the direction of its
    estimate against its score, and the held-out fixes (predictive likelihood up,
