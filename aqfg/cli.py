@@ -148,6 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--stop-when-consistent", action="store_true",
                            help="--auto: also stop once the held-out fixes are consistent "
                                 "with the model")
+            s.add_argument("--min-gain", type=number(0.0, 1.0), default=None, metavar="F",
+                           help="name an effect missing only when it lowers the held-out "
+                                "dead-reckoning error beyond the fixes' noise by at least this "
+                                "fraction (default 0.1)")
             s.add_argument("--jobs", type=count, default=None, metavar="N",
                            help="worker processes for the candidates' refits "
                                 "(default: the CPUs available, at most 4)")

@@ -62,6 +62,8 @@ enum MeasParam : int {
   M_LEVER_ARM_X = 2,              // lever_arm.x [m]
   M_LEVER_ARM_Y = 3,              // lever_arm.y [m]
   M_LEVER_ARM_Z = 4,              // lever_arm.z [m]
+  M_GNSS_DELAY_TAU = 5,           // gnss_delay.tau [s]
+  M_USBL_DELAY_TAU = 6,           // usbl_delay.tau [s]
   N_MEAS
 };
 
@@ -71,6 +73,8 @@ inline constexpr const char* MEAS_NAMES[N_MEAS] = {
     "lever_arm.x",
     "lever_arm.y",
     "lever_arm.z",
+    "gnss_delay.tau",
+    "usbl_delay.tau",
 };
 
 // Update-node kinds (aqfg/ekf/history.py).

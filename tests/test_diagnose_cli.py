@@ -37,7 +37,13 @@ def test_diagnose_writes_json_report_and_summary(mission_dir, tmp_path, capsys):
     est = data["ranking"][0]["estimate"]
     assert abs(est["wind_drag.a_n"]["value"] - 0.06) < 3 * est["wind_drag.a_n"]["sigma"] + 0.005
     assert "wind_drag" in printed and "rank" in printed
+    # the held-out RMS distance beside its noise floor, never a clipped 0.00-m error
+    top = data["ranking"][0]
+    assert top["noise_floor"] > 0 and top["rmse_raw_after"] < top["rmse_raw_before"]
+    assert top["heldout_gain"] >= data["settings"]["min_gain"] == 0.1
+    assert "noise floor" in printed and "-100%" not in printed
     html = (out / "report.html").read_text()
+    assert "noise floor" in html
     assert html.count("data:image/png;base64,") >= 5
     assert not re.search(r'(src|href)="(?!data:)', html)          # self-contained
     assert "wind_drag" in html
@@ -69,6 +75,9 @@ def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
     assert main(["diagnose", str(mission_dir), "--effect", "usbl_range_scale",
                  "--out", str(tmp_path / "z")]) == 2
     assert "not applicable" in capsys.readouterr().err
+    assert main(["diagnose", str(mission_dir), "--min-gain", "1.5",
+                 "--out", str(tmp_path / "g")]) == 2
+    assert "--min-gain must be a fraction in [0, 1), got 1.5" in capsys.readouterr().err
 
 
 def test_diagnose_logs_the_base_fits_warnings_once(tmp_path, capsys):

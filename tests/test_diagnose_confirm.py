@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from aqfg.diagnose.confirm import Evidence, HeldoutGain, direction_agrees, heldout_gain
+from aqfg.diagnose.confirm import (
+    MIN_GAIN,
+    Evidence,
+    HeldoutGain,
+    direction_agrees,
+    heldout_gain,
+    implausible,
+    practical_gain,
+)
 from aqfg.diagnose.heldout import HeldOut
 from aqfg.diagnose.marginals import anchor_covariances
 from aqfg.diagnose.score import LinearSystem, Projected, covariance, shared_information
@@ -100,6 +108,47 @@ def test_direction_rule():
     assert not direction_agrees(np.array([1.0, -1.0]), np.array([0.1, 0.5]))
     ev = Evidence(True, True, True, False, True, True)
     assert not ev.confirmed and ev.failed() == ["refit moves against the score's direction"]
+
+
+def test_practical_gain_is_measured_beyond_the_noise():
+    assert MIN_GAIN == 0.10
+    assert practical_gain(1.0, 0.98) == pytest.approx(0.02)       # significant, negligible
+    assert practical_gain(0.94, 0.61) == pytest.approx(0.351, abs=1e-3)
+    assert practical_gain(1.62, 0.0) == 1.0                        # down to within the noise
+    assert practical_gain(0.0, 0.0) == 0.0                         # nothing left to gain
+    assert practical_gain(0.5, 0.6) < 0
+    assert math.isnan(practical_gain(float("nan"), 0.3))
+    ok = dict(score=True, lr=True, bic=True, direction=True, heldout=True, dr_error=True)
+    assert Evidence(**ok).confirmed
+    assert Evidence(**ok, practical=False).statistical and not Evidence(**ok, practical=False).confirmed
+    assert not Evidence(**ok, plausible=False).confirmed
+    assert "estimate implausible" in Evidence(**ok, plausible=False).failed()
+
+
+def test_plausible_ranges_come_from_the_catalogue_and_the_hull():
+    from types import SimpleNamespace
+
+    from aqfg.model.effects import BUILTIN
+    rt = BUILTIN["reverse_thrust"]
+    assert implausible(rt, {"reverse_thrust.ratio": {"value": 1.63}}) == \
+        ["ratio = 1.63 outside [0.3, 1.5]"]
+    assert implausible(rt, {"reverse_thrust.ratio": {"value": 0.5}}) == []
+    assert "thrust curve" in rt.absorbs
+    la = BUILTIN["lever_arm"]
+    arm = {"lever_arm.x": {"value": 1.0}, "lever_arm.y": {"value": 0.1},
+           "lever_arm.z": {"value": 0.0}}
+    assert implausible(la, arm) == []                               # no hull: catalogue range
+    boat = SimpleNamespace(hull=(1.2, 0.9))
+    assert implausible(la, arm, [boat]) == ["x = 1 m outside [-0.6, 0.6]"]
+    assert "time offset" in la.absorbs
+    # every built-in parameter's plausible range lies within its bounds and holds its null
+    # and the typical value the simulator hides
+    for e in BUILTIN.values():
+        for s in e.specs():
+            lo, hi = e.plausible_range(s)
+            assert s.lower <= lo <= s.null <= hi <= s.upper, s.name
+            assert s.typical is None or lo <= s.typical <= hi, s.name
+            assert e.absorbs, e.name
 
 
 def test_shared_information():

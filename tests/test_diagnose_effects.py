@@ -54,3 +54,56 @@ def test_missing_physics_outside_the_candidates_is_reported():
     assert not d.base.consistency.passed
     assert d.verdict.startswith("Something is missing that the catalogue does not explain")
     assert d.to_json()["missing"] is False
+
+
+@pytest.fixture(scope="module")
+def late_gnss():
+    """An ASV whose GNSS fixes are stamped 0.8 s late (GNSS 1 Hz, 1 m)."""
+    from aqfg.sim.simulator import simulate
+    return simulate("asv", seed=0, duration=600.0, effects={"gnss_delay.tau": 0.8})
+
+
+@pytest.mark.slow
+def test_a_late_gnss_is_named_a_time_offset_not_a_lever_arm(late_gnss):
+    m, truth = late_gnss
+    d = diagnose([m], n_boot=0)
+    assert d.best is not None and d.best.effect == "gnss_delay", d.summary()
+    est = d.best.estimate()["gnss_delay.tau"]
+    assert est["sigma"] < 0.3 and abs(est["value"] - 0.8) < 3 * est["sigma"], d.summary()
+    assert all(c.status != "missing" for c in d.ranking if c.effect == "lever_arm")
+    assert d.best.gain_frac >= 0.10
+    js = d.to_json()
+    assert js["missing_effect"] == "gnss_delay" and js["ranking"][0]["noise_floor"] > 1.0
+
+
+@pytest.mark.slow
+def test_an_implausible_fit_is_reported_as_what_it_absorbs_and_not_adopted():
+    """An antenna 0.5 m behind the centre of mass (the lever-arm case) on a mission that
+    declares a 0.4-m hull: the arm fits, but lies outside the hull, so it is reported with
+    the time offset it probably absorbs, and the loop adds nothing."""
+    import dataclasses
+
+    from aqfg.diagnose.sequence import diagnose_sequence
+    m, _ = simulate_case("lever_arm", seed=0)
+    m = dataclasses.replace(m, hull=(0.4, 0.3))
+    seq = diagnose_sequence([m], candidates=["lever_arm"], n_boot=0)
+    d = seq[0]
+    c = d.ranking[0]
+    assert c.effect == "lever_arm" and c.status == "implausible", d.summary()
+    assert c.evidence.statistical and not c.evidence.plausible
+    assert "outside [-0.2, 0.2]" in c.implausible[0]
+    assert "probably absorbing a time offset" in c.status_text()
+    assert d.best is None and not seq.added, seq.summary()
+    assert "fits, but implausible" in d.verdict and not d.verdict.startswith("Missing")
+
+
+@pytest.mark.slow
+def test_a_gain_below_the_setting_is_significant_but_negligible(late_gnss):
+    m, _ = late_gnss
+    d = diagnose([m], candidates=["gnss_delay"], n_boot=0, min_gain=0.9)
+    c = d.ranking[0]
+    assert c.status == "negligible" and c.evidence.statistical, d.summary()
+    assert 0 < c.gain_frac < 0.9
+    assert f"significant but negligible: {-100 * c.gain_frac:+.0f}% held-out error" in c.status_text()
+    assert d.best is None and d.settings["min_gain"] == 0.9
+    assert "0.00 m" not in d.summary() and "noise floor" in d.summary()

@@ -3,9 +3,10 @@ learned model file reused by ``aqfg fit --model``.
 
 On an independent vehicle (the Otter of Fossen's 6-DOF simulator, tests/data, GNSS
 thinned to one fix every 2 s to keep the suite short) with a weak starboard propeller the
-loop must add the Otter's real missing physics (linear drag, reverse thrust) and the weak
-propeller with a ratio below 1, cut the held-out error to <= 40 % of the bare model's, say
-one effect "missing" per step and label the others, and its model file must re-trace the
+loop must add the Otter's real missing physics (linear drag, reverse thrust) and find the
+weak propeller with a ratio below 1 (added, or reported "significant but negligible" when
+the model already predicts the held-out fixes within their noise), cut the held-out error
+to <= 40 % of the bare model's, say one effect "missing" per step and label the others, and its model file must re-trace the
 mission closer to the truth than the bare model. Without a hidden effect it adds nothing;
 on the REMUS mission it adds nothing that does not lower the held-out error.
 """
@@ -48,10 +49,16 @@ def test_loop_learns_the_otters_missing_physics_and_the_weak_propeller(weakprop)
     _m, truth, seq, _ = weakprop
     assert isinstance(seq, DiagnosisSequence)
     added = seq.added
-    assert {"linear_drag", "reverse_thrust", "thrust_asymmetry"} <= set(added), seq.summary()
+    assert {"linear_drag", "reverse_thrust"} <= set(added), seq.summary()
     assert added[0] == "linear_drag", seq.summary()
-    step = next(s for s in seq.steps if s.effect == "thrust_asymmetry")
-    ratio = step.estimate["thrust_asymmetry.ratio"]
+    step = next((s for s in seq.steps if s.effect == "thrust_asymmetry"), None)
+    if step is not None:
+        ratio = step.estimate["thrust_asymmetry.ratio"]
+    else:   # found, but not adopted: the held-out fixes were already within their noise
+        c = next(c for c in seq[-1].ranking if c.effect == "thrust_asymmetry")
+        assert c.status == "negligible" and c.within_noise, seq[-1].summary()
+        assert "significant but negligible" in c.status_text()
+        ratio = c.estimate()["thrust_asymmetry.ratio"]
     true = truth.params["thrust_asymmetry.ratio"]
     assert ratio["value"] < 1.0 and abs(ratio["value"] - true) < 3 * ratio["sigma"] + 0.02
     assert seq.final.rmse <= 0.4 * seq.bare.rmse, seq.summary()
@@ -93,7 +100,11 @@ def test_loop_outputs_json_report_and_model_file(weakprop):
     assert not re.search(r'(src|href)="(?!data:)', html)
     mf = read_model(d / "auto" / "model.json")
     assert mf.effects == seq.added and mf.vehicle == "asv"
-    assert mf.parameters["thrust_asymmetry.ratio"]["value"] < 1
+    if "thrust_asymmetry" in seq.added:
+        assert mf.parameters["thrust_asymmetry.ratio"]["value"] < 1
+    for s in data["sequence"]:
+        assert s["rmse_raw_after"] < s["rmse_raw_before"] and s["noise_floor"] > 0
+        assert s["heldout_gain"] >= data["settings"]["min_gain"]
 
 
 @pytest.mark.slow

@@ -66,6 +66,30 @@ def test_measurement_jacobians_match_finite_differences(sensor):
     assert touched == want
 
 
+@pytest.mark.parametrize("sensor", ["gnss", "usbl"])
+def test_time_offset_jacobians_match_finite_differences(sensor):
+    """Given the state [pos, vel], a stream's time offset moves its fix back along the
+    velocity (``p - tau v``), the other stream's offset does not enter."""
+    rng = np.random.default_rng(5)
+    p = params.vector({"theta_e": 0.3, "lever_arm.x": -0.4, "lever_arm.y": 0.1,
+                       "gnss_delay.tau": 0.8, "usbl_delay.tau": -1.3,
+                       "usbl_range_scale.scale": 1.02})
+    R = quat_to_rot(rng.normal(size=(1, 4)))[0]
+    x, st, tm = np.array([30.0, -12.0, 2.0, 1.1, -0.6, 0.05]), np.array([1.0, 2.0, 1.5]), 40.0
+    h = {"gnss": lambda x, q: measurements.h_gnss(x, R, tm, q),
+         "usbl": lambda x, q: measurements.h_usbl(x, R, tm, q, st)}[sensor]
+    _, Jx, Jp = h(x, p)
+    assert Jx.shape == (2, 6)
+    np.testing.assert_allclose(Jx, _fd(lambda y: h(y, p)[0], x, 1e-6), atol=1e-7)
+    np.testing.assert_allclose(Jp, _fd(lambda q: h(x, q)[0], p, 1e-6), atol=1e-7)
+    mine, other = ("gnss_delay.tau", "usbl_delay.tau")[::1 if sensor == "gnss" else -1]
+    assert np.abs(Jp[:, params.INDEX[mine]]).max() > 0.1
+    assert np.abs(Jp[:, params.INDEX[other]]).max() == 0.0
+    tau = p[params.INDEX[mine]]
+    ps = measurements.sensor_position(x, R, tm, p, sensor)[0]
+    np.testing.assert_allclose(ps, measurements.sensor_position(x[:3] - tau * x[3:], R, tm, p)[0])
+
+
 def test_usbl_inverse_undoes_the_measurement():
     p = params.vector({"usbl_range_scale.scale": 0.97, "usbl_bearing_bias.bias": -0.1})
     st = np.array([5.0, -3.0, 1.5])

@@ -422,3 +422,10 @@ def test_the_public_codes_innovation_metric_with_the_paper_preset():
         UpdateErrorEstimator(None, m, metric="innovation")
     with pytest.raises(ValueError, match="unknown metric"):
         UpdateErrorEstimator(None, m, metric="likelihood")
+
+
+def test_a_model_with_a_fix_time_offset_is_refused():
+    """The EKF's fix model has no velocity: it refuses a time offset instead of ignoring it."""
+    m = synth_mission("asv", duration=20.0)[0]
+    with pytest.raises(ValueError, match="does not model fix time offsets .gnss_delay."):
+        UpdateErrorEstimator(None, m, effects=("gnss_delay",))

@@ -331,6 +331,20 @@ def test_usbl_without_station(tmp_path):
     assert "usbl.csv is present but mission.toml has no [usbl] station" in str(e)
 
 
+def test_hull_is_read_written_back_and_checked(tmp_path):
+    m = load_mission(write_small(tmp_path / "m", TOML + "\n[hull]\nlength = 1.2\nbeam = 0.9\n"))
+    assert m.hull == (1.2, 0.9) and "hull" not in m.extra
+    save_mission(m, tmp_path / "copy")
+    assert load_mission(tmp_path / "copy").hull == (1.2, 0.9)
+    assert load_mission(write_small(tmp_path / "none")).hull is None
+    for body, col, words in (("length = 1.2\n", "[hull] beam", "expected [hull] length and beam"),
+                             ("length = -1.2\nbeam = 0.9\n", "[hull] length", "expected metres > 0"),
+                             ("length = \"big\"\nbeam = 0.9\n", "[hull] length",
+                              "expected a finite number")):
+        e = err(write_small(tmp_path / "bad", TOML + "\n[hull]\n" + body))
+        assert Path(e.file).name == "mission.toml" and e.column == col and words in str(e)
+
+
 def test_latlon_without_origin(tmp_path):
     e = err(write_small(tmp_path / "m", gnss_csv="t,lat,lon\n0,46.5,6.5\n"))
     assert (Path(e.file).name, e.row, e.column) == ("gnss.csv", 1, "lat")

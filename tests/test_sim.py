@@ -202,6 +202,23 @@ def test_measurement_effects_change_only_the_measurements():
     assert np.abs(shift - expected).max() < 0.02 * arm     # cos(pitch) ~ 1
 
 
+def test_a_time_offset_delays_only_its_stream():
+    """gnss_delay: each (noise-free) GNSS fix is the true position 0.8 s before its stamp,
+    about 0.8 s x the speed away from the position at the stamp; USBL and the truth are
+    untouched."""
+    kw = dict(seed=9, duration=120.0, usbl=True, usbl_outlier_rate=0.0, gnss_sigma=0.0)
+    a_m, a_t = sim.simulate("asv", **kw)
+    b_m, b_t = sim.simulate("asv", effects={"gnss_delay.tau": 0.8}, **kw)
+    assert np.array_equal(a_t.pos, b_t.pos) and np.array_equal(a_m.usbl.range, b_m.usbl.range)
+    tt = b_m.gnss.t[b_m.gnss.t >= 1.0]
+    late = b_m.gnss.ne[b_m.gnss.t >= 1.0]
+    true_then = np.column_stack([np.interp(tt - 0.8, a_t.t, a_t.pos[:, j]) for j in (0, 1)])
+    assert np.abs(late - true_then).max() < 0.02        # 10-Hz truth, linear between ticks
+    speed = np.hypot(*np.diff(a_t.pos[:, :2], axis=0).T).mean() / np.diff(a_t.t).mean()
+    assert np.hypot(*(late - np.column_stack([np.interp(tt, a_t.t, a_t.pos[:, j])
+                                              for j in (0, 1)])).T).mean() > 0.5 * 0.8 * speed
+
+
 # ---------------------------------------------------------------- sensor noise
 def test_gnss_noise_std_is_sigma():
     mission, truth = sim.simulate("asv", seed=11, duration=600.0, gnss_sigma=2.0)

@@ -84,6 +84,7 @@ def _demo(out: Path, stage: Path) -> None:
     from aqfg.data.io import load_truth, save_mission
     from aqfg.data.mission import with_gnss_every
     from aqfg.diagnose.workflow import diagnose, save_diagnosis
+    from aqfg.diagnose.wording import heldout_change
     from aqfg.ekf.estimator import fit_update_error
     from aqfg.evaluate import inertial_rmse
     from aqfg.export import write_result
@@ -159,8 +160,7 @@ def _demo(out: Path, stage: Path) -> None:
         save_diagnosis(after, stage / f"diagnosis-with-{eff}")
         ok = {True: "passes", False: "fails"}
         b, a = diag.base, after.base
-        _say(f"    with {eff} in the model the held-out dead-reckoning error falls {b.rmse:.2f} -> "
-             f"{a.rmse:.2f} m and the consistency test "
+        _say(f"    with {eff} in the model: {heldout_change(b, a)}; the consistency test "
              f"{ok[bool(b.consistency and b.consistency.passed)]} -> "
              f"{ok[bool(a.consistency and a.consistency.passed)]}")
 

@@ -10,7 +10,9 @@ effect to the model and shows the before/after comparison (and writes the model 
 nothing more is confirmed (at most ``--max-steps``), prints the story step by step and
 writes the learned model to ``DIR/model.json`` (reuse it with ``aqfg fit --model``).
 ``--gnss-every S``: the held-out split fits on one GNSS fix every S seconds (default 8) and
-evaluates dead reckoning on the others.
+evaluates dead reckoning on the others. ``--min-gain F``: an effect is named missing only
+when the held-out dead-reckoning error beyond the fixes' noise falls by at least F (default
+0.1, :data:`aqfg.diagnose.confirm.MIN_GAIN`).
 """
 from __future__ import annotations
 
@@ -52,6 +54,9 @@ def run(args) -> int:
     max_steps = getattr(args, "max_steps", 6)
     if max_steps < 1:
         raise UsageError(f"--max-steps must be at least 1, got {max_steps}")
+    min_gain = getattr(args, "min_gain", None)
+    if min_gain is not None and not 0.0 <= min_gain < 1.0:
+        raise UsageError(f"--min-gain must be a fraction in [0, 1), got {min_gain}")
     jobs = getattr(args, "jobs", None)
     if jobs is not None and jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
@@ -76,6 +81,8 @@ def run(args) -> int:
              f", --auto (at most {max_steps} effects)" if auto else "")
     gnss_every = args.gnss_every or 8.0
     kw = {"gnss_every": gnss_every, "progress": Progress("diagnose"), "jobs": jobs}
+    if min_gain is not None:
+        kw["min_gain"] = min_gain
     prov = provenance(method="fg", mode="batch", effects=effects,
                       settings={"gnss_every": gnss_every, "auto": auto, "max_steps": max_steps},
                       inputs=args.missions, warnings=input_warnings())

@@ -81,6 +81,7 @@ class Mission:
     depth: Depth | None = None
     origin: tuple[float, float] | None = None  # (lat, lon) deg, WGS84
     gnss_latlon: bool = False              # gnss.csv was geodetic (kept for round trips)
+    hull: tuple[float, float] | None = None   # (length, beam) m: the [hull] table
     extra: dict[str, Any] = field(default_factory=dict)  # other mission.toml tables
 
     @property

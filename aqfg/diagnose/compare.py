@@ -113,7 +113,7 @@ def predict_measurements(model: Model, mission: Mission, track: Track, p: np.nda
         g = mission.gnss
         X = interp_track(track, g.t)
         R = attitude_at(mission, g.t)
-        pred = np.array([model.h_gnss(X[i, :3], R[i], g.t[i], p)[0] for i in range(len(g.t))])
+        pred = np.array([model.h_gnss(X[i], R[i], g.t[i], p)[0] for i in range(len(g.t))])
         sig = np.full(len(g.t), gnss_sigma) if g.sigma is None else np.where(
             np.isfinite(g.sigma), g.sigma, gnss_sigma)
         raw = g.ne - pred
@@ -122,7 +122,7 @@ def predict_measurements(model: Model, mission: Mission, track: Track, p: np.nda
         u = mission.usbl
         X = interp_track(track, u.t)
         R = attitude_at(mission, u.t)
-        pred = np.array([model.h_usbl(X[i, :3], R[i], u.t[i], p, mission.usbl_station)[0]
+        pred = np.array([model.h_usbl(X[i], R[i], u.t[i], p, mission.usbl_station)[0]
                          for i in range(len(u.t))])
         meas = np.column_stack([u.range, u.bearing])
         raw = meas - pred

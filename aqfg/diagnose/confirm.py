@@ -26,6 +26,18 @@ when the other views of the evidence agree:
    few blocks give it little power against effects that act in a few manoeuvres
    (docs/diagnosis.md).
 
+A candidate that passes these tests is still not named *missing* unless it is
+
+5. **plausible**: every estimate lies in its parameter's plausible range
+   (:meth:`~aqfg.model.effects.Effect.plausible_range`: a real vehicle's values; a lever arm
+   within a declared hull). Outside it the effect fits, but stands for something else, which
+   the catalogue names (``Effect.absorbs``: a lever arm far outside the hull is usually a
+   time offset of the fixes) -- "fits, but implausible";
+6. **of practical use**: the held-out dead-reckoning error beyond the fixes' noise falls by
+   at least ``min_gain`` (:data:`MIN_GAIN`, 10 %; :func:`practical_gain`). A model already
+   within the noise of the held-out fixes has nothing left to gain -- "significant but
+   negligible".
+
 The remaining candidates are labelled relative to the one chosen (the *missing* effect):
 an *echo* has a significant score at the base model but none once the missing effect is
 in the model (its score test at the missing effect's refit); *independent* evidence stays
@@ -40,6 +52,34 @@ import numpy as np
 from scipy import stats
 
 SHARED_MAX = 0.9   # above: "cannot be separated" (joint sigma inflated > 3x, 1/sqrt(1-r2))
+MIN_GAIN = 0.10    # the held-out DR error must fall by this fraction for "missing" (setting min_gain)
+
+
+def practical_gain(rmse_before: float, rmse_after: float) -> float:
+    """Fraction by which the held-out dead-reckoning error beyond the fixes' noise falls
+    (``1 - after / before``; 1 when the error falls to within the noise). 0 when the base
+    model is already within the noise (nothing to gain); NaN without held-out fixes."""
+    if not (np.isfinite(rmse_before) and np.isfinite(rmse_after)):
+        return float("nan")
+    if rmse_before <= 0.0:
+        return 0.0
+    return float(1.0 - rmse_after / rmse_before)
+
+
+def implausible(effect, values: dict, missions=()) -> list[str]:
+    """The estimates of ``effect`` (``{name: {"value", ...}}``) outside their plausible
+    range (:meth:`~aqfg.model.effects.Effect.plausible_range`), in words, e.g.
+    ``"ratio = 1.63 outside [0.3, 1.5]"``; empty when all are plausible."""
+    out = []
+    for s in effect.specs():
+        if s.name not in values:
+            continue
+        v = float(values[s.name]["value"])
+        lo, hi = effect.plausible_range(s, missions)
+        if np.isfinite(v) and not lo <= v <= hi:
+            out.append(f"{s.name.split('.')[-1]} = {v:.3g} {s.unit if s.unit != '-' else ''}"
+                       .rstrip() + f" outside [{lo:.3g}, {hi:.3g}]")
+    return out
 
 
 @dataclass
@@ -118,11 +158,19 @@ class Evidence:
     heldout: bool
     dr_error: bool
     wald: bool = True
+    plausible: bool = True
+    practical: bool = True
+
+    @property
+    def statistical(self) -> bool:
+        """Every statistical test but the score's significance (which only orders the
+        refits)."""
+        return all((self.lr, self.wald, self.bic, self.direction, self.heldout, self.dr_error))
 
     @property
     def confirmed(self) -> bool:
-        """Every test but the score's significance (which only orders the refits)."""
-        return all((self.lr, self.wald, self.bic, self.direction, self.heldout, self.dr_error))
+        """The statistical tests, a plausible estimate and a practical gain."""
+        return self.statistical and self.plausible and self.practical
 
     def failed(self) -> list[str]:
         """What stands against the effect, in words."""
@@ -131,7 +179,9 @@ class Evidence:
                "bic": "BIC not lower",
                "direction": "refit moves against the score's direction",
                "heldout": "held-out fixes not better predicted",
-               "dr_error": "held-out dead-reckoning error not lower"}
+               "dr_error": "held-out dead-reckoning error not lower",
+               "plausible": "estimate implausible",
+               "practical": "held-out dead-reckoning error not lowered enough to matter"}
         return [why[k] for k in why if not getattr(self, k)]
 
 
@@ -142,3 +192,29 @@ def wald_statistic(delta: np.ndarray, cov: np.ndarray) -> float:
     if not len(delta) or not np.all(np.isfinite(cov)):
         return float("nan")
     return float(delta @ np.linalg.pinv(np.asarray(cov, float)) @ delta)
+
+
+def rivals(ranking: list, best, cond: dict, alpha: float, n: int) -> list:
+    """Significant candidates (of ``ranking``, best score first) never refitted whose
+    evidence ``best`` explains away (their Holm-adjusted score p-value with ``best`` in the
+    model, ``cond[effect][1]``, is not below ``alpha``), at most ``n``: one of them may be
+    the effect ``best`` stood in for (a late GNSS imitates a thrust lag), and is named
+    missing instead when its refit is confirmed with a lower BIC."""
+    out = []
+    for c in ranking:
+        if c is best or c.refit is not None or not c.significant:
+            continue
+        p = cond.get(c.effect, (None, float("nan")))[1]
+        if not (np.isfinite(p) and p < alpha):
+            out.append(c)
+    return out[:n]
+
+
+def fits_but(c) -> str:
+    """"implausible" or "negligible" for a candidate whose refit passes the statistical
+    tests but not the plausibility or the practical-gain test (its ``evidence``), else
+    ""."""
+    e = c.evidence
+    if e is None or not e.statistical:
+        return ""
+    return "implausible" if not e.plausible else "negligible" if not e.practical else ""

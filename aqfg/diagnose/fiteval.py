@@ -80,6 +80,8 @@ class FitEval:
         ms = float(np.mean(e ** 2))
         if attr == "raw":
             return math.sqrt(ms)
+        if attr == "floor":
+            return math.sqrt(float(np.mean(nz)))
         return math.sqrt(max(ms - float(np.mean(nz)), 0.0))
 
     @property
@@ -92,6 +94,16 @@ class FitEval:
     def rmse_raw(self) -> float:
         """RMS distance (m) between dead-reckoned predictions and held-out fixes."""
         return self._pool("long", "raw")
+
+    @property
+    def noise_floor(self) -> float:
+        """The RMS distance (m) the held-out fixes' own noise alone gives: ``rmse_raw`` of
+        a perfect prediction (:attr:`rmse` is the part of ``rmse_raw`` beyond it)."""
+        return self._pool("long", "floor")
+
+    def heldout_text(self) -> str:
+        """``rmse_raw`` beside the noise floor, e.g. "1.77 m (noise floor 1.50 m)"."""
+        return f"{self.rmse_raw:.2f} m (noise floor {self.noise_floor:.2f} m)"
 
     @property
     def rmse_next_fix(self) -> float:
@@ -107,6 +119,7 @@ class FitEval:
         c = self.consistency
         return {"label": self.label, "effects": list(self.effects), "cost": self.cost,
                 "bic": self.bic, "rmse": self.rmse, "rmse_raw": self.rmse_raw,
+                "noise_floor": self.noise_floor,
                 "rmse_next_fix": self.rmse_next_fix,
                 "consistency": c.to_json() if c is not None else None,
                 "parameters": self.full.parameters_json()}

@@ -240,23 +240,23 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
             xj, Phj, Jpj = states[float(tj)] if float(tj) in states else states[min(
                 states, key=lambda s: abs(s - tj))]
             if sensor == "gnss":
-                h, Hp, Hth = model.h_gnss(xj[:3], Rt[q], tj, p)
+                h, Hp, Hth = model.h_gnss(xj, Rt[q], tj, p)
                 nu = z - h
                 fix_ne = z
             else:
                 assert st is not None, "USBL fixes need the station position"
-                h, Hp, Hth = model.h_usbl(xj[:3], Rt[q], tj, p, st)
+                h, Hp, Hth = model.h_usbl(xj, Rt[q], tj, p, st)
                 nu = z - h
                 nu[1] = float(wrap_angle(nu[1]))
                 fix_ne = np.asarray(st[:2], float) + z[0] * np.array([np.cos(z[1]), np.sin(z[1])])
             G = np.zeros((2, 6 + n_th))
-            G[:, :6] = Hp @ Phj[:3]
+            G[:, :6] = Hp @ Phj            # Hp: d/d[pos, vel] (time offsets read vel)
             for c in range(n_th):
                 col = Hth[:, full_idx[c]].copy() if full_idx[c] < Hth.shape[1] else np.zeros(2)
                 if dyn_pos[c] >= 0:
-                    col += Hp @ Jpj[:3, dyn_pos[c]]
+                    col += Hp @ Jpj[:, dyn_pos[c]]
                 G[:, 6 + c] = col
-            Q = settings.process.cov(tj - ta, fit.planar)[:3, :3]
+            Q = settings.process.cov(tj - ta, fit.planar)
             S = G @ Sa @ G.T + Hp @ Q @ Hp.T + R
             S = 0.5 * (S + S.T)
             nis = float(nu @ np.linalg.solve(S, nu))
@@ -271,7 +271,7 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
                 noise = float(R[0, 0] + rh ** 2 * R[1, 1])
                 # outlier: far off the *fitted* track (not the dead-reckoned one)
                 xs = interp_states(mres.track, np.array([tj]))[0]
-                hs = model.h_usbl(xs[:3], Rt[q], tj, p, st)[0]
+                hs = model.h_usbl(xs, Rt[q], tj, p, st)[0]
                 ds = z - hs
                 ds[1] = float(wrap_angle(ds[1]))
                 outlier = bool(abs(ds[0]) > outlier_m or rh * abs(ds[1]) > outlier_m)

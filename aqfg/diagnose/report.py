@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from aqfg.diagnose.conditions import UNITS
+from aqfg.diagnose.confirm import MIN_GAIN
 
 
 def _plt():
@@ -184,7 +185,8 @@ def fig_growth(diag, evs=None):
         n = np.bincount(j, minlength=10)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(np.bincount(j, e ** 2, minlength=10) / n)
-        ax.plot(0.5 * (bins[:-1] + bins[1:]), rms, "o-", label=f"{ev.label} (DR error {ev.rmse:.2f} m)")
+        ax.plot(0.5 * (bins[:-1] + bins[1:]), rms, "o-",
+                label=f"{ev.label} (RMS {ev.rmse_raw:.2f} m)")
     noise = (np.concatenate([h.noise[h.used] for h in diag.base.long]) if diag.base.long
              else np.zeros(0))
     if len(noise):
@@ -315,6 +317,17 @@ def _img(fig) -> str:
     return f'<p><img alt="figure" src="data:image/png;base64,{_png(fig)}"></p>'
 
 
+def _beyond(ev) -> str:
+    """An evaluation's dead-reckoning error beyond the held-out fixes' noise (m), or
+    "within the noise"."""
+    return f"{ev.rmse:.2f}" if ev.rmse > 0 else "within the noise"
+
+
+def _gain(c) -> str:
+    from aqfg.diagnose.wording import gain_cell
+    return html.escape(gain_cell(c))
+
+
 def _fmt(x, f=".3g") -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "–"
@@ -324,14 +337,14 @@ def _fmt(x, f=".3g") -> str:
 def ranking_table(diag) -> str:
     rows = ["<tr><th>rank</th><th>effect</th><th>score (LM)</th><th>p (Holm)</th>"
             "<th>robust p</th><th>dBIC</th><th>held-out dLL</th><th>bootstrap first</th>"
-            "<th>DR error before → after (m)</th>"
+            "<th>held-out RMS before → after (m; gain beyond the noise floor)</th>"
             "<th>consistent after</th><th>estimate ± sigma</th><th>status</th></tr>"]
     best = diag.best.effect if diag.best is not None else None
     for i, c in enumerate(diag.ranking, 1):
         est = "<br>".join(f"{html.escape(n)} = {v['value']:.4g} ± {v['sigma']:.2g}"
                           for n, v in c.estimate().items())
         ho = c.refit is not None and c.refit.has_heldout
-        dr = f"{diag.base.rmse:.2f} → {c.refit.rmse:.2f}" if ho else "–"
+        dr = (f"{diag.base.rmse_raw:.2f} → {c.refit.rmse_raw:.2f} ({_gain(c)})" if ho else "–")
         cons = ("pass" if c.refit.consistency.passed else "FAIL") if ho else "–"
         v = html.escape(c.status_text(best))
         if c.gain is not None and math.isfinite(c.gain.p):
@@ -380,7 +393,12 @@ def render(diag, plots: bool = True) -> str:
              "BIC, direction of the estimate) and held-out fixes (predictive test, "
              "dead-reckoning error) all agree, lowest BIC first; the others are tested again "
              "with it in the model: an <i>echo</i> loses its evidence, <i>independent</i> "
-             "evidence stays. 'bootstrap first' is how often the effect ranks first when "
+             "evidence stays. An effect is named missing only when its estimate is "
+             "plausible (else it 'fits, but is implausible' and names what it probably "
+             "absorbs) and the held-out dead-reckoning error beyond the fixes' noise "
+             f"({diag.base.noise_floor:.2f} m RMS) falls by at least "
+             f"{100 * diag.settings.get('min_gain', MIN_GAIN):.0f}% (else it is 'significant but "
+             "negligible'). 'bootstrap first' is how often the effect ranks first when "
              "blocks of time are resampled.</p>")
     H.append(ranking_table(diag))
     if plots:
@@ -389,9 +407,12 @@ def render(diag, plots: bool = True) -> str:
         b, a = diag.before, diag.base
         H.append(f"<h2>Added effect(s): {html.escape(', '.join(diag.added))}</h2>")
         H.append("<table><tr><th></th><th>before</th><th>after</th></tr>"
-                 f"<tr><td class=l>held-out DR error (m)</td><td>{b.rmse:.3f}</td><td>{a.rmse:.3f}</td></tr>"
-                 f"<tr><td class=l>raw RMS vs held-out fixes (m)</td><td>{b.rmse_raw:.3f}</td>"
+                 f"<tr><td class=l>RMS distance to the held-out fixes (m)</td><td>{b.rmse_raw:.3f}</td>"
                  f"<td>{a.rmse_raw:.3f}</td></tr>"
+                 f"<tr><td class=l>their noise floor (m)</td><td>{b.noise_floor:.3f}</td>"
+                 f"<td>{a.noise_floor:.3f}</td></tr>"
+                 f"<tr><td class=l>DR error beyond the noise (m)</td><td>{_beyond(b)}</td>"
+                 f"<td>{_beyond(a)}</td></tr>"
                  f"<tr><td class=l>held-out NIS / expected</td><td>{b.consistency.ratio:.2f}</td>"
                  f"<td>{a.consistency.ratio:.2f}</td></tr>"
                  f"<tr><td class=l>consistency test</td><td>{'pass' if b.consistency.passed else 'FAIL'}</td>"
@@ -445,16 +466,16 @@ def fig_staircase(seq):
     st = seq.staircase()
     x = st["step"]
     fig, ax = plt.subplots(figsize=(8, 3.8))
-    ax.step(x, st["rmse_raw"], where="post", color="0.6", lw=1,
-            label="RMS distance to held-out fixes (noise included)")
-    ax.step(x, st["rmse"], where="post", color="tab:blue", lw=2,
-            label="dead-reckoning error (fixes' noise removed)")
+    ax.step(x, st["rmse_raw"], where="post", color="tab:blue", lw=2,
+            label="RMS distance to the held-out fixes")
+    ax.axhline(seq.bare.noise_floor, color="0.5", ls="--", lw=1,
+               label="their noise floor (a perfect prediction)")
     for i in x:
         ok = bool(st["consistent"][i])
-        ax.plot(i, st["rmse"][i], "o", ms=8, color="tab:blue",
+        ax.plot(i, st["rmse_raw"][i], "o", ms=8, color="tab:blue",
                 mfc="tab:blue" if ok else "white")
-        ax.annotate(f"{st['rmse'][i]:.2f} m", (i, st["rmse"][i]), textcoords="offset points",
-                    xytext=(6, 6), fontsize=8)
+        ax.annotate(f"{st['rmse_raw'][i]:.2f} m", (i, st["rmse_raw"][i]),
+                    textcoords="offset points", xytext=(6, 6), fontsize=8)
     labels = ["bare model"]
     for s in seq.steps:
         est = "\n".join(f"{n.split('.')[-1]}={v['value']:.3g}±{v['sigma']:.1g}"
@@ -503,21 +524,24 @@ def fig_map_sequence(seq, i: int = 0):
 
 def staircase_table(seq) -> str:
     head = ("<tr><th>step</th><th>effect added</th><th>estimate ± sigma</th>"
-            "<th>held-out DR error (m)</th><th>raw RMS (m)</th><th>NIS / expected</th>"
+            "<th>held-out RMS (m)</th><th>noise floor (m)</th><th>DR error beyond the noise (m)</th>"
+            "<th>NIS / expected</th>"
             "<th>consistent</th><th>dBIC</th><th>evidence (p: score Holm, LR, held-out)</th>"
             "<th>echoes of it</th></tr>")
     rows = [head]
     b = seq.bare
-    rows.append(f"<tr><td>0</td><td class=l>bare model</td><td>–</td><td>{b.rmse:.2f}</td>"
-                f"<td>{b.rmse_raw:.2f}</td><td>{_fmt(b.consistency.ratio, '.2f')}</td>"
+    rows.append(f"<tr><td>0</td><td class=l>bare model</td><td>–</td><td>{b.rmse_raw:.2f}</td>"
+                f"<td>{b.noise_floor:.2f}</td><td>{_beyond(b)}</td>"
+                f"<td>{_fmt(b.consistency.ratio, '.2f')}</td>"
                 f"<td>{'yes' if b.consistency.passed else 'no'}</td><td>–</td><td>–</td>"
                 "<td>–</td></tr>")
     for k, (s, ev) in enumerate(zip(seq.steps, seq.evaluations()[1:]), 1):
         est = "<br>".join(f"{html.escape(n)} = {v['value']:.4g} ± {v['sigma']:.2g}"
                           for n, v in s.estimate.items())
         rows.append(f"<tr><td>{k}</td><td class=l>{html.escape(s.effect)}</td>"
-                    f"<td class=l>{est}</td><td>{s.rmse_after:.2f}</td>"
-                    f"<td>{s.rmse_raw_after:.2f}</td><td>{_fmt(ev.consistency.ratio, '.2f')}</td>"
+                    f"<td class=l>{est}</td><td>{s.rmse_raw_after:.2f}</td>"
+                    f"<td>{ev.noise_floor:.2f}</td><td>{_beyond(ev)}</td>"
+                    f"<td>{_fmt(ev.consistency.ratio, '.2f')}</td>"
                     f"<td>{'yes' if s.consistent_after else 'no'}</td><td>{s.bic_change:.1f}</td>"
                     f"<td>{_fmt(s.score_p, '.2g')}, {_fmt(s.lr_p, '.2g')}, "
                     f"{_fmt(s.heldout_p, '.2g')}</td>"

@@ -34,13 +34,13 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.diagnose.fiteval import FitEval, blas_threads
+from aqfg.diagnose.wording import heldout_change
 from aqfg.diagnose.workflow import (
     Diagnosis,
     candidate_effects,
     diagnose,
     json_num,
     json_ready,
-    percent_change,
 )
 from aqfg.fg.common import check_missions, progress_fn
 from aqfg.model.effects import resolve
@@ -65,6 +65,8 @@ class Step:
     echoes: tuple[str, ...] = ()
     independent: tuple[str, ...] = ()
     consistent_before: bool = False
+    noise_floor: float = float("nan")     # RMS distance (m) the held-out fixes' noise gives
+    gain: float = float("nan")            # fall of the DR error beyond the noise (fraction)
 
     def to_json(self) -> dict:
         return json_ready({"effect": self.effect, "estimate": self.estimate,
@@ -72,6 +74,7 @@ class Step:
                        "rmse_before": self.rmse_before, "rmse_after": self.rmse_after,
                        "rmse_raw_before": self.rmse_raw_before,
                        "rmse_raw_after": self.rmse_raw_after,
+                       "noise_floor": self.noise_floor, "heldout_gain": self.gain,
                        "consistent_after": bool(self.consistent_after),
                        "bic_change": self.bic_change, "score_p_value": self.score_p,
                        "lr_p_value": self.lr_p, "heldout_p_value": self.heldout_p,
@@ -145,17 +148,15 @@ class DiagnosisSequence:
         if not self.steps:
             return "Nothing added: " + self.diagnoses[0].verdict
         b, f = self.bare, self.final
-        return (f"Added {', '.join(self.added)}: held-out dead-reckoning error "
-                f"{b.rmse:.2f} -> {f.rmse:.2f} m ({percent_change(b.rmse, f.rmse)}; RMS distance to "
-                f"the held-out fixes {b.rmse_raw:.2f} -> {f.rmse_raw:.2f} m); held-out fixes "
+        return (f"Added {', '.join(self.added)}: {heldout_change(b, f)}; held-out fixes "
                 f"{'consistent' if _passed(f) else 'NOT consistent'} with the final model. "
                 f"Stopped: {self.stopped}.")
 
     def summary(self) -> str:
         """The console story: one line per step."""
         b = self.bare
-        L = [f"{'bare model':<34} held-out DR error {b.rmse:6.2f} m  "
-             + f"(raw {b.rmse_raw:.2f} m), {_cons(b)}"]
+        L = [f"{'bare model':<34} held-out RMS {b.rmse_raw:6.2f} m  "
+             + f"(noise floor {b.noise_floor:.2f} m), {_cons(b)}"]
         for s, ev in zip(self.steps, self.evaluations()[1:]):
             est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
                             for n, v in s.estimate.items())
@@ -164,8 +165,8 @@ class DiagnosisSequence:
                 extra += f"; echoes: {', '.join(s.echoes)}"
             if s.independent:
                 extra += f"; still evidence for: {', '.join(s.independent)}"
-            L.append(f"+ {s.effect:<32} held-out DR error {s.rmse_after:6.2f} m  "
-                     f"({percent_change(s.rmse_before, s.rmse_after)}), {_cons(ev)}, dBIC "
+            L.append(f"+ {s.effect:<32} held-out RMS {s.rmse_raw_after:6.2f} m  "
+                     f"({_beyond(s)}), {_cons(ev)}, dBIC "
                      f"{s.bic_change:.1f}  [{est}]{extra}")
         L.append(f"stopped: {self.stopped}")
         L.append(self.verdict())
@@ -188,6 +189,16 @@ class DiagnosisSequence:
         return json_ready(out)
 
 
+def _beyond(s: Step) -> str:
+    """The step's dead-reckoning error beyond the noise floor, before -> after."""
+    if not (s.rmse_before > 0):
+        return "within the noise before"
+    if not (s.rmse_after > 0):
+        return f"beyond the noise {s.rmse_before:.2f} m -> within it"
+    return (f"beyond the noise {s.rmse_before:.2f} -> {s.rmse_after:.2f} m, "
+            f"{-100 * s.gain:+.0f}%")
+
+
 def _passed(ev: FitEval | None) -> bool:
     return bool(ev is not None and ev.consistency is not None and ev.consistency.passed)
 
@@ -206,7 +217,8 @@ def _step(d: Diagnosis) -> Step:
     return Step(c.effect, c.estimate(), d.base.rmse, r.rmse, d.base.rmse_raw, r.rmse_raw,
                 _passed(r), c.dbic, c.p_adjusted, c.lr_p, c.gain.p,
                 tuple(x.effect for x in d.labelled("echo")),
-                tuple(x.effect for x in d.labelled("independent")), _passed(d.base))
+                tuple(x.effect for x in d.labelled("independent")), _passed(d.base),
+                d.base.noise_floor, c.gain_frac)
 
 
 def diagnose_sequence(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (),

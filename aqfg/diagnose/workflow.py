@@ -22,11 +22,16 @@ The steps (each in its own module):
    score) are refitted in score order (forward selection by the score statistic),
    warm-started from the base fits
    (:mod:`aqfg.diagnose.refit`; the fit to all fixes and the held-out fit in two
-   processes with ``jobs > 1``), until one is confirmed or ``max_refit`` were tried.
+   processes with ``jobs > 1``), until one is confirmed or ``max_refit`` were tried;
+   then up to ``max_rivals`` significant candidates never refitted whose evidence the
+   confirmed one explains away, in case one of them explains the data better (lower BIC).
 5. **Verdict** (:mod:`aqfg.diagnose.confirm`): a candidate is *confirmed* when its
    refit's likelihood ratio (Bonferroni over all candidates) and BIC, the direction of its
    estimate against its score, and the held-out fixes (predictive likelihood up,
-   dead-reckoning error down) all agree. The first confirmed candidate is the *missing* effect;
+   dead-reckoning error down) all agree, its estimate is plausible (else "fits, but
+   implausible: probably absorbing ...") and the held-out dead-reckoning error beyond the
+   fixes' noise falls by at least ``min_gain`` (else "significant but negligible").
+   The first confirmed candidate is the *missing* effect;
    every other candidate is tested again with the missing effect in the model (score test
    at its refit) and labelled an *echo* of it (its evidence is gone) or *independent*
    evidence (to add next), with the information it shares with the missing effect (can the
@@ -71,11 +76,16 @@ from aqfg.diagnose.conditions import (
     relate,
 )
 from aqfg.diagnose.confirm import (
+    MIN_GAIN,
     SHARED_MAX,
     Evidence,
     HeldoutGain,
     direction_agrees,
+    fits_but,
     heldout_gain,
+    implausible,
+    practical_gain,
+    rivals,
     wald_statistic,
 )
 from aqfg.diagnose.consistency import ConsistencyTest
@@ -89,6 +99,7 @@ from aqfg.diagnose.score import (
     score_tests,
     shared_information,
 )
+from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
 from aqfg.model.effects import BUILTIN, Effect, resolve
 
@@ -101,6 +112,8 @@ STATUS_TEXT = {
     "independent": "independent evidence",
     "echo": "echo",
     "rejected": "not confirmed",
+    "implausible": "fits, but implausible",
+    "negligible": "significant but negligible",
     "untested": "significant score, not refitted",
     "not significant": "no evidence",
 }
@@ -129,6 +142,10 @@ class Candidate:
     conditional: ScoreTest | None = None    # score test with the missing effect added
     p_conditional: float = float("nan")     # its Holm-adjusted p-value
     shared: float = float("nan")            # information shared with the missing effect
+    gain_frac: float = float("nan")         # held-out DR error reduction (practical_gain)
+    within_noise: bool = False              # the base model already predicts within the noise
+    implausible: list[str] = field(default_factory=list)   # estimates outside their range
+    absorbs: str = ""                       # what an implausible estimate stands for
 
     @property
     def dll(self) -> float:
@@ -142,6 +159,14 @@ class Candidate:
             return self.refit.values(self.params)
         return {n: {"value": float(v), "sigma": float(s)}
                 for n, v, s in zip(self.params, self.score.estimate, self.score.sigma)}
+
+    def gain_text(self) -> str:
+        """The held-out gain in words: "-2% held-out error (beyond the fixes' noise)"."""
+        if self.refit is None or not np.isfinite(self.gain_frac):
+            return "no held-out error"
+        if self.within_noise:
+            return "the held-out fixes were already predicted within their noise"
+        return f"{-100 * self.gain_frac:+.0f}% held-out error (beyond the fixes' noise)"
 
     def estimate_text(self) -> str:
         return ", ".join(f"{n.split('.')[-1]} = {v['value']:.3g} +- {v['sigma']:.2g}"
@@ -157,6 +182,11 @@ class Candidate:
             out = f"independent of {missing}"
         elif s == "rejected" and self.evidence is not None:
             out = "not confirmed: " + "; ".join(self.evidence.failed())
+        elif s == "implausible":
+            out = (f"fits, but implausible ({'; '.join(self.implausible)}): probably absorbing "
+                   f"{self.absorbs or 'something the catalogue does not hold'}")
+        elif s == "negligible":
+            out = f"significant but negligible: {self.gain_text()}"
         else:
             out = STATUS_TEXT.get(s, s)
         if missing and s != "missing" and np.isfinite(self.shared) and self.shared >= SHARED_MAX:
@@ -249,6 +279,10 @@ class Diagnosis:
                 "rmse_before": json_num(rb), "rmse_after": json_num(rh.rmse) if rh is not None else None,
                 "rmse_raw_before": json_num(self.base.rmse_raw),
                 "rmse_raw_after": json_num(rh.rmse_raw) if rh is not None else None,
+                "noise_floor": json_num(self.base.noise_floor),
+                "heldout_gain": json_num(c.gain_frac),
+                "implausible": list(c.implausible),
+                "absorbs": c.absorbs or None,
                 "score_robust": json_num(c.score.statistic_robust),
                 "p_value_robust": json_num(c.score.p_value_robust),
                 "lr": json_num(c.lr), "lr_p_value": json_num(c.lr_p), "delta_bic": json_num(c.dbic),
@@ -290,15 +324,14 @@ class Diagnosis:
         if cons is not None:
             L.append(f"Held-out fixes vs the model ({'+'.join(self.base.effects) or 'base model'}): "
                      + cons.summary())
-        L.append(f"Held-out dead-reckoning error: {self.base.rmse:.2f} m (the fixes' own noise "
-                 f"removed; RMS distance to the fixes {self.base.rmse_raw:.2f} m)")
+        L.append(f"Held-out RMS distance to the fixes: {self.base.heldout_text()}; "
+                 + (f"dead-reckoning error beyond the noise {self.base.rmse:.2f} m"
+                    if self.base.rmse > 0 else "within the noise"))
         L.append(self.conditions_text)
         if self.before is not None:
             b, a = self.before, self.base
             L.append("")
-            L.append(f"Added {', '.join(self.added)}: held-out dead-reckoning error "
-                     f"{b.rmse:.2f} -> {a.rmse:.2f} m ({percent_change(b.rmse, a.rmse)}; raw "
-                     f"{b.rmse_raw:.2f} -> {a.rmse_raw:.2f} m), consistency "
+            L.append(f"Added {', '.join(self.added)}: {heldout_change(b, a)}, consistency "
                      f"{_ok(b.consistency)} -> {_ok(a.consistency)}, BIC {a.bic - b.bic:+.1f}")
             for e in a.model.effects:
                 if e.name in self.added:
@@ -307,18 +340,22 @@ class Diagnosis:
         L.append("")
         best = self.best.effect if self.best else None
         L.append(f"{'rank':>4}  {'effect':<18} {'score':>9} {'p (Holm)':>9} {'dBIC':>8} "
-                 f"{'dLL held':>9} {'DR error before->after (raw), m':>32}  estimate; status")
+                 f"{'dLL held':>9} {'held-out RMS before->after (gain)':>34}  estimate; status")
         for i, c in enumerate(self.ranking, 1):
             est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
                             for n, v in c.estimate().items())
             rh = c.refit if _ho(c) else None
-            dr = (f"{self.base.rmse:.2f} -> {rh.rmse:.2f} ({self.base.rmse_raw:.2f} -> "
-                  f"{rh.rmse_raw:.2f})" if rh is not None else "")
+            dr = (f"{self.base.rmse_raw:.2f} -> {rh.rmse_raw:.2f} m ({gain_cell(c)})"
+                  if rh is not None else "")
             flag = "*" if c.status == "missing" else " "
             L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
-                     f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>32}  {est}; {c.status_text(best)}")
+                     f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>34}  {est}; {c.status_text(best)}")
+        L.append(f"(noise floor of the held-out fixes {self.base.noise_floor:.2f} m; gain: "
+                 "fall of the dead-reckoning error beyond it, at least "
+                 f"{100 * self.settings.get('min_gain', MIN_GAIN):.0f}% for a missing effect)")
         L.append("(* the missing effect: score, refit (LR, BIC, direction) and held-out fixes "
-                 "agree. dLL held: change of the held-out fixes' predictive log-likelihood. "
+                 "agree, its estimate is plausible and its gain matters. dLL held: change of "
+                 "the held-out fixes' predictive log-likelihood. "
                  "An echo's evidence is gone once the missing effect is in the model; "
                  "independent evidence remains: add the missing effect and diagnose again, "
                  "or use --auto.)")
@@ -351,13 +388,6 @@ def json_ready(o: Any) -> Any:
     if isinstance(o, np.bool_):
         return bool(o)
     return o
-
-
-def percent_change(a: float, b: float) -> str:
-    """The change from ``a`` to ``b`` in percent of ``a`` ("+12%"), "n/a" if undefined."""
-    if not (np.isfinite(a) and np.isfinite(b)) or a <= 0:
-        return "n/a"
-    return f"{100 * (b - a) / a:+.0f}%"
 
 
 def _ok(c: ConsistencyTest | None) -> str:
@@ -393,8 +423,10 @@ def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
     return Screen(fit, proj, tests, _holm_log(np.array([t.log10_p for t in tests])))
 
 
-def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float) -> None:
-    """Likelihood ratio, BIC, direction and held-out tests of a refitted candidate."""
+def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float,
+           effect: Effect, missions=(), min_gain: float = MIN_GAIN) -> None:
+    """Likelihood ratio, BIC, direction and held-out tests of a refitted candidate, the
+    plausibility of its estimate and its practical gain (:mod:`aqfg.diagnose.confirm`)."""
     r = c.refit
     assert r is not None, "judged after its refit"
     c.lr = max(2.0 * (base.cost - r.cost), 0.0)
@@ -406,11 +438,17 @@ def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: floa
     c.wald = wald_statistic(delta, effect_covariance(r.full, c.params))
     c.wald_p = float(min(1.0, n_cands * stats.chi2.sf(c.wald, len(c.params))))
     c.gain = heldout_gain(base.next_fix, r.next_fix, window)
+    c.gain_frac = practical_gain(base.rmse, r.rmse) if r.has_heldout else float("nan")
+    c.within_noise = bool(r.has_heldout and base.rmse <= 0.0)
+    c.implausible = implausible(effect, r.values(c.params), missions)
+    c.absorbs = effect.absorbs
     c.evidence = Evidence(score=c.significant, lr=c.lr_p < alpha, bic=c.dbic < 0,
                           direction=direction_agrees(c.score.gradient, delta),
                           heldout=bool(np.isfinite(c.gain.dll) and c.gain.dll > 0),
                           dr_error=bool(np.isfinite(r.rmse_raw) and r.rmse_raw < base.rmse_raw),
-                          wald=bool(np.isfinite(c.wald_p) and c.wald_p < alpha))
+                          wald=bool(np.isfinite(c.wald_p) and c.wald_p < alpha),
+                          plausible=not c.implausible,
+                          practical=bool(np.isfinite(c.gain_frac) and c.gain_frac >= min_gain))
     c.confirmed = c.evidence.confirmed
 
 
@@ -442,7 +480,8 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
 def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (), *,
              candidates: Sequence | None = None, extra_candidates: Sequence = (),
              gnss_every: float = 8.0, horizon: float = 60.0, window: float = 60.0,
-             alpha: float = 0.01, n_refit: int = 1, max_refit: int = 4, n_boot: int = 200,
+             alpha: float = 0.01, min_gain: float = MIN_GAIN, n_refit: int = 1,
+             max_refit: int = 4, max_rivals: int = 2, n_boot: int = 200,
              n_blocks: int = 20, memory: float = 8.0, settings: FGSettings | None = None,
              jobs: int | None = None, progress=None, base_eval: FitEval | None = None,
              base_screen: Screen | None = None) -> Diagnosis:
@@ -453,9 +492,13 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     ``gnss_every`` (s): GNSS thinning of the held-out fits; ``horizon`` (s): dead-reckoning
     legs for the held-out error; ``window`` (s): NIS test windows and the time blocks of
     the held-out predictive test; ``alpha``: significance level of every test (after the
-    corrections named in the module docstring). The candidates with a significant score,
+    corrections named in the module docstring); ``min_gain``: the fraction by which the
+    held-out dead-reckoning error beyond the fixes' noise must fall for an effect to be
+    named missing (:data:`~aqfg.diagnose.confirm.MIN_GAIN`). The candidates with a significant score,
     and the top ``n_refit`` whatever their score, are refitted best score first until one
-    is confirmed, at most ``max(n_refit, max_refit)`` of them.
+    is confirmed, at most ``max(n_refit, max_refit)`` of them; then at most ``max_rivals``
+    significant candidates never refitted whose evidence the confirmed one explains away are
+    refitted, and one of them confirmed with a lower BIC is the missing effect instead.
     ``memory`` (s): how far back conditions are averaged before each residual. ``jobs``:
     processes for a refit (default 2 where two CPUs are available; 1 = no worker).
     ``base_eval`` / ``base_screen``: the model's evaluation and score tests when already
@@ -517,7 +560,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
         prog(0.3 + 0.5 * i / k, f"refitting with {c.effect}")
         c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
                            f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
-        _judge(c, base, len(ranking), alpha, window)
+        _judge(c, base, len(ranking), alpha, window, cand_of[c.effect], missions, min_gain)
         if c.confirmed:
             best = c
             break
@@ -528,17 +571,35 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     next_scr = None
     if best is not None:
         prog(0.85, f"testing the others with {best.effect} added")
-        best.status = "missing"
-        others = [c for c in cands if c.name != best.effect]
         assert best.refit is not None and scr.proj is not None
-        next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
-        cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+        swaps = 0
+        while True:
+            others = [c for c in cands if c.name != best.effect]
+            assert best.refit is not None
+            next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
+            cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+            rival = rivals(ranking, best, cond, alpha, max_rivals) if swaps < 2 else []
+            for c in rival:
+                prog(0.87, f"refitting {c.effect}, which {best.effect} explains away")
+                c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
+                                   f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
+                _judge(c, base, len(ranking), alpha, window, cand_of[c.effect], missions,
+                       min_gain)
+            better = [c for c in rival if c.confirmed and c.dbic < best.dbic]
+            if not better:
+                break
+            best = min(better, key=lambda c: c.dbic)     # the one the echo stood for
+            swaps += 1
+        assert best.refit is not None
+        best.status = "missing"
         for c in ranking:
             if c is best:
                 continue
             c.conditional, c.p_conditional = cond.get(c.effect, (None, float("nan")))
             c.shared = shared_information(scr.proj, best.params, c.params)
-            if np.isfinite(c.p_conditional) and c.p_conditional < alpha:
+            if fits_but(c):
+                c.status = fits_but(c)
+            elif np.isfinite(c.p_conditional) and c.p_conditional < alpha:
                 c.status = "independent"
             elif c.significant:
                 c.status = "echo"
@@ -546,10 +607,10 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
                 c.status = "not significant"
     else:
         for c in ranking:
-            c.status = ("not significant" if not c.significant else
-                        "rejected" if c.refit is not None else "untested")
-    order = {"missing": 0, "independent": 1, "echo": 2, "rejected": 3, "untested": 4,
-             "not significant": 5}
+            c.status = (fits_but(c) or ("not significant" if not c.significant else
+                                         "rejected" if c.refit is not None else "untested"))
+    order = {"missing": 0, "independent": 1, "implausible": 2, "negligible": 3, "echo": 4,
+             "rejected": 5, "untested": 6, "not significant": 7}
     ranking.sort(key=lambda c: (order[c.status],
                                 c.p_conditional if c.status == "independent" else 0.0,
                                 c.dbic if c.refit is not None else np.inf,
@@ -565,7 +626,9 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     timings["total"] = time.perf_counter() - t0
     prog(1.0, "done")
     sett = {"gnss_every": gnss_every, "horizon": horizon, "window": window, "alpha": alpha,
-            "max_refit": max_refit, "n_blocks": n_blocks, "n_boot": n_boot, "memory": memory,
+            "min_gain": min_gain,
+            "max_refit": max_refit, "max_rivals": max_rivals, "n_blocks": n_blocks,
+            "n_boot": n_boot, "memory": memory,
             "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
             "jobs": jobs}
     return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
@@ -583,10 +646,8 @@ def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
         v = (f"Missing: {best.effect} ({cand_of[best.effect].description}): "
              f"{best.estimate_text()}. Score test p = {best.p_adjusted:.2g} (Holm); refit: "
              f"likelihood-ratio p = {best.lr_p:.2g}, dBIC = {best.dbic:.1f}; held-out fixes "
-             f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); held-out "
-             f"dead-reckoning error {base.rmse:.2f} -> {r.rmse:.2f} m "
-             f"({percent_change(base.rmse, r.rmse)}; RMS distance to the held-out fixes, their noise "
-             f"included: {base.rmse_raw:.2f} -> {r.rmse_raw:.2f} m).")
+             f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); "
+             f"{heldout_change(base, r)}.")
         if cons is not None and cons.passed:
             v += (" The model was already consistent with the held-out fixes; the effect "
                   "still predicts them better.")
@@ -615,15 +676,21 @@ def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
         return v, unexplained
     rejected = [c for c in ranking if c.status == "rejected"]
     why = ""
+    fits_but = [c for c in ranking if c.status in ("implausible", "negligible")]
+    if fits_but:
+        why += " " + " ".join(f"{c.effect} ({c.estimate_text()}) {c.status_text()}."
+                              for c in fits_but)
     if rejected:
-        why = " " + " ".join(f"{c.effect} has a significant score but is {c.status_text()}."
-                             for c in rejected[:3])
+        why += " " + " ".join(f"{c.effect} has a significant score but is {c.status_text()}."
+                              for c in rejected[:3])
     if cons is not None and not cons.passed:
         return ("Something is missing that the catalogue does not explain: the held-out "
                 "fixes are not consistent with the model, and no candidate effect is "
-                "confirmed." + why), True
-    return ("Nothing missing: no candidate effect is confirmed, and the held-out fixes are "
-            "consistent with the model." + why), False
+                "confirmed as plausible and of practical use." + why), True
+    what = ("no candidate effect that is plausible and matters" if fits_but else
+            "no candidate effect is confirmed")
+    return (f"Nothing missing: {what}, and the held-out fixes are consistent with the "
+            "model." + why), False
 
 
 def resolve_description(name: str, cands) -> str:

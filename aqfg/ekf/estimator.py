@@ -139,6 +139,11 @@ class UpdateErrorEstimator:
         self.missions = _as_list(missions)
         effs = tuple(model.effects) if model is not None else ()
         self.models = [Model.for_mission(m, effs).with_effects(*effects) for m in self.missions]
+        from aqfg.model.effects import FixDelayTerm
+        late = [e.name for e in self.models[0].effects if isinstance(e, FixDelayTerm)]
+        if late:
+            raise ValueError(f"the update-error EKF does not model fix time offsets ({', '.join(late)}); "
+                             "fit them with the factor graph (method fg)")
         self.config = config or EkfConfig()
         if preset not in ("physical", "paper"):
             raise ValueError(f"unknown preset {preset!r}; choose 'physical' or 'paper'")

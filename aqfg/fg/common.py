@@ -496,17 +496,18 @@ def residuals(model: Model, mission: Mission, track: Track, p_at: Callable[[floa
     if len(meas.gnss_t):
         X = interp_states(track, meas.gnss_t)
         ps = [p_at(t) for t in (meas.gnss_t[0], meas.gnss_t[-1])]
-        if all(np.array_equal(model.h_gnss(np.zeros(3), np.eye(3), 0.0, q)[0], np.zeros(2))
+        moving = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 0.0])       # shows a time offset
+        if all(np.array_equal(model.h_gnss(moving, np.eye(3), 0.0, q)[0], np.zeros(2))
                for q in ps) and np.array_equal(ps[0], ps[-1]):
             pred = X[:, :2].copy()            # no sensor offset: the fix is the position
         else:
-            pred = np.array([model.h_gnss(X[i, :3], meas.gnss_R[i], t, p_at(t))[0]
+            pred = np.array([model.h_gnss(X[i], meas.gnss_R[i], t, p_at(t))[0]
                              for i, t in enumerate(meas.gnss_t)])
         raw = meas.gnss_z - pred
         out["gnss"] = Residuals(meas.gnss_t, raw, raw / meas.gnss_sigma[:, None], meas.gnss_z, pred)
     if len(meas.usbl_t):
         X = interp_states(track, meas.usbl_t)
-        pred = np.array([model.h_usbl(X[i, :3], meas.usbl_R[i], t, p_at(t), meas.station)[0]
+        pred = np.array([model.h_usbl(X[i], meas.usbl_R[i], t, p_at(t), meas.station)[0]
                          for i, t in enumerate(meas.usbl_t)])
         raw = meas.usbl_z - pred
         raw[:, 1] = fc.wrap_angle(raw[:, 1])

@@ -374,9 +374,7 @@ def gnss_residual(model: Model, layout: ParamLayout, x: np.ndarray, nodes: dict,
                   R_raw: np.ndarray, t: float, base: np.ndarray | None = None):
     """``h_gnss - z`` (2,), d/dx (2x6), d/dnode per group in ``nodes``."""
     p = layout.full(nodes, base)
-    h, Jpos, Jp = model.h_gnss(x[:3], R_raw, t, p)
-    Hx = np.zeros((2, 6))
-    Hx[:, :3] = Jpos
+    h, Hx, Jp = model.h_gnss(x, R_raw, t, p)      # the state: time offsets read its velocity
     return h - z, [Hx] + [layout.meas_jacobian(Jp, g) for g in nodes]
 
 
@@ -384,11 +382,9 @@ def usbl_residual(model: Model, layout: ParamLayout, x: np.ndarray, nodes: dict,
                   R_raw: np.ndarray, t: float, station: np.ndarray, base: np.ndarray | None = None):
     """``[range - z_range, wrap(bearing - z_bearing)]`` (2,), d/dx (2x6), d/dnode per group."""
     p = layout.full(nodes, base)
-    h, Jpos, Jp = model.h_usbl(x[:3], R_raw, t, p, station)
+    h, Hx, Jp = model.h_usbl(x, R_raw, t, p, station)
     r = h - z
     r[1] = float(wrap_angle(r[1]))
-    Hx = np.zeros((2, 6))
-    Hx[:, :3] = Jpos
     return r, [Hx] + [layout.meas_jacobian(Jp, g) for g in nodes]
 
 

@@ -218,12 +218,12 @@ class LagWindow:
     def unsupported(model, layout: fc.ParamLayout, mission, settings) -> str:
         """Why this engine cannot run the configuration ("" when it can)."""
         from aqfg.fg.fastlm import _plain_sensors
-        from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+        from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
         if settings.sensors.robust not in ("huber", "none"):
             return f"{settings.sensors.robust} loss"
         if settings.walk_sigma:
             return "random-walk parameters"
-        if any(isinstance(e, (SensorOffsetTerm, UsblTerm)) for e in model.effects) \
+        if any(isinstance(e, (SensorOffsetTerm, UsblTerm, FixDelayTerm)) for e in model.effects) \
                 or layout.meas_groups("gnss") or layout.meas_groups("usbl") \
                 or not _plain_sensors(layout.base):
             return "measurement effects"

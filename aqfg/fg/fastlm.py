@@ -37,7 +37,7 @@ from aqfg.fg.common import Measurements, depth_assignment, knot_index
 from aqfg.fg.fastlm_ops import Meas, propagator, sandwich, scatter_add, tri
 from aqfg.fg.fastlm_ops import plain_sensors as _plain_sensors
 from aqfg.fg.robust import huber_cost, huber_weight, row_norms
-from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
 from aqfg.model.measurements import range_bearing
 
 
@@ -100,7 +100,8 @@ class FastSystem:
         if sn.robust not in ("huber", "none"):
             return None
         for part in bg.parts:
-            if any(isinstance(e, (SensorOffsetTerm, UsblTerm)) for e in part.model.effects):
+            if any(isinstance(e, (SensorOffsetTerm, UsblTerm, FixDelayTerm))
+                   for e in part.model.effects):
                 return None
         if lay.meas_groups("gnss") or lay.meas_groups("usbl"):
             return None

@@ -5,7 +5,9 @@ the EKF, the simulator, the re-trace and the diagnosis:
 
 * :func:`sensor_position` -- the antenna / transponder at ``pos + R l`` (``l`` the sum of
   the :class:`~aqfg.model.effects.SensorOffsetTerm` offsets, the lever arm, body frame;
-  ``R`` the heading-corrected attitude, :func:`aqfg.model.frames.heading`);
+  ``R`` the heading-corrected attitude, :func:`aqfg.model.frames.heading`), and, given the
+  state's velocity, ``- tau v`` for the stream's
+  :class:`~aqfg.model.effects.FixDelayTerm` time offset ``tau``;
 * :func:`h_gnss` -- north, east of the antenna;
 * :func:`h_usbl` -- slant range ``|d|`` and bearing ``atan2(d_e, d_n)`` (rad, from north,
   clockwise) of the transponder seen from the station, then the
@@ -15,13 +17,15 @@ the EKF, the simulator, the re-trace and the diagnosis:
 * :func:`h_depth` -- the down coordinate of the centre of mass.
 
 Positions NED (m); Jacobians w.r.t. the position (``d/dpos``) and w.r.t. the built-in
-parameter table (``d/dp``, ``N_PARAMS`` columns).
+parameter table (``d/dp``, ``N_PARAMS`` columns). Where the functions take ``pos`` they also
+take the whole state ``[pos, vel]`` (6,): the time offsets then apply, and ``d/dpos`` is
+the derivative w.r.t. that state (6 columns).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from aqfg.model.effects import SensorOffsetTerm, UsblTerm
+from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
 from aqfg.model.frames import corrected_attitude, heading_jacobian
 from aqfg.model.params import MEASUREMENT_EFFECTS, N_PARAMS, SLICE
 from aqfg.model.rotation import E_Z
@@ -30,17 +34,33 @@ OFFSET_TERMS: tuple[tuple[SensorOffsetTerm, slice], ...] = tuple(
     (e, SLICE[e.name]) for e in MEASUREMENT_EFFECTS if isinstance(e, SensorOffsetTerm))
 USBL_TERMS: tuple[tuple[UsblTerm, slice], ...] = tuple(
     (e, SLICE[e.name]) for e in MEASUREMENT_EFFECTS if isinstance(e, UsblTerm))
+DELAY_TERMS: tuple[tuple[FixDelayTerm, slice], ...] = tuple(
+    (e, SLICE[e.name]) for e in MEASUREMENT_EFFECTS if isinstance(e, FixDelayTerm))
 
 
-def sensor_position(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray):
+def sensor_position(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray,
+                    stream: str = "gnss"):
     """Position (NED, m) of the position sensor (GNSS antenna / USBL transponder).
 
     ``pos + R @ l`` with ``l`` the sum of the sensor-offset terms (the lever arm, body) and
-    ``R`` the heading-corrected attitude at ``tm`` s since the mission start. Returns the
-    position, d/dpos (3x3), d/dp (3 x N_PARAMS).
+    ``R`` the heading-corrected attitude at ``tm`` s since the mission start. ``pos`` may be
+    the state ``[pos, vel]`` (6,): then ``- tau vel`` is added, ``tau`` the sum of the time
+    offsets of ``stream`` (a fix stamped ``t`` is the sensor at ``t - tau``, to first order).
+    Returns the position, d/dpos (3 x len(pos)), d/dp (3 x N_PARAMS).
     """
+    x = np.asarray(pos, dtype=float)
     R = corrected_attitude(R_raw, p, tm)
     Jp = np.zeros((3, N_PARAMS))
+    Jx = np.eye(3, len(x))
+    base = x[:3]
+    if len(x) == 6:
+        for d, sd in DELAY_TERMS:
+            if d.stream != stream:
+                continue
+            tau = d.delay(p[sd])
+            base = base - tau * x[3:6]
+            Jx[:, 3:6] -= tau * np.eye(3)
+            Jp[:, sd] -= np.outer(x[3:6], d.delay_jacobian(p[sd]))
     lever = np.zeros(3)
     for e, sl in OFFSET_TERMS:
         lever = lever + e.offset(p[sl])
@@ -49,12 +69,13 @@ def sensor_position(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray
     dRl = E_Z @ Rl                          # d (R l) / d theta
     for i, dth in heading_jacobian(p, tm):
         Jp[:, i] += dRl * dth
-    return pos + Rl, np.eye(3), Jp
+    return base + Rl, Jx, Jp
 
 
 def h_gnss(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray):
-    """GNSS fix model: north, east of the antenna. Returns z (2,), d/dpos (2x3), d/dp."""
-    ps, Jx, Jp = sensor_position(pos, R_raw, tm, p)
+    """GNSS fix model: north, east of the antenna. Returns z (2,), d/dpos (2 x len(pos)),
+    d/dp."""
+    ps, Jx, Jp = sensor_position(pos, R_raw, tm, p, "gnss")
     return ps[:2], Jx[:2], Jp[:2]
 
 
@@ -83,9 +104,9 @@ def h_usbl(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray, station
     transponder seen from ``station`` (NED), distorted by the USBL terms (range scale,
     bearing bias).
 
-    Returns z (2,), d/dpos (2x3), d/dp (2 x N_PARAMS).
+    Returns z (2,), d/dpos (2 x len(pos)), d/dp (2 x N_PARAMS).
     """
-    ps, Jx, Jp = sensor_position(pos, R_raw, tm, p)
+    ps, Jx, Jp = sensor_position(pos, R_raw, tm, p, "usbl")
     zz, HH = range_bearing(ps[None, :] - np.asarray(station, dtype=float))
     z, Hd = zz[0], HH[0]
     Jpos = Hd @ Jx

@@ -20,3 +20,6 @@ class ParamSpec:
     scale: float       # typical magnitude, for priors and finite differences
     doc: str
     typical: float | None = None   # a plausible non-null value (simulated hidden effects)
+    # the range a real vehicle's value lies in (default: the bounds); an estimate outside
+    # it fits, but is the effect absorbing something else (Effect.absorbs)
+    plausible: tuple[float, float] | None = None

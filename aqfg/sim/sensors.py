@@ -4,7 +4,9 @@ Every stream is computed from the closed-loop run (:class:`Run`) after the fact,
 where possible. Position measurements go through the model's own measurement functions
 (:meth:`aqfg.model.vehicle.Model.h_gnss` / ``h_usbl`` / ``h_depth``) with the true parameter vector,
 so the measurement effects (range scale, bearing bias, lever arm) enter exactly as the
-estimators model them. Units: s, m, rad; frames NED (ground) and x-fwd/y-stbd/z-down (body).
+estimators model them; a stream's time offset (:class:`~aqfg.model.effects.FixDelayTerm`)
+enters exactly: a fix stamped ``t`` is the sensor at ``t - tau`` (the estimators take it to
+first order). Units: s, m, rad; frames NED (ground) and x-fwd/y-stbd/z-down (body).
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import numpy as np
 
 from aqfg.data.mission import Depth, Gnss, Imu, Truth, Usbl
 from aqfg.model.frames import heading, wrap_angle
+from aqfg.model.measurements import DELAY_TERMS
 from aqfg.model.vehicle import Model, euler_to_quat, quat_to_rot
 
 GRAVITY = 9.81                    # m/s^2
@@ -68,6 +71,13 @@ class Run:
                 np.interp(t, self.t_fine, self.yaw))
 
 
+def sensed_times(t: np.ndarray, p: np.ndarray, stream: str) -> np.ndarray:
+    """When the sensor of ``stream`` really was where its fixes stamped ``t`` say: ``t - tau``
+    (``tau`` the sum of the stream's time offsets in ``p``), not before the run's start."""
+    tau = sum(e.delay(p[sl]) for e, sl in DELAY_TERMS if e.stream == stream)
+    return np.maximum(np.asarray(t, float) - tau, 0.0)
+
+
 def raw_attitude(run: Run, p: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Noise-free attitude (n, 3, 3) as the IMU reports it: yaw = true yaw - theta(t)."""
     roll, pitch, yaw = run.euler_at(t)
@@ -110,9 +120,10 @@ def gnss_stream(run: Run, p: np.ndarray, model: Model, rng: np.random.Generator,
     """GNSS fixes every ``period`` s from t = 0: the antenna position (centre of mass plus
     the rotated lever arm, :meth:`Model.h_gnss`) plus N(0, sigma^2) on north and on east."""
     t = np.arange(0.0, run.t_tick[-1] + 1e-9, period)
-    pos = run.pos_at(t)
-    R = raw_attitude(run, p, t)
-    ne = np.array([model.h_gnss(pos[i], R[i], t[i], p)[0] for i in range(len(t))])
+    ts = sensed_times(t, p, "gnss")
+    pos = run.pos_at(ts)
+    R = raw_attitude(run, p, ts)
+    ne = np.array([model.h_gnss(pos[i], R[i], ts[i], p)[0] for i in range(len(t))])
     ne = ne.reshape(-1, 2) + rng.normal(0.0, sigma, (len(t), 2))
     return Gnss(t=t, ne=ne, sigma=np.full(len(t), float(sigma)))
 
@@ -130,9 +141,10 @@ def usbl_stream(run: Run, p: np.ndarray, model: Model, rng: np.random.Generator,
     t0 = rng.uniform(0.0, period)
     t = np.arange(t0, run.t_tick[-1] + 1e-9, period)
     n = len(t)
-    pos = run.pos_at(t)
-    R = raw_attitude(run, p, t)
-    z = np.array([model.h_usbl(pos[i], R[i], t[i], p, station)[0] for i in range(n)])
+    ts = sensed_times(t, p, "usbl")
+    pos = run.pos_at(ts)
+    R = raw_attitude(run, p, ts)
+    z = np.array([model.h_usbl(pos[i], R[i], ts[i], p, station)[0] for i in range(n)])
     z = z.reshape(-1, 2)
     rng_ = z[:, 0] + rng.normal(0.0, sigma_range, n)
     brg = z[:, 1] + rng.normal(0.0, sigma_bearing, n)

@@ -17,7 +17,7 @@ MISSION_TOML = "mission.toml"
 STREAM_FILES = {"imu": "imu.csv", "motors": "motors.csv", "gnss": "gnss.csv",
                 "usbl": "usbl.csv", "depth": "depth.csv", "truth": "truth.csv"}
 MISSION_FILES = (MISSION_TOML, *STREAM_FILES.values())
-KNOWN_TABLES = ("thrusters", "usbl", "origin")     # parsed into Mission fields
+KNOWN_TABLES = ("thrusters", "usbl", "origin", "hull")     # parsed into Mission fields
 KNOWN_KEYS = ("format", "name", "vehicle")
 DIRECTION_TOL = 1e-3        # |norm - 1| allowed for a thruster direction ("unit axis")
 QUAT_TOL = 0.05             # |norm - 1| allowed for an IMU quaternion (never renormalised)
@@ -132,6 +132,11 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     if np.any(np.abs(np.linalg.norm(d, axis=1) - 1.0) > DIRECTION_TOL):
         raise MissionFormatError(ft, "expected unit vectors", column="[thrusters] direction")
     n_thr = len(d)
+    if m.hull is not None:
+        h = np.asarray(m.hull, dtype=float)
+        if h.shape != (2,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
+            raise MissionFormatError(ft, f"got {m.hull!r}; expected (length, beam) in metres, "
+                                         "both > 0", column="[hull] length")
     if m.thruster_pos is not None:
         tp = np.asarray(m.thruster_pos, dtype=float)
         if tp.shape != (n_thr, 3) or not np.all(np.isfinite(tp)):

@@ -300,8 +300,26 @@ def _parse_meta(f: str, meta: dict, default_name: str) -> dict[str, Any]:
                                         "|lat| < 90", column="[origin] lat")
         origin = (lat, lon)
         _keep_unknown(extra, "origin", org, ("lat", "lon"))
+    hull = _hull(f, _table(f, meta, "hull"), extra)
     return {"name": name, "vehicle": vehicle, "thruster_dir": d, "thruster_pos": pos,
-                "usbl_station": station, "origin": origin, "extra": extra}
+            "usbl_station": station, "origin": origin, "hull": hull, "extra": extra}
+
+
+def _hull(f: str, t: dict | None, extra: dict) -> tuple[float, float] | None:
+    """The optional ``[hull]`` table: ``length`` and ``beam`` (m, both > 0)."""
+    if t is None:
+        return None
+    out = []
+    for k in ("length", "beam"):
+        if k not in t:
+            raise MissionFormatError(f, "missing; expected [hull] length and beam in metres",
+                                     column=f"[hull] {k}")
+        v = _number(f, f"[hull] {k}", t[k])
+        if v <= 0:
+            raise MissionFormatError(f, f"got {v!r}; expected metres > 0", column=f"[hull] {k}")
+        out.append(v)
+    _keep_unknown(extra, "hull", t, ("length", "beam"))
+    return out[0], out[1]
 
 
 def _keep_unknown(extra: dict, table: str, t: dict, known: tuple[str, ...]) -> None:

@@ -52,6 +52,8 @@ def _meta_dict(m: Mission, truth: Truth | None) -> dict[str, Any]:
         tables["usbl"] = {"station": np.asarray(m.usbl_station, dtype=float)}
     if m.origin is not None:
         tables["origin"] = {"lat": float(m.origin[0]), "lon": float(m.origin[1])}
+    if m.hull is not None:
+        tables["hull"] = {"length": float(m.hull[0]), "beam": float(m.hull[1])}
     for k, v in m.extra.items():
         if k in KNOWN_KEYS:
             continue
