@@ -77,7 +77,8 @@ def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
     assert "not applicable" in capsys.readouterr().err
     assert main(["diagnose", str(mission_dir), "--min-gain", "1.5",
                  "--out", str(tmp_path / "g")]) == 2
-    assert "--min-gain must be a fraction in [0, 1), got 1.5" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--min-gain" in err and "1.5" in err
 
 
 def test_diagnose_logs_the_base_fits_warnings_once(tmp_path, capsys):

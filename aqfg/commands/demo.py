@@ -83,8 +83,8 @@ def _demo(out: Path, stage: Path) -> None:
     from aqfg.commands.common import strip_advice
     from aqfg.data.io import load_truth, save_mission
     from aqfg.data.mission import with_gnss_every
-    from aqfg.diagnose.workflow import diagnose, save_diagnosis
     from aqfg.diagnose.wording import heldout_change
+    from aqfg.diagnose.workflow import diagnose, save_diagnosis
     from aqfg.ekf.estimator import fit_update_error
     from aqfg.evaluate import inertial_rmse
     from aqfg.export import write_result
