@@ -50,8 +50,7 @@ def _directory(text: str):
 
 def build_parser() -> argparse.ArgumentParser:
     from aqfg import __version__
-    from aqfg.commands.options import MAX_SECONDS, number, seconds
-    from aqfg.data.preflight import DEFAULT_MAX_KNOTS
+    from aqfg.commands.options import number
     count = number(1, 1024, integer=True)
     ap = argparse.ArgumentParser(
         prog="aqfg",
@@ -75,6 +74,21 @@ def build_parser() -> argparse.ArgumentParser:
         return _add(*a, parents=[common], **kw)
     sub.add_parser = add_parser                 # type: ignore[method-assign]
 
+    _simulate_parser(sub)
+    _import_parser(sub)
+    _info_parser(sub)
+    for name, hlp in (("fit", "estimate parameters and the trajectory"),
+                      ("diagnose", "find which physical effect the model is missing")):
+        _job_parser(sub, name, hlp, count)
+    _fleet_parser(sub, count)
+    _demo_parser(sub)
+    _bench_parser(sub, count)
+    return ap
+
+
+def _simulate_parser(sub) -> None:
+    """``aqfg simulate``."""
+    from aqfg.commands.options import MAX_SECONDS, number, seconds
     s = sub.add_parser("simulate", help="simulate a mission (with optional hidden effects)",
                        description="Simulate an ASV or AUV mission in aqfg-mission/1 format.")
     s.add_argument("out_dir", metavar="OUT_DIR", type=_directory)
@@ -92,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--usbl", action="store_true", help="record USBL range/bearing every 4.5 s")
     s.add_argument("--force", action="store_true", help="overwrite OUT_DIR if it holds a mission")
 
+
+def _import_parser(sub) -> None:
+    """``aqfg import``."""
     s = sub.add_parser("import", help="convert a vehicle log (ROS bag, MAVLink, ULog, NMEA, "
                                       "CSV) into a mission",
                        description="Read a ROS 2/1 bag, MAVLink tlog or DataFlash .bin, PX4 "
@@ -113,75 +130,97 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite an existing mission "
                                                         "(nmea: replace its GNSS fixes)")
 
+
+def _info_parser(sub) -> None:
+    """``aqfg info``."""
     s = sub.add_parser("info", help="summarise a mission: streams, durations, rates, gaps",
                        description="Load a mission and print what it holds.")
     s.add_argument("mission", metavar="MISSION")
 
-    for name, hlp in (("fit", "estimate parameters and the trajectory"),
-                      ("diagnose", "find which physical effect the model is missing")):
-        s = sub.add_parser(name, help=hlp, description=hlp[0].upper() + hlp[1:] + ".")
-        s.add_argument("missions", nargs="+", metavar="MISSION")
-        s.add_argument("--out", required=True, metavar="DIR", type=_directory,
-                       help="output directory")
-        s.add_argument("--effect", action="append", default=[], metavar="NAME",
-                       help="add a model effect (repeatable)")
-        s.add_argument("--gnss-every", type=seconds(zero=True), default=0.0, metavar="S",
-                       help="use one GNSS fix every S seconds (default: all)" if name == "fit"
-                       else "held-out split: fit on one GNSS fix every S seconds (and every "
-                            "other USBL fix), test dead reckoning on the rest (default 8)")
-        s.add_argument("--force", action="store_true",
-                       help="replace the previous outputs in DIR (the whole set)")
-        s.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-        s.add_argument("--max-knots", type=_max_knots, default=DEFAULT_MAX_KNOTS, metavar="N",
-                       help="refuse missions needing a graph of more than N state knots "
-                            f"(one per second of mission; default {DEFAULT_MAX_KNOTS:,}, "
-                            "0 = no limit)")
-        if name == "fit":
-            s.add_argument("--tum", action="store_true",
-                           help="also write trajectory.tum (TUM format, for evo)")
-        if name == "diagnose":
-            s.add_argument("--auto", action="store_true",
-                           help="diagnose, add the missing effect, refit, and again until "
-                                "nothing more is confirmed; writes model.json")
-            s.add_argument("--max-steps", type=count, default=6, metavar="N",
-                           help="--auto: add at most N effects (default 6)")
-            s.add_argument("--stop-when-consistent", action="store_true",
-                           help="--auto: also stop once the held-out fixes are consistent "
-                                "with the model")
-            s.add_argument("--min-gain", type=number(0.0, 1.0), default=None, metavar="F",
-                           help="name an effect missing only when it lowers the held-out "
-                                "dead-reckoning error beyond the fixes' noise by at least this "
-                                "fraction (default 0.1)")
-            s.add_argument("--jobs", type=count, default=None, metavar="N",
-                           help="worker processes for the candidates' refits "
-                                "(default: the CPUs available, at most 4)")
-        if name == "fit":
-            s.add_argument("--model", metavar="MODEL_JSON",
-                           help="start from a learned model (model.json of aqfg diagnose): "
-                                "its effects, and its vehicle parameters as initial values")
-            s.add_argument("--method", choices=["fg", "update-error"], default="fg",
-                           help="fg: factor-graph smoothing (default); update-error: the "
-                                "paper's EKF method, the baseline (same outputs)")
-            s.add_argument("--mode", choices=["batch", "online"], default="batch",
-                           help="batch: all fixes at once (default); online: fix by fix, "
-                                "causally (fg: fixed-lag smoother; update-error: windowed EKF)")
-            s.add_argument("--window", type=seconds(), default=None,
-                           help="online window, seconds (fg default 24; update-error: last 3 fixes)")
-            s.add_argument("--estimate", default=None, metavar="NAMES",
-                           help="comma-separated parameters to estimate (default: batch, the "
-                                "six base parameters and those of the effects; online fg, "
-                                "theta_e,s_x,s_y and the effects' per-mission ones, plus "
-                                "k,k_x,k_yz unless --params-from, --model or --init gives one "
-                                "of them; online update-error, theta_e,s_x,s_y)")
-            s.add_argument("--init", action="append", default=[], metavar="NAME=VALUE",
-                           type=_effect_setting, help="initial/fixed value of a parameter")
-            s.add_argument("--params-from", metavar="JSON",
-                           help="take fixed values from a previous parameters.json (and "
-                                "the effects of its model)")
-            s.add_argument("--no-auto-effect", action="store_true",
-                           help="fg batch: fit the model as given, without adding the "
-                                "effect a structural test finds missing")
 
+def _job_parser(sub, name: str, hlp: str, count) -> None:
+    """``fit`` or ``diagnose``: the options they share, then their own."""
+    from aqfg.commands.options import seconds
+    from aqfg.data.preflight import DEFAULT_MAX_KNOTS
+    s = sub.add_parser(name, help=hlp, description=hlp[0].upper() + hlp[1:] + ".")
+    s.add_argument("missions", nargs="+", metavar="MISSION")
+    s.add_argument("--out", required=True, metavar="DIR", type=_directory,
+                   help="output directory")
+    s.add_argument("--effect", action="append", default=[], metavar="NAME",
+                   help="add a model effect (repeatable)")
+    s.add_argument("--gnss-every", type=seconds(zero=True), default=0.0, metavar="S",
+                   help="use one GNSS fix every S seconds (default: all)" if name == "fit"
+                   else "held-out split: fit on one GNSS fix every S seconds (and every "
+                        "other USBL fix), test dead reckoning on the rest (default 8)")
+    s.add_argument("--force", action="store_true",
+                   help="replace the previous outputs in DIR (the whole set)")
+    s.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    s.add_argument("--max-knots", type=_max_knots, default=DEFAULT_MAX_KNOTS, metavar="N",
+                   help="refuse missions needing a graph of more than N state knots "
+                        f"(one per second of mission; default {DEFAULT_MAX_KNOTS:,}, "
+                        "0 = no limit)")
+    if name == "fit":
+        s.add_argument("--tum", action="store_true",
+                       help="also write trajectory.tum (TUM format, for evo)")
+    if name == "diagnose":
+        _diagnose_options(s, count)
+    if name == "fit":
+        _fit_options(s)
+
+
+def _diagnose_options(s, count) -> None:
+    """``aqfg diagnose``'s own options."""
+    s.add_argument("--auto", action="store_true",
+                   help="diagnose, add the missing effect, refit, and again until "
+                        "nothing more is confirmed; writes model.json")
+    s.add_argument("--max-steps", type=count, default=6, metavar="N",
+                   help="--auto: add at most N effects (default 6)")
+    s.add_argument("--stop-when-consistent", action="store_true",
+                   help="--auto: also stop once the held-out fixes are consistent "
+                        "with the model")
+    from aqfg.commands.options import number
+    s.add_argument("--min-gain", type=number(0.0, 1.0), default=None, metavar="F",
+                   help="name an effect missing only when it lowers the held-out "
+                        "dead-reckoning error beyond the fixes' noise by at least this "
+                        "fraction (default 0.1)")
+    s.add_argument("--jobs", type=count, default=None, metavar="N",
+                   help="worker processes for the candidates' refits "
+                        "(default: the CPUs available, at most 4)")
+
+
+def _fit_options(s) -> None:
+    """``aqfg fit``'s own options (after ``--tum``)."""
+    from aqfg.commands.options import seconds
+    s.add_argument("--model", metavar="MODEL_JSON",
+                   help="start from a learned model (model.json of aqfg diagnose): "
+                        "its effects, and its vehicle parameters as initial values")
+    s.add_argument("--method", choices=["fg", "update-error"], default="fg",
+                   help="fg: factor-graph smoothing (default); update-error: the "
+                        "paper's EKF method, the baseline (same outputs)")
+    s.add_argument("--mode", choices=["batch", "online"], default="batch",
+                   help="batch: all fixes at once (default); online: fix by fix, "
+                        "causally (fg: fixed-lag smoother; update-error: windowed EKF)")
+    s.add_argument("--window", type=seconds(), default=None,
+                   help="online window, seconds (fg default 24; update-error: last 3 fixes)")
+    s.add_argument("--estimate", default=None, metavar="NAMES",
+                   help="comma-separated parameters to estimate (default: batch, the "
+                        "six base parameters and those of the effects; online fg, "
+                        "theta_e,s_x,s_y and the effects' per-mission ones, plus "
+                        "k,k_x,k_yz unless --params-from, --model or --init gives one "
+                        "of them; online update-error, theta_e,s_x,s_y)")
+    s.add_argument("--init", action="append", default=[], metavar="NAME=VALUE",
+                   type=_effect_setting, help="initial/fixed value of a parameter")
+    s.add_argument("--params-from", metavar="JSON",
+                   help="take fixed values from a previous parameters.json (and "
+                        "the effects of its model)")
+    s.add_argument("--no-auto-effect", action="store_true",
+                   help="fg batch: fit the model as given, without adding the "
+                        "effect a structural test finds missing")
+
+
+def _fleet_parser(sub, count) -> None:
+    """``aqfg fleet``."""
+    from aqfg.commands.options import seconds
     s = sub.add_parser("fleet", help="calibrate every vehicle of a fleet from all its missions",
                        description="Each vehicle's joint fit over its missions (a TOML "
                                    "manifest), solved in parallel on Dask.")
@@ -202,12 +241,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "structural tests find missing")
     s.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
+
+def _demo_parser(sub) -> None:
+    """``aqfg demo``."""
     s = sub.add_parser("demo", help="the main job on a built-in simulated mission",
                        description="Simulate a mission, fit it with the factor graph and the "
                                    "update-error baseline, diagnose it, and write a report.")
     s.add_argument("--out", default="aqfg-demo", metavar="DIR", type=_directory)
     s.add_argument("--force", action="store_true", help="overwrite DIR")
 
+
+def _bench_parser(sub, count) -> None:
+    """``aqfg bench``."""
     s = sub.add_parser("bench", help="quick benchmarks (medians of repeated runs)",
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
     s.add_argument("--repeat", type=count, default=5)
@@ -216,7 +261,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, metavar="DIR", type=_directory,
                    help="also write bench.md here")
     s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")
-    return ap
 
 
 def _by_interrupt(e: BaseException) -> bool:

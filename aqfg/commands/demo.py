@@ -80,20 +80,10 @@ def table_lines(rows: list[dict]) -> list[str]:
 
 def _demo(out: Path, stage: Path) -> None:
     """The four steps, writing into ``stage``; messages name the final place ``out``."""
-    from aqfg.commands.common import strip_advice
     from aqfg.data.io import load_truth, save_mission
     from aqfg.data.mission import with_gnss_every
-    from aqfg.diagnose.wording import heldout_change
-    from aqfg.diagnose.workflow import diagnose, save_diagnosis
-    from aqfg.ekf.estimator import fit_update_error
-    from aqfg.evaluate import inertial_rmse
-    from aqfg.export import write_result
-    from aqfg.fg.common import FGSettings
-    from aqfg.fg.fit import fit_fg
-    from aqfg.model.params import OLD_PARAMS
     from aqfg.model.vehicle import Model
-    from aqfg.outputs import provenance, write_json
-    from aqfg.plots import plot_fit
+    from aqfg.outputs import write_json
     from aqfg.sim.simulator import simulate
 
     t_start = time.perf_counter()
@@ -112,31 +102,7 @@ def _demo(out: Path, stage: Path) -> None:
     rows: list[dict] = []
 
     def fit(method: str, effects: tuple[str, ...]) -> dict:
-        """One fit of the side-by-side: every parameter of the model estimated, nothing
-        added by the fit itself (``--no-auto-effect``), written to fit-METHOD[-with-E]."""
-        est = SIX + tuple(f"{e}.ratio" for e in effects)
-        t0 = time.perf_counter()
-        if method == "fg":
-            res = fit_fg([thin], mode="batch", effects=effects, estimate=est,
-                         settings=FGSettings(auto_effect=False))
-        else:
-            res = fit_update_error([thin], mode="batch", effects=effects, estimate=est)
-        dt = time.perf_counter() - t0
-        name = f"fit-{method}" + "".join(f"-with-{e}" for e in effects)
-        (stage / name).mkdir()
-        write_result(res, stage / name, [thin], provenance=provenance(
-            method=res.method, mode=res.mode, effects=res.effects,
-            settings={"gnss_every": GNSS_EVERY, "estimate": list(est)},
-            inputs=[out / "mission"]))
-        plot_fit(res, [thin], stage / name)
-        row = {"model": f"with {' + '.join(effects)}" if effects else "as given",
-               "method": method, "dir": name,
-               "track_rmse_m": inertial_rmse(res.model or model, mission, res.missions[0].p,
-                                             truth),
-               "values": {n: float(res.values[n]) for n in est}, "seconds": dt,
-               "warnings": [strip_advice(w) for w in res.info.get("warnings", [])]}
-        rows.append(row)
-        return row
+        return _fit(method, effects, thin, mission, truth, model, stage, out, rows)
 
     _say("2/4 the model as given: the factor graph fits the paper's six parameters "
          "(aqfg fit --no-auto-effect) ...")
@@ -146,6 +112,67 @@ def _demo(out: Path, stage: Path) -> None:
     for w in fg0["warnings"]:
         _say(f"    - {w}")
 
+    diag, eff, after = _diagnose_missing(mission, stage)
+
+    with_eff = (eff,) if eff is not None else ()
+    _say("4/4 both methods side by side, on the same fixes, model and start"
+         + (f", as given and with {eff} (aqfg fit --effect {eff})" if eff else "") + " ...")
+    fit("update-error", ())
+    if eff is not None:
+        fit("fg", with_eff)
+        fit("update-error", with_eff)
+    shown = _compare(model, mission, truth, rows, eff)
+    write_json(stage / "demo.json", {
+        "gnss_every": GNSS_EVERY, "hidden": list(DEMO_EFFECT), "missing": eff,
+        "heldout_rmse_m": [diag.base.rmse, after.base.rmse] if after is not None else None,
+        "rows": [{k: v for k, v in r.items() if k != "warnings"} for r in shown],
+        "fit_warnings": fg0["warnings"]})
+    _say(f"done in {time.perf_counter() - t_start:.0f} s; the table is {out / 'demo.json'}")
+
+
+def _fit(method: str, effects: tuple[str, ...], thin, mission, truth, model, stage: Path,
+         out: Path, rows: list[dict]) -> dict:
+    """One fit of the side-by-side: every parameter of the model estimated, nothing
+    added by the fit itself (``--no-auto-effect``), written to fit-METHOD[-with-E]; its row
+    of the table is added to ``rows``."""
+    from aqfg.commands.common import strip_advice
+    from aqfg.ekf.estimator import fit_update_error
+    from aqfg.evaluate import inertial_rmse
+    from aqfg.export import write_result
+    from aqfg.fg.common import FGSettings
+    from aqfg.fg.fit import fit_fg
+    from aqfg.outputs import provenance
+    from aqfg.plots import plot_fit
+    est = SIX + tuple(f"{e}.ratio" for e in effects)
+    t0 = time.perf_counter()
+    if method == "fg":
+        res = fit_fg([thin], mode="batch", effects=effects, estimate=est,
+                     settings=FGSettings(auto_effect=False))
+    else:
+        res = fit_update_error([thin], mode="batch", effects=effects, estimate=est)
+    dt = time.perf_counter() - t0
+    name = f"fit-{method}" + "".join(f"-with-{e}" for e in effects)
+    (stage / name).mkdir()
+    write_result(res, stage / name, [thin], provenance=provenance(
+        method=res.method, mode=res.mode, effects=res.effects,
+        settings={"gnss_every": GNSS_EVERY, "estimate": list(est)},
+        inputs=[out / "mission"]))
+    plot_fit(res, [thin], stage / name)
+    row = {"model": f"with {' + '.join(effects)}" if effects else "as given",
+           "method": method, "dir": name,
+           "track_rmse_m": inertial_rmse(res.model or model, mission, res.missions[0].p,
+                                         truth),
+           "values": {n: float(res.values[n]) for n in est}, "seconds": dt,
+           "warnings": [strip_advice(w) for w in res.info.get("warnings", [])]}
+    rows.append(row)
+    return row
+
+
+def _diagnose_missing(mission, stage: Path):
+    """Step 3: the diagnosis of the model as given, and again with the effect it finds
+    missing; ``(diagnosis, effect or None, diagnosis with it or None)``."""
+    from aqfg.diagnose.wording import heldout_change
+    from aqfg.diagnose.workflow import diagnose, save_diagnosis
     _say("3/4 what is missing: diagnosing (held-out fixes, conditions, a score test of every "
          "catalogue effect, refits of the top ones) ...")
     diag = diagnose([mission], gnss_every=GNSS_EVERY)
@@ -163,14 +190,14 @@ def _demo(out: Path, stage: Path) -> None:
         _say(f"    with {eff} in the model: {heldout_change(b, a)}; the consistency test "
              f"{ok[bool(b.consistency and b.consistency.passed)]} -> "
              f"{ok[bool(a.consistency and a.consistency.passed)]}")
+    return diag, eff, after
 
-    with_eff = (eff,) if eff is not None else ()
-    _say("4/4 both methods side by side, on the same fixes, model and start"
-         + (f", as given and with {eff} (aqfg fit --effect {eff})" if eff else "") + " ...")
-    fit("update-error", ())
-    if eff is not None:
-        fit("fg", with_eff)
-        fit("update-error", with_eff)
+
+def _compare(model, mission, truth, rows: list[dict], eff) -> list[dict]:
+    """Step 4's table: the model-only tracks of the paper's old values, the fits and the
+    true values against the truth (printed; returned as rows)."""
+    from aqfg.evaluate import inertial_rmse
+    from aqfg.model.params import OLD_PARAMS
     p_old = model.nominal(OLD_PARAMS)
     p_true = model.nominal({k: v for k, v in truth.params.items() if k in model.all_names})
     shown = [{"model": "paper's old values", "method": "", "track_rmse_m":
@@ -188,12 +215,7 @@ def _demo(out: Path, stage: Path) -> None:
         for r in (r for r in rows if r["model"] != "as given"):
             _say(f"    {r['method']}: {eff}.ratio = {r['values'][f'{eff}.ratio']:.3f}"
                  + (f" (true {truth_ratio:.3f})" if truth_ratio is not None else ""))
-    write_json(stage / "demo.json", {
-        "gnss_every": GNSS_EVERY, "hidden": list(DEMO_EFFECT), "missing": eff,
-        "heldout_rmse_m": [diag.base.rmse, after.base.rmse] if after is not None else None,
-        "rows": [{k: v for k, v in r.items() if k != "warnings"} for r in shown],
-        "fit_warnings": fg0["warnings"]})
-    _say(f"done in {time.perf_counter() - t_start:.0f} s; the table is {out / 'demo.json'}")
+    return shown
 
 
 if __name__ == "__main__":  # pragma: no cover

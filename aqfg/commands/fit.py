@@ -145,7 +145,7 @@ def _check_names(missions, effects, estimate, init) -> None:
 
 
 def run(args) -> int:
-    from aqfg.commands.common import Progress, advise, input_warnings, load_missions, log
+    from aqfg.commands.common import Progress, input_warnings, load_missions, log
     from aqfg.export import write_result
     from aqfg.outputs import OutputSet, provenance, unique_safe_names
     from aqfg.result import RESULT_FILES
@@ -170,30 +170,7 @@ def run(args) -> int:
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
-    effects = tuple(args.effect)
-    if args.params_from:
-        # the file's model: its effects join (their values are in init), as --model's do
-        file_effects = effects_of_values(from_file, f"--params-from {args.params_from}")
-        added = [e for e in file_effects if e not in effects]
-        if added:
-            log.info("--params-from %s: its model has the effect(s) %s; they are added",
-                     args.params_from, ", ".join(added))
-        effects = tuple(dict.fromkeys(file_effects + effects))
-        from_file = vehicle_values(from_file, missions[0], effects,
-                                   f"--params-from {args.params_from}")
-    init = {**from_file, **initial_values(args.init, None)}
-    model_path = getattr(args, "model", None)
-    if model_path:
-        # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial
-        # values (under --params-from and --init, which override them)
-        from aqfg.model.modelfile import read_model
-        mf = read_model(model_path)
-        veh = sorted({m.vehicle for m in missions})
-        if veh != [mf.vehicle]:
-            raise ValueError(f"--model {model_path}: a model of an {mf.vehicle}, the "
-                             f"missions are {', '.join(veh)}")
-        effects = tuple(dict.fromkeys(mf.effects + effects))
-        init = {**mf.init(), **init}
+    effects, init, model_path = _effects_and_init(args, missions, from_file)
     _check_names(missions, effects, estimate,
                  [n for n, _ in args.init])
     subdirs = unique_safe_names(names) if len(missions) > 1 else []
@@ -232,6 +209,47 @@ def run(args) -> int:
             written += plot_fit(result, missions, stage)
         shown = sorted({str(p.relative_to(stage)) for p in written})
     print(parameter_table(result))
+    _print_summary(result)
+    print(f"wrote {', '.join(shown)} to {out}")
+    return 0
+
+
+def _effects_and_init(args, missions, from_file: dict):
+    """The model's effects (``--effect``, those of ``--params-from``'s model and of
+    ``--model``), the initial values (``--model``'s under ``--params-from``'s under
+    ``--init``) and the ``--model`` path."""
+    from aqfg.commands.common import log
+    effects = tuple(args.effect)
+    if args.params_from:
+        # the file's model: its effects join (their values are in init), as --model's do
+        file_effects = effects_of_values(from_file, f"--params-from {args.params_from}")
+        added = [e for e in file_effects if e not in effects]
+        if added:
+            log.info("--params-from %s: its model has the effect(s) %s; they are added",
+                     args.params_from, ", ".join(added))
+        effects = tuple(dict.fromkeys(file_effects + effects))
+        from_file = vehicle_values(from_file, missions[0], effects,
+                                   f"--params-from {args.params_from}")
+    init = {**from_file, **initial_values(args.init, None)}
+    model_path = getattr(args, "model", None)
+    if model_path:
+        # a learned model (aqfg diagnose): its effects, its vehicle parameters as initial
+        # values (under --params-from and --init, which override them)
+        from aqfg.model.modelfile import read_model
+        mf = read_model(model_path)
+        veh = sorted({m.vehicle for m in missions})
+        if veh != [mf.vehicle]:
+            raise ValueError(f"--model {model_path}: a model of an {mf.vehicle}, the "
+                             f"missions are {', '.join(veh)}")
+        effects = tuple(dict.fromkeys(mf.effects + effects))
+        init = {**mf.init(), **init}
+    return effects, init, model_path
+
+
+def _print_summary(result) -> None:
+    """What the fit did beyond the parameter table: the dead-reckoning refinement, a
+    widened process noise, the timings and the online events."""
+    from aqfg.commands.common import advise
     dr = result.info.get("dead_reckoning") or {}
     if dr.get("applied"):
         print(f"thrust/drag constants refined for dead reckoning over {dr['horizon_s']:.0f} s "
@@ -266,5 +284,3 @@ def run(args) -> int:
     if gated:
         print(f"online: {len(gated)} USBL fixes left out by the innovation gate (at "
               f"{', '.join(f'{x:.1f}' for x in gated[:8])}{', ...' if len(gated) > 8 else ''} s)")
-    print(f"wrote {', '.join(shown)} to {out}")
-    return 0

@@ -28,7 +28,8 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   projected into the layout's bounds after each step (as the batch LM).
 * with the compiled kernel, a dynamics factor's linearisation and swap into the quadratic
   (``linearise_into``), the step (``window_step``) and the marginalisation
-  (``schur_drop``) are one C++ call each; the numpy code here is their reference
+  (``schur_drop``) are one C++ call each; the numpy code here and in
+  :mod:`aqfg.fg.fastlag_dyn` is their reference
   (``FGSettings.fast_cpp_block=False``; docs/speed.md).
 
 :meth:`LagWindow.unsupported` says why a configuration needs the GTSAM engine
@@ -45,55 +46,19 @@ import numpy as np
 from scipy.linalg.lapack import dposv as _posv
 
 from aqfg.fg import factors as fc
-from aqfg.fg.robust import huber_cost, huber_scalar, huber_weight, row_norms
-from aqfg.model.measurements import range_bearing
+from aqfg.fg.fastlag_dyn import WindowDynamics, _kernel, _kernel_factory
+from aqfg.fg.fastlag_fixes import WindowFixes
+from aqfg.fg.fastlag_walk import WALK_EVERY, WindowWalk, _small_inv
 from aqfg.model.vehicle import compiled_kernel
 
+__all__ = ["LagWindow", "WALK_EVERY", "_kernel", "_kernel_factory", "_small_inv"]
 
-def _kernel():
-    """The compiled kernel module (the caller checked that it is built; looked up per use,
-    not held, so that a window stays deep-copyable)."""
-    cpp = compiled_kernel()
-    assert cpp is not None
-    return cpp
 
 
 _EMPTY = np.zeros(0)
-# s: the current's walk is applied to the marginal in steps of at least this (one step
-# costs ~90-170 us; its correlation time is minutes, FGSettings.online_current_walk)
-WALK_EVERY = 30.0
 
 
-def _kernel_factory(geometry, cols):
-    """A function ``steps -> f`` building :meth:`LagWindow._propagator`'s kernel calls with
-    the geometry's arrays converted once (a plain function: the window stays
-    deep-copyable; the compiled functions are looked up per call of the factory)."""
-    from aqfg.model.params import N_DYN
-    dirs = np.ascontiguousarray(geometry.dirs, float)
-    side = np.ascontiguousarray(geometry.side, float)
-    planar = bool(geometry.planar)
-    nd = N_DYN
-
-    def make(steps):
-        cpp = _kernel()
-        kernel = cpp.propagate
-        args = (np.ascontiguousarray(steps.h, float), np.ascontiguousarray(steps.warm, np.uint8),
-                np.ascontiguousarray(steps.R, float), np.ascontiguousarray(steps.dem, float),
-                np.ascontiguousarray(steps.tm, float), dirs, side, planar)
-
-        def f(x0, p):
-            return kernel(x0, p[:nd], *args)
-        if cols is not None:
-            into = cpp.linearise_into
-
-            def block_into(x0, p, th, W, o, H, b, Hb, bb):
-                return into(x0, p[:nd], th, cols, W, o, H, b, Hb, bb, *args)
-            f.into = block_into  # type: ignore[attr-defined]
-        return f
-    return make
-
-
-class LagWindow:
+class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
     """The window's factors and estimate (see the module docstring). Times in s, states
     ``[n, e, d, vn, ve, vd]``.
 
@@ -110,10 +75,21 @@ class LagWindow:
                  prior_sigma: np.ndarray, hold_sigma: np.ndarray | None,
                  x0: np.ndarray, first_mean: np.ndarray, first_sigma: np.ndarray,
                  t0: float, kid0: int, prior_mean: np.ndarray | None = None):
-        s = settings
-        self.model, self.layout, self.s = model, layout, s
+        self.model, self.layout, self.s = model, layout, settings
         self.planar = bool(mission.planar)
         self.lag = float(lag)
+        self._init_layout(prior_mean)
+        self._init_weights(hold_sigma)
+        self.set_mission(mission)
+        self._init_caches()
+        self._init_estimate(x0, prior_sigma, first_mean, first_sigma, t0, kid0)
+        self._init_walk()
+        self._take_fixes(float(t0) - 1e-6, float(t0))
+
+    def _init_layout(self, prior_mean: np.ndarray | None) -> None:
+        """The estimated parameters' layout: start values, prior centre, bounds, slices per
+        group and the kernel's Jacobian columns of each."""
+        model, layout = self.model, self.layout
         groups = layout.groups
         th0 = np.concatenate([layout.initial(g) for g in groups]) if groups else np.zeros(0)
         P = self.P = len(th0)
@@ -141,6 +117,11 @@ class LagWindow:
         # the same columns as a slice (a view) when they are consecutive
         self._jsl = (slice(jc[0], jc[0] + P) if P and self.jcols is not None
                      and jc == list(range(jc[0], jc[0] + P)) else None)
+
+    def _init_weights(self, hold_sigma: np.ndarray | None) -> None:
+        """The hold priors' and the robust losses' weights, and the relinearisation thresholds
+        of the parameters."""
+        s, model, layout = self.s, self.model, self.layout
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
         sn = s.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
@@ -151,7 +132,10 @@ class LagWindow:
         self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
         self._relin_th_l = self.relin_th.tolist()
-        self.set_mission(mission)
+
+    def _init_caches(self) -> None:
+        """The caches of the window's index arrays and whether the C++ blocks are used."""
+        P = self.P
         self._wcache: dict = {}
         self._dyn_idx: dict = {}       # (N, knot) -> flat indices of a dynamics block in H
         self._fp: tuple | None = None  # (theta bytes, full_params) of the last call
@@ -169,6 +153,12 @@ class LagWindow:
                        if self.jcols is not None and P and cpp is not None
                        and hasattr(cpp, "linearise_into") and self.s.fast_cpp_block else None)
         self.last_ok = True
+
+    def _init_estimate(self, x0: np.ndarray, prior_sigma: np.ndarray, first_mean: np.ndarray,
+                       first_sigma: np.ndarray, t0: float, kid0: int) -> None:
+        """The estimate of the first knot and the held quadratic with the parameters' prior and
+        the first knot's prior; no dynamics factors and fixes yet."""
+        P, th0 = self.P, self.th0
         # the estimate and the held quadratic
         self.z = np.concatenate([th0, np.asarray(x0, float)])
         self.n = 1
@@ -197,21 +187,6 @@ class LagWindow:
         self.fx: list[list | None] = []
         self.FXL: list[list[float]] = []
         self.cov = np.full((P, P), np.nan)
-        # random walk of the current and the heading offset (FGSettings.online_current_walk,
-        # online_heading_walk): variance per second of each estimated parameter that walks
-        cw = float(s.online_current_walk)
-        hw = float(s.online_heading_walk)
-        rate = {"s_x": cw, "s_y": cw, "theta_e": hw}
-        wv = [j for j, n in enumerate(layout.estimated)
-              if rate.get(n, 0.0) > 0 and n in layout.names.get("variable", ())]
-        self._walk_idx = np.array(wv, int)
-        self._walk_var = np.array([rate[layout.estimated[j]] ** 2 for j in wv])
-        # its stationary variance: the current's prior (s.prior_sigma), inf: a plain walk
-        self._walk_stat = np.array([float(s.prior_sigma.get(layout.estimated[j], math.inf))
-                                    ** 2 for j in wv])
-        self._walk_cache: dict = {}
-        self._walk_due = 0.0           # s of the marginal's time not walked yet
-        self._take_fixes(float(t0) - 1e-6, float(t0))
 
     # ------------------------------------------------------------------ configuration
     @staticmethod
@@ -241,160 +216,6 @@ class LagWindow:
         self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
         self.tab_d = (m.depth_t, m.depth_z)
         self.station = None if m.station is None else np.asarray(m.station, float)
-
-    def _depth(self, t_lo: float, t_hi: float) -> None:
-        """The depth reading nearest to the newest knot among those in (t_lo, t_hi] (one
-        per knot, as the batch's): ``down + vd * dt`` of the knot, the reading ``dt`` s
-        from it, its variance widened by the process noise's position variance over
-        ``dt``; linear, so added to the held quadratic once."""
-        dt_, dz = self.tab_d
-        if self.planar or not len(dt_):
-            return
-        a, b = int(dt_.searchsorted(t_lo + 1e-9)), int(dt_.searchsorted(t_hi + 1e-9))
-        if b <= a:
-            return
-        tk = self.kt[-1]
-        j = a + int(np.argmin(np.abs(dt_[a:b] - tk)))
-        e = float(dt_[j] - tk)
-        var = self.s.sensors.depth_sigma ** 2 + float(self.s.process.cov(abs(e))[2, 2])
-        o = self.P + 6 * (self.n - 1)
-        J = np.zeros(6)
-        J[2], J[5] = 1.0, e
-        self.H[o:o + 6, o:o + 6] += np.outer(J, J) / var
-        self.b[o:o + 6] -= (float(dz[j]) / var) * J
-
-    def _take_fixes(self, t_lo: float, t_hi: float, usbl: bool = True,
-                    usbl_scale: float = 1.0) -> None:
-        """The fixes in (t_lo, t_hi] onto the newest knot, linearised at its estimate
-        (``usbl`` False: its GNSS fixes only; ``usbl_scale`` multiplies its USBL sigmas)."""
-        self._depth(t_lo, t_hi)
-        gt, gz, gs = self.tab_g
-        lo, hi = t_lo + 1e-9, t_hi + 1e-9
-        a, b = int(gt.searchsorted(lo)), int(gt.searchsorted(hi))
-        ut, uz, us = self.tab_u
-        c, d = int(ut.searchsorted(lo)), int(ut.searchsorted(hi))
-        if not usbl:
-            d = c
-        if b <= a and d <= c:
-            self.fx.append(None)
-            self.FXL.append([math.nan] * 3)
-            return
-        self.fx.append([gz[a:b], gs[a:b], uz[c:d],
-                        us[c:d] if usbl_scale == 1.0 else us[c:d] * usbl_scale, None, None])
-        self.FXL.append([0.0] * 3)
-        self._set_fix(self.n - 1)
-
-    def fix_terms(self, i: int, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """Cost (Huber), gradient (3,) and Gauss-Newton block (3, 3) of the fixes of window
-        knot ``i`` at position ``x`` (NED, m), Huber weights at ``x``."""
-        f = self.fx[i]
-        assert f is not None
-        gz, gs, uz, us = f[:4]
-        if len(gz) == 1 and not len(uz):
-            return self._gnss1(x, gz[0], float(gs[0]))
-        if len(uz) == 1 and not len(gz):
-            return self._usbl1(x, uz[0], us[0])
-        Hk = np.zeros((3, 3))
-        gk = np.zeros(3)
-        cost = 0.0
-        if len(gz):
-            r = (x[:2] - gz) / gs[:, None]
-            d = row_norms(r)
-            w = huber_weight(d, self.k_gnss)
-            cost += float(np.sum(huber_cost(d, self.k_gnss)))
-            Hk[0, 0] = Hk[1, 1] = float(np.sum(w / gs ** 2))
-            gk[:2] = np.sum((w / gs)[:, None] * r, axis=0)
-        if len(uz):
-            h, Hd = range_bearing(np.broadcast_to(x[:3] - self.station, (len(uz), 3)))
-            raw = h - uz
-            raw[:, 1] = fc.wrap_angle(raw[:, 1])
-            r = raw / us
-            J = Hd / us[:, :, None]
-            d = row_norms(r)
-            w = huber_weight(d, self.k_usbl)
-            cost += float(np.sum(huber_cost(d, self.k_usbl)))
-            Jt = J.transpose(0, 2, 1)
-            Hk += np.einsum("k,kij->ij", w, np.matmul(Jt, J))
-            gk += np.einsum("k,kij,kj->i", w, Jt, r)
-        return cost, gk, Hk
-
-    def _gnss1(self, x: np.ndarray, z: np.ndarray, s: float):
-        """:meth:`fix_terms` of one GNSS fix, in scalars (numpy calls cost microseconds)."""
-        r0, r1 = (float(x[0]) - float(z[0])) / s, (float(x[1]) - float(z[1])) / s
-        d = math.hypot(r0, r1)
-        w, cost = huber_scalar(d, self.k_gnss)
-        Hk = np.zeros((3, 3))
-        Hk[0, 0] = Hk[1, 1] = w / (s * s)
-        return cost, np.array([w * r0 / s, w * r1 / s, 0.0]), Hk
-
-    def _usbl1(self, x: np.ndarray, z: np.ndarray, sig: np.ndarray):
-        """:meth:`fix_terms` of one USBL fix (range, bearing; :func:`range_bearing`)."""
-        assert self.station is not None
-        dn, de, dd = (float(x[0] - self.station[0]), float(x[1] - self.station[1]),
-                      float(x[2] - self.station[2]))
-        rng = math.sqrt(dn * dn + de * de + dd * dd)
-        rh2 = dn * dn + de * de
-        sr, sb = float(sig[0]), float(sig[1])
-        r0 = (rng - float(z[0])) / sr
-        r1 = float(fc.wrap_angle(math.atan2(de, dn) - float(z[1]))) / sb
-        d = math.hypot(r0, r1)
-        w, cost = huber_scalar(d, self.k_usbl)
-        rr, hh = max(rng, 1e-9), max(rh2, 1e-12)
-        J = np.array([[dn / rr / sr, de / rr / sr, dd / rr / sr],
-                      [-de / hh / sb, dn / hh / sb, 0.0]])
-        return cost, w * (J[0] * r0 + J[1] * r1), w * (J.T @ J)
-
-    def _set_fix(self, i: int) -> None:
-        """(Re)linearise the fixes of window knot ``i`` at its estimate."""
-        f = self.fx[i]
-        assert f is not None
-        o = self.P + 6 * i
-        if len(f[0]) == 1 and not len(f[2]):
-            return self._set_gnss1(i, f, o)
-        x = self.z[o:o + 3].copy()
-        _, gk, Hk = self.fix_terms(i, x)
-        bk = gk - Hk @ x
-        if f[4] is not None:
-            self.H[o:o + 3, o:o + 3] += Hk - f[4]
-            self.b[o:o + 3] += bk - f[5]
-        else:
-            self.H[o:o + 3, o:o + 3] += Hk
-            self.b[o:o + 3] += bk
-        f[4], f[5] = Hk, bk
-        self.FXL[i] = x.tolist()
-
-    def _set_gnss1(self, i: int, f: list, o: int) -> None:
-        """:meth:`_set_fix` of a knot with one GNSS fix, relinearised, in Python floats: the
-        same numbers as the matrix form (``Hk = diag(h, h, 0)``, ``gk = (g0, g1, 0)``: the
-        zero entries change nothing)."""
-        x0, x1, x2 = self.z[o:o + 3].tolist()
-        gz, s = f[0][0], float(f[1][0])
-        r0, r1 = (x0 - float(gz[0])) / s, (x1 - float(gz[1])) / s
-        d = math.hypot(r0, r1)
-        k = self.k_gnss
-        w = 1.0 if k is None or d <= k else k / d
-        h = w / (s * s)
-        g0, g1 = w * r0 / s, w * r1 / s
-        z0 = 0.0 * x0 + 0.0 * x1 + 0.0 * x2          # (Hk x)'s zero terms (NaN with x)
-        b0, b1, b2 = g0 - (h * x0 + z0), g1 - (h * x1 + z0), 0.0 - z0
-        Hp, bp = f[4], f[5]
-        H, b = self.H, self.b
-        if Hp is None:
-            H[o, o] += h
-            H[o + 1, o + 1] += h
-            b[o] += b0
-            b[o + 1] += b1
-            b[o + 2] += b2
-        else:
-            H[o, o] += h - Hp[0, 0]
-            H[o + 1, o + 1] += h - Hp[1, 1]
-            b[o] += b0 - bp[0]
-            b[o + 1] += b1 - bp[1]
-            b[o + 2] += b2 - bp[2]
-        Hk = np.zeros((3, 3))
-        Hk[0, 0] = Hk[1, 1] = h
-        f[4], f[5] = Hk, np.array([b0, b1, b2])
-        self.FXL[i] = [x0, x1, x2]
 
     # ------------------------------------------------------------------ reading
     @property
@@ -443,87 +264,6 @@ class LagWindow:
             self.H[o + 2, o + 2] += self.surf_w[0]
             self.H[o + 5, o + 5] += self.surf_w[1]
 
-    def _propagator(self, steps):
-        """The dynamics factor's kernel over ``steps``: ``f(x0, p) -> (x1, Jx, Jp)``
-        (:func:`fc.propagator`), with the vehicle's geometry converted once; with the C++
-        block (``FGSettings.fast_cpp_block``) also ``f.into``, the factor linearised and
-        swapped into the held quadratic in one call (kernel ``linearise_into``)."""
-        if self._kern is None:
-            if compiled_kernel() is None or not self.model.uses_cpp:
-                return fc.propagator(self.model, steps)
-            self._kern = _kernel_factory(self.model.geometry, self._lcols)
-        return self._kern(steps)
-
-    def _whitening(self, dt: float, q: float) -> np.ndarray:
-        """``W`` with ``W^T W = (q Q(dt))^-1``: ``L^-1 / sqrt(q)`` for ``Q(dt) = L L^T``."""
-        key = round(dt, 9)
-        W = self._wcache.get(key)
-        if W is None:
-            W = self._wcache[key] = np.linalg.inv(np.linalg.cholesky(
-                self.s.process.cov(dt, self.planar)))
-        return W if q == 1.0 else W * (1.0 / math.sqrt(q))
-
-    def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):
-        """Whitened linear model ``J [theta, x_i, x_i+1] + c`` of dynamics factor ``i``
-        linearised at ``(x0, th)`` (kernel results ``pred, Jx, Jp``): the negated residual
-        ``f(x0, p) - x1`` (the sign leaves the normal equations as they are)."""
-        P = self.P
-        M = np.empty((6, P + 12))
-        M[:, :P] = (Jp[:, self._jsl] if self._jsl is not None else
-                    Jp[:, self.jcols] if self.jcols is not None else Jp @ self.Jsel)
-        M[:, P:P + 6] = Jx
-        M[:, P + 6:] = _MINUS_I6
-        c = W @ (pred - M[:, :P + 6] @ np.concatenate([th, x0]))
-        return W @ M, c
-
-    def _set_dyn(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp) -> None:
-        J, c = self.dyn_linear(i, x0, th, pred, Jx, Jp, self.dyn[i][1])
-        Jt = J.T
-        self._set_block(i, x0, th, Jt @ J, Jt @ c)
-
-    def _linearise(self, i: int, x0: np.ndarray, th: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Linearise dynamics factor ``i`` at ``(x0, th)`` (full parameters ``p``) into the
-        held quadratic, unless the model's prediction is not finite; returns the
-        prediction."""
-        d = self.dyn[i]
-        into = getattr(d[4], "into", None)
-        if into is not None:                 # one C++ call (kernel ``linearise_into``)
-            H = self.H
-            if not H.flags.c_contiguous:
-                H = self.H = np.ascontiguousarray(H)
-            pred = into(x0, p, th, d[1], self.P + 6 * i, H, self.b, d[2], d[3])
-            if all(map(math.isfinite, pred.tolist())):
-                self.X0L[i] = x0.tolist()
-                self.THL[i] = th.tolist()
-            return pred
-        pred, Jx, Jp = d[4](x0, p)
-        if all(map(math.isfinite, pred.tolist())):
-            self._set_dyn(i, x0, th, pred, Jx, Jp)
-        return pred
-
-    def _set_block(self, i: int, x0: np.ndarray, th: np.ndarray, Hi: np.ndarray,
-                   bi: np.ndarray) -> None:
-        """Swap dynamics factor ``i``'s block ``(Hi, bi)`` (over ``[theta, x_i, x_i+1]``)
-        into the held quadratic."""
-        d = self.dyn[i]
-        dH, db = Hi - d[2], bi - d[3]
-        H = self.H
-        if not H.flags.c_contiguous:
-            H = self.H = np.ascontiguousarray(H)
-        N = len(H)
-        key = (N, i)
-        ix = self._dyn_idx.get(key)
-        if ix is None:          # rows/columns [theta, x_i, x_i+1] of H, flat and plain
-            P, o = self.P, self.P + 6 * i
-            r = np.concatenate([np.arange(P), np.arange(o, o + 12)])
-            ix = self._dyn_idx[key] = ((r[:, None] * N + r[None, :]).ravel(), r)
-        Hf = H.reshape(-1)      # a view (C-contiguous)
-        Hf[ix[0]] += dH.ravel()
-        self.b[ix[1]] += db
-        d[2], d[3] = Hi, bi
-        self.X0L[i] = x0.tolist()
-        self.THL[i] = th.tolist()
-
     def add(self, t: float, kid: int, steps, q_scale: float) -> np.ndarray:
         """A new knot at fix time ``t`` after the newest one, with the dynamics factor over
         ``steps`` linearised at the current estimate; returns the model's prediction there
@@ -554,35 +294,6 @@ class LagWindow:
         if not ok:              # a diverged model: relinearised at the next step
             self.X0L[-1] = [math.inf] * 6
         return np.array(x1)
-
-    def index_at(self, t: float) -> int | None:
-        """Window index of the knot at time ``t`` (None: not in the window)."""
-        return next((j for j, tk in enumerate(self.kt) if abs(tk - t) < 1e-9), None)
-
-    def readmit_usbl(self, t: float) -> bool:
-        """Add the USBL fixes at time ``t`` to their knot (one left out by the caller's gate,
-        still in the window); False when the knot has left the window."""
-        i = self.index_at(t)
-        if i is None:
-            return False
-        ut, uz, us = self.tab_u
-        c, d = int(ut.searchsorted(t - 1e-9)), int(ut.searchsorted(t + 1e-9))
-        if d <= c:
-            return False
-        f = self.fx[i]
-        if f is None:
-            gz, gs = self.tab_g[1], self.tab_g[2]
-            self.fx[i] = [gz[0:0], gs[0:0], uz[c:d], us[c:d], None, None]
-        else:
-            f[2], f[3] = uz[c:d], us[c:d]
-        self._set_fix(i)
-        return True
-
-    def take_fixes(self, usbl: bool = True, usbl_scale: float = 1.0) -> None:
-        """The fixes since the knot before the newest onto the newest (after
-        ``add(..., take_fixes=False)``); ``usbl`` False leaves its USBL fixes out,
-        ``usbl_scale`` multiplies their sigmas."""
-        self._take_fixes(self.kt[-2], self.kt[-1], usbl, usbl_scale)
 
     def release(self) -> None:
         """Remove the hold priors on the parameters."""
@@ -728,76 +439,6 @@ class LagWindow:
             self._walk(self._walk_due)
             self._walk_due = 0.0
 
-    def _walk_step(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """The Gauss-Markov step over ``dt`` s of each walking parameter: its factor ``a``
-        and the variance ``var(w)`` (:meth:`_walk`; a plain walk where the stationary
-        variance is infinite), cached per interval."""
-        key = round(dt, 9)
-        out = self._walk_cache.get(key)
-        if out is None:
-            stat = self._walk_stat
-            gm = np.isfinite(stat)
-            tau = 2.0 * np.where(gm, stat, 1.0) / self._walk_var
-            a = np.where(gm, np.exp(-dt / tau), 1.0)
-            q = np.where(gm, np.where(gm, stat, 0.0) * (1.0 - a * a), self._walk_var * dt)
-            out = self._walk_cache[key] = (a, q)
-        return out
-
-    def _walk(self, dt: float) -> None:
-        """The current (and the heading offset: a plain random walk of
-        ``online_heading_walk`` rad per sqrt(s)) of the information that has left the window
-        moves before it meets the window's data: a first-order Gauss-Markov process (the
-        INS bias model) around the
-        prior's centre ``mu0``, ``s' - mu0 = a (s - mu0) + w``, diffusing as a random walk of
-        ``online_current_walk`` m/s per sqrt(s) over short times and with the current's
-        prior (``FGSettings.prior_sigma``) as its stationary sigma, so that the prior does
-        not wash out over a long mission (``a = exp(-dt / tau)``, ``tau = 2 S / sigma^2``,
-        ``var(w) = S (1 - a^2)``).
-
-        Applied to the marginal ``H_m`` only -- the held quadratic less the window's own
-        dynamics factors (the only other terms on the parameters): the affine map, then the
-        covariance grown by ``var(w)`` (Woodbury: ``H_m' = H_m - C M^-1 C^T``,
-        ``C = H_m E S``, ``M = I + S E^T H_m E S``, the mean kept). Within the window the
-        parameters stay one value: the walk acts between the past and the window."""
-        if not dt > 0:
-            return
-        P = self.P
-        w = self._walk_idx
-        a, q = self._walk_step(dt)
-        # the marginal lives on [theta, oldest knot] (each Schur complement links the
-        # eliminated knot's neighbours only): everything below acts on that leading block
-        L = P + 6
-        H, b = self.H, self.b
-        Cm = H[:L, w].copy()                         # (L, k): the marginal's columns
-        bw = b[w].copy()
-        if self.dyn:                                 # less the window's dynamics factors
-            # (stacked, one numpy call each: this runs at every knot that leaves)
-            S = np.array([d[2] for d in self.dyn])[:, :L, w]    # (n - 1, L, k)
-            Cm[:P] -= S[:, :P].sum(axis=0)
-            Cm[P:] -= S[0, P:]                       # factor 0 is the one on the oldest knot
-            bw -= np.array([d[3] for d in self.dyn])[:, w].sum(axis=0)
-        if np.any(a < 1.0):          # the mean reversion: z_w = (z_w' - c) / a on H_m, b_m
-            f = 1.0 / a
-            c = (1.0 - a) * self.mu0[w]
-            Ct = Cm * f[None, :]
-            Ct[w] *= f[:, None]
-            D = Ct - Cm
-            H[:L, w] += D
-            H[w, :L] += D.T
-            H[np.ix_(w, w)] -= D[w]
-            bt = bw * f
-            b[w] += bt - bw
-            b[:L] -= Ct @ c
-            bw = bt - Ct[w] @ c
-            Cm = Ct
-        sd = np.sqrt(q)
-        C = Cm * sd[None, :]
-        M = np.eye(len(w)) + sd[:, None] * Cm[w] * sd[None, :]      # >= I
-        Mi = _small_inv(M)
-        CM = C @ Mi
-        H[:L, :L] -= CM @ C.T
-        b[:L] -= CM @ (sd * bw)
-
     # ------------------------------------------------------------------ tests
     def cost(self, z: np.ndarray) -> float:
         """The window's linearised cost (1/2 chi-square up to a constant) at ``z``: held
@@ -809,18 +450,5 @@ class LagWindow:
         return c
 
 
-_MINUS_I6 = -np.eye(6)
+
 _ZERO6 = np.zeros(6)
-
-
-def _small_inv(M: np.ndarray) -> np.ndarray:
-    """Inverse of a small symmetric positive-definite matrix (closed form for 1x1 and 2x2:
-    LAPACK's call overhead is ~10 us, the walk of the current runs at every knot that
-    leaves the window)."""
-    if M.shape == (1, 1):
-        return 1.0 / M
-    if M.shape == (2, 2):
-        a, c, d = float(M[0, 0]), float(M[0, 1]), float(M[1, 1])
-        det = a * d - c * c
-        return np.array([[d, -c], [-c, a]]) / det
-    return np.linalg.inv(M)

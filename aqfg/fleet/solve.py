@@ -139,6 +139,84 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
     return FleetResult(manifest, results, diag, stats)
 
 
+def _chunks(client, pending: dict, specs: dict, where: dict) -> dict[str, list]:
+    """A round's requests by worker, ``worker -> [(vehicle, spec, op, args)]``: each mission
+    on the worker that holds it, or on the least loaded live one (``where`` updated)."""
+    alive = _alive_workers(client)
+    chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
+    for v, reqs in pending.items():
+        for spec, (op, args) in zip(specs[v], reqs):
+            w = where.get(spec.key)
+            if w not in alive:
+                w = where[spec.key] = _least_loaded(alive, where)
+            chunks.setdefault(w, []).append((v, spec, op, args))
+    return chunks
+
+
+def _gather(futs: dict, timeout, stats: dict, show, iters: dict, gens: dict,
+            sols: dict) -> dict:
+    """A round's replies by mission key as its tasks complete (progress shown per task);
+    :class:`FleetError` naming the missions of a task that failed or timed out."""
+    from distributed import as_completed
+    n_round = sum(len(items) for items in futs.values())
+    done = 0
+    replies: dict = {}
+    try:
+        for fut in as_completed(list(futs), timeout=timeout):
+            items = futs[fut]
+            try:
+                reps = fut.result()
+            except Exception as e:             # re-raised with context
+                names = ", ".join(f"{v}/{spec.name}" for v, spec, _, _ in items[:4])
+                raise FleetError(f"a task for missions {names}"
+                                 f"{' ...' if len(items) > 4 else ''} failed: "
+                                 f"{type(e).__name__}: {e}") from e
+            for (v, spec, _, _), r in zip(items, reps):
+                if "error" in r:
+                    raise FleetError(f"vehicle {v!r}, mission {spec.name!r} ({spec.path}): "
+                                     f"{r['error']}")
+                replies[spec.key] = r
+            done += len(items)
+            stats["tasks"] += 1
+            its = ", ".join(f"{x} {iters[x]}" for x in gens if x not in sols)
+            show(min(0.99, len(sols) / len(gens)),
+                 f"round {stats['rounds']}: {done}/{n_round} missions done; "
+                 f"iterations: {its or '-'}")
+    except TimeoutError:
+        raise FleetError(f"round {stats['rounds']} took longer than {timeout} s") from None
+    return replies
+
+
+def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once: set,
+             stats: dict, gens: dict, sols: dict) -> dict:
+    """Each vehicle's replies sent to its :func:`joint_lm` generator: its next requests, or
+    its solution into ``sols`` when it has finished (the round's figures into ``stats``)."""
+    new_pending = {}
+    for v, reqs in pending.items():
+        out = []
+        for spec in specs[v]:
+            r = replies[spec.key]
+            where[spec.key] = r.pop("worker")
+            if r.pop("built"):
+                stats["rebuilt"] += spec.key in built_once
+                built_once.add(spec.key)
+            sec = r.pop("seconds")
+            stats["task_seconds"] += sec
+            by = stats.setdefault("by_op", {}).setdefault(reqs[0][0], [0, 0.0, 0])
+            by[0] += 1
+            by[1] += sec
+            out.append(r)
+        nbytes = _size(out)
+        stats["by_op"][reqs[0][0]][2] += nbytes
+        stats["reply_bytes"] += nbytes
+        stats["request_bytes"] += _size(reqs)
+        try:
+            new_pending[v] = gens[v].send(out)
+        except StopIteration as stop:
+            sols[v] = stop.value
+    return new_pending
+
+
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
                  timeout, stats: dict, refit: bool = False) -> tuple[dict, dict[str, Result]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
@@ -146,7 +224,6 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     (one task each; the dead-reckoning constants and tracks come once, after the effect
     step, in :func:`_fit`). ``(specs, results)``, by vehicle; ``stats`` accumulates the
     run's figures."""
-    from distributed import as_completed
     run = uuid.uuid4().hex[:12]
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
                                   effects, estimate, init, gnss_every, refit)
@@ -165,70 +242,15 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     while pending:
         stats["rounds"] += 1
         t_round = time.perf_counter()
-        alive = _alive_workers(client)
-        chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
-        for v, reqs in pending.items():
-            for spec, (op, args) in zip(specs[v], reqs):
-                w = where.get(spec.key)
-                if w not in alive:
-                    w = where[spec.key] = _least_loaded(alive, where)
-                chunks.setdefault(w, []).append((v, spec, op, args))
+        chunks = _chunks(client, pending, specs, where)
         futs = {client.submit(missions_op, [c[1:] for c in items], pure=False, workers=[w],
                               allow_other_workers=True, retries=2,
                               key=f"aqfg-{run}-{stats['rounds']}-{i}"): items
                 for i, (w, items) in enumerate(chunks.items())}
-        n_round = sum(len(items) for items in futs.values())
-        done = 0
-        replies: dict = {}
-        try:
-            for fut in as_completed(list(futs), timeout=timeout):
-                items = futs[fut]
-                try:
-                    reps = fut.result()
-                except Exception as e:             # re-raised with context
-                    names = ", ".join(f"{v}/{spec.name}" for v, spec, _, _ in items[:4])
-                    raise FleetError(f"a task for missions {names}"
-                                     f"{' ...' if len(items) > 4 else ''} failed: "
-                                     f"{type(e).__name__}: {e}") from e
-                for (v, spec, _, _), r in zip(items, reps):
-                    if "error" in r:
-                        raise FleetError(f"vehicle {v!r}, mission {spec.name!r} ({spec.path}): "
-                                         f"{r['error']}")
-                    replies[spec.key] = r
-                done += len(items)
-                stats["tasks"] += 1
-                its = ", ".join(f"{x} {iters[x]}" for x in gens if x not in sols)
-                show(min(0.99, len(sols) / len(gens)),
-                     f"round {stats['rounds']}: {done}/{n_round} missions done; "
-                     f"iterations: {its or '-'}")
-        except TimeoutError:
-            raise FleetError(f"round {stats['rounds']} took longer than {timeout} s") from None
+        replies = _gather(futs, timeout, stats, show, iters, gens, sols)
         t_client = time.perf_counter()
         stats["round_seconds"].append(t_client - t_round)
-        new_pending = {}
-        for v, reqs in pending.items():
-            out = []
-            for spec in specs[v]:
-                r = replies[spec.key]
-                where[spec.key] = r.pop("worker")
-                if r.pop("built"):
-                    stats["rebuilt"] += spec.key in built_once
-                    built_once.add(spec.key)
-                sec = r.pop("seconds")
-                stats["task_seconds"] += sec
-                by = stats.setdefault("by_op", {}).setdefault(reqs[0][0], [0, 0.0, 0])
-                by[0] += 1
-                by[1] += sec
-                out.append(r)
-            nbytes = _size(out)
-            stats["by_op"][reqs[0][0]][2] += nbytes
-            stats["reply_bytes"] += nbytes
-            stats["request_bytes"] += _size(reqs)
-            try:
-                new_pending[v] = gens[v].send(out)
-            except StopIteration as stop:
-                sols[v] = stop.value
-        pending = new_pending
+        pending = _advance(pending, specs, replies, where, built_once, stats, gens, sols)
         stats["client_seconds"] = stats.get("client_seconds", 0.0) + time.perf_counter() - t_client
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}

@@ -150,14 +150,46 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
     """
     Jp = np.zeros((3, N_DYN))
     R = rot_z(heading(p, tm)) @ R_raw
-    # current (Eq. 3) and the current terms
+    w = v - _current(p, tm)
+    vr = R.T @ w
+    a_thr, g, g_rel, factors, M, dloss_dd, inflow_q = _thrust(v, R, d, p, geom)
+    a_b, q2, D, body_q = _drag(vr, a_thr, p)
+    a = R @ a_b
+    RD = R @ D
+    A = RD @ R.T                               # d a / d v (body part)
+    _body_columns(Jp, R, d, dd_tau, p, geom, g, g_rel, factors, dloss_dd, q2, body_q + inflow_q)
+    # heading: dR/dth = E_Z R; a = R a_b(vr, vg), vr = R^T (v - s), vg = R^T v
+    RM = R @ M
+    da_dth = E_Z @ a + RD @ (R.T @ (E_Z.T @ w)) + RM @ (R.T @ (E_Z.T @ v))
+    # current: d a / d s = -A (the water part; the inflow terms see the speed over ground)
+    Jp[:, I_SX] = -A[:, 0]
+    Jp[:, I_SY] = -A[:, 1]
+    for e, sl in CURRENT_TERMS:
+        Jp[:, sl] = -A @ e.current_jacobian(tm, p[sl])
+    A = A + RM @ R.T
+    a, A, da_dth = _ground(Jp, a, A, da_dth, v, R, d, tm, p)
+    for i, dth in heading_jacobian(p, tm):
+        Jp[:, i] += da_dth * dth
+    if geom.planar:
+        a[2] = 0.0
+        A[2, :] = 0.0
+        Jp[2, :] = 0.0
+    return a, A, Jp
+
+
+def _current(p: np.ndarray, tm: float) -> np.ndarray:
+    """The current (m/s, NED; Eq. 3) with the current terms at time ``tm``."""
     s = np.array([p[I_SX], p[I_SY], 0.0])
     for e, sl in CURRENT_TERMS:
         s = s + e.current(tm, p[sl])
-    w = v - s
-    vr = R.T @ w
+    return s
 
-    # thrust (Eq. 1) with the gain terms
+
+def _thrust(v: np.ndarray, R: np.ndarray, d: np.ndarray, p: np.ndarray, geom: Geometry):
+    """Thrust (Eq. 1) with the gain terms and the inflow terms (thrust lost with |u| and the
+    advance speed over ground): body-frame acceleration ``a_thr``, the gains ``g`` and
+    ``g / k``, the gain factors, ``d a_b / d vg``, the loss's derivative w.r.t. the demand
+    and the inflow terms' parameter columns ``[(slice, d a_b / d q)]``."""
     side = geom.side
     k = p[I_K]
     factors = [e.gain(side, d, p[sl]) for e, sl in GAIN_TERMS]
@@ -180,8 +212,13 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
         M = M - geom.dirs.T @ (Lva[:, None] * geom.dirs)
         dloss_dd = dloss_dd + Ln * dn_dd
         inflow_q.append((sl, -geom.dirs.T @ Lq))
+    return a_thr, g, g_rel, factors, M, dloss_dd, inflow_q
 
-    # quadratic drag (Eq. 2) and the body-force terms
+
+def _drag(vr: np.ndarray, a_thr: np.ndarray, p: np.ndarray):
+    """Quadratic drag (Eq. 2) and the body-force terms at the water-relative body velocity
+    ``vr``: body-frame acceleration ``a_b``, ``sign(v_r) v_r^2``, ``d a_b / d vr`` and the
+    body-force terms' parameter columns ``[(slice, d a_b / d q)]``."""
     kq = np.array([p[I_KX], p[I_KYZ], p[I_KYZ]])
     q2 = np.abs(vr) * vr                       # sign(v_r) v_r^2
     a_b = a_thr - kq * q2
@@ -192,11 +229,16 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
         a_b = a_b + f
         D = D + Fv
         body_q.append((sl, Fq))
-    a = R @ a_b
-    RD = R @ D
-    A = RD @ R.T                               # d a / d v (body part)
+    return a_b, q2, D, body_q
 
-    # body-frame columns
+
+def _body_columns(Jp: np.ndarray, R: np.ndarray, d: np.ndarray, dd_tau: np.ndarray,
+                  p: np.ndarray, geom: Geometry, g: np.ndarray, g_rel: np.ndarray,
+                  factors: list, dloss_dd: np.ndarray, q2: np.ndarray, body_cols: list) -> None:
+    """The body-frame columns of ``Jp`` (written in place): thrust gain ``k``, drag ``k_x``,
+    ``k_yz``, the gain, lag, body-force and inflow terms."""
+    k = p[I_K]
+    side = geom.side
     Rdirs = R @ geom.dirs.T                    # thrust directions, ground frame (3, n_thr)
     Jp[:, I_K] = Rdirs @ (g_rel * d)
     Jp[:, I_KX] = -R[:, 0] * q2[0]
@@ -209,19 +251,14 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
         Jp[:, sl] = Rdirs @ ((others * d)[:, None] * e.gain_jacobian(side, d, p[sl]))
     for e, sl in LAG_TERMS:
         Jp[:, sl] = np.outer(Rdirs @ ((g - dloss_dd) * dd_tau), e.time_constant_jacobian(p[sl]))
-    for sl, Fq in body_q + inflow_q:
+    for sl, Fq in body_cols:
         Jp[:, sl] = R @ Fq
-    # heading: dR/dth = E_Z R; a = R a_b(vr, vg), vr = R^T (v - s), vg = R^T v
-    RM = R @ M
-    da_dth = E_Z @ a + RD @ (R.T @ (E_Z.T @ w)) + RM @ (R.T @ (E_Z.T @ v))
-    # current: d a / d s = -A (the water part; the inflow terms see the speed over ground)
-    Jp[:, I_SX] = -A[:, 0]
-    Jp[:, I_SY] = -A[:, 1]
-    for e, sl in CURRENT_TERMS:
-        Jp[:, sl] = -A @ e.current_jacobian(tm, p[sl])
-    A = A + RM @ R.T
 
-    # ground-frame terms
+
+def _ground(Jp: np.ndarray, a: np.ndarray, A: np.ndarray, da_dth: np.ndarray, v: np.ndarray,
+            R: np.ndarray, d: np.ndarray, tm: float, p: np.ndarray):
+    """The ground-frame terms added to the acceleration ``a``, ``d a / d v`` and
+    ``d a / d heading`` (returned), their parameter columns written into ``Jp``."""
     for e, sl in GROUND_TERMS:
         q = p[sl]
         a = a + e.ground_accel(v, R, d, tm, q)
@@ -229,13 +266,7 @@ def accel(v: np.ndarray, R_raw: np.ndarray, d: np.ndarray, dd_tau: np.ndarray, t
         A = A + Jv
         Jp[:, sl] = Jq
         da_dth = da_dth + Jth
-    for i, dth in heading_jacobian(p, tm):
-        Jp[:, i] += da_dth * dth
-    if geom.planar:
-        a[2] = 0.0
-        A[2, :] = 0.0
-        Jp[2, :] = 0.0
-    return a, A, Jp
+    return a, A, da_dth
 
 
 def propagate(x0: np.ndarray, p: np.ndarray, steps: Steps, geom: Geometry, user=()):

@@ -161,51 +161,17 @@ def simulate(vehicle: str = "asv", *, seed: int = 0, duration: float = 600.0,
     usbl=True``.
     """
     spec = _spec(vehicle)
-    duration = _num(duration, "duration")
-    if duration < 1.0:
-        raise ValueError(f"duration must be at least 1 s, got {duration}")
-    if gnss_period is not None and (not np.isfinite(gnss_period) or gnss_period < 0):
-        raise ValueError(f"gnss_period must be >= 0 (0 or None: no GNSS), got {gnss_period}")
-    if usbl and not usbl_period > 0:
-        raise ValueError(f"usbl_period must be > 0, got {usbl_period}")
-    if not 0.0 <= usbl_outlier_rate <= 1.0:
-        raise ValueError(f"usbl_outlier_rate must be in [0, 1], got {usbl_outlier_rate}")
-    if gnss_sigma < 0 or usbl_sigma_range < 0 or usbl_sigma_bearing < 0:
-        raise ValueError("noise sigmas must be >= 0")
+    duration = _checked_options(duration, gnss_period, usbl, usbl_period, usbl_outlier_rate,
+                                gnss_sigma, usbl_sigma_range, usbl_sigma_bearing)
     seq = np.random.SeedSequence(int(seed))
     r_plan, r_par, r_imu, r_gnss, r_usbl, r_depth = (np.random.default_rng(s)
                                                      for s in seq.spawn(6))
 
-    # ---- the true parameter vector
-    eff_vals = effect_values(effects)
-    values = true_params(vehicle)
-    values["theta_e"] = 0.5 + r_par.uniform(-0.15, 0.15)
-    cur_speed, cur_dir = r_par.uniform(0.07, 0.13), r_par.uniform(0.0, 2 * np.pi)
-    values["s_x"], values["s_y"] = cur_speed * np.cos(cur_dir), cur_speed * np.sin(cur_dir)
-    for n, v in (params or {}).items():
-        if n not in SPEC:
-            raise KeyError(f"unknown parameter {n!r}; known: {', '.join(NAMES)}")
-        values[n] = _num(v, n)
-        _check_bounds(n, values[n])
-    extra_eff = {n: v for n, v in (params or {}).items()
-                 if n not in BASE_NAMES and v != SPEC[n].null}
-    values.update(eff_vals)
-    active = _active_effects({**eff_vals, **extra_eff})
-    for e in active:
-        if vehicle not in BUILTIN[e].vehicles:
-            raise ValueError(f"effect {e!r} does not apply to an {vehicle} "
-                             f"(only: {', '.join(BUILTIN[e].vehicles)})")
-    p = vector(values)
+    p, active = _true_vector(vehicle, r_par, params, effects)
 
     # ---- plan
     v_lo, v_hi = spec.speed_range
-    if waypoints is None:
-        wps = waypoint_pattern(r_plan, 0.85 * 0.5 * (v_lo + v_hi) * duration)
-    else:
-        wps = np.asarray(waypoints, dtype=float)
-        if wps.ndim != 2 or wps.shape[0] < 2 or wps.shape[1] != 2 or not np.isfinite(wps).all():
-            raise ValueError(f"waypoints must be a finite (n >= 2, 2) array of north/east "
-                             f"metres, got shape {wps.shape}")
+    wps = _waypoints(waypoints, r_plan, 0.85 * 0.5 * (v_lo + v_hi) * duration)
     leg_speed = r_plan.uniform(v_lo, v_hi, len(wps))
     yaw0 = float(np.arctan2(*(wps[1] - wps[0])[::-1]) + r_plan.uniform(-np.pi / 2, np.pi / 2))
     wobble = Wobble.random(r_plan, spec.wobble_deg)
@@ -231,6 +197,62 @@ def simulate(vehicle: str = "asv", *, seed: int = 0, duration: float = 600.0,
     if profile is not None:
         tp["depth_profile"] = profile.tolist()
     return shell, truth_track(run, tp)
+
+
+def _checked_options(duration, gnss_period, usbl, usbl_period, usbl_outlier_rate, gnss_sigma,
+                     usbl_sigma_range, usbl_sigma_bearing) -> float:
+    """:func:`simulate`'s options checked (ValueError naming the bad one); the duration (s)
+    as a float."""
+    duration = _num(duration, "duration")
+    if duration < 1.0:
+        raise ValueError(f"duration must be at least 1 s, got {duration}")
+    if gnss_period is not None and (not np.isfinite(gnss_period) or gnss_period < 0):
+        raise ValueError(f"gnss_period must be >= 0 (0 or None: no GNSS), got {gnss_period}")
+    if usbl and not usbl_period > 0:
+        raise ValueError(f"usbl_period must be > 0, got {usbl_period}")
+    if not 0.0 <= usbl_outlier_rate <= 1.0:
+        raise ValueError(f"usbl_outlier_rate must be in [0, 1], got {usbl_outlier_rate}")
+    if gnss_sigma < 0 or usbl_sigma_range < 0 or usbl_sigma_bearing < 0:
+        raise ValueError("noise sigmas must be >= 0")
+    return duration
+
+
+def _true_vector(vehicle: str, r_par, params, effects) -> tuple[np.ndarray, list]:
+    """The true parameter vector (seeded heading offset and current, ``params`` and the
+    ``effects``' values over the vehicle's defaults) and the active effects."""
+    eff_vals = effect_values(effects)
+    values = true_params(vehicle)
+    values["theta_e"] = 0.5 + r_par.uniform(-0.15, 0.15)
+    cur_speed, cur_dir = r_par.uniform(0.07, 0.13), r_par.uniform(0.0, 2 * np.pi)
+    values["s_x"], values["s_y"] = cur_speed * np.cos(cur_dir), cur_speed * np.sin(cur_dir)
+    for n, v in (params or {}).items():
+        if n not in SPEC:
+            raise KeyError(f"unknown parameter {n!r}; known: {', '.join(NAMES)}")
+        values[n] = _num(v, n)
+        _check_bounds(n, values[n])
+    extra_eff = {n: v for n, v in (params or {}).items()
+                 if n not in BASE_NAMES and v != SPEC[n].null}
+    values.update(eff_vals)
+    active = _active_effects({**eff_vals, **extra_eff})
+    for e in active:
+        if vehicle not in BUILTIN[e].vehicles:
+            raise ValueError(f"effect {e!r} does not apply to an {vehicle} "
+                             f"(only: {', '.join(BUILTIN[e].vehicles)})")
+    p = vector(values)
+    return p, active
+
+
+def _waypoints(waypoints, r_plan, length: float) -> np.ndarray:
+    """The plan's waypoints (n, 2) north/east m: ``waypoints`` checked, or a seeded pattern
+    of about ``length`` m."""
+    if waypoints is None:
+        wps = waypoint_pattern(r_plan, length)
+    else:
+        wps = np.asarray(waypoints, dtype=float)
+        if wps.ndim != 2 or wps.shape[0] < 2 or wps.shape[1] != 2 or not np.isfinite(wps).all():
+            raise ValueError(f"waypoints must be a finite (n >= 2, 2) array of north/east "
+                             f"metres, got shape {wps.shape}")
+    return wps
 
 
 def _mission_shell(spec, seed: int) -> Mission:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -265,36 +266,10 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
     def secs(s: Series) -> np.ndarray:
         return (s.t_ns - t0).astype(np.float64) * 1e-9
 
-    si = series["imu"]
-    q = np.asarray(si.data["q"], dtype=float)
-    norm = np.linalg.norm(q, axis=1)
-    bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > QUAT_TOL))
-    if len(bad):
-        i = int(bad[0])
-        raise LogFormatError(src, f"attitude quaternion {q[i].tolist()} has norm {norm[i]:.4g}; "
-                                  "expected a unit quaternion", **at(src, si.topic, si.t_ns[i], start))
-    imu = Imu(secs(si), q, si.data.get("acc"), si.data.get("gyro"))
+    imu = _imu(src, series["imu"], secs, start)
     sm = series["motors"]
     motors = Motors(secs(sm), np.asarray(sm.data["u"], dtype=float))
-    gnss = None
-    origin = imap.origin
-    sg = series.get("gnss")
-    if sg is not None and "ne" in sg.data:                   # a local NED frame already
-        gnss = Gnss(secs(sg), np.asarray(sg.data["ne"], dtype=float), _sigma(sg, notes))
-    elif sg is not None:
-        ll = np.column_stack([sg.data["lat"], sg.data["lon"]]).astype(float)
-        badll = np.flatnonzero(~np.isfinite(ll).all(axis=1) | (np.abs(ll[:, 0]) >= 90.0)
-                               | (np.abs(ll[:, 1]) > 180.0))
-        if len(badll):
-            i = int(badll[0])
-            raise LogFormatError(src, f"fix at lat {ll[i, 0]!r}, lon {ll[i, 1]!r}; expected "
-                                      "degrees (|lat| < 90, |lon| <= 180)",
-                                 **at(src, sg.topic, sg.t_ns[i], start))
-        if origin is None:
-            origin = (float(ll[0, 0]), float(ll[0, 1]))
-            notes.append("no [origin] in the map: the first fix is the origin of the NED frame")
-        gnss = Gnss(secs(sg), latlon_to_ne(ll[:, 0], ll[:, 1], origin), _sigma(sg, notes),
-                    latlon=ll)
+    gnss, origin = _gnss(src, series.get("gnss"), secs, start, imap.origin, notes)
     usbl = None
     if "usbl" in series:
         su = series["usbl"]
@@ -324,6 +299,44 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
                              topic=sm.topic)
     check_mission(mission)
     return ImportResult(mission, series, t0, notes)
+
+
+def _imu(src: str, si: Series, secs: Callable[[Series], np.ndarray], start: int) -> Imu:
+    """The IMU stream, its attitude quaternions checked to be unit ones (``secs``: a
+    series' stamps in mission seconds)."""
+    q = np.asarray(si.data["q"], dtype=float)
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > QUAT_TOL))
+    if len(bad):
+        i = int(bad[0])
+        raise LogFormatError(src, f"attitude quaternion {q[i].tolist()} has norm {norm[i]:.4g}; "
+                                  "expected a unit quaternion", **at(src, si.topic, si.t_ns[i], start))
+    return Imu(secs(si), q, si.data.get("acc"), si.data.get("gyro"))
+
+
+def _gnss(src: str, sg: Series | None, secs: Callable[[Series], np.ndarray], start: int,
+          origin: tuple[float, float] | None, notes: list[str]):
+    """The GNSS stream (None: none) from local NED positions or checked latitude/longitude
+    (degrees), and the NED frame's origin (the first fix when the map names none, with a
+    note)."""
+    gnss = None
+    if sg is not None and "ne" in sg.data:                   # a local NED frame already
+        gnss = Gnss(secs(sg), np.asarray(sg.data["ne"], dtype=float), _sigma(sg, notes))
+    elif sg is not None:
+        ll = np.column_stack([sg.data["lat"], sg.data["lon"]]).astype(float)
+        badll = np.flatnonzero(~np.isfinite(ll).all(axis=1) | (np.abs(ll[:, 0]) >= 90.0)
+                               | (np.abs(ll[:, 1]) > 180.0))
+        if len(badll):
+            i = int(badll[0])
+            raise LogFormatError(src, f"fix at lat {ll[i, 0]!r}, lon {ll[i, 1]!r}; expected "
+                                      "degrees (|lat| < 90, |lon| <= 180)",
+                                 **at(src, sg.topic, sg.t_ns[i], start))
+        if origin is None:
+            origin = (float(ll[0, 0]), float(ll[0, 1]))
+            notes.append("no [origin] in the map: the first fix is the origin of the NED frame")
+        gnss = Gnss(secs(sg), latlon_to_ne(ll[:, 0], ll[:, 1], origin), _sigma(sg, notes),
+                    latlon=ll)
+    return gnss, origin
 
 
 def _sigma(sg: Series, notes: list[str]) -> np.ndarray | None:

@@ -174,18 +174,9 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     if depth is not None:
         chosen["depth"] = depth
     names = {s.topic for s in chosen.values()} | {"PARAM_VALUE"}
-    rows: dict[str, list[Any]] = {n: [] for n in names}
     if depth is not None and depth.topic.startswith("SCALED_PRESSURE"):
         depth.fields["offset"] = None      # the first reading: set once the rows are read
-    try:
-        while True:
-            msg = log.recv_match(type=names)
-            if msg is None:
-                break
-            if msg.get_type() in rows:
-                rows[msg.get_type()].append(msg)
-    finally:
-        log.close()
+    rows = _tlog_rows(log, names)
     params = {str(m.param_id).rstrip("\x00"): float(m.param_value) for m in rows["PARAM_VALUE"]}
     imap, notes = _servo_map(imap, params)
     series: dict[str, Series] = {}
@@ -196,54 +187,83 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
             raise LogFormatError(src, f"no {spec.topic} message could be decoded (the log's "
                                       f"index counts {present.get(spec.topic, 0)}); a damaged "
                                       "or truncated log?", topic=spec.topic)
-        systems = sorted({m.get_srcSystem() for m in msgs})
-        want = spec.instance if spec.instance is not None else sysid
-        if want is None:
-            if len(systems) > 1:
-                raise LogFormatError(src, f"sent by several MAVLink systems {systems}; choose "
-                                          f"one: [topics] {stream} = {{ topic = "
-                                          f"\"{spec.topic}\", instance = SYSTEM_ID }}",
-                                     topic=spec.topic)
-            want = systems[0]
+        msgs, want = _tlog_system(src, stream, spec, msgs, sysid)
         if stream == "imu":
             sysid = want
-        msgs = [m for m in msgs if m.get_srcSystem() == want]
-        if not msgs:
-            raise LogFormatError(src, f"no {spec.topic} messages from MAVLink system {want} "
-                                      f"(systems sending it: {systems})", topic=spec.topic)
         t = np.array([_ns(m._timestamp) for m in msgs], dtype=np.int64)
-        s = Series(stream, spec.topic, spec.topic, t, {})
-        if stream == "imu":
-            if spec.topic == "ATTITUDE":
-                q = euler_to_quat(*(np.array([getattr(m, k) for m in msgs], dtype=float)
-                                    for k in ("roll", "pitch", "yaw")))
-            else:
-                q = np.array([(m.q1, m.q2, m.q3, m.q4) for m in msgs], dtype=float)
-            s.data = {"q": q, "gyro": np.array([(m.rollspeed, m.pitchspeed, m.yawspeed)
-                                                for m in msgs], dtype=float)}
-        elif stream == "gnss":
-            s = _tlog_gnss(spec.topic, msgs, t)
-        elif stream == "motors":
-            port = np.array([getattr(m, "port", 0) for m in msgs])
-            if (port != 0).any():
-                notes.append(f"motors: {int((port != 0).sum())} {spec.topic} messages of "
-                             "port 1 (outputs 9-16 in MAVLink 1) left out")
-                msgs = [m for m, p in zip(msgs, port) if p == 0]
-                t = t[port == 0]
-            pwm = np.array([[getattr(m, f"servo{k}_raw", 0) for k in range(1, 17)]
-                            for m in msgs], dtype=float)
-            s = Series(stream, spec.topic, spec.topic, t,
-                       {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
-                                            what="servo output")})
-        else:
-            if spec.fields.get("offset", 0.0) is None:        # pressure: from the first
-                spec.fields["offset"] = -float(getattr(msgs[0], spec.fields["field"])) \
-                    * spec.fields["scale"]
-            s.data = _generic(src, spec, stream, msgs)
-        series[stream] = s
+        series[stream] = _tlog_series(src, stream, spec, msgs, t, imap, notes)
     _no_fix(src, series)
     return assemble(src, imap, series, "mavlink", "unix (ground station log time)",
                     utc_offset=0.0, notes=notes, fixes_required=False)
+
+
+def _tlog_rows(log, names: set[str]) -> dict[str, list[Any]]:
+    """The log's messages of the types ``names``, by type (the log closed after)."""
+    rows: dict[str, list[Any]] = {n: [] for n in names}
+    try:
+        while True:
+            msg = log.recv_match(type=names)
+            if msg is None:
+                break
+            if msg.get_type() in rows:
+                rows[msg.get_type()].append(msg)
+    finally:
+        log.close()
+    return rows
+
+
+def _tlog_system(src: str, stream: str, spec, msgs: list, sysid):
+    """The messages of one MAVLink system: the stream's ``instance``, else the IMU's
+    (``sysid``), else the only one sending it; ``(messages, system id)``."""
+    systems = sorted({m.get_srcSystem() for m in msgs})
+    want = spec.instance if spec.instance is not None else sysid
+    if want is None:
+        if len(systems) > 1:
+            raise LogFormatError(src, f"sent by several MAVLink systems {systems}; choose "
+                                      f"one: [topics] {stream} = {{ topic = "
+                                      f"\"{spec.topic}\", instance = SYSTEM_ID }}",
+                                 topic=spec.topic)
+        want = systems[0]
+    msgs = [m for m in msgs if m.get_srcSystem() == want]
+    if not msgs:
+        raise LogFormatError(src, f"no {spec.topic} messages from MAVLink system {want} "
+                                  f"(systems sending it: {systems})", topic=spec.topic)
+    return msgs, want
+
+
+def _tlog_series(src: str, stream: str, spec, msgs: list, t: np.ndarray, imap: ImportMap,
+                 notes: list[str]) -> Series:
+    """One stream's series from its messages (stamps ``t``, ns); ``notes`` gets what was
+    left out."""
+    s = Series(stream, spec.topic, spec.topic, t, {})
+    if stream == "imu":
+        if spec.topic == "ATTITUDE":
+            q = euler_to_quat(*(np.array([getattr(m, k) for m in msgs], dtype=float)
+                                for k in ("roll", "pitch", "yaw")))
+        else:
+            q = np.array([(m.q1, m.q2, m.q3, m.q4) for m in msgs], dtype=float)
+        s.data = {"q": q, "gyro": np.array([(m.rollspeed, m.pitchspeed, m.yawspeed)
+                                            for m in msgs], dtype=float)}
+    elif stream == "gnss":
+        s = _tlog_gnss(spec.topic, msgs, t)
+    elif stream == "motors":
+        port = np.array([getattr(m, "port", 0) for m in msgs])
+        if (port != 0).any():
+            notes.append(f"motors: {int((port != 0).sum())} {spec.topic} messages of "
+                         "port 1 (outputs 9-16 in MAVLink 1) left out")
+            msgs = [m for m, p in zip(msgs, port) if p == 0]
+            t = t[port == 0]
+        pwm = np.array([[getattr(m, f"servo{k}_raw", 0) for k in range(1, 17)]
+                        for m in msgs], dtype=float)
+        s = Series(stream, spec.topic, spec.topic, t,
+                   {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
+                                        what="servo output")})
+    else:
+        if spec.fields.get("offset", 0.0) is None:        # pressure: from the first
+            spec.fields["offset"] = -float(getattr(msgs[0], spec.fields["field"])) \
+                * spec.fields["scale"]
+        s.data = _generic(src, spec, stream, msgs)
+    return s
 
 
 def _no_fix(src: str, series: dict[str, Series]) -> None:

@@ -77,12 +77,64 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                                   "map file: [time] utc_zero = <unix seconds of mission t = 0>")
     utc_zero = float(utc_zero)
     ref = utc_zero
+    t_utc, lat, lon, tods, gst, n_bad, seen, reason = _sentences(src, source, kind, ref,
+                                                                  NMEAReader)
+    raw, bad_sum = _raw_count(source, kind)
+    if not seen:
+        why = (f": {raw} look like {kind} but none is readable ({bad_sum} with a wrong "
+               f"checksum, {raw - bad_sum} with a field out of range, e.g. a latitude beyond "
+               "90 degrees)" if raw else "")
+        raise LogFormatError(src, f"no {kind} sentences in the log{why}", topic=kind)
+    if not t_utc:
+        raise LogFormatError(src, f"none of the log's {seen} {kind} sentences holds a usable "
+                                  f"fix (the last reason: {reason})", topic=kind)
+    t_ns = np.array([round(u * 1e6) * 1000 for u in t_utc], dtype=np.int64)
+    s = Series("gnss", kind, f"NMEA {kind}", t_ns,
+               {"lat": np.array(lat), "lon": np.array(lon),
+                "sigma": np.array([gst.get(k, np.nan) for k in tods])},
+               {reason: n_bad} if n_bad else {})
+    zero_ns = round(utc_zero * 1e6) * 1000
+    check_stamps(src, s, int(t_ns[0]) if len(t_ns) else zero_ns, imap.max_gap)
+    t = (t_ns - zero_ns).astype(float) * 1e-9
+    notes: list[str] = []
+    if raw > seen:
+        notes.append(f"gnss: {raw - seen} of {raw} {kind} sentences unreadable and left out "
+                     f"({bad_sum} with a wrong checksum)")
+    if t[-1] < base.t0 or t[0] > base.t1:
+        raise LogFormatError(src, f"the fixes (mission t {t[0]:.1f} .. {t[-1]:.1f} s, from the "
+                                  f"UTC start {utc_zero:.3f}) do not overlap the mission "
+                                  f"({base.t0:.1f} .. {base.t1:.1f} s): a different day, or "
+                                  "a wrong utc_zero?", topic=kind)
+    ll = np.column_stack([s.data["lat"], s.data["lon"]])
+    origin = _origin(src, base, imap, ll, notes)
+    sig: np.ndarray | None = s.data["sigma"]
+    if not np.isfinite(s.data["sigma"]).all():
+        bad = int((~np.isfinite(s.data["sigma"])).sum())
+        notes.append(f"gnss: {bad} of {len(t)} fixes have no GST "
+                     "accuracy; no sigma column written (the estimators' default applies)")
+        sig = None
+    m = copy.copy(base)
+    m.gnss = Gnss(t, latlon_to_ne(ll[:, 0], ll[:, 1], origin), sig, latlon=ll)
+    m.origin, m.gnss_latlon = origin, True
+    m.extra = dict(base.extra)
+    m.extra["source"] = {**src_tab, "gnss": {"format": "nmea", "file": source.name,
+                                             "sentence": kind}}
+    if imap.utc_zero is not None:
+        m.extra["source"]["utc_zero"] = utc_zero
+    return ImportResult(m, {"gnss": s}, zero_ns, notes)
+
+
+def _sentences(src: str, source: Path, kind: str, ref: float, reader):
+    """The usable fixes of the sentences ``kind`` in the log: UTC times (unix s, the date
+    from the RMC/ZDA sentences, starting from ``ref``), latitudes, longitudes (degrees),
+    times of day (s, rounded to ms), GST sigmas by time of day (m), and the count of
+    unusable ones, the count seen and the last reason one was unusable."""
     t_utc, lat, lon, tods = [], [], [], []
     gst: dict[float, float] = {}
     n_bad, seen, reason = 0, 0, ""
     try:
         with open(source, "rb") as fh:
-            for _, p in NMEAReader(fh, nmeaonly=False, quitonerror=0):
+            for _, p in reader(fh, nmeaonly=False, quitonerror=0):
                 if p is None:
                     continue
                 mid = getattr(p, "msgID", "")
@@ -112,58 +164,23 @@ def read_nmea(source: str | Path, imap: ImportMap, base: Mission) -> ImportResul
                 lon.append(float(p.lon))
     except (OSError, ValueError) as e:
         raise LogFormatError(src, f"cannot read as NMEA 0183: {e}") from None
-    raw, bad_sum = _raw_count(source, kind)
-    if not seen:
-        why = (f": {raw} look like {kind} but none is readable ({bad_sum} with a wrong "
-               f"checksum, {raw - bad_sum} with a field out of range, e.g. a latitude beyond "
-               "90 degrees)" if raw else "")
-        raise LogFormatError(src, f"no {kind} sentences in the log{why}", topic=kind)
-    if not t_utc:
-        raise LogFormatError(src, f"none of the log's {seen} {kind} sentences holds a usable "
-                                  f"fix (the last reason: {reason})", topic=kind)
-    t_ns = np.array([round(u * 1e6) * 1000 for u in t_utc], dtype=np.int64)
-    s = Series("gnss", kind, f"NMEA {kind}", t_ns,
-               {"lat": np.array(lat), "lon": np.array(lon),
-                "sigma": np.array([gst.get(k, np.nan) for k in tods])},
-               {reason: n_bad} if n_bad else {})
-    zero_ns = round(utc_zero * 1e6) * 1000
-    check_stamps(src, s, int(t_ns[0]) if len(t_ns) else zero_ns, imap.max_gap)
-    t = (t_ns - zero_ns).astype(float) * 1e-9
-    notes: list[str] = []
-    if raw > seen:
-        notes.append(f"gnss: {raw - seen} of {raw} {kind} sentences unreadable and left out "
-                     f"({bad_sum} with a wrong checksum)")
-    if t[-1] < base.t0 or t[0] > base.t1:
-        raise LogFormatError(src, f"the fixes (mission t {t[0]:.1f} .. {t[-1]:.1f} s, from the "
-                                  f"UTC start {utc_zero:.3f}) do not overlap the mission "
-                                  f"({base.t0:.1f} .. {base.t1:.1f} s): a different day, or "
-                                  "a wrong utc_zero?", topic=kind)
+    return t_utc, lat, lon, tods, gst, n_bad, seen, reason
+
+
+def _origin(src: str, base: Mission, imap: ImportMap, ll: np.ndarray, notes: list[str]):
+    """The NED frame's origin (lat, lon degrees): the mission's, the map's (which must not
+    differ from the mission's), else the first fix (with a note)."""
     origin = base.origin
     if imap.origin is not None:
         if origin is not None and tuple(origin) != tuple(imap.origin):
             raise LogFormatError(src, f"the map's [origin] {imap.origin} differs from the "
                                       f"mission's {tuple(origin)}; leave it out of the map")
         origin = imap.origin
-    ll = np.column_stack([s.data["lat"], s.data["lon"]])
     if origin is None:
         origin = (float(ll[0, 0]), float(ll[0, 1]))
         notes.append("the mission has no [origin]: the first fix is the origin of its NED "
                      "frame")
-    sig: np.ndarray | None = s.data["sigma"]
-    if not np.isfinite(s.data["sigma"]).all():
-        bad = int((~np.isfinite(s.data["sigma"])).sum())
-        notes.append(f"gnss: {bad} of {len(t)} fixes have no GST "
-                     "accuracy; no sigma column written (the estimators' default applies)")
-        sig = None
-    m = copy.copy(base)
-    m.gnss = Gnss(t, latlon_to_ne(ll[:, 0], ll[:, 1], origin), sig, latlon=ll)
-    m.origin, m.gnss_latlon = origin, True
-    m.extra = dict(base.extra)
-    m.extra["source"] = {**src_tab, "gnss": {"format": "nmea", "file": source.name,
-                                             "sentence": kind}}
-    if imap.utc_zero is not None:
-        m.extra["source"]["utc_zero"] = utc_zero
-    return ImportResult(m, {"gnss": s}, zero_ns, notes)
+    return origin
 
 
 def _raw_count(source: Path, kind: str) -> tuple[int, int]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aqfg.data.mission import VEHICLES, Mission, Truth
+from aqfg.data.mission import VEHICLES, Imu, Mission, Motors, Truth
 
 MISSION_TOML = "mission.toml"
 STREAM_FILES = {"imu": "imu.csv", "motors": "motors.csv", "gnss": "gnss.csv",
@@ -122,6 +122,14 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     m = mission
     p = (lambda name: str(Path(where) / name)) if where is not None else (lambda name: name)
     ft = p(MISSION_TOML)
+    n_thr = _check_toml(m, ft)
+    _check_imu(p(STREAM_FILES["imu"]), m.imu)
+    _check_motors(p(STREAM_FILES["motors"]), m.motors, n_thr)
+    _check_fixes(m, p, ft)
+
+
+def _check_toml(m: Mission, ft: str) -> int:
+    """The checks of mission.toml's tables (``ft``: its name); the number of thrusters."""
     if m.vehicle not in VEHICLES:
         raise MissionFormatError(ft, f"got {m.vehicle!r}; expected one of "
                                      f"{', '.join(map(repr, VEHICLES))}", column="vehicle")
@@ -163,9 +171,11 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     if "truth" in m.extra:
         raise MissionFormatError(ft, "Mission.extra holds a 'truth' table; truth belongs in a "
                                      "Truth object, never in the Mission", column="[truth]")
+    return n_thr
 
-    f = p(STREAM_FILES["imu"])
-    i = m.imu
+
+def _check_imu(f: str, i: Imu) -> None:
+    """The checks of the IMU stream (``f``: its file's name)."""
     _check_time(f, i.t, 1)
     n = len(i.t)
     _check_shape(f, i.q, n, 4, "qw")
@@ -182,8 +192,9 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     check_rows(f, i.acc, ("ax", "ay", "az"), required=False)
     check_rows(f, i.gyro, ("wx", "wy", "wz"), required=False)
 
-    f = p(STREAM_FILES["motors"])
-    mo = m.motors
+
+def _check_motors(f: str, mo: Motors, n_thr: int) -> None:
+    """The checks of the motor commands (``f``: its file's name): one column per thruster."""
     _check_time(f, mo.t, 1)
     if np.ndim(mo.u) != 2 or np.shape(mo.u)[1] != n_thr:
         raise MissionFormatError(f, f"{np.shape(mo.u)[-1] if np.ndim(mo.u) else 0} command "
@@ -193,6 +204,9 @@ def _check_mission(mission: Mission, where: str | os.PathLike | None = None) -> 
     check_rows(f, mo.u, tuple(f"u{k + 1}" for k in range(n_thr)), lo=-1.0, hi=1.0,
                what="a normalised command in [-1, 1]")
 
+
+def _check_fixes(m: Mission, p, ft: str) -> None:
+    """The checks of the GNSS, USBL and depth streams (``p``: a file's name -> its path)."""
     if m.gnss is not None:
         f = p(STREAM_FILES["gnss"])
         g = m.gnss
