@@ -79,6 +79,7 @@ from aqfg.fg.graph_lm import (
 )
 from aqfg.fg.plausibility import Plausibility
 from aqfg.fg.starts import alternative_starts, given_start, high_sway, plausibility_verdicts
+from aqfg.fg.user_factors import FactorSource
 from aqfg.model.vehicle import Model
 from aqfg.result import Result, Track
 from aqfg.threads import blas_threads
@@ -97,10 +98,14 @@ class BatchSmoother:
 
     def __init__(self, model: Model | None = None, *, effects=(), estimate=None, init=None,
                  settings: FGSettings | None = None, progress=None,
-                 also_start: dict[str, float] | None = None):
+                 also_start: dict[str, float] | None = None,
+                 factors: FactorSource | None = None):
         """``also_start``: estimated parameter values to solve from as well (states from
         the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
-        as for the heading basins."""
+        as for the heading basins. ``factors``: GTSAM factors of the user's own on the
+        graph's states and parameters (:mod:`aqfg.fg.user_factors`); the graph is then
+        solved on GTSAM's linearisation (``fast_lm`` off)."""
+        self.factors = factors
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # info["warnings"] also to the log (WARNING)
         self.fast_solution: tuple | None = None   # (FastSystem, evaluation) of the last run
@@ -119,6 +124,8 @@ class BatchSmoother:
         self.estimate = None if estimate is None else tuple(estimate)
         self.init = dict(init or {})
         self.settings = settings or FGSettings()
+        if factors is not None:          # the numpy form holds the built-in factors only
+            self.settings = self.settings.with_(fast_lm=False)
         self.progress = progress_fn(progress)
 
     # ---------------------------------------------------------------- graph
@@ -130,7 +137,8 @@ class BatchSmoother:
         """
         return build_graph(missions, model=self.model, effects=self.effects,
                            estimate=self.estimate, init=self.init,
-                           settings=self.settings, fixed_prior=fixed_prior)
+                           settings=self.settings, fixed_prior=fixed_prior,
+                           factors=self.factors)
 
     # ---------------------------------------------------------------- solve
     def run(self, missions) -> Result:

@@ -28,6 +28,7 @@ from aqfg.fg.common import (
     mission_model,
 )
 from aqfg.fg.init import Start, candidate_starts, current_prior, start_states
+from aqfg.fg.user_factors import FactorSource, GraphKeys
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
 
@@ -168,11 +169,13 @@ def solution_values(bg: BuiltGraph, result: Result, null: Sequence[str] = ()) ->
 
 
 def build_graph(missions: list[Mission], *, model: Model | None, effects: tuple, estimate,
-                init: dict, settings: FGSettings, fixed_prior: bool = True) -> BuiltGraph:
+                init: dict, settings: FGSettings, fixed_prior: bool = True,
+                factors: FactorSource | None = None) -> BuiltGraph:
     """The graph of ``missions`` with its initial values (see :class:`BuiltGraph`), for the
     smoother's ``model``, ``effects``, ``estimate`` (None: the model's default), ``init``
     and ``settings``; ``fixed_prior=False`` leaves out the prior on the shared fixed node
-    (:meth:`aqfg.fg.batch.BatchSmoother.build`)."""
+    (:meth:`aqfg.fg.batch.BatchSmoother.build`); ``factors``: the user's own GTSAM
+    factors (:mod:`aqfg.fg.user_factors`), added after the built-in ones."""
     models = [mission_model(model, m, effects) for m in missions]
     est = estimate if estimate is not None else default_estimate(models[0], "batch")
     layout = fc.ParamLayout.build(models[0], est, init)
@@ -189,6 +192,11 @@ def build_graph(missions: list[Mission], *, model: Model | None, effects: tuple,
     # initial value), priors (around the user's / nominal values), random walk
     node_list = _param_nodes(layout, parts, guesses, search, fixed_prior, out, settings, init)
     _model_factors(layout, parts, cache, out.graph, settings)
+    if factors is not None:
+        keys = GraphKeys(tuple(p.knots for p in parts), tuple(tuple(p.keys) for p in parts),
+                         tuple(p.seg_starts for p in parts), layout)
+        for f in factors(keys):
+            out.graph.add(f)
     return BuiltGraph(layout, out.graph, out.values, parts, cache, node_list, all_starts,
                       out.linear)
 
