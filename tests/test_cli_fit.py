@@ -84,6 +84,12 @@ def test_fit_online_and_two_missions(missions, tmp_path, capsys):
     assert (out / "parameters.png").stat().st_size > 10_000
     traj = read_track(out / "trajectory.csv")
     assert traj[-1, 0] == pytest.approx(150.0, abs=0.1)
+    # the causal track: the real-time estimate, on the same clock, not the corrected one
+    causal = read_track(out / "causal.csv")
+    assert causal.shape[1] == traj.shape[1] and np.all(np.diff(causal[:, 0]) > 0)
+    assert 150.0 - 8.0 - 1e-6 <= causal[-1, 0] <= traj[-1, 0] + 1e-6    # to the last fix
+    at = np.column_stack([np.interp(causal[:, 0], traj[:, 0], traj[:, c]) for c in (1, 2)])
+    assert np.max(np.hypot(*(causal[:, 1:3] - at).T)) > 0.01
     out2 = tmp_path / "two"
     assert main(["fit", str(d1), str(d2), "--out", str(out2), "--gnss-every", "8",
                  "--no-plots"]) == 0
