@@ -51,6 +51,18 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
     return out
 
 
+def gnss_noise_from(params_from: str | None):
+    """The ``gnss_noise`` entry of a ``--params-from`` parameters.json (the receiver's
+    noise measured on the missions it was fitted to), or None."""
+    if not params_from:
+        return None
+    from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.outputs import read_json
+    data = read_json(Path(params_from), "--params-from")
+    doc = data.get("gnss_noise") if isinstance(data, dict) else None
+    return None if doc is None else GnssNoise.from_document(doc, f"--params-from {params_from}")
+
+
 def effects_of_values(values: dict[str, float], where: str) -> tuple[str, ...]:
     """The effects whose parameters ``values`` holds (``effect.param`` names), in order:
     the effects a ``--params-from`` file's model had, without which its vehicle constants
@@ -189,9 +201,15 @@ def run(args) -> int:
         missions = [with_gnss_every(m, args.gnss_every) for m in missions]
     kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
           "window": args.window}
-    if args.method == "fg" and getattr(args, "no_auto_effect", False):
+    if args.method == "fg":
         from aqfg.fg.common import FGSettings
-        kw["settings"] = FGSettings(auto_effect=False)
+        st = FGSettings(auto_effect=not getattr(args, "no_auto_effect", False))
+        noise = gnss_noise_from(args.params_from)
+        if noise is not None:
+            # the receiver's noise, measured on the fixes the constants came from
+            st = st.with_(gnss_noise=noise)
+        if st != FGSettings():
+            kw["settings"] = st
     log.info("%d mission(s), method %s, mode %s%s", len(missions), args.method, args.mode,
              f", model {model_path} ({' + '.join(effects) or 'no effects'})" if model_path
              else "")
