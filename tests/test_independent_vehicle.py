@@ -1221,9 +1221,9 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     """otter-heldout-281-60s, 8-s GNSS, the paper's constants (another vehicle's): while the
     parameters are held at start values no data chose (before the first batch), the model's
     prediction ran the causal track 7-12 m off the truth between fixes (5.8 m RMS over the
-    minute). The causal track follows a constant-velocity filter on the fixes there; the
-    smoother and its estimates do not see it, and the model takes the track over at the
-    fix that releases the parameters."""
+    minute). The causal track follows a constant-velocity filter on the fixes there (where
+    it predicted the fixes better than the model); the smoother and its estimates do not
+    see it, and the model takes the track over at the fix that releases the parameters."""
     m, truth = mission("otter-heldout-281-60s", 8.0)
 
     def run(q: float):
@@ -1246,7 +1246,10 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
                                   off.missions[0].filtered.pos[after])
     assert not np.array_equal(on.missions[0].filtered.pos[~after],
                               off.missions[0].filtered.pos[~after])
-    # before it, horizontally the filter's prediction from the fixes so far
+    # before it, horizontally the filter's prediction from the fixes so far where it had
+    # predicted the fixes better than the model (here most of the minute), else the model's
     causal, _ = kinematic_baseline(m, on.missions[0].filtered.t[~after])
-    np.testing.assert_allclose(on.missions[0].filtered.pos[~after, :2], causal[:, :2],
-                               atol=1e-9)
+    got = on.missions[0].filtered.pos[~after, :2]
+    is_f = np.all(np.abs(got - causal[:, :2]) < 1e-9, axis=1)
+    is_m = np.all(np.abs(got - off.missions[0].filtered.pos[~after, :2]) < 1e-9, axis=1)
+    assert np.all(is_f | is_m) and is_f.sum() > 2 * is_m.sum(), (is_f.sum(), is_m.sum())
