@@ -179,7 +179,9 @@ class FGSettings:
         (default): measured on the missions' own fixes where they are dense (median spacing
         <= 1 s; about a constant-velocity track of PSD ``online_kinematic_q``), else their
         stated sigma; a :class:`~aqfg.fg.gnss_noise.GnssNoise` (e.g. measured on other
-        missions of the same receiver); None: the stated sigma. On a 5-Hz receiver the
+        missions of the same receiver); None: the stated sigma. The batch never gives a
+        fix a sigma below its stated one (it only down-weights dense fixes); the online
+        smoother takes the sigmas as they are. On a 5-Hz receiver the
         fixes' wander about such a track was 0.03-0.24 m with tau 6-16 s: a stated 1-1.5 m
         made the model, not the fixes, set the track between sparse fixes, and the same
         sigma on dense fixes counted 5 shared errors a second as independent.
