@@ -71,10 +71,10 @@ def test_apply_weights_every_mission_and_reports_the_noise(otter_mission):
     noise = gn.GnssNoise(0.3, 2.0)
     (w,), got = gn.apply([m], noise, 0.1, 1.0)
     assert got is noise and w is not m and w.gnss.t is m.gnss.t
-    np.testing.assert_allclose(w.gnss.sigma, gn.fix_sigma(m.gnss.t, noise))
+    np.testing.assert_allclose(w.gnss.sigma, 0.3)            # the track's: each fix's error
     assert gn.apply([m], None, 0.1, 1.0)[0][0] is m
     # the batch's: never below the stated sigma (gnss.csv's, else the default)
-    (b,), _ = gn.apply([m], noise, 0.1, 5.0, sharpen=False)
+    (b,), _ = gn.apply([m], noise, 0.1, 5.0, track=False)
     stated = m.gnss.sigma if m.gnss.sigma is not None else np.full(len(m.gnss.t), 5.0)
     np.testing.assert_allclose(b.gnss.sigma, np.maximum(gn.fix_sigma(m.gnss.t, noise), stated))
     with pytest.raises(ValueError, match="gnss_noise"):

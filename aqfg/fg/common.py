@@ -174,17 +174,17 @@ class FGSettings:
         kernel's Jacobians and LAPACK (the reference the C++ is tested against; the same
         results to rounding).
     gnss_noise: the GNSS error the fixes are weighted by (:mod:`aqfg.fg.gnss_noise`): a
-        first-order Gauss-Markov error of sigma and correlation time tau, each fix with
-        variance sigma^2 (1 + rho) / (1 - rho), rho = exp(-spacing / tau). "measure"
+        first-order Gauss-Markov error of sigma and correlation time tau. "measure"
         (default): measured on the missions' own fixes where they are dense (median spacing
         <= 1 s; about a constant-velocity track of PSD ``online_kinematic_q``), else their
         stated sigma; a :class:`~aqfg.fg.gnss_noise.GnssNoise` (e.g. measured on other
-        missions of the same receiver); None: the stated sigma. The batch never gives a
-        fix a sigma below its stated one (it only down-weights dense fixes); the online
-        smoother takes the sigmas as they are. On a 5-Hz receiver the
-        fixes' wander about such a track was 0.03-0.24 m with tau 6-16 s: a stated 1-1.5 m
-        made the model, not the fixes, set the track between sparse fixes, and the same
-        sigma on dense fixes counted 5 shared errors a second as independent.
+        missions of the same receiver); None: the stated sigma. The online smoother weighs
+        each fix by sigma (its own error: its output is the track); the batch by variance
+        sigma^2 (1 + rho) / (1 - rho), rho = exp(-spacing / tau), never below the fix's
+        stated sigma (the constants: it only down-weights dense fixes). On a 5-Hz
+        receiver the fixes' wander about such a track was 0.03-0.24 m with tau 6-16 s: a
+        stated 1.5 m made the model, not the fixes, set the online track between sparse
+        fixes, and on dense fixes counted 5 shared errors a second as independent.
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
         below ``warmup_tol`` x ParamSpec.scale (or ``warmup_max`` s have passed), the
         window holds everything since the start, so the marginal priors are linearised

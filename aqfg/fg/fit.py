@@ -63,7 +63,7 @@ def _fit(missions, mode, estimate, init, effects, window, progress, settings, mo
     """:func:`fit_fg` with the fixes weighted by the GNSS noise (``FGSettings.gnss_noise``)."""
     st0 = settings or FGSettings()
     missions, noise = gnss_noise.apply(list(missions), st0.gnss_noise, st0.online_kinematic_q,
-                                       st0.sensors.gnss_sigma, sharpen=mode == "online")
+                                       st0.sensors.gnss_sigma, track=mode == "online")
     res = _fit_weighted(missions, mode, estimate, init, effects, window, progress, settings, model)
     if noise is not None:
         res.info["gnss_noise"] = noise.document()
