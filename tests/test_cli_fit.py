@@ -258,3 +258,18 @@ def test_params_from_takes_the_vehicle_not_the_other_missions_heading(tmp_path, 
     err = np.degrees(abs(np.angle(np.exp(1j * (doc["parameters"]["theta_e"]["value"]
                                                - load_truth(d).params["theta_e"])))))
     assert err < 5.0, err
+
+
+def test_the_gnss_noise_measured_on_dense_fixes_travels_with_params_from(missions, tmp_path):
+    """A batch fit of 1-s fixes writes the GNSS noise it measured (white simulated noise of
+    1 m: sigma about 1, tau below the spacing); an online fit of 8-s fixes with
+    ``--params-from`` that file weighs its fixes by it and says so."""
+    (d, _), _ = missions
+    a, b = tmp_path / "batch", tmp_path / "online"
+    assert main(["fit", str(d), "--out", str(a), "--no-plots", "--no-auto-effect"]) == 0
+    gn = json.loads((a / "parameters.json").read_text())["gnss_noise"]
+    assert gn["sigma"] == pytest.approx(1.0, rel=0.2) and gn["tau"] < 1.0
+    assert gn["n_fixes"] > 100 and gn["spacing"] == pytest.approx(1.0)
+    assert main(["fit", str(d), "--out", str(b), "--no-plots", "--mode", "online",
+                 "--gnss-every", "8", "--params-from", str(a / "parameters.json")]) == 0
+    assert json.loads((b / "parameters.json").read_text())["gnss_noise"] == gn
