@@ -13,7 +13,8 @@ The error is described as a first-order Gauss-Markov (AR(1)) process per horizon
 * :func:`measure` estimates ``sigma`` and ``tau`` from dense fixes (median spacing <= 1 s):
   the residuals of a constant-velocity Rauch-Tung-Striebel smoother on the fixes (white
   acceleration of PSD ``q`` per axis, the accelerations a vehicle has; the fixes at their
-  stated sigma), their RMS and their lag-one autocorrelation at the median spacing. What is
+  stated sigma), their RMS and their lag-one autocorrelation at the median spacing
+  (residuals beyond 5 RMS left out as outliers, the RMS recomputed until none is). What is
   measured is the wander of the fixes about a track of the vehicle's accelerations; an
   error common to all fixes over minutes moves that track with it and is not seen. (The
   measurement variance by maximum likelihood is no use here: a receiver's own filter makes
@@ -49,6 +50,7 @@ from aqfg.fg.kinematic import transition
 DENSE_SPACING = 1.0     # s: fixes this dense (median) are measured
 MIN_FIXES = 30
 MAX_RHO = 0.999         # inflation bounded at (1 + MAX_RHO) / (1 - MAX_RHO), about 2000
+CLIP_K = 5.0            # residuals beyond this many RMS are outliers, left out
 
 
 @dataclass(frozen=True)
@@ -113,10 +115,20 @@ def measure_fixes(t: np.ndarray, ne: np.ndarray, q: float, sigma: float
     if not (0.0 < dt <= DENSE_SPACING):
         return None
     res, _ = _smoother_residuals(t, ne, q, float(sigma) ** 2)
-    res = res - res.mean(axis=0)
-    num = float(np.sum(res[1:] * res[:-1])); den = float(np.sum(res ** 2))
+    # an outlying fix (a jump) must not set the noise of all the others: residuals beyond
+    # CLIP_K RMS left out, the RMS of the rest recomputed, until none is
+    ok = np.ones(len(t), bool)
+    for _ in range(10):
+        rms = math.sqrt(float(np.mean(res[ok] ** 2)))
+        keep = np.all(np.abs(res) <= CLIP_K * rms, axis=1)
+        if not rms > 0 or np.array_equal(keep, ok):
+            break
+        ok = keep
+    pair = ok[1:] & ok[:-1]
+    num = float(np.sum(res[1:][pair] * res[:-1][pair]))
+    den = float(np.sum(res[ok] ** 2)) * pair.sum() / max(int(ok.sum()), 1)
     rho = num / den if den > 0 else 0.0
-    return math.sqrt(float(np.mean(res ** 2))), rho, len(t), dt
+    return math.sqrt(float(np.mean(res[ok] ** 2))), rho, len(t), dt
 
 
 def stated_sigma(mission: Mission, default: float) -> float:
