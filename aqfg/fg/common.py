@@ -182,7 +182,7 @@ class FGSettings:
         each fix by sigma (its own error: its output is the track); the batch by variance
         sigma^2 (1 + rho) / (1 - rho), rho = exp(-spacing / tau), never below the fix's
         stated sigma (the constants: it only down-weights dense fixes). On a 5-Hz
-        receiver the fixes' wander about such a track was 0.03-0.24 m with tau 6-16 s: a
+        receiver the fixes' wander about such a track was 0.02-0.24 m with tau 1-12 s: a
         stated 1.5 m made the model, not the fixes, set the online track between sparse
         fixes, and on dense fixes counted 5 shared errors a second as independent.
     warmup_tol, warmup_max: fixed-lag warm-up. Until every estimated parameter's sigma is
