@@ -119,7 +119,8 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
     """Write the result files into ``out_dir`` (a fresh directory; see :func:`save_result`).
 
     ``parameters.json``; per mission ``trajectory.csv`` (+ ``lat, lon`` with an
-    ``[origin]``), ``inertial.csv``, ``track.geojson`` (with an ``[origin]``) and, with
+    ``[origin]``), ``inertial.csv``, ``causal.csv`` (online: the causal track, the
+    estimate at each time from the data up to it), ``track.geojson`` (with an ``[origin]``) and, with
     ``tum``, ``trajectory.tum``. ``missions`` (the fitted Mission objects, matched by name)
     give the origin and the attitude. Returns the paths written.
     """
@@ -131,7 +132,10 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
         d.mkdir(parents=True, exist_ok=True)
         m = by_name.get(mr.name)
         origin = m.origin if m is not None else None
-        for name, tr in (("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)):
+        tracks = [("trajectory.csv", mr.track), ("inertial.csv", mr.inertial)]
+        if result.mode == "online" and mr.filtered is not None:
+            tracks.append(("causal.csv", mr.filtered))
+        for name, tr in tracks:
             tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}")
             (d / name).write_text(track_csv(tr, origin))
             written.append(d / name)

@@ -168,8 +168,8 @@ class Result:
 
 
 PARAMETERS_FORMAT = "aqfg-parameters/1"
-RESULT_FILES = ("parameters.json", "trajectory.csv", "inertial.csv", "trajectory.tum",
-                "track.geojson")
+RESULT_FILES = ("parameters.json", "trajectory.csv", "inertial.csv", "causal.csv",
+                "trajectory.tum", "track.geojson")
 NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the estimator "
             "computed none")
 
@@ -243,6 +243,11 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     dr = result.info.get("dead_reckoning")
     if dr and dr.get("segments"):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
+    gn = result.info.get("gnss_noise")
+    if gn:
+        # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
+        # (aqfg.fg.gnss_noise)
+        doc["gnss_noise"] = dict(gn)
     tq = result.info.get("track_noise_scale")
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with

@@ -83,13 +83,15 @@ class Job:
     quick: tuple[str, ...] | None = ("--quick",)
     minutes: float = 1.0
     missions: MissionSet | None = None
+    data_env: str | None = None     # recorded data outside the repository: ``{data}``
 
     def argv(self, quick: bool = False) -> list[str]:
         args = self.quick if quick else self.args
         assert args is not None
         where = str(self.missions.path) if self.missions else ""
-        return ["python", f"experiments/{self.script}", *(a.replace("{missions}", where)
-                                                          for a in args)]
+        data = os.environ.get(self.data_env, f"${self.data_env}") if self.data_env else ""
+        return ["python", f"experiments/{self.script}",
+                *(a.replace("{missions}", where).replace("{data}", data) for a in args)]
 
 
 def _out(name: str) -> str:
@@ -111,6 +113,9 @@ JOBS: tuple[Job, ...] = (
     Job("update_error_online.py", outputs=("update_error_online.md", "update_error_landscape.png"),
         minutes=11),
     Job("fleet_scale.py", outputs=_fig("fleet_scale"), minutes=30),
+    # recorded runs of a real boat (CSV exports), from a folder the repository does not hold
+    Job("real_vehicle.py", ("{data}", "--map", "examples/maps/blueboat-csv.toml"),
+        ("real_vehicle.md",), None, 8, data_env="AQFG_REAL_RUNS"),
     Job("diagnosis_sweep.py", outputs=("diagnosis_sweep.md",), minutes=15),
     Job("diagnosis_sweep.py", ("--only-independent",), ("diagnosis_independent.md",), None, 3),
     Job("auto_effect.py", outputs=("auto_effect.md",), quick=None, minutes=1),
@@ -168,6 +173,8 @@ def skip_reason(job: Job, quick: bool) -> str | None:
         return "no reduced form (--quick skips it)"
     if job.missions is not None and not simulator_available():
         return "needs Fossen's simulator (set PVS_SRC, experiments/heldout/README.md)"
+    if job.data_env and not os.environ.get(job.data_env):
+        return f"needs recorded runs: set {job.data_env} to their folder"
     return None
 
 

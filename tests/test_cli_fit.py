@@ -84,6 +84,12 @@ def test_fit_online_and_two_missions(missions, tmp_path, capsys):
     assert (out / "parameters.png").stat().st_size > 10_000
     traj = read_track(out / "trajectory.csv")
     assert traj[-1, 0] == pytest.approx(150.0, abs=0.1)
+    # the causal track: the real-time estimate, on the same clock, not the corrected one
+    causal = read_track(out / "causal.csv")
+    assert causal.shape[1] == traj.shape[1] and np.all(np.diff(causal[:, 0]) > 0)
+    assert 150.0 - 8.0 - 1e-6 <= causal[-1, 0] <= traj[-1, 0] + 1e-6    # to the last fix
+    at = np.column_stack([np.interp(causal[:, 0], traj[:, 0], traj[:, c]) for c in (1, 2)])
+    assert np.max(np.hypot(*(causal[:, 1:3] - at).T)) > 0.01
     out2 = tmp_path / "two"
     assert main(["fit", str(d1), str(d2), "--out", str(out2), "--gnss-every", "8",
                  "--no-plots"]) == 0
@@ -252,3 +258,18 @@ def test_params_from_takes_the_vehicle_not_the_other_missions_heading(tmp_path, 
     err = np.degrees(abs(np.angle(np.exp(1j * (doc["parameters"]["theta_e"]["value"]
                                                - load_truth(d).params["theta_e"])))))
     assert err < 5.0, err
+
+
+def test_the_gnss_noise_measured_on_dense_fixes_travels_with_params_from(missions, tmp_path):
+    """A batch fit of 1-s fixes writes the GNSS noise it measured (white simulated noise of
+    1 m: sigma about 1, tau below the spacing); an online fit of 8-s fixes with
+    ``--params-from`` that file weighs its fixes by it and says so."""
+    (d, _), _ = missions
+    a, b = tmp_path / "batch", tmp_path / "online"
+    assert main(["fit", str(d), "--out", str(a), "--no-plots", "--no-auto-effect"]) == 0
+    gn = json.loads((a / "parameters.json").read_text())["gnss_noise"]
+    assert gn["sigma"] == pytest.approx(1.0, rel=0.2) and gn["tau"] < 1.0
+    assert gn["n_fixes"] > 100 and gn["spacing"] == pytest.approx(1.0)
+    assert main(["fit", str(d), "--out", str(b), "--no-plots", "--mode", "online",
+                 "--gnss-every", "8", "--params-from", str(a / "parameters.json")]) == 0
+    assert json.loads((b / "parameters.json").read_text())["gnss_noise"] == gn

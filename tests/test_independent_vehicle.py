@@ -29,6 +29,11 @@ BY_COST = FGSettings(rank_by_evidence=False)
 # batch's timing, the held model's noise) measure what they do to the model's prediction,
 # which the floor would otherwise hide
 MODEL_TRACK = FGSettings(online_kinematic_q=0.0)
+# the sway drag's prior of the paper's vehicles (0.9 1/m around 0.3: FGSettings.prior_sigma
+# without k_yz), under which these crops slide: the basins the plausibility rules and their
+# rescues are for; the default prior (30 1/m) fits them without sliding
+# (test_the_sway_prior_fits_the_sliding_crops_without_a_rescue)
+SLIDING = {"s_x": 0.3, "s_y": 0.3}
 
 
 def wrap(a: float) -> float:
@@ -232,7 +237,7 @@ def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
     the one basin's: 3 deg against 16.5). (The basins ranked by cost: ranked by evidence,
     that batch is not ambiguous; a batch too long for the evidence still ranks by cost.)"""
     m, _ = mission("otter-dev-calm-a", 4.0)
-    res = fit_fg([m], mode="online", settings=BY_COST)
+    res = fit_fg([m], mode="online", settings=BY_COST.with_(prior_sigma=SLIDING))
     h = res.history
     i = list(h.names).index("theta_e")
     amb = [b for b in res.info["reinit_batches"]
@@ -434,7 +439,8 @@ def test_online_random_walk_survives_failed_releases():
             return info
 
     m, truth = mission("otter-dev-calm-b", 8.0)
-    st = FGSettings(walk_sigma={"theta_e": 0.0026}, online_gate_usbl=np.inf)
+    st = FGSettings(walk_sigma={"theta_e": 0.0026}, online_gate_usbl=np.inf,
+                    prior_sigma=SLIDING)
     for cls in (FixedLagSmoother, Troubled):
         res = cls(settings=st).run(m)
         f = res.missions[0].filtered
@@ -691,8 +697,8 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     full = load_mission(data_path("otter-dev-calm-a"))
     truth = load_truth(data_path("otter-dev-calm-a"))
     m = with_gnss_every(crop(full, 0.0, 450.0), 8.0)
-    given = fit_fg([m], settings=FGSettings(auto_effect=False))
-    res = fit_fg([m])
+    given = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
+    res = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
     assert "held_sway" in given.info and given.info["plausible"]
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.info["warnings"])
@@ -714,12 +720,12 @@ def test_a_suspiciously_sliding_fit_names_the_non_sliding_answer():
     full = load_mission(data_path("otter-example"))
     truth = load_truth(data_path("otter-example"))
     m = with_gnss_every(crop(full, 300.0, 900.0), 4.0)
-    res = fit_fg([m], settings=FGSettings(auto_effect=False))
+    res = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
     alt = res.info["alternative_held_sway"]
     assert any("with the sway drag held high" in w for w in res.info["warnings"])
     assert abs(wrap(alt["values"]["theta_e"] - truth.params["theta_e"])) < 3 * DEG
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) > 30 * DEG
-    auto = fit_fg([m])
+    auto = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
     assert auto.effects == ("linear_drag",) and auto.info["auto_effect"]["untested"]
     check_batch(auto, truth)
 
@@ -1054,7 +1060,7 @@ def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternat
     test_short_data_rank_heading_basins_by_their_evidence.)"""
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-52-300s", 0.0)
-    r = FixedLagSmoother(settings=BY_COST).run(m)
+    r = FixedLagSmoother(settings=BY_COST.with_(prior_sigma=SLIDING)).run(m)
     sliding = [b for b in r.info["reinit_batches"] if b["slip_deg"] > plausibility.SUSPECT_SLIP]
     assert sliding and all(b["reference"] == "non-sliding alternative" for b in sliding), \
         r.info["reinit_batches"]
@@ -1229,9 +1235,9 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     """otter-heldout-281-60s, 8-s GNSS, the paper's constants (another vehicle's): while the
     parameters are held at start values no data chose (before the first batch), the model's
     prediction ran the causal track 7-12 m off the truth between fixes (5.8 m RMS over the
-    minute). The causal track follows a constant-velocity filter on the fixes there; the
-    smoother and its estimates do not see it, and the model takes the track over at the
-    fix that releases the parameters."""
+    minute). The causal track follows a constant-velocity filter on the fixes there (where
+    it predicted the fixes better than the model); the smoother and its estimates do not
+    see it, and the model takes the track over at the fix that releases the parameters."""
     m, truth = mission("otter-heldout-281-60s", 8.0)
 
     def run(q: float):
@@ -1254,7 +1260,24 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
                                   off.missions[0].filtered.pos[after])
     assert not np.array_equal(on.missions[0].filtered.pos[~after],
                               off.missions[0].filtered.pos[~after])
-    # before it, horizontally the filter's prediction from the fixes so far
+    # before it, horizontally the filter's prediction from the fixes so far where it had
+    # predicted the fixes better than the model (here most of the minute), else the model's
     causal, _ = kinematic_baseline(m, on.missions[0].filtered.t[~after])
-    np.testing.assert_allclose(on.missions[0].filtered.pos[~after, :2], causal[:, :2],
-                               atol=1e-9)
+    got = on.missions[0].filtered.pos[~after, :2]
+    is_f = np.all(np.abs(got - causal[:, :2]) < 1e-9, axis=1)
+    is_m = np.all(np.abs(got - off.missions[0].filtered.pos[~after, :2]) < 1e-9, axis=1)
+    assert np.all(is_f | is_m) and is_f.sum() > 2 * is_m.sum(), (is_f.sum(), is_m.sum())
+
+
+def test_the_sway_prior_fits_the_sliding_crops_without_a_rescue():
+    """The two crops on which the all-six fit slid 32-47 deg under the paper vehicles' sway
+    prior (above): with the default prior the model as given fits them within 3 deg of the
+    truth's heading offset, plausible, with no held-sway fit or alternative."""
+    for name, t0, t1, every in (("otter-dev-calm-a", 0.0, 450.0, 8.0),
+                                ("otter-example", 300.0, 900.0, 4.0)):
+        truth = load_truth(data_path(name))
+        m = with_gnss_every(crop(load_mission(data_path(name)), t0, t1), every)
+        r = fit_fg([m], settings=FGSettings(auto_effect=False))
+        assert r.info["plausible"] and "held_sway" not in r.info
+        assert "alternative_held_sway" not in r.info and "k_yz" in r.estimated
+        assert abs(wrap(r.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG, name

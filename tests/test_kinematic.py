@@ -81,6 +81,32 @@ def test_the_floor_is_the_filter_while_held_and_the_model_after():
     assert np.all(X0 == 7.0)
 
 
+def test_the_floor_carries_the_track_only_where_it_predicted_the_fixes_better():
+    """A boat at rest for 8 s, then accelerating at 1 m/s^2 north, fixes every 2 s (sigma
+    0.3 m). A model that predicts the fixes (knows the thrust) keeps the track: at rest the
+    two predict alike, within the fixes' noise; a model 5 m off hands it to the filter
+    while that predicts better (at rest), not once the filter falls further behind."""
+    from aqfg.fg.kinematic import CausalFloor
+    t = np.arange(0.0, 20.0, 2.0)
+    north = np.where(t > 8.0, 0.5 * (t - 8.0) ** 2, 0.0)
+    pos = np.column_stack([north, np.zeros_like(t)])
+    fixes = (t, pos, np.full(len(t), 0.09))
+    fl = CausalFloor(KinematicFilter(q=0.1))
+    for tk in t:
+        fl.step(float(tk), fixes, held=True)
+    good = np.column_stack([pos, np.zeros((len(t), 4))])[1:]        # exact predictions
+    ch = fl.chosen((t[1:], good))
+    assert ch[0] and not ch[1:].any()                 # the first fix: the floor; then the model
+    bad = good.copy()
+    bad[:, 1] += 5.0
+    ch = fl.chosen((t[1:], bad))
+    assert ch[t <= 8.0].all() and not ch[t >= 16.0].any()
+    knots = np.arange(0.0, 19.0, 1.0)
+    X = np.full((len(knots), 6), 7.0)
+    fl.apply(knots, X, (t[1:], good))
+    assert np.all(X[knots >= 2.0] == 7.0) and not np.all(X[knots < 2.0] == 7.0)
+
+
 def test_the_baseline_smoother_is_the_map_of_its_model_and_the_causal_track_the_filters():
     """With (almost) no process noise the Rauch-Tung-Striebel pass is the MAP straight line
     through the fixes under the filter's start (the first fix, the velocity prior of

@@ -51,6 +51,18 @@ def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict
     return out
 
 
+def gnss_noise_from(params_from: str | None):
+    """The ``gnss_noise`` entry of a ``--params-from`` parameters.json (the receiver's
+    noise measured on the missions it was fitted to), or None."""
+    if not params_from:
+        return None
+    from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.outputs import read_json
+    data = read_json(Path(params_from), "--params-from")
+    doc = data.get("gnss_noise") if isinstance(data, dict) else None
+    return None if doc is None else GnssNoise.from_document(doc, f"--params-from {params_from}")
+
+
 def effects_of_values(values: dict[str, float], where: str) -> tuple[str, ...]:
     """The effects whose parameters ``values`` holds (``effect.param`` names), in order:
     the effects a ``--params-from`` file's model had, without which its vehicle constants
@@ -178,9 +190,8 @@ def run(args) -> int:
     outs.check()                       # refuse now, not after the fit
     kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
           "window": args.window}
-    if args.method == "fg" and getattr(args, "no_auto_effect", False):
-        from aqfg.fg.common import FGSettings
-        kw["settings"] = FGSettings(auto_effect=False)
+    if args.method == "fg":
+        kw.update(_fg_settings(args))
     log.info("%d mission(s), method %s, mode %s%s", len(missions), args.method, args.mode,
              f", model {model_path} ({' + '.join(effects) or 'no effects'})" if model_path
              else "")
@@ -244,6 +255,18 @@ def _effects_and_init(args, missions, from_file: dict):
         effects = tuple(dict.fromkeys(mf.effects + effects))
         init = {**mf.init(), **init}
     return effects, init, model_path
+
+
+def _fg_settings(args) -> dict:
+    """``{"settings": FGSettings}`` where the command line changes the defaults: the effect
+    step off, or the receiver's noise measured on the missions a ``--params-from`` file was
+    fitted to."""
+    from aqfg.fg.common import FGSettings
+    st = FGSettings(auto_effect=not getattr(args, "no_auto_effect", False))
+    noise = gnss_noise_from(args.params_from)
+    if noise is not None:
+        st = st.with_(gnss_noise=noise)
+    return {} if st == FGSettings() else {"settings": st}
 
 
 def _print_summary(result) -> None:

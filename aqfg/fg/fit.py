@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.fg import dead_reckoning, jackknife
+from aqfg.fg import dead_reckoning, gnss_noise, jackknife
 from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fastlm import FastSystem
@@ -55,6 +55,23 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     missions = check_missions(missions)
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
+    res = _fit(missions, mode, estimate, init, effects, window, progress, settings, model)
+    return res
+
+
+def _fit(missions, mode, estimate, init, effects, window, progress, settings, model) -> Result:
+    """:func:`fit_fg` with the fixes weighted by the GNSS noise (``FGSettings.gnss_noise``)."""
+    st0 = settings or FGSettings()
+    missions, noise = gnss_noise.apply(list(missions), st0.gnss_noise, st0.online_kinematic_q,
+                                       st0.sensors.gnss_sigma, track=mode == "online")
+    res = _fit_weighted(missions, mode, estimate, init, effects, window, progress, settings, model)
+    if noise is not None:
+        res.info["gnss_noise"] = noise.document()
+    return res
+
+
+def _fit_weighted(missions, mode, estimate, init, effects, window, progress, settings, model
+                  ) -> Result:
     if mode == "batch":
         st = settings or FGSettings()
         auto = auto_effect_applies(st, estimate)

@@ -31,6 +31,8 @@ from aqfg.model.process import white_acceleration
 if TYPE_CHECKING:                       # common imports nothing from here; keep it so
     from aqfg.fg.common import FGSettings
 
+FLOOR_CHOICE_FIXES = 3      # fixes whose prediction errors choose the floor or the model
+
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
 
 
@@ -185,6 +187,8 @@ class CausalFloor:
     until: float = math.inf
     t: list[float] = field(default_factory=list)          # fix times while held
     x: list[np.ndarray] = field(default_factory=list)     # the filter's state right after
+    z: list[np.ndarray] = field(default_factory=list)     # the fix taken last at each
+    v: list[float] = field(default_factory=list)          # and its per-axis variance
     next_row: int = 0                                     # next row of the fix table
 
     def step(self, t_fix: float, fixes: tuple, held: bool) -> bool:
@@ -203,16 +207,58 @@ class CausalFloor:
         if held:
             self.t.append(float(t_fix))
             self.x.append(self.filt.at(t_fix))
+            self.z.append(np.asarray(pos[i - 1], float)[:2] if i > 0 else
+                          np.full(2, np.nan))
+            self.v.append(float(var[i - 1]) if i > 0 else np.nan)
             return False
         self.until = float(t_fix)
         return bool(self.t)
 
-    def apply(self, knots: np.ndarray, X: np.ndarray) -> None:
+    def chosen(self, predicted: tuple | None, last: int = FLOOR_CHOICE_FIXES) -> np.ndarray:
+        """Per held fix, whether the floor (True) or the model (False) carries the causal
+        track after it: the floor where its predictions of the ``last`` fixes up to it were
+        closer than the model's by more than the fixes' own noise (mean squared horizontal
+        error, each predicted from the fix before: the filter's at constant velocity, the
+        model's ``predicted`` = (fix times, states (m, 6) predicted there before the
+        update); the noise: twice the fixes' mean per-axis variance). Errors the fixes
+        cannot tell apart leave the model, which knows the thrust (a boat starting from rest
+        left the floor 9 m behind 4 s later). Causal: a fix's choice uses fixes up to it.
+        The first fix, and every fix without a model prediction, take the floor."""
+        n = len(self.t)
+        out = np.ones(n, bool)
+        if predicted is None or n < 2:
+            return out
+        pt, px = np.asarray(predicted[0], float), np.asarray(predicted[1], float)
+        if not len(pt):
+            return out
+        t, x, z, v = np.array(self.t), np.array(self.x), np.array(self.z), np.array(self.v)
+        e_f = np.full(n, np.nan)
+        e_m = np.full(n, np.nan)
+        dt = np.diff(t)
+        e_f[1:] = np.sum((x[:-1, :2] + x[:-1, 2:] * dt[:, None] - z[1:]) ** 2, axis=1)
+        j = np.clip(np.searchsorted(pt, t - 1e-6), 0, len(pt) - 1)
+        ok = np.abs(pt[j] - t) < 1e-6
+        e_m[ok] = np.sum((px[j[ok], :2] - z[ok]) ** 2, axis=1)
+        for k in range(1, n):
+            sl = slice(max(1, k - last + 1), k + 1)
+            a, b, w = e_f[sl], e_m[sl], v[sl]
+            good = np.isfinite(a) & np.isfinite(b) & np.isfinite(w)
+            out[k] = not good.any() or (float(np.mean(b[good]) - np.mean(a[good]))
+                                        > 2.0 * float(np.mean(w[good])))
+        return out
+
+    def apply(self, knots: np.ndarray, X: np.ndarray, predicted: tuple | None = None) -> None:
         """Knot states ``X`` (n, 6: NED position, velocity) of the causal track at ``knots``
         (n,) s, in place: before ``until``, horizontally the filter's (each knot from the
-        last fix at or before it)."""
-        use = np.asarray(knots) < self.until - 1e-9
+        last fix at or before it), after the held fixes at which the filter predicted the
+        fixes better than the model (:meth:`chosen`; ``predicted`` None: after every one)."""
+        knots = np.asarray(knots, float)
+        use = knots < self.until - 1e-9
         if not self.t or not use.any():
             return
-        K = track_from(np.array(self.t), np.array(self.x), np.asarray(knots)[use])
+        rec = np.clip(np.searchsorted(np.array(self.t), knots + 1e-9) - 1, 0, len(self.t) - 1)
+        use &= self.chosen(predicted)[rec]
+        if not use.any():
+            return
+        K = track_from(np.array(self.t), np.array(self.x), knots[use])
         X[use, 0:2], X[use, 3:5] = K[:, :2], K[:, 2:]

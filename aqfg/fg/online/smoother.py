@@ -422,7 +422,7 @@ class FixedLagSmoother:
         self.backend.materialise()
         X = np.array(self.filtered)
         kn = np.array(self.knots)
-        self._floor.apply(kn, X)
+        self._floor.apply(kn, X, (np.array(self.pred_t), np.array(self.pred_x).reshape(-1, 6)))
         return Track(kn, X[:, :3], X[:, 3:])
 
     # ---------------------------------------------------------------- whole runs
