@@ -263,21 +263,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
                                                    for n, v in jk["sigma_before"].items()}}
     st = result.info.get("sigma_structure")
     if result.mode == "batch" and st:
-        # the shift of the variable parameters the missing effect the data call for most
-        # would cause, included in their sigma (FGSettings.structural_sigma)
-        doc["sigma_structure"] = {"effect": st["effect"],
-                                  "p_value_robust": float(st["p_value_robust"]),
-                                  "shift": {n: float(v) for n, v in st["shift"].items()},
-                                  "proven": bool(st.get("proven", True)),
-                                  "sigma_before": {n: float(v)
-                                                   for n, v in st["sigma_before"].items()}}
-        rf = st.get("refit")
-        if rf:
-            # the fit again with the effect (aqfg.fg.fit.refit_structure)
-            doc["sigma_structure"]["refit"] = {
-                k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict)
-                    else v if isinstance(v, str) else float(v))
-                for k, v in rf.items() if k in ("cost", "move", "not_used", "failed")}
+        doc["sigma_structure"] = sigma_structure_document(st)
     ae = result.info.get("auto_effect")
     if result.mode == "batch" and ae:
         # the effect the structural test named, whether the fit added it (FGSettings.
@@ -294,6 +280,24 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
+
+
+def sigma_structure_document(st: dict) -> dict:
+    """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
+    # the shift of the variable parameters the missing effect the data call for most
+    # would cause, included in their sigma (FGSettings.structural_sigma)
+    out = {"effect": st["effect"], "p_value_robust": float(st["p_value_robust"]),
+           "shift": {n: float(v) for n, v in st["shift"].items()},
+           "proven": bool(st.get("proven", True)),
+           "sigma_before": {n: float(v) for n, v in st["sigma_before"].items()}}
+    rf = st.get("refit")
+    if rf:
+        # the fit again with the effect (aqfg.fg.fit.refit_structure)
+        out["refit"] = {
+            k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict)
+                else v if isinstance(v, str) else float(v))
+            for k, v in rf.items() if k in ("cost", "move", "not_used", "failed")}
+    return out
 
 
 def dead_reckoning_document(dr: dict) -> dict:
