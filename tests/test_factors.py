@@ -140,15 +140,7 @@ def test_measurement_factor_jacobians(asv):
                                             "usbl_range_scale.scale": 1.01})
     assert lay.meas_groups("gnss") == ("variable", "sensor")
     assert lay.meas_groups("usbl") == ("variable", "sensor")
-    t = float(m.usbl.t[3])
-    R = attitude_at(m, np.array([t]))[0]
-    kx = fc.state_key(0, 0)
-    nk = (("variable", fc.node_key("variable")), ("sensor", fc.node_key("sensor")))
-    x = np.array([20.0, -15.0, 0.0, 0.7, 0.2, 0.0])
-    vals = _values([(kx, x), (nk[0][1], lay.initial("variable")), (nk[1][1], lay.initial("sensor"))])
-    g = fc.gnss_factor(model, lay, kx, nk, np.array([20.5, -14.0]), R, t,
-                       gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
-    _check_jacobians(g, vals)
+    t, R, kx, nk, x, vals, g = _gnss_at_usbl_fix(m, model, lay)
     u = fc.usbl_factor(model, lay, kx, nk, np.array([25.0, -0.6]), R, t, m.usbl_station,
                        gtsam.noiseModel.Diagonal.Sigmas(np.array([0.15, 0.026])))
     _check_jacobians(u, vals)
@@ -165,15 +157,9 @@ def test_measurement_factor_jacobians(asv):
     _check_jacobians(d, vals)
 
 
-def test_time_offset_factor_jacobians(asv):
-    """GNSS and USBL with their time offsets estimated (the sensor node) and a lever arm:
-    the fix reads the knot's velocity, and every Jacobian matches finite differences."""
-    m, tr = asv
-    model = Model.for_mission(m, ("gnss_delay", "usbl_delay", "lever_arm"))
-    est = ("theta_e", "gnss_delay.tau", "usbl_delay.tau", "lever_arm.x")
-    lay = fc.ParamLayout.build(model, est, {"theta_e": 0.4, "gnss_delay.tau": 0.7,
-                                            "usbl_delay.tau": 1.5, "lever_arm.x": -0.3})
-    assert lay.meas_groups("gnss") == ("variable", "sensor")
+def _gnss_at_usbl_fix(m, model, lay):
+    """A GNSS factor at the 4th USBL fix's time on knot 0 with the variable and sensor
+    nodes, its Jacobians checked; returns (t, R, knot key, node keys, state, values, factor)."""
     t = float(m.usbl.t[3])
     R = attitude_at(m, np.array([t]))[0]
     kx = fc.state_key(0, 0)
@@ -183,6 +169,19 @@ def test_time_offset_factor_jacobians(asv):
     g = fc.gnss_factor(model, lay, kx, nk, np.array([20.5, -14.0]), R, t,
                        gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     _check_jacobians(g, vals)
+    return t, R, kx, nk, x, vals, g
+
+
+def test_time_offset_factor_jacobians(asv):
+    """GNSS and USBL with their time offsets estimated (the sensor node) and a lever arm:
+    the fix reads the knot's velocity, and every Jacobian matches finite differences."""
+    m, tr = asv
+    model = Model.for_mission(m, ("gnss_delay", "usbl_delay", "lever_arm"))
+    est = ("theta_e", "gnss_delay.tau", "usbl_delay.tau", "lever_arm.x")
+    lay = fc.ParamLayout.build(model, est, {"theta_e": 0.4, "gnss_delay.tau": 0.7,
+                                            "usbl_delay.tau": 1.5, "lever_arm.x": -0.3})
+    assert lay.meas_groups("gnss") == ("variable", "sensor")
+    t, R, kx, nk, x, vals, g = _gnss_at_usbl_fix(m, model, lay)
     H = g.linearize(vals).jacobian()[0]
     assert np.abs(H[:, 3:5]).max() > 0.5       # the velocity enters through the offset
     _check_jacobians(fc.usbl_factor(model, lay, kx, nk, np.array([25.0, -0.6]), R, t,
