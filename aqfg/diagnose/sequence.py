@@ -24,7 +24,6 @@ From a notebook::
 """
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -286,14 +285,9 @@ def save_sequence(seq: DiagnosisSequence, out_dir, overwrite: bool = False,
                   plots: bool = True) -> Path:
     """Write ``diagnosis.json``, ``report.html`` and ``model.json`` into ``out_dir``."""
     from aqfg.diagnose.report import write_sequence_report
-    out = Path(out_dir)
-    targets = [out / "diagnosis.json", out / "report.html", out / "model.json"]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "diagnosis.json", "w") as f:
-        json.dump(seq.to_json(), f, indent=2)
+    from aqfg.diagnose.workflow import write_diagnosis_json
+    out = write_diagnosis_json(seq.to_json(), Path(out_dir), ("report.html", "model.json"),
+                               overwrite)
     seq.model_file().write(out / "model.json", overwrite=True)
     write_sequence_report(seq, out / "report.html", plots=plots)
     return out

@@ -741,13 +741,19 @@ def save_diagnosis(diag: Diagnosis, out_dir, overwrite: bool = False, plots: boo
     from pathlib import Path
 
     from aqfg.diagnose.report import write_report
-    out = Path(out_dir)
-    targets = [out / "diagnosis.json", out / "report.html"]
+    out = write_diagnosis_json(diag.to_json(), Path(out_dir), ("report.html",), overwrite)
+    write_report(diag, out / "report.html", plots=plots)
+    return out
+
+
+def write_diagnosis_json(doc: dict, out, others: tuple[str, ...], overwrite: bool):
+    """``out/diagnosis.json`` from ``doc``, refusing (unless ``overwrite``) where it or one of
+    the ``others`` files written beside it exists; returns ``out``."""
+    targets = [out / "diagnosis.json", *(out / n for n in others)]
     existing = [str(p) for p in targets if p.exists()]
     if existing and not overwrite:
         raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "diagnosis.json", "w") as f:
-        json.dump(diag.to_json(), f, indent=2)
-    write_report(diag, out / "report.html", plots=plots)
+        json.dump(doc, f, indent=2)
     return out
