@@ -49,11 +49,7 @@ def run(args) -> int:
     from aqfg.outputs import OutputSet, provenance
     auto = bool(getattr(args, "auto", False))
     out = Path(args.out)
-    if args.gnss_every < 0:
-        raise UsageError(f"--gnss-every must be positive, got {args.gnss_every}")
     max_steps = getattr(args, "max_steps", 6)
-    if max_steps < 1:
-        raise UsageError(f"--max-steps must be at least 1, got {max_steps}")
     min_gain = getattr(args, "min_gain", None)
     if min_gain is not None and not 0.0 <= min_gain < 1.0:
         raise UsageError(f"--min-gain must be a fraction in [0, 1), got {min_gain}")

@@ -162,8 +162,6 @@ def run(args) -> int:
     from aqfg.outputs import OutputSet, provenance, unique_safe_names
     from aqfg.result import RESULT_FILES
     out = Path(args.out)
-    if args.gnss_every < 0:
-        raise UsageError(f"--gnss-every must be positive, got {args.gnss_every}")
     estimate = None
     if args.estimate:
         estimate = [s.strip() for s in args.estimate.split(",") if s.strip()]

@@ -22,10 +22,6 @@ def run(args) -> int:
     out = Path(args.out)
     if (out / "fleet.json").exists() and not args.force:
         raise FileExistsError(f"refusing to overwrite {out / 'fleet.json'} (pass --force)")
-    if args.gnss_every < 0:
-        raise ValueError(f"--gnss-every must be positive, got {args.gnss_every}")
-    if args.workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {args.workers}")
     effects = tuple(resolve(e).name for e in args.effect)
     where = f"scheduler {args.scheduler}" if args.scheduler else f"{args.workers} local workers"
     print(f"aqfg fleet: {len(manifest.vehicles)} vehicle(s), {manifest.n_missions} mission(s) "
