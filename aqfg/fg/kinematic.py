@@ -177,6 +177,17 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, kf: KinematicFilter
     return causal, smooth
 
 
+def noise_margin(gap_sq: np.ndarray, var: np.ndarray, z: float = 2.0) -> float:
+    """The mean difference of two predictors' squared horizontal errors at the same fixes
+    (m^2) that the fixes' noise alone exceeds with probability about that of ``z`` sigma:
+    predictions ``gap_sq`` (m^2) apart (squared distance between the two) at fixes of
+    per-axis variance ``var`` (m^2). At one fix ``|a - z|^2 - |b - z|^2`` varies with the
+    fix's noise only along ``a - b``: standard deviation ``2 |a - b| sigma``; the mean over
+    ``n`` fixes ``1/n`` times the root sum of their variances."""
+    gap_sq, var = np.asarray(gap_sq, float), np.asarray(var, float)
+    return float(z * 2.0 * math.sqrt(float(np.sum(gap_sq * var))) / len(var))
+
+
 @dataclass
 class CausalFloor:
     """The kinematic floor of an online causal track (see the module docstring): the
@@ -217,11 +228,11 @@ class CausalFloor:
     def chosen(self, predicted: tuple | None, last: int = FLOOR_CHOICE_FIXES) -> np.ndarray:
         """Per held fix, whether the floor (True) or the model (False) carries the causal
         track after it: the floor where its predictions of the ``last`` fixes up to it were
-        closer than the model's by more than the fixes' own noise (mean squared horizontal
-        error, each predicted from the fix before: the filter's at constant velocity, the
-        model's ``predicted`` = (fix times, states (m, 6) predicted there before the
-        update); the noise: twice the fixes' mean per-axis variance). Errors the fixes
-        cannot tell apart leave the model, which knows the thrust (a boat starting from rest
+        closer than the model's by more than the fixes' own noise can explain (mean squared
+        horizontal error, each predicted from the fix before: the filter's at constant
+        velocity, the model's ``predicted`` = (fix times, states (m, 6) predicted there
+        before the update); the noise: :func:`noise_margin`). Errors the fixes cannot
+        tell apart leave the model, which knows the thrust (a boat starting from rest
         left the floor 9 m behind 4 s later). Causal: a fix's choice uses fixes up to it.
         The first fix, and every fix without a model prediction, take the floor."""
         n = len(self.t)
@@ -232,19 +243,21 @@ class CausalFloor:
         if not len(pt):
             return out
         t, x, z, v = np.array(self.t), np.array(self.x), np.array(self.z), np.array(self.v)
-        e_f = np.full(n, np.nan)
-        e_m = np.full(n, np.nan)
-        dt = np.diff(t)
-        e_f[1:] = np.sum((x[:-1, :2] + x[:-1, 2:] * dt[:, None] - z[1:]) ** 2, axis=1)
+        p_f = np.full((n, 2), np.nan)           # each fix predicted from the one before
+        p_m = np.full((n, 2), np.nan)
+        p_f[1:] = x[:-1, :2] + x[:-1, 2:] * np.diff(t)[:, None]
         j = np.clip(np.searchsorted(pt, t - 1e-6), 0, len(pt) - 1)
         ok = np.abs(pt[j] - t) < 1e-6
-        e_m[ok] = np.sum((px[j[ok], :2] - z[ok]) ** 2, axis=1)
+        p_m[ok] = px[j[ok], :2]
+        e_f = np.sum((p_f - z) ** 2, axis=1)
+        e_m = np.sum((p_m - z) ** 2, axis=1)
+        gap = np.sum((p_m - p_f) ** 2, axis=1)
         for k in range(1, n):
             sl = slice(max(1, k - last + 1), k + 1)
-            a, b, w = e_f[sl], e_m[sl], v[sl]
+            a, b, w, g = e_f[sl], e_m[sl], v[sl], gap[sl]
             good = np.isfinite(a) & np.isfinite(b) & np.isfinite(w)
             out[k] = not good.any() or (float(np.mean(b[good]) - np.mean(a[good]))
-                                        > 2.0 * float(np.mean(w[good])))
+                                        > noise_margin(g[good], w[good]))
         return out
 
     def apply(self, knots: np.ndarray, X: np.ndarray, predicted: tuple | None = None) -> None:
