@@ -12,7 +12,11 @@ whose criterion is a multi-step prediction (docs/independent-vehicle.md).
 the estimated *fixed* parameters (k, k_x, k_yz and the fixed effects' parameters) by the
 error of the model's own prediction, started from the smoothed state at a fix and run
 without corrections to every fix within ``horizon`` s (the gap a user dead-reckons
-through). The residuals are horizontal position errors in m under a Huber loss; their
+through). The residuals are the horizontal position errors divided by their lead time (the
+mean velocity error since the start, m/s; leads under ``MIN_LEAD`` s count as that), under a
+Huber loss: a prediction's error grows with its lead, and raw position errors let the
+longest leads alone choose constants that damp every prediction (on a real ASV, constants
+that predicted the seconds between online fixes worse than the smoother's). Their
 1-sigma is a time-block sandwich (blocks of ``horizon`` s, one Bartlett lag: overlapping
 horizons share model error), reported wider by the Student-t factor of its dof
 (:func:`aqfg.fg.covariance.honest_covariance`). The refined constants replace the
@@ -43,6 +47,7 @@ HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction err
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
 MIN_BLOCKS = 3         # fewer time blocks than parameters + this: not refined
 STRIDE_DIV = 4.0      # starts at least horizon / STRIDE_DIV s apart
+MIN_LEAD = 1.0        # s, the shortest lead time a residual is divided by
 
 
 @dataclass
@@ -55,6 +60,7 @@ class _Segment:
     offsets: np.ndarray
     rows: np.ndarray        # knot index of each target fix
     z: np.ndarray           # (n, 2) target fix positions (north, east), m
+    lead: np.ndarray        # (n,) s from t0 to each target fix
 
 
 def _segments(model: Model, missions: list[Mission], result: Result, horizon: float
@@ -93,7 +99,7 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
             else:
                 steps, off = model.steps(m, knots)
             rows = np.searchsorted(knots, tf[js] - 1e-9)
-            out.append(_Segment(i, float(t0), x0, steps, off, rows, pf[js, :2]))
+            out.append(_Segment(i, float(t0), x0, steps, off, rows, pf[js, :2], tf[js] - t0))
     return out
 
 
@@ -200,7 +206,10 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     specs = [model.spec(n) for n in names]
     p_missions = [mr.p.copy() for mr in result.missions]
 
-    def residuals(x: np.ndarray) -> np.ndarray:
+    per_lead = np.concatenate([np.repeat(1.0 / np.maximum(s.lead, MIN_LEAD), 2) for s in segs])
+
+    def errors(x: np.ndarray) -> np.ndarray:
+        """Horizontal prediction errors (m) of the constants ``x``."""
         v = _to_v(x, logs)
         out = []
         for s in segs:
@@ -208,7 +217,10 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
             p[idx] = v
             X = model.rollout_segments(s.x0, p, s.steps, s.offsets)
             out.append((X[s.rows, :2] - s.z).ravel())
-        r = np.concatenate(out)
+        return np.concatenate(out)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        r = errors(x) * per_lead
         return np.where(np.isfinite(r), r, 1e6)
 
     lo = np.array([np.log(max(sp.lower, 1e-12)) if lg else sp.lower for sp, lg in zip(specs, logs)])
@@ -238,9 +250,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
                  "sigma_before": {n: float(result.sigma.get(n, np.nan)) for n in names},
                  "after": {n: float(v) for n, v in zip(names, v_new)},
                  "sigma_after": {n: float(s) for n, s in zip(names, sig_new)},
-                 "rms_before_m": _rms(r0), "rms_after_m": _rms(r),
-                 "median_abs_before_m": float(np.median(np.abs(r0))),
-                 "median_abs_after_m": float(np.median(np.abs(r)))})
+                 **_error_summary(errors(x0), errors(x))})
     if not (wald > thr and np.all(np.isfinite(sig_new))):
         result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
         info["reason"] = ("the smoother's constants predict as well (Wald "
@@ -251,6 +261,13 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
     _apply(result, missions, model, names, idx, p_missions, v_new, sig_new, sig_mod)
     return result
+
+
+def _error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
+    """RMS and median absolute horizontal prediction errors (m) before and after."""
+    return {"rms_before_m": _rms(before), "rms_after_m": _rms(after),
+            "median_abs_before_m": float(np.median(np.abs(before))),
+            "median_abs_after_m": float(np.median(np.abs(after)))}
 
 
 def _apply(result: Result, missions: list[Mission], model: Model, names: list[str], idx: np.ndarray,
