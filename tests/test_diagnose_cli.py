@@ -89,3 +89,17 @@ def test_diagnose_logs_the_base_fits_warnings_once(tmp_path, capsys):
     assert main(["diagnose", str(data_path("remus-dev-a")), "--out", str(tmp_path / "d")]) == 0
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ": warning: fg:" in ln]
     assert lines and len(lines) == len(set(lines)), lines
+
+
+def test_a_run_shorter_than_two_horizons_is_diagnosed_over_one(tmp_path, capsys):
+    """A 50-s run (a real boat's runs are often this short) holds fewer fixes than two 60-s
+    prediction horizons: its long held-out predictions are one window to the end of the
+    run, not a refusal ("not enough fixes to hold some out")."""
+    d = tmp_path / "short"
+    m, truth = simulate("asv", seed=2, duration=50.0, gnss_period=1.0)
+    save_mission(m, d, truth=truth)
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(d), "--out", str(out)]) == 0, \
+        capsys.readouterr().err
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert isinstance(data["missing"], bool) and data["ranking"]

@@ -179,7 +179,7 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
                 keep.append(ta); last = ta
         anchors = np.asarray(keep)
     rows = _fix_rows(heldout, settings)
-    if len(anchors) < 2 or not rows:
+    if len(anchors) < 1 or not rows:
         raise ValueError(f"mission {fit.name!r}: not enough fixes to hold some out "
                          f"({len(anchors)} fit fixes, {len(rows)} held out)")
     assert lin.knots is not None and lin.param_cols is not None, \
@@ -196,7 +196,9 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     ka = np.clip(ka, 0, len(knots) - 1)
     if np.max(np.abs(knots[ka] - anchors)) > 1e-6:
         raise ValueError("held-out evaluation: the fit's fixes are not all knots of its graph")
-    gap = float(np.median(np.diff(anchors)))
+    # the last anchor's window: the anchors' usual gap (one anchor: the rest of the mission,
+    # e.g. a run shorter than two horizons)
+    gap = float(np.median(np.diff(anchors))) if len(anchors) > 1 else float(fit.t1 - anchors[0])
     t_rows = np.array([r[1] for r in rows])
     # the anchors that have targets, and the joint covariance of each one's state + params
     a_of = np.searchsorted(anchors, t_rows - 1e-9) - 1       # last anchor strictly before
