@@ -35,9 +35,12 @@ def percent_change(a: float, b: float) -> str:
 
 
 def gain_cell(c) -> str:
-    """The held-out gain of a refitted candidate for a table cell: "-35%", "within noise"."""
+    """The held-out gain of a refitted candidate for a table cell: "-35%", "within noise"
+    (the base model's error already was), "to noise" (the refit's is, the base's was not)."""
     if not np.isfinite(c.gain_frac):
         return "n/a"
     if c.within_noise:
         return "within noise"
+    if c.to_noise:
+        return "to noise"
     return f"{-100 * c.gain_frac:+.0f}%"

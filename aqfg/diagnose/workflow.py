@@ -144,6 +144,7 @@ class Candidate:
     shared: float = float("nan")            # information shared with the missing effect
     gain_frac: float = float("nan")         # held-out DR error reduction (practical_gain)
     within_noise: bool = False              # the base model already predicts within the noise
+    to_noise: bool = False                  # the refit predicts within it, the base did not
     implausible: list[str] = field(default_factory=list)   # estimates outside their range
     absorbs: str = ""                       # what an implausible estimate stands for
 
@@ -166,6 +167,8 @@ class Candidate:
             return "no held-out error"
         if self.within_noise:
             return "the held-out fixes were already predicted within their noise"
+        if self.to_noise:
+            return "the held-out error beyond the fixes' noise brought within it"
         return f"{-100 * self.gain_frac:+.0f}% held-out error (beyond the fixes' noise)"
 
     def estimate_text(self) -> str:
@@ -440,6 +443,7 @@ def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: floa
     c.gain = heldout_gain(base.next_fix, r.next_fix, window)
     c.gain_frac = practical_gain(base.rmse, r.rmse) if r.has_heldout else float("nan")
     c.within_noise = bool(r.has_heldout and base.rmse <= 0.0)
+    c.to_noise = bool(r.has_heldout and base.rmse > 0.0 and r.rmse <= 0.0)
     c.implausible = implausible(effect, r.values(c.params), missions)
     c.absorbs = effect.absorbs
     c.evidence = Evidence(score=c.significant, lr=c.lr_p < alpha, bic=c.dbic < 0,
