@@ -4,7 +4,7 @@
 (aqfg-mission/1, each with a 5-Hz-or-so gnss.csv and no truth) and, per run:
 
 * heading: the batch factor-graph theta_e +- sigma (GNSS every 8 s) beside a reference from
-  the course over ground on straight legs (speed > 0.4 m/s, |yaw rate| < 0.1 rad/s, 2-s
+  the course over ground on straight legs (surge > 0.4 m/s, |yaw rate| < 0.1 rad/s, 2-s
   baselines between fixes): the median of course - reported yaw, its spread (1.4826 MAD) and
   its sigma (spread / sqrt(independent baselines) x 1.25, the median's efficiency);
   the same fit with 30 deg added to the reported yaw (recovery: the shift of theta_e + 30);
@@ -82,7 +82,9 @@ def cog_reference(m: Mission, base: float = 2.0, v_min: float = 0.4, r_max: floa
     grid = np.linspace(0.0, 1.0, 9)
     yw = np.array([yaw_of(m, t[i] + g * dt) for g in grid])
     rate = np.max(np.abs(np.diff(yw, axis=0)), axis=0) / (dt / (len(grid) - 1))
-    sel = (speed > v_min) & (rate < r_max)
+    # surge, not speed: a boat backing down a straight leg has course - yaw = 180 deg
+    surge = speed * np.cos(course - yaw_of(m, tm))
+    sel = (surge > v_min) & (rate < r_max)
     # time moving: fixes whose 2-s baseline is faster than v_min, times their spacing
     motion = float(np.sum(speed > v_min) * np.median(np.diff(t)))
     if sel.sum() < 3:
