@@ -138,42 +138,73 @@ def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> s
             "which way the vehicle accelerates")
 
 
-def settle(result, missions=()) -> list[str]:
-    """Apply the module's rules to ``result`` in place: the accelerometer check on each
-    mission's track (a disagreement makes ``theta_e`` not determined), then a sigma of NaN
-    (written ``null``) with the reason in ``info["sigma_notes"]`` for every parameter whose
-    verdict is "not determined". Returns the new warnings (also appended to
-    ``info["warnings"]``)."""
+def _mark_mission(info: dict, mission: str, name: str, reason: str) -> bool:
+    """Mark ``name`` of one mission of a joint fit not determined (its entry in
+    ``info["per_mission"]``: sigma NaN, ``sigma_note``). False where the fit has no
+    per-mission value of ``name`` (one mission, or a parameter shared by the missions)."""
+    e = ((info.get("per_mission") or {}).get(mission) or {}).get(name)
+    if not isinstance(e, dict):
+        return False
+    e["sigma"] = float("nan")
+    e["sigma_note"] = f"{NOT}: {reason}"
+    return True
+
+
+def _heading_checks(result, missions, new: list[str]) -> set[str]:
+    """The accelerometer check of each mission's track (:func:`settle`); returns the names
+    whose top-level verdict it made "not determined" from the first mission alone (a joint
+    fit's top-level values of the per-mission parameters are the first mission's)."""
     from aqfg.model.params import INDEX
     info = result.info
-    new: list[str] = []
     by_name = {m.name: m for m in missions}
-    if "theta_e" in result.estimated:
-        checks = {}
-        for mr in result.missions:
-            m = by_name.get(mr.name)
-            if m is None:
-                continue
-            th = float(mr.p[INDEX["theta_e"]])
-            chk = heading_against_accelerometer(m, mr.track, th)
-            if chk is None:
-                if abs(math.remainder(th, 2 * math.pi)) > math.radians(LARGE_OFFSET_DEG):
-                    new.append(f"{mr.name}: the heading offset is {math.degrees(th):.0f} deg: "
-                               "unless the compass is that far off, the vehicle moves against "
-                               "its thrust (a thruster's command sign or [thrusters] direction "
-                               "reversed); the IMU has no accelerometer columns to tell")
-                continue
-            checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
-                               "agreement": round(chk.agreement, 3), "windows": chk.windows}
-            words = heading_finding(chk, th, mr.name)
-            if words:
-                new.append(words)
-                flipped = abs(chk.offset_deg) > FLIPPED_DEG
-                _mark_not_determined(info, "theta_e", "the vehicle moves against its thrust "
-                                     "(a reversed thruster sign or direction?)" if flipped else
-                                     "the accelerometer disagrees with the fitted heading")
-        if checks:
-            info["heading_check"] = checks
+    joint = len(result.missions) > 1
+    checks = {}
+    local: set[str] = set()
+    for i, mr in enumerate(result.missions):
+        m = by_name.get(mr.name)
+        if m is None:
+            continue
+        th = float(mr.p[INDEX["theta_e"]])
+        chk = heading_against_accelerometer(m, mr.track, th)
+        if chk is None:
+            if abs(math.remainder(th, 2 * math.pi)) > math.radians(LARGE_OFFSET_DEG):
+                new.append(f"{mr.name}: the heading offset is {math.degrees(th):.0f} deg: "
+                           "unless the compass is that far off, the vehicle moves against "
+                           "its thrust (a thruster's command sign or [thrusters] direction "
+                           "reversed); the IMU has no accelerometer columns to tell")
+            continue
+        checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
+                           "agreement": round(chk.agreement, 3), "windows": chk.windows}
+        words = heading_finding(chk, th, mr.name)
+        if not words:
+            continue
+        new.append(words)
+        reason = ("the vehicle moves against its thrust (a reversed thruster sign or "
+                  "direction?)" if abs(chk.offset_deg) > FLIPPED_DEG else
+                  "the accelerometer disagrees with the fitted heading")
+        # a joint fit's heading offset is each mission's own: only this mission's is
+        # not determined (the top-level value is the first mission's)
+        if joint and _mark_mission(info, mr.name, "theta_e", reason):
+            if i == 0 and _verdict(info, "theta_e")[0] != NOT:
+                local.add("theta_e")
+                _mark_not_determined(info, "theta_e", reason)
+            continue
+        _mark_not_determined(info, "theta_e", reason)
+    if checks:
+        info["heading_check"] = checks
+    return local
+
+
+def settle(result, missions=()) -> list[str]:
+    """Apply the module's rules to ``result`` in place: the accelerometer check on each
+    mission's track (a disagreement makes ``theta_e`` not determined: in a joint fit that
+    mission's, whose ``per_mission`` entry gets sigma NaN and a ``sigma_note``), then a
+    sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for every
+    parameter whose verdict is "not determined". Returns the new warnings (also appended
+    to ``info["warnings"]``)."""
+    info = result.info
+    new: list[str] = []
+    local = _heading_checks(result, missions, new) if "theta_e" in result.estimated else set()
     notes = info.setdefault("sigma_notes", {})
     for n in result.estimated:
         verdict, reason = _verdict(info, n)
@@ -181,6 +212,8 @@ def settle(result, missions=()) -> list[str]:
             continue
         result.sigma[n] = float("nan")
         notes[n] = f"not determined: {reason}" if reason else NOT
+        if n in local:                  # the first mission's own verdict, not the others'
+            continue
         for pm in (info.get("per_mission") or {}).values():
             if isinstance(pm.get(n), dict):
                 pm[n]["sigma"] = float("nan")

@@ -135,6 +135,35 @@ def test_without_an_accelerometer_a_reversal_is_still_questioned(otter, tmp_path
     assert "unless the compass is that far off" in err and "no accelerometer" in err, err
 
 
+@pytest.mark.parametrize("flipped_first", [False, True])
+def test_a_reversal_in_one_mission_of_a_joint_fit_is_that_missions_alone(otter, tmp_path,
+                                                                         capsys, flipped_first):
+    good = crop(otter, tmp_path / "good")
+    edit_toml(good / "mission.toml", 'name = "otter-example"', 'name = "good"')
+    bad = crop(otter, tmp_path / "bad")
+    edit_toml(bad / "mission.toml", 'name = "otter-example"', 'name = "reversed"')
+    edit_csv(bad / "motors.csv", lambda c: [c[0], *(f"{-float(x):.6f}" for x in c[1:])])
+    out = tmp_path / "out"
+    order = (bad, good) if flipped_first else (good, bad)
+    code, err = run("fit", *order, "--out", out, "--no-plots", capsys=capsys)
+    assert code == 0, err
+    doc = json.loads((out / "parameters.json").read_text())
+    per = doc["per_mission"]
+    assert per["reversed"]["theta_e"]["sigma"] is None
+    assert "moves against its thrust" in per["reversed"]["theta_e"]["sigma_note"]
+    # the intact mission keeps its heading offset (truth -30 deg) and its sigma
+    assert abs(np.degrees(per["good"]["theta_e"]["value"]) + 30) < 3, per["good"]
+    assert 0 < per["good"]["theta_e"]["sigma"] < np.radians(2), per["good"]
+    assert "sigma_note" not in per["good"]["theta_e"]
+    # the top-level values are the first mission's, its verdict too
+    top = doc["parameters"]["theta_e"]
+    assert (top["sigma"] is None) == flipped_first, top
+    assert "reversed: the vehicle moves against its thrust" in err
+    assert "good: " not in err
+    assert abs(doc["heading_check"]["good"]["offset_deg"]) < 10
+    assert abs(doc["heading_check"]["reversed"]["offset_deg"]) > 150
+
+
 def test_the_intact_mission_agrees_with_its_accelerometer(mission, tmp_path, capsys):
     out = tmp_path / "out"
     code, err = run("fit", mission, "--out", out, "--no-plots", capsys=capsys)
