@@ -510,3 +510,38 @@ def test_a_truncated_log_is_said_to_be(tmp_path, capsys, fmt, name):
     code, err = run("import", fmt, log, "--out", tmp_path / "b", "--map", tmp_path / "map.toml",
                     capsys=capsys)
     assert code == 0 and "truncated?" in err, err
+
+
+@pytest.mark.parametrize("version,storage", [("ros1", None), ("ros2", "mcap"),
+                                             ("ros2", "sqlite3")])
+def test_a_truncated_bag_is_said_to_be_cut_short(tmp_path, capsys, version, storage):
+    pytest.importorskip("rosbags")
+    import log_writers as lw
+
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=3, duration=30.0)
+    (tmp_path / "map.toml").write_text(lw.map_toml(m))
+    if version == "ros1":
+        bag = f = lw.write_ros_bag(m, tmp_path / "x.bag", version="ros1")
+    else:
+        bag = lw.write_ros_bag(m, tmp_path / "x", version="ros2", storage=storage)
+        f = next(p for p in bag.iterdir() if p.suffix in (".mcap", ".db3"))
+    whole = f.read_bytes()
+    code, err = run("import", version, bag, "--out", tmp_path / "whole",
+                    "--map", tmp_path / "map.toml", capsys=capsys)
+    assert code == 0 and "cut short" not in err, err
+    n = len(whole)
+    # inside the magic, inside the first record, half-way, and near and at the last byte
+    for cut in (5, 40, n // 2 + 3, n - 30, n - 1):
+        f.write_bytes(whole[:cut])
+        out = tmp_path / f"cut{cut}"
+        code, err = run("import", version, bag, "--out", out, "--map", tmp_path / "map.toml",
+                        capsys=capsys)
+        assert code == 3, (cut, err)
+        assert str(bag) in err and f"stops at byte {cut:,}" in err, (cut, err)
+        assert "cut short" in err and "repair it with" in err, (cut, err)
+        assert "Traceback" not in err and not out.exists()
+    f.write_bytes(b"")
+    code, err = run("import", version, bag, "--out", tmp_path / "empty",
+                    "--map", tmp_path / "map.toml", capsys=capsys)
+    assert code == 3 and "empty (0 bytes)" in err, err
