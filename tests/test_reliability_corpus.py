@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -545,3 +547,67 @@ def test_a_truncated_bag_is_said_to_be_cut_short(tmp_path, capsys, version, stor
     code, err = run("import", version, bag, "--out", tmp_path / "empty",
                     "--map", tmp_path / "map.toml", capsys=capsys)
     assert code == 3 and "empty (0 bytes)" in err, err
+
+
+def _sigint_caught(pid: int) -> bool:
+    """Whether process ``pid`` has a handler for SIGINT (Python's, once the cluster is up)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) & (1 << (2 - 1)))
+    return False
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (started by any of its threads)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def _gone(pid: int) -> bool:
+    """Ended: no such process, or a defunct one waiting for init to reap it."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads /proc")
+def test_ctrl_c_on_a_fleet_run_stops_it_and_its_workers_quietly(otter, tmp_path):
+    """A Ctrl-C at the terminal reaches the whole process group: the fleet run ends with
+    exit 130 and one line, its workers with it, none printing a traceback of its own."""
+    pytest.importorskip("distributed")
+    from aqfg.fleet import write_manifest
+    crop(otter, tmp_path / "m")
+    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": ["m"]})
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "aqfg", "fleet", str(p), "--out",
+                             str(tmp_path / "out"), "--workers", "2"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)        # its own group, as a terminal's job
+    try:
+        workers: list[int] = []
+        for _ in range(1200):                  # the cluster up: workers, SIGINT handled again
+            workers = [c for c in _children(proc.pid) if not _gone(c)
+                       and b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            if len(workers) == 2 and _sigint_caught(proc.pid) or proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None and len(workers) == 2, "the run ended before its workers"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    for _ in range(100):
+        if all(_gone(w) for w in workers):
+            break
+        time.sleep(0.1)
+    assert all(_gone(w) for w in workers)
