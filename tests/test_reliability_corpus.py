@@ -242,6 +242,43 @@ def test_online_cost_estimate_covers_the_window(mission):
     assert estimate_cost([m], window=86400.0).seconds == pytest.approx(long.seconds)
 
 
+def test_batch_cost_estimate_counts_every_solve(otter, tmp_path):
+    """The estimate is the loading once and a batch solve per fit, the effect step's and
+    the block jackknife's refits counted where they will run (a short single mission)."""
+    import argparse
+
+    from aqfg.commands.fit import _solves
+    from aqfg.data.io import load_mission
+    from aqfg.data.preflight import KNOT_SECONDS, estimate_cost
+    from aqfg.fg.fit import EFFECT_STEP_SOLVES
+    from aqfg.fg.jackknife import blocks, refits
+    short = load_mission(crop(otter, tmp_path / "short", t_end=300.0))
+    long = load_mission(crop(otter, tmp_path / "long", t_end=600.0))
+    k = len(blocks(short)) - 1
+    assert k == 8
+    assert refits([short], 6) == k and refits([short], 6, sandwich_block=0.0) == 0
+    assert refits([long], 6) == 0 and refits([short, short], 6) == 0
+    # 11 blocks of 60 s: short for 10 parameters, not for 9
+    assert refits([long], 10) == len(blocks(long)) - 1 and refits([long], 9) == 0
+
+    def solves(*extra, method="fg", mode="batch"):
+        args = argparse.Namespace(method=method, mode=mode,
+                                  no_auto_effect="--no-auto-effect" in extra)
+        return _solves(args, ["theta_e", "s_x", "s_y"] if "--estimate" in extra else None)
+    assert solves()([short]) == EFFECT_STEP_SOLVES + k
+    assert solves()([long]) == EFFECT_STEP_SOLVES
+    assert solves("--no-auto-effect")([short]) == 1 + k
+    assert solves("--no-auto-effect")([long]) == 1
+    assert solves("--estimate")([short]) == 1        # 3 parameters: 6 blocks suffice (>= 5)
+    assert solves(mode="online") == 1 and solves(method="update-error") == 1
+    # each solve adds the same cost per knot, on top of the loading
+    one, many = estimate_cost([short]), estimate_cost([short], fits=1 + k)
+    assert many.seconds - one.seconds == pytest.approx(k * one.knots * KNOT_SECONDS)
+    assert one.seconds > one.knots * KNOT_SECONDS
+    assert estimate_cost([long]).seconds > one.seconds        # and grows with the mission
+    assert "for 9 batch solves" in many.describe()
+
+
 def test_simulate_cost_estimate_printed(tmp_path, capsys):
     code, err = run("simulate", tmp_path / "sim", "--duration", "30", capsys=capsys)
     assert code == 0, err
