@@ -138,28 +138,37 @@ def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> s
             "which way the vehicle accelerates")
 
 
-def _mark_mission(info: dict, mission: str, name: str, reason: str) -> bool:
-    """Mark ``name`` of one mission of a joint fit not determined (its entry in
-    ``info["per_mission"]``: sigma NaN, ``sigma_note``). False where the fit has no
-    per-mission value of ``name`` (one mission, or a parameter shared by the missions)."""
+def _mark(result, i: int, name: str, reason: str) -> None:
+    """Mark ``name`` not determined for the ``i``-th mission of ``result``: in a joint fit
+    where it is per mission, that mission's entry in ``info["per_mission"]`` (sigma NaN,
+    ``sigma_note``; the first reason found stands) and, for the first mission, whose values
+    the top level reports, the top-level verdict; otherwise the top-level verdict."""
+    info = result.info
+    mission = result.missions[i].name
     e = ((info.get("per_mission") or {}).get(mission) or {}).get(name)
-    if not isinstance(e, dict):
-        return False
-    e["sigma"] = float("nan")
-    e["sigma_note"] = f"{NOT}: {reason}"
-    return True
+    if len(result.missions) > 1 and isinstance(e, dict):
+        e["sigma"] = float("nan")
+        e.setdefault("sigma_note", f"{NOT}: {reason}")
+        if i > 0:
+            return
+    _mark_not_determined(info, name, reason)
 
 
-def _heading_checks(result, missions, new: list[str]) -> set[str]:
-    """The accelerometer check of each mission's track (:func:`settle`); returns the names
-    whose top-level verdict it made "not determined" from the first mission alone (a joint
-    fit's top-level values of the per-mission parameters are the first mission's)."""
+def _mission_excitation(result) -> None:
+    """A joint fit's per-mission parameters that a mission's own inputs cannot determine
+    (``info["observability_per_mission"]``, :func:`aqfg.fg.observability.mission_verdicts`)."""
+    per = result.info.get("observability_per_mission") or {}
+    for i, mr in enumerate(result.missions):
+        for name, reason in (per.get(mr.name) or {}).items():
+            _mark(result, i, name, reason)
+
+
+def _heading_checks(result, missions, new: list[str]) -> None:
+    """The accelerometer check of each mission's track (:func:`settle`)."""
     from aqfg.model.params import INDEX
     info = result.info
     by_name = {m.name: m for m in missions}
-    joint = len(result.missions) > 1
     checks = {}
-    local: set[str] = set()
     for i, mr in enumerate(result.missions):
         m = by_name.get(mr.name)
         if m is None:
@@ -182,41 +191,44 @@ def _heading_checks(result, missions, new: list[str]) -> set[str]:
         reason = ("the vehicle moves against its thrust (a reversed thruster sign or "
                   "direction?)" if abs(chk.offset_deg) > FLIPPED_DEG else
                   "the accelerometer disagrees with the fitted heading")
-        # a joint fit's heading offset is each mission's own: only this mission's is
-        # not determined (the top-level value is the first mission's)
-        if joint and _mark_mission(info, mr.name, "theta_e", reason):
-            if i == 0 and _verdict(info, "theta_e")[0] != NOT:
-                local.add("theta_e")
-                _mark_not_determined(info, "theta_e", reason)
-            continue
-        _mark_not_determined(info, "theta_e", reason)
+        # a joint fit's heading offset is each mission's own: only this mission's
+        _mark(result, i, "theta_e", reason)
     if checks:
         info["heading_check"] = checks
-    return local
 
 
 def settle(result, missions=()) -> list[str]:
     """Apply the module's rules to ``result`` in place: the accelerometer check on each
     mission's track (a disagreement makes ``theta_e`` not determined: in a joint fit that
-    mission's, whose ``per_mission`` entry gets sigma NaN and a ``sigma_note``), then a
-    sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for every
-    parameter whose verdict is "not determined". Returns the new warnings (also appended
+    mission's, whose ``per_mission`` entry gets sigma NaN and a ``sigma_note``), a joint
+    fit's per-mission parameters that a mission's own inputs cannot determine (likewise),
+    then a sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for
+    every parameter whose verdict is "not determined". Returns the new warnings (also appended
     to ``info["warnings"]``)."""
     info = result.info
     new: list[str] = []
-    local = _heading_checks(result, missions, new) if "theta_e" in result.estimated else set()
+    if "theta_e" in result.estimated:
+        _heading_checks(result, missions, new)
+    _mission_excitation(result)
     notes = info.setdefault("sigma_notes", {})
+    per = info.get("per_mission") or {}
+    # the top level reports the first mission's per-mission values: its verdict is theirs
+    first = [result.missions[0].name] if len(result.missions) > 1 else list(per)
     for n in result.estimated:
         verdict, reason = _verdict(info, n)
         if verdict != NOT:
             continue
         result.sigma[n] = float("nan")
         notes[n] = f"not determined: {reason}" if reason else NOT
-        if n in local:                  # the first mission's own verdict, not the others'
-            continue
-        for pm in (info.get("per_mission") or {}).values():
-            if isinstance(pm.get(n), dict):
-                pm[n]["sigma"] = float("nan")
+        for m in first:
+            if isinstance((per.get(m) or {}).get(n), dict):
+                per[m][n]["sigma"] = float("nan")
+                per[m][n].setdefault("sigma_note", notes[n])
+    for d in per.values():              # a mission's own verdict (update-error's entries)
+        for e in d.values():
+            if isinstance(e, dict) and e.get("verdict") == NOT:
+                e["sigma"] = float("nan")
+                e.setdefault("sigma_note", f"{NOT}: {e['note']}" if e.get("note") else NOT)
     if new:
         info.setdefault("warnings", []).extend(new)
     return new

@@ -166,6 +166,34 @@ def test_a_reversal_in_one_mission_of_a_joint_fit_is_that_missions_alone(otter, 
     assert abs(doc["heading_check"]["reversed"]["offset_deg"]) > 150
 
 
+def test_a_mission_without_thrust_in_a_joint_fit_is_that_missions_alone(otter, tmp_path,
+                                                                         capsys):
+    import math
+    moored = crop(otter, tmp_path / "moored")
+    edit_toml(moored / "mission.toml", 'name = "otter-example"', 'name = "moored"')
+    edit_csv(moored / "motors.csv", lambda c: [c[0], "0", "0"])
+    edit_csv(moored / "gnss.csv", lambda c: [c[0], f"{45.5 + 0.1 * math.sin(7.1 * float(c[0])):.3f}",
+                                             f"{31.8 + 0.1 * math.cos(5.3 * float(c[0])):.3f}",
+                                             c[3]])
+    (moored / "usbl.csv").unlink()
+    good = crop(otter, tmp_path / "good")
+    edit_toml(good / "mission.toml", 'name = "otter-example"', 'name = "good"')
+    out = tmp_path / "out"
+    code, err = run("fit", moored, good, "--out", out, "--no-plots", capsys=capsys)
+    assert code == 0, err
+    doc = json.loads((out / "parameters.json").read_text())
+    per = doc["per_mission"]
+    assert per["moored"]["theta_e"]["sigma"] is None
+    assert "propellers" in per["moored"]["theta_e"]["sigma_note"]
+    for n in ("s_x", "s_y"):
+        assert per["moored"][n]["sigma"] is None and "never moved" in per["moored"][n]["sigma_note"]
+    # the mission that moved under thrust keeps its own (truth -30 deg, current 0.12 m/s)
+    assert abs(np.degrees(per["good"]["theta_e"]["value"]) + 30) < 3
+    for n in ("theta_e", "s_x", "s_y"):
+        assert per["good"][n]["sigma"] is not None and "sigma_note" not in per["good"][n], n
+    assert doc["parameters"]["theta_e"]["sigma"] is None        # the first mission's
+
+
 def test_the_intact_mission_agrees_with_its_accelerometer(mission, tmp_path, capsys):
     out = tmp_path / "out"
     code, err = run("fit", mission, "--out", out, "--no-plots", capsys=capsys)
