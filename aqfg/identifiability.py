@@ -154,13 +154,19 @@ def _mark(result, i: int, name: str, reason: str) -> None:
     _mark_not_determined(info, name, reason)
 
 
-def _mission_excitation(result) -> None:
+def _mission_excitation(result, new: list[str]) -> None:
     """A joint fit's per-mission parameters that a mission's own inputs cannot determine
-    (``info["observability_per_mission"]``, :func:`aqfg.fg.observability.mission_verdicts`)."""
+    (``info["observability_per_mission"]``, :func:`aqfg.fg.observability.mission_verdicts`),
+    each said in a warning naming the mission."""
     per = result.info.get("observability_per_mission") or {}
     for i, mr in enumerate(result.missions):
+        by_reason: dict[str, list[str]] = {}
         for name, reason in (per.get(mr.name) or {}).items():
             _mark(result, i, name, reason)
+            by_reason.setdefault(reason, []).append(name)
+        for reason, names in by_reason.items():
+            new.append(f"{mr.name}: {', '.join(names)} not determined by this mission: "
+                       f"{reason}")
 
 
 def _heading_checks(result, missions, new: list[str]) -> None:
@@ -209,7 +215,7 @@ def settle(result, missions=()) -> list[str]:
     new: list[str] = []
     if "theta_e" in result.estimated:
         _heading_checks(result, missions, new)
-    _mission_excitation(result)
+    _mission_excitation(result, new)
     notes = info.setdefault("sigma_notes", {})
     per = info.get("per_mission") or {}
     # the top level reports the first mission's per-mission values: its verdict is theirs

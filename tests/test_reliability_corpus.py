@@ -192,6 +192,8 @@ def test_a_mission_without_thrust_in_a_joint_fit_is_that_missions_alone(otter, t
     for n in ("theta_e", "s_x", "s_y"):
         assert per["good"][n]["sigma"] is not None and "sigma_note" not in per["good"][n], n
     assert doc["parameters"]["theta_e"]["sigma"] is None        # the first mission's
+    assert "moored: theta_e not determined by this mission: the propellers" in err
+    assert "good: " not in err
 
 
 def test_the_intact_mission_agrees_with_its_accelerometer(mission, tmp_path, capsys):
