@@ -118,36 +118,64 @@ def _ros1_fields(header: bytes) -> dict[str, bytes]:
     return out
 
 
-def _ros1(f: BinaryIO, size: int) -> int | None:
-    """ROS 1 bag: records ``<u32 header length><header><u32 data length><data>`` after the
-    magic line; the first (the bag header) gives where the index starts (``index_pos``, 0
-    while the recorder has not written it)."""
-    pos = len(ROS1_MAGIC)
+def _ros1_records(f: BinaryIO, pos: int, size: int, first: bool = False
+                  ) -> tuple[int, int | None] | None:
+    """Walk ROS 1 bag records ``<u32 header length><header><u32 data length><data>``
+    from ``pos``: (where the last complete one ends, the bag header's ``index_pos`` when
+    ``first``), or None where the first record is not a bag header."""
     index_pos = None
     while pos < size:
         f.seek(pos)
         raw = f.read(4)
         if len(raw) < 4:
-            return pos
+            break
         hlen = struct.unpack("<I", raw)[0]
         if pos + 8 + hlen > size:
-            return pos
+            break
         header = f.read(hlen)
         dlen = struct.unpack("<I", f.read(4))[0]
         if pos + 8 + hlen + dlen > size:
-            return pos
-        if index_pos is None:
+            break
+        if first:
             fields = _ros1_fields(header)
             if fields.get("op") != b"\x03" or len(fields.get("index_pos", b"")) != 8:
                 return None                # not the framing understood here
             index_pos = struct.unpack("<Q", fields["index_pos"])[0]
+            first = False
         pos += 8 + hlen + dlen
-    return pos if index_pos is None or not 0 < index_pos < size else None
+    return pos, index_pos
+
+
+def _ros1(f: BinaryIO, size: int) -> int | None:
+    """ROS 1 bag: the bag header record (after the magic line) says where the index starts
+    (``index_pos``, 0 while the recorder has not written it); a whole bag's records run
+    from there to the end of the file."""
+    head = _ros1_records(f, len(ROS1_MAGIC), min(size, len(ROS1_MAGIC) + 8 + 4096 + 4096),
+                         first=True)
+    if head is None:
+        return None
+    index_pos = head[1]
+    if index_pos is not None and 0 < index_pos < size:
+        end = _ros1_records(f, index_pos, size)
+        if end is not None and end[0] == size:
+            return None
+    walked = _ros1_records(f, len(ROS1_MAGIC), size)
+    return walked[0] if walked is not None else None
+
+
+MCAP_FOOTER_LENGTH = 20     # bytes of a footer record's content
 
 
 def _mcap(f: BinaryIO, size: int) -> int | None:
     """MCAP: records ``<u8 opcode><u64 length><content>`` after the magic, ending with
-    the footer record and the magic again."""
+    the footer record and the magic again (a whole file is told by its last 37 bytes)."""
+    tail = 9 + MCAP_FOOTER_LENGTH + len(MCAP_MAGIC)
+    if size >= len(MCAP_MAGIC) + tail:
+        f.seek(size - tail)
+        end = f.read(tail)
+        if end[0] == MCAP_FOOTER and end[-8:] == MCAP_MAGIC \
+                and struct.unpack("<Q", end[1:9])[0] == MCAP_FOOTER_LENGTH:
+            return None
     pos = len(MCAP_MAGIC)
     while pos < size:
         f.seek(pos)
