@@ -138,52 +138,103 @@ def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> s
             "which way the vehicle accelerates")
 
 
-def settle(result, missions=()) -> list[str]:
-    """Apply the module's rules to ``result`` in place: the accelerometer check on each
-    mission's track (a disagreement makes ``theta_e`` not determined), then a sigma of NaN
-    (written ``null``) with the reason in ``info["sigma_notes"]`` for every parameter whose
-    verdict is "not determined". Returns the new warnings (also appended to
-    ``info["warnings"]``)."""
+def _mark(result, i: int, name: str, reason: str) -> None:
+    """Mark ``name`` not determined for the ``i``-th mission of ``result``: in a joint fit
+    where it is per mission, that mission's entry in ``info["per_mission"]`` (sigma NaN,
+    ``sigma_note``; the first reason found stands) and, for the first mission, whose values
+    the top level reports, the top-level verdict; otherwise the top-level verdict."""
+    info = result.info
+    mission = result.missions[i].name
+    e = ((info.get("per_mission") or {}).get(mission) or {}).get(name)
+    if len(result.missions) > 1 and isinstance(e, dict):
+        e["sigma"] = float("nan")
+        e.setdefault("sigma_note", f"{NOT}: {reason}")
+        if i > 0:
+            return
+    _mark_not_determined(info, name, reason)
+
+
+def _mission_excitation(result, new: list[str]) -> None:
+    """A joint fit's per-mission parameters that a mission's own inputs cannot determine
+    (``info["observability_per_mission"]``, :func:`aqfg.fg.observability.mission_verdicts`),
+    each said in a warning naming the mission."""
+    per = result.info.get("observability_per_mission") or {}
+    for i, mr in enumerate(result.missions):
+        by_reason: dict[str, list[str]] = {}
+        for name, reason in (per.get(mr.name) or {}).items():
+            _mark(result, i, name, reason)
+            by_reason.setdefault(reason, []).append(name)
+        for reason, names in by_reason.items():
+            new.append(f"{mr.name}: {', '.join(names)} not determined by this mission: "
+                       f"{reason}")
+
+
+def _heading_checks(result, missions, new: list[str]) -> None:
+    """The accelerometer check of each mission's track (:func:`settle`)."""
     from aqfg.model.params import INDEX
     info = result.info
-    new: list[str] = []
     by_name = {m.name: m for m in missions}
+    checks = {}
+    for i, mr in enumerate(result.missions):
+        m = by_name.get(mr.name)
+        if m is None:
+            continue
+        th = float(mr.p[INDEX["theta_e"]])
+        chk = heading_against_accelerometer(m, mr.track, th)
+        if chk is None:
+            if abs(math.remainder(th, 2 * math.pi)) > math.radians(LARGE_OFFSET_DEG):
+                new.append(f"{mr.name}: the heading offset is {math.degrees(th):.0f} deg: "
+                           "unless the compass is that far off, the vehicle moves against "
+                           "its thrust (a thruster's command sign or [thrusters] direction "
+                           "reversed); the IMU has no accelerometer columns to tell")
+            continue
+        checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
+                           "agreement": round(chk.agreement, 3), "windows": chk.windows}
+        words = heading_finding(chk, th, mr.name)
+        if not words:
+            continue
+        new.append(words)
+        reason = ("the vehicle moves against its thrust (a reversed thruster sign or "
+                  "direction?)" if abs(chk.offset_deg) > FLIPPED_DEG else
+                  "the accelerometer disagrees with the fitted heading")
+        # a joint fit's heading offset is each mission's own: only this mission's
+        _mark(result, i, "theta_e", reason)
+    if checks:
+        info["heading_check"] = checks
+
+
+def settle(result, missions=()) -> list[str]:
+    """Apply the module's rules to ``result`` in place: the accelerometer check on each
+    mission's track (a disagreement makes ``theta_e`` not determined: in a joint fit that
+    mission's, whose ``per_mission`` entry gets sigma NaN and a ``sigma_note``), a joint
+    fit's per-mission parameters that a mission's own inputs cannot determine (likewise),
+    then a sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for
+    every parameter whose verdict is "not determined". Returns the new warnings (also appended
+    to ``info["warnings"]``)."""
+    info = result.info
+    new: list[str] = []
     if "theta_e" in result.estimated:
-        checks = {}
-        for mr in result.missions:
-            m = by_name.get(mr.name)
-            if m is None:
-                continue
-            th = float(mr.p[INDEX["theta_e"]])
-            chk = heading_against_accelerometer(m, mr.track, th)
-            if chk is None:
-                if abs(math.remainder(th, 2 * math.pi)) > math.radians(LARGE_OFFSET_DEG):
-                    new.append(f"{mr.name}: the heading offset is {math.degrees(th):.0f} deg: "
-                               "unless the compass is that far off, the vehicle moves against "
-                               "its thrust (a thruster's command sign or [thrusters] direction "
-                               "reversed); the IMU has no accelerometer columns to tell")
-                continue
-            checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
-                               "agreement": round(chk.agreement, 3), "windows": chk.windows}
-            words = heading_finding(chk, th, mr.name)
-            if words:
-                new.append(words)
-                flipped = abs(chk.offset_deg) > FLIPPED_DEG
-                _mark_not_determined(info, "theta_e", "the vehicle moves against its thrust "
-                                     "(a reversed thruster sign or direction?)" if flipped else
-                                     "the accelerometer disagrees with the fitted heading")
-        if checks:
-            info["heading_check"] = checks
+        _heading_checks(result, missions, new)
+    _mission_excitation(result, new)
     notes = info.setdefault("sigma_notes", {})
+    per = info.get("per_mission") or {}
+    # the top level reports the first mission's per-mission values: its verdict is theirs
+    first = [result.missions[0].name] if len(result.missions) > 1 else list(per)
     for n in result.estimated:
         verdict, reason = _verdict(info, n)
         if verdict != NOT:
             continue
         result.sigma[n] = float("nan")
         notes[n] = f"not determined: {reason}" if reason else NOT
-        for pm in (info.get("per_mission") or {}).values():
-            if isinstance(pm.get(n), dict):
-                pm[n]["sigma"] = float("nan")
+        for m in first:
+            if isinstance((per.get(m) or {}).get(n), dict):
+                per[m][n]["sigma"] = float("nan")
+                per[m][n].setdefault("sigma_note", notes[n])
+    for d in per.values():              # a mission's own verdict (update-error's entries)
+        for e in d.values():
+            if isinstance(e, dict) and e.get("verdict") == NOT:
+                e["sigma"] = float("nan")
+                e.setdefault("sigma_note", f"{NOT}: {e['note']}" if e.get("note") else NOT)
     if new:
         info.setdefault("warnings", []).extend(new)
     return new

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +137,65 @@ def test_without_an_accelerometer_a_reversal_is_still_questioned(otter, tmp_path
     assert "unless the compass is that far off" in err and "no accelerometer" in err, err
 
 
+@pytest.mark.parametrize("flipped_first", [False, True])
+def test_a_reversal_in_one_mission_of_a_joint_fit_is_that_missions_alone(otter, tmp_path,
+                                                                         capsys, flipped_first):
+    good = crop(otter, tmp_path / "good")
+    edit_toml(good / "mission.toml", 'name = "otter-example"', 'name = "good"')
+    bad = crop(otter, tmp_path / "bad")
+    edit_toml(bad / "mission.toml", 'name = "otter-example"', 'name = "reversed"')
+    edit_csv(bad / "motors.csv", lambda c: [c[0], *(f"{-float(x):.6f}" for x in c[1:])])
+    out = tmp_path / "out"
+    order = (bad, good) if flipped_first else (good, bad)
+    code, err = run("fit", *order, "--out", out, "--no-plots", capsys=capsys)
+    assert code == 0, err
+    doc = json.loads((out / "parameters.json").read_text())
+    per = doc["per_mission"]
+    assert per["reversed"]["theta_e"]["sigma"] is None
+    assert "moves against its thrust" in per["reversed"]["theta_e"]["sigma_note"]
+    # the intact mission keeps its heading offset (truth -30 deg) and its sigma
+    assert abs(np.degrees(per["good"]["theta_e"]["value"]) + 30) < 3, per["good"]
+    assert 0 < per["good"]["theta_e"]["sigma"] < np.radians(2), per["good"]
+    assert "sigma_note" not in per["good"]["theta_e"]
+    # the top-level values are the first mission's, its verdict too
+    top = doc["parameters"]["theta_e"]
+    assert (top["sigma"] is None) == flipped_first, top
+    assert "reversed: the vehicle moves against its thrust" in err
+    assert "good: " not in err
+    assert abs(doc["heading_check"]["good"]["offset_deg"]) < 10
+    assert abs(doc["heading_check"]["reversed"]["offset_deg"]) > 150
+
+
+def test_a_mission_without_thrust_in_a_joint_fit_is_that_missions_alone(otter, tmp_path,
+                                                                         capsys):
+    import math
+    moored = crop(otter, tmp_path / "moored")
+    edit_toml(moored / "mission.toml", 'name = "otter-example"', 'name = "moored"')
+    edit_csv(moored / "motors.csv", lambda c: [c[0], "0", "0"])
+    edit_csv(moored / "gnss.csv", lambda c: [c[0], f"{45.5 + 0.1 * math.sin(7.1 * float(c[0])):.3f}",
+                                             f"{31.8 + 0.1 * math.cos(5.3 * float(c[0])):.3f}",
+                                             c[3]])
+    (moored / "usbl.csv").unlink()
+    good = crop(otter, tmp_path / "good")
+    edit_toml(good / "mission.toml", 'name = "otter-example"', 'name = "good"')
+    out = tmp_path / "out"
+    code, err = run("fit", moored, good, "--out", out, "--no-plots", capsys=capsys)
+    assert code == 0, err
+    doc = json.loads((out / "parameters.json").read_text())
+    per = doc["per_mission"]
+    assert per["moored"]["theta_e"]["sigma"] is None
+    assert "propellers" in per["moored"]["theta_e"]["sigma_note"]
+    for n in ("s_x", "s_y"):
+        assert per["moored"][n]["sigma"] is None and "never moved" in per["moored"][n]["sigma_note"]
+    # the mission that moved under thrust keeps its own (truth -30 deg, current 0.12 m/s)
+    assert abs(np.degrees(per["good"]["theta_e"]["value"]) + 30) < 3
+    for n in ("theta_e", "s_x", "s_y"):
+        assert per["good"][n]["sigma"] is not None and "sigma_note" not in per["good"][n], n
+    assert doc["parameters"]["theta_e"]["sigma"] is None        # the first mission's
+    assert "moored: theta_e not determined by this mission: the propellers" in err
+    assert "good: " not in err
+
+
 def test_the_intact_mission_agrees_with_its_accelerometer(mission, tmp_path, capsys):
     out = tmp_path / "out"
     code, err = run("fit", mission, "--out", out, "--no-plots", capsys=capsys)
@@ -209,6 +270,43 @@ def test_online_cost_estimate_covers_the_window(mission):
     assert long.seconds > 5 * short.seconds and long.seconds > batch.seconds
     # a window longer than the mission costs what the whole mission does at every fix
     assert estimate_cost([m], window=86400.0).seconds == pytest.approx(long.seconds)
+
+
+def test_batch_cost_estimate_counts_every_solve(otter, tmp_path):
+    """The estimate is the loading once and a batch solve per fit, the effect step's and
+    the block jackknife's refits counted where they will run (a short single mission)."""
+    import argparse
+
+    from aqfg.commands.fit import _solves
+    from aqfg.data.io import load_mission
+    from aqfg.data.preflight import KNOT_SECONDS, estimate_cost
+    from aqfg.fg.fit import EFFECT_STEP_SOLVES
+    from aqfg.fg.jackknife import blocks, refits
+    short = load_mission(crop(otter, tmp_path / "short", t_end=300.0))
+    long = load_mission(crop(otter, tmp_path / "long", t_end=600.0))
+    k = len(blocks(short)) - 1
+    assert k == 8
+    assert refits([short], 6) == k and refits([short], 6, sandwich_block=0.0) == 0
+    assert refits([long], 6) == 0 and refits([short, short], 6) == 0
+    # 11 blocks of 60 s: short for 10 parameters, not for 9
+    assert refits([long], 10) == len(blocks(long)) - 1 and refits([long], 9) == 0
+
+    def solves(*extra, method="fg", mode="batch"):
+        args = argparse.Namespace(method=method, mode=mode,
+                                  no_auto_effect="--no-auto-effect" in extra)
+        return _solves(args, ["theta_e", "s_x", "s_y"] if "--estimate" in extra else None)
+    assert solves()([short]) == EFFECT_STEP_SOLVES + k
+    assert solves()([long]) == EFFECT_STEP_SOLVES
+    assert solves("--no-auto-effect")([short]) == 1 + k
+    assert solves("--no-auto-effect")([long]) == 1
+    assert solves("--estimate")([short]) == 1        # 3 parameters: 6 blocks suffice (>= 5)
+    assert solves(mode="online") == 1 and solves(method="update-error") == 1
+    # each solve adds the same cost per knot, on top of the loading
+    one, many = estimate_cost([short]), estimate_cost([short], fits=1 + k)
+    assert many.seconds - one.seconds == pytest.approx(k * one.knots * KNOT_SECONDS)
+    assert one.seconds > one.knots * KNOT_SECONDS
+    assert estimate_cost([long]).seconds > one.seconds        # and grows with the mission
+    assert "for 9 batch solves" in many.describe()
 
 
 def test_simulate_cost_estimate_printed(tmp_path, capsys):
@@ -481,3 +579,103 @@ def test_a_truncated_log_is_said_to_be(tmp_path, capsys, fmt, name):
     code, err = run("import", fmt, log, "--out", tmp_path / "b", "--map", tmp_path / "map.toml",
                     capsys=capsys)
     assert code == 0 and "truncated?" in err, err
+
+
+@pytest.mark.parametrize("version,storage", [("ros1", None), ("ros2", "mcap"),
+                                             ("ros2", "sqlite3")])
+def test_a_truncated_bag_is_said_to_be_cut_short(tmp_path, capsys, version, storage):
+    pytest.importorskip("rosbags")
+    import log_writers as lw
+
+    from aqfg.sim import simulate
+    m, _ = simulate("asv", seed=3, duration=30.0)
+    (tmp_path / "map.toml").write_text(lw.map_toml(m))
+    if version == "ros1":
+        bag = f = lw.write_ros_bag(m, tmp_path / "x.bag", version="ros1")
+    else:
+        bag = lw.write_ros_bag(m, tmp_path / "x", version="ros2", storage=storage)
+        f = next(p for p in bag.iterdir() if p.suffix in (".mcap", ".db3"))
+    whole = f.read_bytes()
+    code, err = run("import", version, bag, "--out", tmp_path / "whole",
+                    "--map", tmp_path / "map.toml", capsys=capsys)
+    assert code == 0 and "cut short" not in err, err
+    n = len(whole)
+    # inside the magic, inside the first record, half-way, and near and at the last byte
+    for cut in (5, 40, n // 2 + 3, n - 30, n - 1):
+        f.write_bytes(whole[:cut])
+        out = tmp_path / f"cut{cut}"
+        code, err = run("import", version, bag, "--out", out, "--map", tmp_path / "map.toml",
+                        capsys=capsys)
+        assert code == 3, (cut, err)
+        assert str(bag) in err and f"stops at byte {cut:,}" in err, (cut, err)
+        assert "cut short" in err and "repair it with" in err, (cut, err)
+        assert "Traceback" not in err and not out.exists()
+    f.write_bytes(b"")
+    code, err = run("import", version, bag, "--out", tmp_path / "empty",
+                    "--map", tmp_path / "map.toml", capsys=capsys)
+    assert code == 3 and "empty (0 bytes)" in err, err
+
+
+def _sigint_caught(pid: int) -> bool:
+    """Whether process ``pid`` has a handler for SIGINT (Python's, once the cluster is up)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) & (1 << (2 - 1)))
+    return False
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (started by any of its threads)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def _gone(pid: int) -> bool:
+    """Ended: no such process, or a defunct one waiting for init to reap it."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
+                    reason="reads the child processes from /proc (Linux)")
+def test_ctrl_c_on_a_fleet_run_stops_it_and_its_workers_quietly(otter, tmp_path):
+    """A Ctrl-C at the terminal reaches the whole process group: the fleet run ends with
+    exit 130 and one line, its workers with it, none printing a traceback of its own."""
+    pytest.importorskip("distributed")
+    from aqfg.fleet import write_manifest
+    crop(otter, tmp_path / "m")
+    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": ["m"]})
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "aqfg", "fleet", str(p), "--out",
+                             str(tmp_path / "out"), "--workers", "2"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)        # its own group, as a terminal's job
+    try:
+        workers: list[int] = []
+        for _ in range(1200):                  # the cluster up: workers, SIGINT handled again
+            workers = [c for c in _children(proc.pid) if not _gone(c)
+                       and b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            if len(workers) == 2 and _sigint_caught(proc.pid) or proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None and len(workers) == 2, "the run ended before its workers"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    for _ in range(100):
+        if all(_gone(w) for w in workers):
+            break
+        time.sleep(0.1)
+    assert all(_gone(w) for w in workers)

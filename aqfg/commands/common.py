@@ -8,7 +8,7 @@ import re
 import shlex
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import ClassVar
 
@@ -195,13 +195,14 @@ class Progress:
         self.last = pct
 
 
-def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
-                  knot_spacing: float = 1.0, gnss_every: float = 0.0,
-                  window: float | None = None):
+def load_missions(paths: Sequence[str], max_knots: int | None,
+                  fits: int | Callable[[list], int] = 1, knot_spacing: float = 1.0,
+                  gnss_every: float = 0.0, window: float | None = None):
     """Load ``paths`` (input warnings are logged), prepare them for the estimators
     (:func:`aqfg.data.preflight.prepare`), keep one GNSS fix every ``gnss_every`` s (0:
-    all), estimate the cost of what will be fitted (``window``: of an online fit) and
-    refuse above ``max_knots`` (None or 0: no limit). Returns the prepared missions."""
+    all), estimate the cost of what will be fitted (``fits`` batch solves, or a function
+    of the prepared missions giving them; ``window``: of an online fit) and refuse above
+    ``max_knots`` (None or 0: no limit). Returns the prepared missions."""
     from aqfg.data.io import load_mission
     from aqfg.data.mission import with_gnss_every
     from aqfg.data.preflight import check_cost, estimate_cost, prepare
@@ -211,7 +212,8 @@ def load_missions(paths: Sequence[str], max_knots: int | None, fits: int = 1,
         for n in notes:
             log.info("%s", n)
         missions.append(with_gnss_every(m, gnss_every) if gnss_every else m)
-    cost = estimate_cost(missions, knot_spacing=knot_spacing, fits=fits, window=window)
+    cost = estimate_cost(missions, knot_spacing=knot_spacing,
+                         fits=fits(missions) if callable(fits) else fits, window=window)
     log.info("estimate: %s", cost.describe())
     check_cost(cost, max_knots or None)
     return missions

@@ -172,11 +172,8 @@ def run(args) -> int:
     window = None
     if args.mode == "online":          # the window each fix re-solves (fg's default 24 s)
         window = args.window or (24.0 if args.method == "fg" else None)
-    # a batch factor-graph fit with the effect step fits again with the effect it tries
-    fits = 2 if (args.method == "fg" and args.mode == "batch" and estimate is None
-                 and not getattr(args, "no_auto_effect", False)) else 1
-    missions = load_missions(args.missions, args.max_knots, fits=fits, window=window,
-                             gnss_every=args.gnss_every)
+    missions = load_missions(args.missions, args.max_knots, fits=_solves(args, estimate),
+                             window=window, gnss_every=args.gnss_every)
     names = [m.name for m in missions]
     if len(set(names)) != len(names):
         raise ValueError(f"mission names must differ (outputs go to DIR/<name>/), got {names}")
@@ -221,6 +218,22 @@ def run(args) -> int:
     _print_summary(result)
     print(f"wrote {', '.join(shown)} to {out}")
     return 0
+
+
+def _solves(args, estimate: list[str] | None):
+    """The batch solves of the fit, for the cost estimate, as a function of the missions:
+    one, or the effect step's (:data:`aqfg.fg.fit.EFFECT_STEP_SOLVES`), plus the block
+    jackknife's refits where the fit is one mission too short for the sandwich
+    (:func:`aqfg.fg.jackknife.refits`; the parameters the effect step may add counted)."""
+    if args.method != "fg" or args.mode != "batch":
+        return 1
+    from aqfg.fg.fit import EFFECT_STEP_PARAMS, EFFECT_STEP_SOLVES
+    from aqfg.fg.jackknife import refits
+    from aqfg.model.params import BASE_NAMES
+    auto = estimate is None and not getattr(args, "no_auto_effect", False)
+    n_params = (len(estimate) if estimate else len(BASE_NAMES)) + (EFFECT_STEP_PARAMS if auto
+                                                                  else 0)
+    return lambda missions: (EFFECT_STEP_SOLVES if auto else 1) + refits(missions, n_params)
 
 
 def _effects_and_init(args, missions, from_file: dict):

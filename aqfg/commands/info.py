@@ -124,5 +124,6 @@ def run(args: argparse.Namespace) -> int:
     from aqfg.data.preflight import estimate_cost
     m = load_mission(args.mission)
     print(describe(m, truth_sources(args.mission)))
-    print(f"fit cost   {estimate_cost([m]).describe()} (estimate)")
+    print(f"fit cost   {estimate_cost([m]).describe()} (estimate for one batch solve; "
+          "aqfg fit prints its own, with its solves)")
     return 0

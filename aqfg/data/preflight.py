@@ -25,8 +25,10 @@ log = logging.getLogger(__name__)
 # Measured per state knot of a 1-knot-per-second graph fed by a 50-Hz IMU and 10-Hz motors
 # (docs/reliability.md, "Cost estimate"); rough on purpose, the refusal is about orders of
 # magnitude (a mission whose times are in milliseconds needs 1000 times too many knots).
-KNOT_BYTES = 40e3           # peak resident memory per knot, bytes (update-error; graph 15e3)
-KNOT_SECONDS = 3.5e-3       # wall time per knot and fit, s (one core)
+KNOT_BYTES = 50e3           # peak resident memory per knot, bytes
+KNOT_SECONDS = 2e-3         # wall time per knot and batch solve, s (a shared 2-core machine)
+LOAD_KNOT_SECONDS = 1e-3    # wall time per knot of the rest: loading, checks, dead reckoning,
+#                             outputs, once per command
 DEFAULT_MAX_KNOTS = 50_000   # about 14 h of mission at one knot per second: ~2 GB, ~3 min
 # Online fits re-solve their window at every fix: measured 0.24-0.26 ms per window knot and
 # update for both methods (docs/reliability.md, "Cost estimate").
@@ -130,12 +132,13 @@ class Cost:
     memory_bytes: float      # rough peak memory of one fit
     seconds: float           # rough wall time of all fits
     window: float | None = None   # online: the window (s) re-solved at every fix
+    window_knots: int = 0    # online: the knots its windows re-solve, all fixes together
 
     @property
     def work(self) -> int:
         """The work in batch state knots: the knots, or for an online fit the knots its
         windows re-solve, in knots of the same time (what ``--max-knots`` bounds)."""
-        return max(self.knots, math.ceil(self.seconds / max(self.fits, 1) / KNOT_SECONDS))
+        return max(self.knots, math.ceil(self.window_knots * WINDOW_KNOT_SECONDS / KNOT_SECONDS))
 
     def describe(self) -> str:
         online = (f", a {self.window:g}-s window re-solved at each fix" if self.window
@@ -143,7 +146,7 @@ class Cost:
         return (f"{self.knots:,} state knots ({_hours(self.duration)} of mission), "
                 f"{self.inputs:,} input rows, {self.fixes:,} fixes{online}: about "
                 f"{_bytes(self.memory_bytes)} and {_duration(self.seconds)}"
-                + (f" for {self.fits} fits" if self.fits > 1 else ""))
+                + (f" for {self.fits} batch solves" if self.fits > 1 else ""))
 
 
 def _hours(s: float) -> str:
@@ -165,16 +168,17 @@ def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
                   fits: int = 1, window: float | None = None) -> Cost:
     """Knots of a graph with one knot every ``knot_spacing`` s (plus one per fix) from each
     mission's first fix to the end of its inputs, and the rough memory and time they need
-    (:data:`KNOT_BYTES`, :data:`KNOT_SECONDS`) for ``fits`` solves. ``window`` (s): an
-    online fit, which re-solves the window's knots (the mission's, where shorter) at every
-    fix (:data:`WINDOW_KNOT_SECONDS`); its time is the larger of that and a batch fit's."""
+    (:data:`KNOT_BYTES`; :data:`LOAD_KNOT_SECONDS` once and :data:`KNOT_SECONDS` for each
+    of ``fits`` batch solves). ``window`` (s): an online fit, which re-solves the window's
+    knots (the mission's, where shorter) at every fix (:data:`WINDOW_KNOT_SECONDS`); its
+    solving time is the larger of that and a batch solve's."""
     if not knot_spacing > 0:
         raise ValueError(f"knot spacing must be positive, got {knot_spacing}")
     if window is not None and not window > 0:
         raise ValueError(f"window must be positive, got {window}")
     knots = inputs = fixes = 0
     duration = 0.0
-    window_work = 0.0
+    window_work = 0
     for m in missions:
         t0, t1 = m.t0, m.t1
         tf = m.fix_times()
@@ -187,11 +191,11 @@ def estimate_cost(missions: Sequence[Mission], knot_spacing: float = 1.0,
         fixes += len(tf)
         if window is not None:
             window_work += len(tf) * math.ceil(min(window, span) / knot_spacing)
-    seconds = knots * KNOT_SECONDS
+    solve = knots * KNOT_SECONDS
     if window is not None:
-        seconds = max(seconds, window_work * WINDOW_KNOT_SECONDS)
-    return Cost(duration, knots, inputs, fixes, fits, knots * KNOT_BYTES, seconds * fits,
-                window)
+        solve = max(solve, window_work * WINDOW_KNOT_SECONDS)
+    return Cost(duration, knots, inputs, fixes, fits, knots * KNOT_BYTES,
+                knots * LOAD_KNOT_SECONDS + solve * fits, window, int(window_work))
 
 
 def estimate_simulation(duration: float) -> str:

@@ -38,6 +38,11 @@ log = logging.getLogger(__name__)
 # of the fit above the model's (significantly: aqfg.fg.covariance), not only where it
 # raised one 3x (the warning's level, batch.MISFIT_INFLATION): docs/independent-vehicle.md
 STRUCTURAL_MISFIT = 1.0 + 1e-9
+# The effect step's batch solves, for the cost estimate: the model as given, the refit with
+# the effect tried and the structural refit (measured 3 where it tried one; 1 where the
+# model explained the fixes); and the most parameters an effect it adopts adds.
+EFFECT_STEP_SOLVES = 3
+EFFECT_STEP_PARAMS = 2
 
 
 def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",

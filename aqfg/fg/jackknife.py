@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -39,6 +39,23 @@ def blocks(mission: Mission) -> np.ndarray:
     edges[-1] = np.nextafter(tf[-1], np.inf)
     held = np.histogram(tf, edges)[0]
     return edges if np.all(held > 0) else np.zeros(0)
+
+
+def refits(missions: Sequence[Mission], n_params: int, sandwich_block: float = 60.0) -> int:
+    """How many refits :func:`widen` makes after a batch fit of ``missions`` estimating
+    ``n_params`` parameters (for the cost estimate): one per block where the fit is one
+    mission's and too short for the sandwich (fewer ``sandwich_block``-s blocks from the
+    first fix to the end of the inputs than the parameters + 2, as
+    :func:`aqfg.fg.graph.too_short_for_sandwich` counts them), else 0."""
+    if len(missions) != 1 or not sandwich_block > 0:
+        return 0
+    m = missions[0]
+    tf = m.fix_times()
+    tf = tf[(tf >= m.t0) & (tf <= m.t1)]
+    start = float(tf[0]) if len(tf) else m.t0
+    if int(max(m.t1 - start, 0.0) // sandwich_block) + 1 >= n_params + 2:
+        return 0
+    return max(len(blocks(m)) - 1, 0)
 
 
 def without_fixes(mission: Mission, t_from: float, t_to: float) -> Mission:

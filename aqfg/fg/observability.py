@@ -88,16 +88,58 @@ def excitation(mission: Mission) -> Excitation:
     return Excitation(thrust, moving, spread, cv, len(t))
 
 
+def lacking(n: str, ex: Excitation) -> str:
+    """Why inputs of excitation ``ex`` cannot determine parameter ``n`` (words), or ""."""
+    why = ""
+    if n in ("k", "k_x", "k_yz") or n.startswith(("thrust_", "reverse_", "linear_drag")):
+        if ex.thrust < 0.05:
+            why = "the propellers were (almost) never commanded"
+        elif ex.moving < 0.1:
+            why = "the vehicle (almost) never moved"
+        elif n in ("k_x", "k_yz") and ex.speed_cv < 0.05 and ex.heading_spread < np.radians(10):
+            why = "one speed on one heading: thrust and drag are seen only as their ratio"
+    if n in ("theta_e", "s_x", "s_y", "heading_drift.rate"):
+        if n in ("theta_e", "heading_drift.rate") and ex.thrust < 0.05:
+            # no push through the water: the heading offset turns nothing the model
+            # predicts (as aqfg.ekf.uncertainty.no_motion_through_water)
+            why = "the propellers were (almost) never commanded"
+        elif ex.moving < 0.1:
+            why = "the vehicle (almost) never moved over ground"
+        elif ex.heading_spread < np.radians(10):
+            why = "the vehicle kept one heading: a heading offset and a cross current look alike"
+    if ex.fixes < 3:
+        why = (f"only {ex.fixes} absolute fix{'es' if ex.fixes != 1 else ''} (GNSS, USBL): "
+               "nothing measures the motion between them")
+    return why
+
+
+def mission_verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...]
+                     ) -> dict[str, dict[str, str]]:
+    """``{mission: {name: reason}}``: the per-mission parameters (group "variable") of a
+    joint fit that a mission's own inputs cannot determine (:func:`lacking` of its
+    excitation), where another mission's can; empty for one mission."""
+    if len(missions) < 2:
+        return {}
+    names = [n for n in estimated if model.spec(n).group == "variable"]
+    out: dict[str, dict[str, str]] = {}
+    for m in missions:
+        ex = excitation(m)
+        why = {n: w for n in names if (w := lacking(n, ex))}
+        if why:
+            out[m.name] = why
+    return out
+
+
 def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
              sigma: dict[str, float], sigma_model: dict[str, float],
              prior_sigma: dict[str, float]) -> dict[str, dict]:
-    """``{name: {"verdict", "reason", "data_information"}}`` for the estimated parameters."""
+    """``{name: {"verdict", "reason", "data_information"}}`` for the estimated parameters
+    (the excitation the best of the missions gives; a joint fit's per-mission parameters
+    each mission's alone: :func:`mission_verdicts`)."""
     ex = [excitation(m) for m in missions]
-    thrust = max(e.thrust for e in ex)
-    moving = max(e.moving for e in ex)
-    spread = max(e.heading_spread for e in ex)
-    speed_cv = max(e.speed_cv for e in ex)
-    fixes = max(e.fixes for e in ex)
+    best = Excitation(max(e.thrust for e in ex), max(e.moving for e in ex),
+                      max(e.heading_spread for e in ex), max(e.speed_cv for e in ex),
+                      max(e.fixes for e in ex))
     out: dict[str, dict] = {}
     for n in estimated:
         sp = prior_sigma.get(n, np.inf)
@@ -107,28 +149,7 @@ def verdicts(model: Model, missions: list[Mission], estimated: tuple[str, ...],
             else float("nan")
         scale = model.spec(n).scale
         reason = ""
-        no_excitation = ""
-        if n in ("k", "k_x", "k_yz") or n.startswith(("thrust_", "reverse_", "linear_drag")):
-            if thrust < 0.05:
-                no_excitation = "the propellers were (almost) never commanded"
-            elif moving < 0.1:
-                no_excitation = "the vehicle (almost) never moved"
-            elif n in ("k_x", "k_yz") and speed_cv < 0.05 and spread < np.radians(10):
-                no_excitation = ("one speed on one heading: thrust and drag are seen only "
-                                 "as their ratio")
-        if n in ("theta_e", "s_x", "s_y", "heading_drift.rate"):
-            if n in ("theta_e", "heading_drift.rate") and thrust < 0.05:
-                # no push through the water: the heading offset turns nothing the model
-                # predicts (as aqfg.ekf.uncertainty.no_motion_through_water)
-                no_excitation = "the propellers were (almost) never commanded"
-            elif moving < 0.1:
-                no_excitation = "the vehicle (almost) never moved over ground"
-            elif spread < np.radians(10):
-                no_excitation = ("the vehicle kept one heading: a heading offset and a "
-                                 "cross current look alike")
-        if fixes < 3:
-            no_excitation = (f"only {fixes} absolute fix{'es' if fixes != 1 else ''} (GNSS, "
-                             "USBL): nothing measures the motion between them")
+        no_excitation = lacking(n, best)
         if no_excitation:
             verdict, reason = NOT, no_excitation
         elif not np.isfinite(info) or info < 0.5:

@@ -14,6 +14,7 @@ import tempfile
 import time
 import uuid
 from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +28,7 @@ from aqfg.fleet.worker import MissionSpec, diagnose_op, finish_op, memory, missi
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
+CLOSE_TIMEOUT = 20.0    # s the client and a local cluster are given to close
 
 
 class FleetError(ValueError):
@@ -64,21 +66,23 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
     made = client is None          # a client (and cluster) made here is closed here
     own = None
     scratch = None
-    if made:
-        # the workers' spill and lock files in a folder of this run, removed after it
-        # (Dask's default, $TMPDIR/dask-scratch-space, keeps them)
-        scratch = None if scheduler else tempfile.mkdtemp(prefix="aqfg-dask-")
-        client, own = _client(workers, scheduler, scratch)
     try:
+        if made:
+            # the workers' spill and lock files in a folder of this run, removed after it
+            # (Dask's default, $TMPDIR/dask-scratch-space, keeps them)
+            scratch = None if scheduler else tempfile.mkdtemp(prefix="aqfg-dask-")
+            client, own = _client(workers, scheduler, scratch)
         return _fit(client, manifest, settings or FGSettings(), tuple(effects),
                     None if estimate is None else tuple(estimate), dict(init or {}),
                     float(gnss_every), diagnose, show, timeout)
     finally:
         try:
-            if made:
-                client.close()
             if own is not None:
-                own.close()
+                _close_workers(own)
+            if made and client is not None:
+                client.close(timeout=CLOSE_TIMEOUT)
+            if own is not None:
+                own.close(timeout=CLOSE_TIMEOUT)
         finally:
             if scratch is not None:
                 shutil.rmtree(scratch, ignore_errors=True)
@@ -99,11 +103,45 @@ def _client(workers: int, scheduler: str | None, scratch: str | None = None):
     if workers < 1:
         raise FleetError(f"--workers must be at least 1, got {workers}")
     import dask
-    with dask.config.set({"temporary-directory": scratch}):    # the scheduler's files too
+    # the scheduler's files in the scratch folder too
+    with dask.config.set({"temporary-directory": scratch}), _workers_ignore_sigint():
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR,
+                               dashboard_address=None, silence_logs=logging.CRITICAL,
                                local_directory=scratch)
-    return Client(cluster), cluster
+    try:
+        return Client(cluster), cluster
+    except BaseException:
+        cluster.close(timeout=CLOSE_TIMEOUT)
+        raise
+
+
+def _close_workers(cluster) -> None:
+    """Close a local cluster's workers (at most :data:`CLOSE_TIMEOUT` s) while their
+    scheduler still answers them: closed with it, a worker's heartbeat can meet a closed
+    connection and log its traceback."""
+    cluster.scale(0)
+    end = time.monotonic() + CLOSE_TIMEOUT
+    while cluster.workers and time.monotonic() < end:
+        time.sleep(0.05)
+
+
+@contextmanager
+def _workers_ignore_sigint():
+    """SIGINT ignored while the block starts the worker processes, which keep ignoring
+    it (an ignored signal stays so across exec): a Ctrl-C at the terminal, sent to the
+    whole process group, then reaches this process alone, which closes the cluster,
+    instead of every worker printing its own KeyboardInterrupt. A Ctrl-C while the
+    cluster starts (a few seconds) is not seen."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,

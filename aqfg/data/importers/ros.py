@@ -28,6 +28,7 @@ from aqfg.data.importers.common import (
 )
 from aqfg.data.importers.frames import enu_flu_to_ned_frd, flu_to_frd
 from aqfg.data.importers.mapfile import ImportMap, TopicSpec
+from aqfg.data.importers.truncation import cut_short
 
 DEFAULT_TOPICS = {"imu": "/imu/data", "gnss": "/gps/fix", "motors": "/thrusters/cmd"}
 MSG_TYPES = {
@@ -75,12 +76,42 @@ def read_ros(source: str | Path, imap: ImportMap, version: str = "ros2") -> Impo
     source = Path(source)
     src = str(source)
     reader = _open(source, version)
+    cut = cut_short_words(source, version)
+    if cut:                 # a sqlite3 reader may not miss its last pages: refused whole
+        raise LogFormatError(src, cut)
     errors = _reader_errors()
     try:
         with reader:
             return _read(reader, src, imap, version)
     except errors + (UnicodeDecodeError, struct.error, EOFError) as e:
         raise LogFormatError(src, f"cannot read the bag: {e}") from None
+
+
+REPAIR = {".bag": "'rosbag reindex'", ".mcap": "'mcap recover'",
+          ".db3": "sqlite3's '.recover' (then 'ros2 bag reindex')"}
+
+
+def cut_short_words(source: Path, version: str) -> str | None:
+    """Why a bag that stops before its end cannot be read, or None for a whole bag: its
+    readers need the end (a ROS 1 bag's index, an MCAP file's summary and footer, every
+    page of a sqlite3 database), so nothing of a cut bag is imported; the repair tool of
+    its storage recovers the complete messages."""
+    files = (sorted(f for f in source.iterdir() if f.suffix in (".mcap", ".db3"))
+             if source.is_dir() else [source])
+    for f in files:
+        end = cut_short(version, f)
+        if end is None:
+            continue
+        size = f.stat().st_size
+        name = f"{f.name}: " if f != source else ""
+        if size == 0:
+            return f"{name}the file is empty (0 bytes): a recording that never wrote a record"
+        return (f"{name}the bag is cut short: it stops at byte {size:,}, in the middle of "
+                f"a record or before the end its reader needs (complete records end at byte "
+                f"{end:,}): a recording stopped abruptly or a truncated copy. Nothing of it "
+                f"is imported; repair it with {REPAIR.get(f.suffix, 'its storage tool')} and "
+                "import the repaired bag")
+    return None
 
 
 def _topic_list(topics: dict[str, Any]) -> str:
