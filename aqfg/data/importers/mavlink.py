@@ -105,7 +105,7 @@ def _generic(src: str, spec: TopicSpec, stream: str, rows: list[Any]) -> dict[st
                              topic=spec.topic) from None
 
 
-def _servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
+def servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
     """``imap`` with the PWM range (and, unless mapped, the reversal) of each thruster's
     output from the log's ``SERVOn_MIN/TRIM/MAX/REVERSED``, when the map gives no range."""
     n = imap.n_thrusters
@@ -131,7 +131,7 @@ def _servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, li
     return out, notes
 
 
-def _default_depth(imap: ImportMap, present: dict[str, int]) -> TopicSpec | None:
+def default_depth(imap: ImportMap, present: dict[str, int]) -> TopicSpec | None:
     """The depth source of an AUV's tlog when the map names none (module docstring)."""
     if imap.vehicle != "auv" or "depth" in imap.topics:
         return None
@@ -147,7 +147,8 @@ def _ns(seconds: float) -> int:
 
 # ------------------------------------------------------------------------------ tlog
 
-def _mavutil():
+def load_mavutil():
+    """``pymavlink.mavutil`` set to the ArduPilot dialect of MAVLink 2 (read with 1.0 too)."""
     from pymavlink import mavutil
     # MAVLink 2 frames (and the 1.0 ones) parse only with the 2.0 dialect modules; pymavlink
     # itself switches this way when it first meets a 2.0 frame.
@@ -159,7 +160,7 @@ def _mavutil():
 
 def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     src = str(source)
-    mavutil = _mavutil()
+    mavutil = load_mavutil()
     # mavmmaplog directly: mavlink_connection() would execute a path containing "/bin/"
     try:
         log = mavutil.mavmmaplog(src)
@@ -169,7 +170,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     if not present:
         raise LogFormatError(src, "no MAVLink messages found; expected a .tlog (8-byte "
                                   "timestamp before each MAVLink message) or a DataFlash .bin")
-    depth = _default_depth(imap, present)
+    depth = default_depth(imap, present)
     chosen = _select(src, imap, TLOG_DEFAULTS, TLOG_TYPES, present, "telemetry log")
     if depth is not None:
         chosen["depth"] = depth
@@ -178,7 +179,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
         depth.fields["offset"] = None      # the first reading: set once the rows are read
     rows = _tlog_rows(log, names)
     params = {str(m.param_id).rstrip("\x00"): float(m.param_value) for m in rows["PARAM_VALUE"]}
-    imap, notes = _servo_map(imap, params)
+    imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}
     sysid = None
     for stream, spec in chosen.items():
@@ -191,7 +192,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
         if stream == "imu":
             sysid = want
         t = np.array([_ns(m._timestamp) for m in msgs], dtype=np.int64)
-        series[stream] = _tlog_series(src, stream, spec, msgs, t, imap, notes)
+        series[stream] = tlog_series(src, stream, spec, msgs, t, imap, notes)
     _no_fix(src, series)
     return assemble(src, imap, series, "mavlink", "unix (ground station log time)",
                     utc_offset=0.0, notes=notes, fixes_required=False)
@@ -231,7 +232,7 @@ def _tlog_system(src: str, stream: str, spec, msgs: list, sysid):
     return msgs, want
 
 
-def _tlog_series(src: str, stream: str, spec, msgs: list, t: np.ndarray, imap: ImportMap,
+def tlog_series(src: str, stream: str, spec, msgs: list, t: np.ndarray, imap: ImportMap,
                  notes: list[str]) -> Series:
     """One stream's series from its messages (stamps ``t``, ns); ``notes`` gets what was
     left out."""
@@ -316,7 +317,7 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
         if msg.get_type() in rows:
             rows[msg.get_type()].append(msg)
     params = {str(m.Name): float(m.Value) for m in rows["PARM"]}
-    imap, notes = _servo_map(imap, params)
+    imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}
     utc_offset = None
     for stream, spec in chosen.items():
