@@ -166,6 +166,8 @@ class LiveRunner:
         for k, v in self.asm.counts().items():
             self.dropped_total[k] = self.dropped_total.get(k, 0) + v
         if self.fl is not None:
+            # the mission to its last input: the corrected track runs on to its end
+            self.fl.set_mission(self.prepare(self.asm.mission(self.t_done)))
             res = self.fl.result()
             self.segments.append(Segment(self.fl.mission, res, self.asm.t_zero_ns or 0))
 
