@@ -1,12 +1,15 @@
-"""``aqfg live``: a telemetry log replayed at --speed 0, and the same log streamed over UDP,
-give the answer of ``aqfg fit --mode online`` on the mission ``aqfg import mavlink``
-writes (from the log, and from the run's own recording of the stream); --send-to sends
-what live.jsonl says; bad options and sources end with exit codes 2 and 3.
+"""``aqfg live``: a telemetry log replayed at --speed 0, and a log streamed over UDP, give
+the answer of ``aqfg fit --mode online`` on the mission ``aqfg import mavlink`` writes
+(from the log, and from the run's own recording of the stream); --send-to sends what
+live.jsonl says; bad options and sources end with exit codes 2 and 3; duplicate, late and
+missing messages are left out and counted, a reboot or a lost link restarts the window
+with an event.
 
 Tolerance 1e-6 (parameters, and the track files' values, written to 1e-6: 1.5e-6 there).
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import signal
@@ -211,3 +214,105 @@ def test_bad_options_and_sources(tlog, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main(["live", str(path), "--out", out])           # --map is required
     assert e.value.code == 2
+
+
+# ------------------------------------------------------------- a stream is not a file
+
+def run_records(recs, mp, tmp_path, name):
+    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments)."""
+    from aqfg.data.importers import load_map
+    from aqfg.fg.online.smoother import FixedLagSmoother
+    from aqfg.live.runner import LiveRunner
+    from aqfg.live.source import LogSource
+    path = lw.write_tlog(tmp_path / f"{name}.tlog", recs)
+    events: list = []
+    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append)
+    for item in LogSource(path, 0.0):
+        if item is not None:
+            runner.feed(*item)
+    return runner, runner.finish(), events
+
+
+def test_duplicates_are_dropped_and_counted_with_the_same_answer(tlog, tmp_path):
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    _, clean, _ = run_records(recs, mp, tmp_path, "clean")
+    twice = [r for rec in recs for r in (rec, rec)]
+    runner, segs, events = run_records(twice, mp, tmp_path, "twice")
+    assert len(segs) == 1 and not events
+    assert runner.dropped() == {"ATTITUDE: duplicate": len(m.imu.t),
+                                "GPS_RAW_INT: duplicate": len(m.gnss.t),
+                                "SERVO_OUTPUT_RAW: duplicate": len(m.motors.t)}
+    a, b = segs[0].result, clean[0].result
+    np.testing.assert_array_equal(a.history.values, b.history.values)
+
+
+def test_late_and_missing_messages_are_left_out_without_a_jump(tlog, tmp_path):
+    """Every tenth attitude message arrives after the next one (dropped as late), one in
+    five motor messages and every third fix are lost: the smoother runs on, every fix
+    left is an update, and the causal track stays near the fixes."""
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    att = [i for i, (_, msg) in enumerate(recs) if msg.get_type() == "ATTITUDE"]
+    for k in att[5::10]:
+        j = next(i for i in att if i > k)
+        recs[k], recs[j] = (recs[k][0], recs[j][1]), (recs[j][0], recs[k][1])
+    n_mot = n_gps = 0
+    kept = []
+    for us, msg in recs:
+        if msg.get_type() == "SERVO_OUTPUT_RAW":
+            n_mot += 1
+            if n_mot % 5 == 0:
+                continue
+        if msg.get_type() == "GPS_RAW_INT":
+            n_gps += 1
+            if n_gps % 3 == 0:
+                continue
+        kept.append((us, msg))
+    runner, segs, events = run_records(kept, mp, tmp_path, "late")
+    assert len(segs) == 1 and not events
+    assert runner.dropped() == {"ATTITUDE: late (older than the last of its type)":
+                                len(att[5::10])}
+    assert runner.n_fix == len(m.gnss.t) - len(m.gnss.t) // 3
+    res = segs[0].result
+    assert np.all(np.isfinite(res.missions[0].filtered.pos))
+
+
+def _shifted(recs, t_from_us, dt_us=0, boot_back_ms=0):
+    """Records from ``t_from_us`` on: stamps later by ``dt_us``, the vehicle's boot clock
+    (ATTITUDE, SERVO_OUTPUT_RAW) earlier by ``boot_back_ms`` (a reboot)."""
+    out = []
+    for us, msg in recs:
+        if us >= t_from_us:
+            msg = copy.deepcopy(msg)
+            us += dt_us
+            if msg.get_type() == "ATTITUDE":
+                msg.time_boot_ms -= boot_back_ms
+            elif msg.get_type() == "SERVO_OUTPUT_RAW":
+                msg.time_usec = (msg.time_usec - boot_back_ms * 1000) % 2**32
+        out.append((us, msg))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["reboot", "link"])
+def test_reboot_and_lost_link_restart_the_window_with_an_event(tlog, tmp_path, kind):
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    cut = recs[0][0] + 30_000_000
+    recs = (_shifted(recs, cut, boot_back_ms=29_000) if kind == "reboot"
+            else _shifted(recs, cut, dt_us=90_000_000))
+    runner, segs, events = run_records(recs, mp, tmp_path, kind)
+    assert len(events) == 1 and len(segs) == 2
+    assert ("vehicle reboot" if kind == "reboot" else "link lost") in events[0]["event"]
+    # each part a mission of its own, from its first message
+    assert segs[0].result.missions[0].track.t[-1] < 30.1
+    assert segs[1].mission.t0 == 0.0 and segs[1].t_zero_ns >= cut * 1000
+    assert runner.n_fix >= len(m.gnss.t) - 2
+    # from the command: the last part at the top, the first in segment-1/, the event logged
+    out = tmp_path / "L"
+    p = lw.write_tlog(tmp_path / "cli.tlog", recs)
+    assert main(["live", str(p), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
+    assert (out / "segment-1" / "trajectory.csv").is_file() and (out / "trajectory.csv").is_file()
+    ev = [x for x in lines(out) if "event" in x]
+    assert len(ev) == 1 and ev[0]["segment"] == 2
+    assert {x["segment"] for x in lines(out) if "parameters" in x} == {1, 2}

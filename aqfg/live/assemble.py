@@ -14,7 +14,9 @@ What a stream does that a file does not is handled here and counted in ``dropped
   before it of its type): dropped, "duplicate";
 * a message older than the last of its type (own time or stream stamp behind by less than
   :data:`REBOOT_BACK`): dropped, "late";
-* the vehicle's boot clock back by more than :data:`REBOOT_BACK` (a reboot), or an input
+* the vehicle's boot clock (``time_boot_ms``, ``SERVO_OUTPUT_RAW.time_usec``; not
+  ``GPS_RAW_INT``/``GPS2_RAW.time_usec``, which ArduPilot fills with UTC) back by more than
+  :data:`REBOOT_BACK` (a reboot), or an input
   stream silent for more than the map's ``[time] max_gap`` (the link was lost): ``add``
   returns a :class:`Restart` and the caller starts a new mission from that message;
 * a bad attitude quaternion, a PWM outside its range: dropped, counted, the first reason kept.
@@ -51,6 +53,7 @@ OWN_TIME = {"ATTITUDE": ("time_boot_ms", 1e3), "ATTITUDE_QUATERNION": ("time_boo
             "SCALED_PRESSURE2": ("time_boot_ms", 1e3), "GPS_RAW_INT": ("time_usec", 1e6),
             "GPS2_RAW": ("time_usec", 1e6), "SERVO_OUTPUT_RAW": ("time_usec", 1e6)}
 WRAP32 = {"SERVO_OUTPUT_RAW"}     # a uint32 microsecond field: wraps after 71.6 min
+UTC_TIME = {"GPS_RAW_INT", "GPS2_RAW"}   # own time UTC (ArduPilot), not the boot clock
 
 
 @dataclass
@@ -169,7 +172,7 @@ class StreamAssembler:
                 if d == 0:
                     return self._drop("duplicate", mtype)
                 if d < 0:
-                    if -d / own[1] > REBOOT_BACK and own[1] == 1e3 and "imu" in streams:
+                    if -d / own[1] > REBOOT_BACK and mtype not in UTC_TIME:
                         return Restart(f"vehicle reboot: its clock went back {-d / own[1]:.1f} s "
                                        f"({mtype}.{own[0]})", stamp_ns)
                     return self._drop("late (older than the last of its type)", mtype)
