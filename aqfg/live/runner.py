@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -22,6 +23,8 @@ from aqfg.data.mission import Mission
 from aqfg.fg.online.smoother import FixedLagSmoother
 from aqfg.live.assemble import Restart, StreamAssembler
 from aqfg.result import Result
+
+HANDLE_KEPT = 100_000        # per-message timings kept (the last ones), for the median
 
 
 @dataclass
@@ -67,7 +70,10 @@ class LiveRunner:
         self.on_event = on_event or (lambda e: None)
         self.prepare = prepare or (lambda m: m)
         self.segments: list[Segment] = []
-        self.handle_s: list[float] = []          # wall time per message taken (s)
+        # wall time (s) per message taken (the last HANDLE_KEPT), per fix processed
+        self.handle_s: deque[float] = deque(maxlen=HANDLE_KEPT)
+        self.fix_s: list[float] = []
+        self.n_messages = 0
         self.dropped_total: dict[str, int] = {}
         self.n_fix = 0
         self._new_segment()
@@ -88,6 +94,7 @@ class LiveRunner:
     def feed(self, msg, stamp_ns: int) -> None:
         """One message stamped ``stamp_ns`` (the stream's clock, ns)."""
         t_a = time.perf_counter()
+        self.n_messages += 1
         out = self.asm.add(msg, stamp_ns)
         if isinstance(out, Restart):
             self._restart(out)
@@ -116,6 +123,7 @@ class LiveRunner:
             self._update(t)
 
     def _update(self, t: float) -> None:
+        t_a = time.perf_counter()
         if self.fl is None:
             self.asm.depth_choice()
         mission = self.prepare(self.asm.mission(t))
@@ -127,6 +135,7 @@ class LiveRunner:
         self.t_done = t
         self.n_fix += 1
         self._report(t, info)
+        self.fix_s.append(time.perf_counter() - t_a)
 
     def _report(self, t: float, info) -> None:
         fl = self.fl
