@@ -316,3 +316,14 @@ def test_reboot_and_lost_link_restart_the_window_with_an_event(tlog, tmp_path, k
     ev = [x for x in lines(out) if "event" in x]
     assert len(ev) == 1 and ev[0]["segment"] == 2
     assert {x["segment"] for x in lines(out) if "parameters" in x} == {1, 2}
+
+
+def test_bench_stream_feeds_the_runner_and_reports_its_figures():
+    """The bench's stream of a simulated vehicle goes through LiveRunner: one update per
+    fix, and the report says each figure (timings are printed, never asserted)."""
+    from aqfg.live import bench as lb
+    figs = lb.live_times(duration=60.0, period=8.0, edge=20.0)
+    assert figs["fixes"] == len(np.arange(0.0, 60.0 + 1e-9, 8.0))
+    assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
+    rows = dict(lb.report_rows(figs))
+    assert len(rows) == 3 and all(v.endswith(("ms", "MB")) for v in rows.values())

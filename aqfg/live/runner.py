@@ -24,7 +24,7 @@ from aqfg.fg.online.smoother import FixedLagSmoother
 from aqfg.live.assemble import Restart, StreamAssembler
 from aqfg.result import Result
 
-HANDLE_KEPT = 100_000        # per-message timings kept (the last ones), for the median
+HANDLE_KEPT = 20_000         # per-message timings kept (the last ones), for the median
 
 
 @dataclass
