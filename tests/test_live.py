@@ -327,3 +327,28 @@ def test_bench_stream_feeds_the_runner_and_reports_its_figures():
     assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
     rows = dict(lb.report_rows(figs))
     assert len(rows) == 3 and all(v.endswith(("ms", "MB")) for v in rows.values())
+
+
+def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):
+    """examples/harbour-survey.tlog (the README's tour replays it): the mission of
+    examples/README.md's line, written by aqfg.live.bench.write_tlog (to the messages'
+    resolution: 1 us of PWM, 1e-7 deg; 1e-6 rad)."""
+    from pathlib import Path
+
+    from aqfg.live.bench import write_tlog
+    ex = Path(__file__).resolve().parent.parent / "examples" / "harbour-survey.tlog"
+    m, _ = simulate("asv", seed=7, duration=120.0)
+    k = np.arange(0, len(m.imu.t), 5)                    # attitude at 10 Hz
+    m.imu = copy.copy(m.imu)
+    m.imu.t, m.imu.q, m.imu.gyro = m.imu.t[k], m.imu.q[k], m.imu.gyro[k]
+    write_tlog(m, tmp_path / "again.tlog")
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    mav = mavlink2.MAVLink(None)
+    a, b = tlog_frames(ex), tlog_frames(tmp_path / "again.tlog")
+    assert len(a) == len(b) and [u for u, _ in a] == [u for u, _ in b]
+    for (_, fa), (_, fb) in zip(a, b):          # to the messages' resolution
+        ma, mb = mav.decode(bytearray(fa)), mav.decode(bytearray(fb))
+        assert ma.get_type() == mb.get_type()
+        for k, v in ma.to_dict().items():
+            if k != "mavpackettype":
+                assert v == pytest.approx(mb.to_dict()[k], abs=1.0 if k[0] in "ls" else 1e-6)

@@ -35,13 +35,14 @@ def stream_map(m: Mission) -> ImportMap:
                      pwm=PwmRange(*(np.full(n, v) for v in PWM)))
 
 
-def mission_stream(m: Mission) -> Iterator[tuple[object, int]]:
-    """(pymavlink message, stamp ns) of a mission's IMU, GNSS and motors, in time order."""
+def mission_frames(m: Mission) -> Iterator[tuple[bytes, int]]:
+    """(MAVLink 2 frame, stamp ns) of a mission's IMU, GNSS and motors as an ArduPilot
+    boat sends them (ATTITUDE, GPS_RAW_INT, SERVO_OUTPUT_RAW on outputs 1, 2...), in time
+    order; stamps unix ns (``T_BASE`` + mission t), fixes placed at ``ORIGIN``."""
     from aqfg.data.importers.mavlink import load_mavutil
     load_mavutil()
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
     tx = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
-    rx = mavlink2.MAVLink(None)
     lo, mid, hi = PWM
     u = m.motors.u
     pwm = np.rint(np.where(u >= 0, mid + u * (hi - mid), mid + u * (mid - lo))).astype(int)
@@ -63,7 +64,24 @@ def mission_stream(m: Mission) -> Iterator[tuple[object, int]]:
         else:
             msg = tx.gps_raw_int_encode(int((T_BASE + t) * 1e6), 3, round(ll[i, 0] * 1e7),
                                         round(ll[i, 1] * 1e7), 0, 120, 200, 0, 0, 12)
-        yield rx.decode(bytearray(msg.pack(tx))), round((T_BASE + t) * 1e6) * 1000
+        yield bytes(msg.pack(tx)), round((T_BASE + t) * 1e6) * 1000
+
+
+def mission_stream(m: Mission) -> Iterator[tuple[object, int]]:
+    """(pymavlink message, stamp ns) of :func:`mission_frames`, each frame parsed back."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    rx = mavlink2.MAVLink(None)
+    for frame, stamp in mission_frames(m):
+        yield rx.decode(bytearray(frame)), stamp
+
+
+def write_tlog(m: Mission, path) -> None:
+    """:func:`mission_frames` as a telemetry log (big-endian unix microseconds before
+    each frame, as ground stations write it)."""
+    import struct
+    with open(path, "wb") as fh:
+        for frame, stamp in mission_frames(m):
+            fh.write(struct.pack(">Q", stamp // 1000) + frame)
 
 
 def live_times(duration: float = 7200.0, period: float = 8.0, seed: int = 0,
