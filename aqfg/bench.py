@@ -282,7 +282,8 @@ def run(repeat: int = 5, batch_update_error: bool = False, progress=None,
         if _has_pymavlink():
             say(f"aqfg live on a {stream_duration:.0f}-s MAVLink stream")
             from aqfg.live.bench import live_times
-            figs["live"] = live_times(stream_duration, edge=min(600.0, stream_duration / 2))
+            figs["live"] = live_times(stream_duration, edge=min(600.0, stream_duration / 2),
+                                      estimate=VARIABLE, rss=_rss_mb)
     return figs
 
 

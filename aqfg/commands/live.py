@@ -118,7 +118,6 @@ def _default_settings():
 
 
 def run(args) -> int:
-    from aqfg.commands.fit import parameter_table
     from aqfg.data.importers import load_map
     from aqfg.data.importers.common import MissingExtraError, check_layout
     from aqfg.live.outputs import LIVE_SET, RECORDING, LiveFiles, write_final
@@ -162,19 +161,8 @@ def run(args) -> int:
         files.event(ev)
         log.warning("%s", ev["event"])
     runner = LiveRunner(imap, src.name, make, on_fix=on_fix, on_event=on_event, prepare=prepare)
-    stopped = False
     with Stop() as stop:
-        try:
-            for item in src:
-                if item is not None:
-                    runner.feed(*item)
-                else:
-                    status.show(runner, force=True)
-                if stop.asked:
-                    stopped = True
-                    break
-        finally:
-            src.close()
+        stopped = _stream(src, runner, status, stop)
         segments = runner.finish()
         status.end()
         files.close()
@@ -185,6 +173,28 @@ def run(args) -> int:
                                                 "speed": args.speed}},
                           inputs=[] if link else [args.source])
         written = write_final(out, segments, prov, out / RECORDING if link else None)
+    return _summary(runner, segments, written, out, stopped)
+
+
+def _stream(src, runner, status: Status, stop: Stop) -> bool:
+    """Feed the source's messages to the runner until it ends (False) or Ctrl-C (True)."""
+    try:
+        for item in src:
+            if item is not None:
+                runner.feed(*item)
+            else:
+                status.show(runner, force=True)
+            if stop.asked:
+                return True
+    finally:
+        src.close()
+    return False
+
+
+def _summary(runner, segments, written, out: Path, stopped: bool) -> int:
+    """What the run did, on stdout (the parameters, timings, files) and stderr (what was
+    left out); the exit code."""
+    from aqfg.commands.fit import parameter_table
     drops = runner.dropped()
     for k, v in drops.items():
         log.info("left out: %s: %d", k, v)

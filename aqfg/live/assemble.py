@@ -142,14 +142,14 @@ class StreamAssembler:
                 self.early.append((msg, stamp_ns))
                 if len(self.early) > EARLY_LIMIT:
                     self.early.pop(0)
-                    self._drop("before the first attitude message", "")
+                    self.drop("before the first attitude message", "")
                 return None
             self.sysid = msg.get_srcSystem()
             early, self.early = self.early, []
             for m, s in early:
                 self.add(m, s)
         if msg.get_srcSystem() != self.sysid:
-            self._drop(f"from another MAVLink system than {self.sysid}", mtype)
+            self.drop(f"from another MAVLink system than {self.sysid}", mtype)
             return None
         verdict = self._order(msg, mtype, stamp_ns, streams)
         if verdict is not True:
@@ -170,17 +170,17 @@ class StreamAssembler:
                 if mtype in WRAP32:
                     d = (d + 2**31) % 2**32 - 2**31
                 if d == 0:
-                    return self._drop("duplicate", mtype)
+                    return self.drop("duplicate", mtype)
                 if d < 0:
                     if -d / own[1] > REBOOT_BACK and mtype not in UTC_TIME:
                         return Restart(f"vehicle reboot: its clock went back {-d / own[1]:.1f} s "
                                        f"({mtype}.{own[0]})", stamp_ns)
-                    return self._drop("late (older than the last of its type)", mtype)
+                    return self.drop("late (older than the last of its type)", mtype)
             self.last_own[mtype] = v
         last_s = self.last_stamp.get(mtype)
         if last_s is not None:
             if stamp_ns < last_s:
-                return self._drop("late (older than the last of its type)", mtype)
+                return self.drop("late (older than the last of its type)", mtype)
             gap = (stamp_ns - last_s) * 1e-9
             if gap > self.base_map.max_gap and any(s in ("imu", "motors") for s in streams):
                 return Restart(f"link lost: no {mtype} for {gap:.1f} s (more than [time] "
@@ -188,10 +188,11 @@ class StreamAssembler:
         self.last_stamp[mtype] = stamp_ns
         return True
 
-    def _drop(self, why: str, where: str, detail: str = "") -> bool:
-        """Count a message left out (``False``, for :meth:`_order`)."""
+    def drop(self, why: str, where: str, detail: str = "", n: int = 1) -> bool:
+        """Count ``n`` messages (or fixes) left out, by reason (``where: why``); ``detail``:
+        the first one's full reason. ``False``, for :meth:`_order`."""
         key = f"{where}: {why}" if where else why
-        self.dropped[key] += 1
+        self.dropped[key] += n
         if detail:
             self.reasons.setdefault(key, detail)
         return False
@@ -219,15 +220,15 @@ class StreamAssembler:
             s = tlog_series(self.source, kind, spec, [msg], np.array([stamp_ns], np.int64),
                             self.imap, notes)
         except LogFormatError as e:
-            self._drop(e.problem.split(";")[0], spec.topic, str(e))
+            self.drop(e.problem.split(";")[0], spec.topic, str(e))
             return
         if not len(s.t_ns):
             why = [k for k, v in s.dropped.items() if v] or ["; ".join(notes) or "left out"]
             for k in why:
-                self._drop(k, spec.topic)
+                self.drop(k, spec.topic)
             return
         if kind == "imu" and abs(float(np.linalg.norm(s.data["q"][0])) - 1.0) > QUAT_TOL:
-            self._drop("attitude not a unit quaternion", spec.topic)
+            self.drop("attitude not a unit quaternion", spec.topic)
             return
         if kind == "gnss" and not self._gnss_ok(s.data):
             return
@@ -247,7 +248,7 @@ class StreamAssembler:
     def _gnss_ok(self, data: dict) -> bool:
         lat, lon = float(data["lat"][0]), float(data["lon"][0])
         if not (np.isfinite(lat) and np.isfinite(lon) and abs(lat) < 90 and abs(lon) <= 180):
-            self._drop("fix outside |lat| < 90, |lon| <= 180 deg", self.specs["gnss"].topic)
+            self.drop("fix outside |lat| < 90, |lon| <= 180 deg", self.specs["gnss"].topic)
             return False
         return True
 

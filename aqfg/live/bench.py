@@ -6,7 +6,8 @@ smoother update, report; median and p99) and the RSS over the first and the last
 ``edge`` s of the stream (memory flat when these agree). Timings only."""
 from __future__ import annotations
 
-from collections.abc import Iterator
+import math
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -85,11 +86,11 @@ def write_tlog(m: Mission, path) -> None:
 
 
 def live_times(duration: float = 7200.0, period: float = 8.0, seed: int = 0,
-               edge: float = 600.0) -> dict:
+               edge: float = 600.0, estimate=("theta_e", "s_x", "s_y"),
+               rss: Callable[[], float] = lambda: math.nan) -> dict:
     """The stream of a simulated ASV (GNSS every ``period`` s; the smoother as
-    :func:`aqfg.bench.stream_times` runs it: 3-fix window, heading and current estimated)
-    through :class:`LiveRunner` (module docstring)."""
-    from aqfg.bench import VARIABLE, _rss_mb
+    :func:`aqfg.bench.stream_times` runs it: 3-fix window, ``estimate`` estimated)
+    through :class:`LiveRunner` (module docstring); ``rss()``: the process's memory (MB)."""
     from aqfg.fg.online.smoother import FixedLagSmoother
     from aqfg.live.runner import LiveRunner
     from aqfg.sim.simulator import simulate
@@ -97,15 +98,15 @@ def live_times(duration: float = 7200.0, period: float = 8.0, seed: int = 0,
                            params={"theta_e": float(np.radians(30.0))}, gnss_period=period)
     m = with_gnss_every(full, period)
     init = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
-    rss: list[tuple[float, float]] = []
+    mem: list[tuple[float, float]] = []
     runner = LiveRunner(stream_map(m), "bench", lambda: FixedLagSmoother(
-        None, estimate=VARIABLE, init=init, window=3 * period),
-        on_fix=lambda rep: rss.append((rep.t, _rss_mb())))
+        None, estimate=estimate, init=init, window=3 * period),
+        on_fix=lambda rep: mem.append((rep.t, rss())))
     for msg, stamp in mission_stream(m):
         runner.feed(msg, stamp)
     runner.finish()
-    t = np.array([r[0] for r in rss])
-    r = np.array([r[1] for r in rss])
+    t = np.array([x[0] for x in mem])
+    r = np.array([x[1] for x in mem])
     first, last = t <= t[0] + edge, t >= t[-1] - edge
     return {"duration": duration, "edge": edge, "messages": runner.n_messages,
             "fixes": runner.n_fix, "handle": list(runner.handle_s), "fix": list(runner.fix_s),

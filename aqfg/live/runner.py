@@ -116,7 +116,7 @@ class LiveRunner:
         while self.pending and self.pending[0] < t_inputs:
             t = self.pending.pop(0)
             if t < self.asm.first_input():
-                self.asm._drop("before the first input message", "fixes")
+                self.asm.drop("before the first input message", "fixes")
                 continue
             if t <= self.t_done + 1e-9:
                 continue                         # a second fix at the same time
@@ -170,7 +170,7 @@ class LiveRunner:
         m_end = self._t1()
         self._process(m_end + 1e-9)
         if self.pending:
-            self.asm._drop("after the last input message", "fixes")
+            self.asm.drop("after the last input message", "fixes", n=len(self.pending))
             self.pending = []
         for k, v in self.asm.counts().items():
             self.dropped_total[k] = self.dropped_total.get(k, 0) + v

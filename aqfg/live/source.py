@@ -127,6 +127,8 @@ class LinkSource:
         while True:
             msg = self.conn.recv_match(blocking=True, timeout=IDLE_S)
             if msg is None:
+                if self.rec is not None:
+                    self.rec.flush()        # whole messages on disk while the link is quiet
                 yield None
                 continue
             if msg.get_type() == "BAD_DATA":
