@@ -352,3 +352,56 @@ def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):
         for k, v in ma.to_dict().items():
             if k != "mavpackettype":
                 assert v == pytest.approx(mb.to_dict()[k], abs=1.0 if k[0] in "ls" else 1e-6)
+
+
+# ------------------------------------------------------------------ pure pieces
+
+def test_replay_pacing_and_connection_strings():
+    from aqfg.live.source import is_connection, pace_delay
+    # at 2x real time, a message stamped 10 s after the first is due 5 s after the start
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=102.0, speed=2.0) == 3.0
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=106.0, speed=2.0) == 0.0
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=100.0, speed=0.0) == 0.0
+    for s in ("udpin:0.0.0.0:14550", "udp:10.0.0.2:14550", "tcp:host:5760", "/dev/ttyUSB0,57600",
+              "COM3"):
+        assert is_connection(s), s
+    for s in ("run.tlog", "logs/com.tlog", "./udp.tlog"):
+        assert not is_connection(s), s
+
+
+def test_gps_input_time_and_fields():
+    from aqfg.live.send import gps_input_fields, gps_week_ms, named_values
+    # 2023-11-14T22:13:20Z, 18 leap seconds: GPS week 2288, 252818 s into it
+    assert gps_week_ms(1_700_000_000.0) == (2288, 252_818_000)
+    f = gps_input_fields(1_700_000_000.0, np.array([0.0, 0.0, 0.0, 1.5, -0.5, 0.0]),
+                         np.array([0.3, 0.4]), (46.5, 6.5))
+    assert (f["lat"], f["lon"]) == (465_000_000, 65_000_000)
+    assert f["vn"] == 1.5 and f["ve"] == -0.5 and f["horiz_accuracy"] == 0.4
+    assert named_values({"heading_drift.rate": 1e-4, "s_x": np.nan}) == [(b"heading_dr", 1e-4)]
+
+
+def test_status_line_on_a_terminal():
+    import io
+
+    from aqfg.commands.live import Status
+    from aqfg.live.runner import FixReport
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    class Runner:
+        n_fix = 7
+
+        def dropped(self):
+            return {"ATTITUDE: duplicate": 2}
+    rep = FixReport(1, 14.0, 0.0, np.zeros(6), np.ones(2), {"theta_e": np.radians(12.0)},
+                    {"theta_e": np.radians(1.5)}, False, 0.0021, 0.8)
+    tty = Tty()
+    Status(tty).show(Runner(), rep)
+    line = tty.getvalue()
+    assert line.startswith("\r") and "7 fixes" in line and "+12.00 +- 1.50 deg" in line
+    assert "innovation 0.80 m" in line and "2.1 ms" in line and "2 left out" in line
+    quiet = io.StringIO()
+    Status(quiet).show(Runner(), rep)
+    assert quiet.getvalue() == ""
