@@ -249,12 +249,13 @@ def _live_parser(sub) -> None:
     s = sub.add_parser("live", help="run the online smoother on a MAVLink stream (or a "
                                      "tlog replayed as one)",
                        description="Run the fixed-lag smoother of 'aqfg fit --mode online' on "
-                                   "a MAVLink connection, or on a .tlog replayed at --speed; "
+                                   "a MAVLink connection, or on a .tlog or DataFlash .bin "
+                                   "replayed at --speed; "
                                    "writes live.jsonl and causal.csv as it goes, the fit's "
                                    "outputs at the end (or on Ctrl-C). See "
                                    "docs/on-the-vehicle.md.")
     s.add_argument("source", metavar="SOURCE",
-                   help="a .tlog, or a MAVLink connection: udpin:0.0.0.0:14550, "
+                   help="a .tlog or DataFlash .bin, or a MAVLink connection: udpin:0.0.0.0:14550, "
                         "udp:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
     s.add_argument("--map", required=True, metavar="MAP.toml",
                    help="vehicle, thrusters, origin and messages (as for aqfg import mavlink)")

@@ -2,8 +2,8 @@
 --mode online`` on a MAVLink stream, or on a telemetry log replayed as one.
 
 SOURCE is a pymavlink connection string (``udpin:0.0.0.0:14550``, ``tcp:HOST:PORT``, a
-serial device) or a ``.tlog`` replayed at ``--speed`` (1 real time, 0 as fast as
-possible). Writes ``live.jsonl`` and ``causal.csv`` as it goes and, when the stream or the
+serial device) or a ``.tlog`` or DataFlash ``.bin`` replayed at ``--speed`` (1 real time,
+0 as fast as possible). Writes ``live.jsonl`` and ``causal.csv`` as it goes and, when the stream or the
 log ends or on Ctrl-C, the outputs of ``aqfg fit`` (:mod:`aqfg.live.outputs`);
 docs/on-the-vehicle.md.
 """
@@ -160,7 +160,8 @@ def run(args) -> int:
     def on_event(ev):
         files.event(ev)
         log.warning("%s", ev["event"])
-    runner = LiveRunner(imap, src.name, make, on_fix=on_fix, on_event=on_event, prepare=prepare)
+    runner = LiveRunner(imap, src.name, make, on_fix=on_fix, on_event=on_event, prepare=prepare,
+                        dataflash=bool(getattr(src, "dataflash", False)))
     with Stop() as stop:
         stopped = _stream(src, runner, status, stop)
         segments = runner.finish()

@@ -1,12 +1,14 @@
-"""A MAVLink stream, message by message -> the growing mission.
+"""A MAVLink stream (or a DataFlash log's messages), message by message -> the growing
+mission.
 
 The messages, their system, the PWM range and reversal (``[motors]`` or the vehicle's
 ``SERVOn_*`` parameters) and every conversion are the importer's
 (:mod:`aqfg.data.importers.mavlink`: :func:`~aqfg.data.importers.mavlink.tlog_series`,
-:func:`~aqfg.data.importers.mavlink.servo_map`), applied to one message at a time, so a log
-replayed here gives the mission ``aqfg import mavlink`` writes from it. Times are the
-stream's clock (a tlog's stamps, or the receiving clock of a live link) in integer
-nanoseconds; mission ``t`` is seconds from the first message of an imported stream.
+:func:`~aqfg.data.importers.mavlink.df_series`, :func:`~aqfg.data.importers.mavlink.servo_map`),
+applied to one message at a time, so a log replayed here gives the mission
+``aqfg import mavlink`` writes from it. Times are the stream's clock (a tlog's stamps,
+DataFlash ``TimeUS``, or the receiving clock of a live link) in integer nanoseconds;
+mission ``t`` is seconds from the first message of an imported stream.
 
 What a stream does that a file does not is handled here and counted in ``dropped``:
 
@@ -34,10 +36,15 @@ from aqfg.data.geodesy import latlon_to_ne
 from aqfg.data.importers.common import QUAT_TOL, LogFormatError, check_layout
 from aqfg.data.importers.mapfile import ImportMap, TopicSpec
 from aqfg.data.importers.mavlink import (
+    DF_DEFAULTS,
+    DF_TYPES,
     TLOG_DEFAULTS,
     TLOG_DEPTH,
     TLOG_TYPES,
+    _df_utc_offset,
     _select,
+    df_instance,
+    df_series,
     servo_map,
     tlog_series,
 )
@@ -51,7 +58,10 @@ EARLY_LIMIT = 2000         # messages kept before the vehicle's system is known
 OWN_TIME = {"ATTITUDE": ("time_boot_ms", 1e3), "ATTITUDE_QUATERNION": ("time_boot_ms", 1e3),
             "GLOBAL_POSITION_INT": ("time_boot_ms", 1e3), "SCALED_PRESSURE": ("time_boot_ms", 1e3),
             "SCALED_PRESSURE2": ("time_boot_ms", 1e3), "GPS_RAW_INT": ("time_usec", 1e6),
-            "GPS2_RAW": ("time_usec", 1e6), "SERVO_OUTPUT_RAW": ("time_usec", 1e6)}
+            "GPS2_RAW": ("time_usec", 1e6), "SERVO_OUTPUT_RAW": ("time_usec", 1e6),
+            # DataFlash: the autopilot's time since boot, which is also the stamp
+            "ATT": ("TimeUS", 1e6), "GPS": ("TimeUS", 1e6), "GPS2": ("TimeUS", 1e6),
+            "RCOU": ("TimeUS", 1e6)}
 WRAP32 = {"SERVO_OUTPUT_RAW"}     # a uint32 microsecond field: wraps after 71.6 min
 UTC_TIME = {"GPS_RAW_INT", "GPS2_RAW"}   # own time UTC (ArduPilot), not the boot clock
 
@@ -63,13 +73,17 @@ class Restart:
     stamp_ns: int
 
 
-def live_topics(imap: ImportMap, source: str) -> dict[str, TopicSpec]:
-    """The streams and their messages, as the importer chooses them for a tlog (the
-    map's ``[topics]``, else the defaults), checked the same way; depth is chosen later
-    (:meth:`StreamAssembler.depth_choice`) when the map names none."""
-    every = {n: 1 for names in TLOG_TYPES.values() for n in names}
+def live_topics(imap: ImportMap, source: str, dataflash: bool = False
+                ) -> dict[str, TopicSpec]:
+    """The streams and their messages, as the importer chooses them for a tlog or a
+    DataFlash log (the map's ``[topics]``, else the defaults), checked the same way; a
+    tlog's depth is chosen later (:meth:`StreamAssembler.depth_choice`) when the map names
+    none."""
+    types = DF_TYPES if dataflash else TLOG_TYPES
+    every = {n: 1 for names in types.values() for n in names}
     every.update({s.topic: 1 for s in imap.topics.values()})
-    return _select(source, imap, TLOG_DEFAULTS, TLOG_TYPES, every, "stream")
+    return _select(source, imap, DF_DEFAULTS if dataflash else TLOG_DEFAULTS, types, every,
+                   "stream")
 
 
 class StreamAssembler:
@@ -81,12 +95,13 @@ class StreamAssembler:
     """
 
     def __init__(self, imap: ImportMap, source: str, params: dict[str, float] | None = None,
-                 sysid: int | None = None):
+                 sysid: int | None = None, dataflash: bool = False):
         self.source = source
         check_layout(source, imap)
         self.base_map = imap
-        self.specs = live_topics(imap, source)
-        self.depth_auto = imap.vehicle == "auv" and "depth" not in imap.topics
+        self.dataflash = dataflash
+        self.specs = live_topics(imap, source, dataflash)
+        self.depth_auto = imap.vehicle == "auv" and "depth" not in imap.topics and not dataflash
         if self.depth_auto:
             for name, fld, scale in TLOG_DEPTH:
                 self.specs[f"depth:{name}"] = TopicSpec(name, None, {"field": fld, "scale": scale})
@@ -99,6 +114,9 @@ class StreamAssembler:
         self.params: dict[str, float] = dict(params or {})
         self.imap, self.notes = servo_map(imap, self.params)
         self.sysid = sysid if sysid is not None else self.specs["imu"].instance
+        self.gps_wait: tuple[Any, int] | None = None     # a DataFlash fix until its GPA
+        self.gpa: dict[tuple[int, int], Any] = {}
+        self.utc_offset: float | None = None
         self.t_zero_ns: int | None = None
         self.dropped: Counter = Counter()
         self.reasons: dict[str, str] = {}
@@ -131,8 +149,10 @@ class StreamAssembler:
         """Take one message stamped ``stamp_ns`` (the stream's clock, ns)."""
         self.n_messages += 1
         mtype = msg.get_type()
+        if self.dataflash:
+            return self._add_dataflash(msg, mtype, stamp_ns)
         if mtype == "PARAM_VALUE":
-            self._param(msg)
+            self._param(str(msg.param_id).rstrip("\x00"), float(msg.param_value))
             return None
         streams = self.by_type.get(mtype)
         if not streams:
@@ -157,6 +177,38 @@ class StreamAssembler:
         for stream in list(streams):
             self._record(stream, msg, stamp_ns)
         return None
+
+    def _add_dataflash(self, msg, mtype: str, stamp_ns: int) -> Restart | None:
+        """:meth:`add` of a DataFlash message: no MAVLink systems; a GPS fix waits for the
+        GPA message of its ``TimeUS`` (its accuracy) or the next message."""
+        if self.gps_wait is not None and (mtype == "GPA" or stamp_ns > self.gps_wait[1]):
+            if mtype == "GPA":
+                self.gpa = {(int(getattr(msg, "I", 0)), int(msg.TimeUS)): msg}
+            self.flush()
+        if mtype == "PARM":
+            self._param(str(msg.Name), float(msg.Value))
+            return None
+        streams = self.by_type.get(mtype)
+        if not streams:
+            return None
+        verdict = self._order(msg, mtype, stamp_ns, streams)
+        if verdict is not True:
+            return verdict or None
+        if not df_instance(self.specs[streams[0]], [msg]):
+            return None                      # another instance (another GPS)
+        if streams == ["gnss"]:
+            self.gps_wait = (msg, stamp_ns)
+            return None
+        for stream in list(streams):
+            self._record(stream, msg, stamp_ns)
+        return None
+
+    def flush(self) -> None:
+        """Record a DataFlash fix still waiting for its GPA (the log has moved on)."""
+        if self.gps_wait is not None:
+            msg, stamp = self.gps_wait
+            self.gps_wait = None
+            self._record("gnss", msg, stamp)
 
     def _order(self, msg, mtype: str, stamp_ns: int, streams: list[str]) -> bool | Restart:
         """Duplicates, late messages, a reboot, a lost link (module docstring): True (take
@@ -197,9 +249,8 @@ class StreamAssembler:
             self.reasons.setdefault(key, detail)
         return False
 
-    def _param(self, msg) -> None:
-        name = str(msg.param_id).rstrip("\x00")
-        self.params[name] = float(msg.param_value)
+    def _param(self, name: str, value: float) -> None:
+        self.params[name] = value
         if name.startswith("SERVO") and self.imap.pwm is None:
             self.imap, notes = servo_map(self.base_map, self.params)
             self.notes += notes
@@ -217,8 +268,14 @@ class StreamAssembler:
             return
         notes: list[str] = []
         try:
-            s = tlog_series(self.source, kind, spec, [msg], np.array([stamp_ns], np.int64),
-                            self.imap, notes)
+            if self.dataflash:
+                s = df_series(self.source, kind, spec, [msg], list(self.gpa.values()),
+                              self.imap)
+                if kind == "gnss" and self.utc_offset is None:
+                    self.utc_offset = _df_utc_offset([msg])
+            else:
+                s = tlog_series(self.source, kind, spec, [msg], np.array([stamp_ns], np.int64),
+                                self.imap, notes)
         except LogFormatError as e:
             self.drop(e.problem.split(";")[0], spec.topic, str(e))
             return
@@ -316,9 +373,14 @@ class StreamAssembler:
             depth = Depth(cd["t"].view(), cd["depth"].view())
         topics = {k: s.topic for k, s in self.specs.items() if not k.startswith("depth:")}
         extra = dict(imap.extra)
+        t_zero = (self.t_zero_ns or 0) * 1e-9
         extra["source"] = {"format": "mavlink", "file": Path(self.source).name,
-                           "clock": "unix (ground station log time)",
-                           "t_zero": (self.t_zero_ns or 0) * 1e-9, "topics": topics}
+                           "clock": ("boot (DataFlash TimeUS)" if self.dataflash
+                                     else "unix (ground station log time)"),
+                           "t_zero": t_zero, "topics": topics}
+        utc = self.utc_offset if self.dataflash else 0.0
+        if utc is not None:
+            extra["source"]["utc_zero"] = float(utc) + t_zero
         return Mission(name=imap.name or Path(self.source).stem or "live", vehicle=imap.vehicle,
                        thruster_dir=imap.thruster_dir, imu=imu, motors=motors,
                        thruster_pos=imap.thruster_pos, gnss=gnss, usbl=usbl,

@@ -57,14 +57,16 @@ class Segment:
 class LiveRunner:
     """Messages -> smoother updates (module docstring). ``make_smoother()`` gives a fresh
     :class:`FixedLagSmoother` (the options of the run); ``on_fix(FixReport)`` and
-    ``on_event(dict)`` are called as they happen."""
+    ``on_event(dict)`` are called as they happen; ``prepare(mission)``: the mission the
+    smoother is given (e.g. the fixes weighted by a known GNSS noise); ``dataflash``: the
+    messages are a DataFlash log's."""
 
     def __init__(self, imap: ImportMap, source: str,
                  make_smoother: Callable[[], FixedLagSmoother],
                  on_fix: Callable[[FixReport], None] | None = None,
                  on_event: Callable[[dict], None] | None = None,
-                 prepare: Callable[[Mission], Mission] | None = None):
-        self.imap, self.source = imap, source
+                 prepare: Callable[[Mission], Mission] | None = None, dataflash: bool = False):
+        self.imap, self.source, self.dataflash = imap, source, dataflash
         self.make_smoother = make_smoother
         self.on_fix = on_fix or (lambda r: None)
         self.on_event = on_event or (lambda e: None)
@@ -79,7 +81,7 @@ class LiveRunner:
         self._new_segment()
 
     def _new_segment(self, params: dict | None = None, sysid: int | None = None) -> None:
-        self.asm = StreamAssembler(self.imap, self.source, params, sysid)
+        self.asm = StreamAssembler(self.imap, self.source, params, sysid, self.dataflash)
         self.fl: FixedLagSmoother | None = None
         self.pending: list[float] = []           # fix times not yet processed
         self.n_seen = 0                          # fixes of the assembler looked at
@@ -166,6 +168,7 @@ class LiveRunner:
 
     def _close_segment(self) -> None:
         """Process the fixes left (the stream has ended or restarts) and keep the result."""
+        self.asm.flush()
         self._collect()
         m_end = self._t1()
         self._process(m_end + 1e-9)

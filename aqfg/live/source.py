@@ -1,11 +1,13 @@
-"""Where the messages come from: a MAVLink telemetry log (``.tlog``) replayed at a speed,
+"""Where the messages come from: a MAVLink telemetry log (``.tlog``) or an ArduPilot
+DataFlash log (``.bin``) replayed at a speed,
 or a live MAVLink connection (pymavlink connection strings ``udpin:HOST:PORT``,
 ``udp:HOST:PORT``, ``udpout:``, ``tcp:HOST:PORT``, ``tcpin:``, a serial device
 ``/dev/ttyUSB0[,BAUD]`` or ``COM3``).
 
 Each yields ``(message, stamp_ns)``, and ``None`` when nothing arrived for a while (so the
-caller can show its status). Stamps: a log's own (the time the ground station logged each
-message, as ``aqfg import mavlink`` reads them); for a connection, the time of reception on
+caller can show its status). Stamps: a log's own, as ``aqfg import mavlink`` reads them
+(a tlog: the time the ground station logged each message; DataFlash: ``TimeUS``, the
+autopilot's time since boot); for a connection, the time of reception on
 this computer (unix ns, from a monotonic clock), the stamp a ground station writes in a
 tlog. A connection's messages are recorded as such a tlog (``record``), so the run can be
 checked offline afterwards: ``aqfg import mavlink`` on it gives the mission the run had.
@@ -54,27 +56,35 @@ def open_source(spec: str, speed: float | None, record: Path | None = None):
         raise FileNotFoundError(f"{spec}: no such file, and not a MAVLink connection "
                                 f"(udpin:HOST:PORT, udp:, tcp:HOST:PORT, /dev/ttyUSB0, ...)")
     with open(p, "rb") as fh:
-        if fh.read(2) == DF_MAGIC:
-            raise LogFormatError(spec, "a DataFlash .bin log: aqfg live replays telemetry "
-                                       "logs (.tlog); import it with 'aqfg import mavlink' "
-                                       "and run 'aqfg fit --mode online' on the mission")
-    return LogSource(p, 1.0 if speed is None else speed)
+        dataflash = fh.read(2) == DF_MAGIC
+    return LogSource(p, 1.0 if speed is None else speed, dataflash)
 
 
 class LogSource:
-    """A tlog's messages in file order, handed over at ``speed`` (module docstring)."""
+    """A tlog's or a DataFlash log's messages in file order, handed over at ``speed``
+    (module docstring); a DataFlash message is stamped with its ``TimeUS``."""
 
     live = False
 
-    def __init__(self, path: Path, speed: float):
-        self.path, self.speed = path, speed
-        mavutil = load_mavutil()
+    def __init__(self, path: Path, speed: float, dataflash: bool = False):
+        self.path, self.speed, self.dataflash = path, speed, dataflash
         try:
-            self.log = mavutil.mavmmaplog(str(path))
+            if dataflash:
+                from pymavlink import DFReader
+                self.log = DFReader.DFReader_binary(str(path), zero_time_base=False)
+            else:
+                self.log = load_mavutil().mavmmaplog(str(path))
         except Exception as e:  # noqa: BLE001 - pymavlink raises bare Exceptions on bad files
-            raise LogFormatError(str(path), f"cannot read as a MAVLink telemetry log: {e}") \
-                from None
+            what = "an ArduPilot DataFlash log" if dataflash else "a MAVLink telemetry log"
+            raise LogFormatError(str(path), f"cannot read as {what}: {e}") from None
         self.name = str(path)
+
+    def stamp(self, msg) -> int | None:
+        """The message's stamp (ns): the tlog's, or DataFlash ``TimeUS`` (None: none)."""
+        if not self.dataflash:
+            return _ns(msg._timestamp)
+        us = getattr(msg, "TimeUS", None)
+        return None if us is None else int(us) * 1000
 
     def __iter__(self) -> Iterator[tuple[Any, int] | None]:
         first: int | None = None
@@ -85,7 +95,9 @@ class LogSource:
                 return
             if msg.get_type() == "BAD_DATA":
                 continue
-            stamp = _ns(msg._timestamp)
+            stamp = self.stamp(msg)
+            if stamp is None:                   # DataFlash FMT, FMTU...: no time
+                continue
             if first is None:
                 first, started = stamp, time.perf_counter()
             while True:

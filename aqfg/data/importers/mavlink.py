@@ -321,36 +321,49 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
     series: dict[str, Series] = {}
     utc_offset = None
     for stream, spec in chosen.items():
-        msgs = rows[spec.topic]
-        if msgs and "I" in msgs[0].get_fieldnames():
-            inst = spec.instance or 0
-            msgs = [m for m in msgs if m.I == inst]
-            if not msgs:
-                raise LogFormatError(src, f"no {spec.topic} messages of instance I = {inst}",
-                                     topic=spec.topic)
-        t = np.array([int(m.TimeUS) * 1000 for m in msgs], dtype=np.int64)
-        s = Series(stream, spec.topic, spec.topic, t, {})
-        if stream == "imu":
-            att = np.radians(np.array([(m.Roll, m.Pitch, m.Yaw) for m in msgs], dtype=float))
-            s.data = {"q": euler_to_quat(att[:, 0], att[:, 1], att[:, 2])}
-        elif stream == "gnss":
-            s = _df_gnss(spec, msgs, rows.get("GPA", []), t)
+        msgs = df_instance(spec, rows[spec.topic])
+        if not msgs:
+            raise LogFormatError(src, f"no {spec.topic} messages of instance I = "
+                                      f"{spec.instance or 0}", topic=spec.topic)
+        series[stream] = df_series(src, stream, spec, msgs, rows.get("GPA", []), imap)
+        if stream == "gnss":
             utc_offset = _df_utc_offset(msgs)
-        elif stream == "motors":
-            cols = sorted(int(k[1:]) for k in msgs[0].get_fieldnames()
-                           if k[0] == "C" and k[1:].isdigit())
-            pwm = np.array([[getattr(m, f"C{k}") for k in range(1, max(cols) + 1)]
-                            for m in msgs], dtype=float)
-            s.data = {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
-                                          what="output")}
-        else:
-            s.data = _generic(src, spec, stream, msgs)
-        series[stream] = s
     _no_fix(src, series)
     if utc_offset is None:
         notes.append("no GPS week/time in the log: the mission's UTC time is unknown")
     return assemble(src, imap, series, "mavlink", "boot (DataFlash TimeUS)",
                     utc_offset=utc_offset, notes=notes, fixes_required=False)
+
+
+def df_instance(spec: TopicSpec, msgs: list[Any]) -> list[Any]:
+    """The messages of the stream's instance (field ``I``: the map's ``instance``, else 0)."""
+    if msgs and "I" in msgs[0].get_fieldnames():
+        inst = spec.instance or 0
+        return [m for m in msgs if m.I == inst]
+    return msgs
+
+
+def df_series(src: str, stream: str, spec: TopicSpec, msgs: list[Any], gpa: list[Any],
+              imap: ImportMap) -> Series:
+    """One stream's series from its DataFlash messages (one instance), stamped with their
+    ``TimeUS`` (ns); ``gpa``: the GPA messages giving the fixes' accuracy."""
+    t = np.array([int(m.TimeUS) * 1000 for m in msgs], dtype=np.int64)
+    s = Series(stream, spec.topic, spec.topic, t, {})
+    if stream == "imu":
+        att = np.radians(np.array([(m.Roll, m.Pitch, m.Yaw) for m in msgs], dtype=float))
+        s.data = {"q": euler_to_quat(att[:, 0], att[:, 1], att[:, 2])}
+    elif stream == "gnss":
+        s = _df_gnss(spec, msgs, gpa, t)
+    elif stream == "motors":
+        cols = sorted(int(k[1:]) for k in msgs[0].get_fieldnames()
+                      if k[0] == "C" and k[1:].isdigit())
+        pwm = np.array([[getattr(m, f"C{k}") for k in range(1, max(cols) + 1)]
+                        for m in msgs], dtype=float)
+        s.data = {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
+                                      what="output")}
+    else:
+        s.data = _generic(src, spec, stream, msgs)
+    return s
 
 
 def _df_counts(log) -> dict[str, int]:
