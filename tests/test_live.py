@@ -95,6 +95,9 @@ def test_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path, cap
     # a second run does not overwrite the first without --force
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 2
     assert "--force" in capsys.readouterr().err
+    end = lines(out)[-1]
+    assert end["event"] == "end of the stream" and end["fixes"] == len(m.gnss.t)
+    assert end["left_out"] == {}
 
 
 def tlog_frames(path):
@@ -322,7 +325,8 @@ def test_reboot_and_lost_link_restart_the_window_with_an_event(tlog, tmp_path, k
     assert main(["live", str(p), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
     assert (out / "segment-1" / "trajectory.csv").is_file() and (out / "trajectory.csv").is_file()
     ev = [x for x in lines(out) if "event" in x]
-    assert len(ev) == 1 and ev[0]["segment"] == 2
+    assert len(ev) == 2 and ev[0]["segment"] == 2 and "restart" in ev[0]["event"]
+    assert ev[1]["event"] == "end of the stream" and ev[1]["segments"] == 2
     assert {x["segment"] for x in lines(out) if "parameters" in x} == {1, 2}
 
 

@@ -166,6 +166,9 @@ def run(args) -> int:
         stopped = _stream(src, runner, status, stop)
         segments = runner.finish()
         status.end()
+        files.event({"event": "stopped (Ctrl-C)" if stopped else "end of the stream",
+                     "fixes": runner.n_fix, "segments": len(segments),
+                     "left_out": runner.dropped()})
         files.close()
         if sender is not None:
             sender.close()

@@ -14,8 +14,10 @@ the stream's clock: unix), ``n``, ``e``, ``d`` (m, NED from the origin), ``vn``,
 null where the engine gives none), ``innovation`` (m, horizontal distance of the fix from
 the state predicted there; null at the first), ``held`` (the parameters are held at their
 start values), ``update_s`` (s, wall time of the update), ``parameters`` (name ->
-``{"value", "sigma"}``, units of docs/mission-format.md), ``events``. Event line: ``event``,
-``time``, ``segment``. Values that are not numbers are written ``null``.
+``{"value", "sigma"}``, units of docs/mission-format.md), ``events``. Event line (a
+restart): ``event``, ``t_stamp``, ``segment``; the last line: ``event`` ("end of the
+stream" or "stopped (Ctrl-C)"), ``fixes``, ``segments``, ``left_out`` (reason -> count).
+Values that are not numbers are written ``null``.
 """
 from __future__ import annotations
 

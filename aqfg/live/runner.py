@@ -162,7 +162,7 @@ class LiveRunner:
         params, sysid = self.asm.params, self.asm.sysid
         self._close_segment()
         ev = {"t_stamp": why.stamp_ns * 1e-9, "event": "restart: " + why.reason,
-              "segment": self.segment + 0}
+              "segment": self.segment}
         self._new_segment(params, sysid)
         self.on_event(ev)
 
