@@ -100,6 +100,21 @@ def test_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path, cap
     assert end["left_out"] == {}
 
 
+def test_replay_with_params_from_gives_the_online_fit_with_them(tlog, tmp_path):
+    """The paper's protocol: the vehicle's constants from a batch fit (--params-from)."""
+    path, mp, _ = tlog
+    fit = offline(path, mp, tmp_path)              # imports tmp/M
+    assert main(["fit", str(tmp_path / "M"), "--out", str(tmp_path / "B"), "--no-plots"]) == 0
+    p = str(tmp_path / "B" / "parameters.json")
+    assert main(["fit", str(tmp_path / "M"), "--mode", "online", "--params-from", p,
+                 "--out", str(tmp_path / "F2"), "--no-plots"]) == 0
+    out = tmp_path / "L"
+    assert main(["live", str(path), "--map", str(mp), "--params-from", p, "--out", str(out),
+                 "--speed", "0"]) == 0
+    assert_same_answer(out, tmp_path / "F2")
+    assert set(params(out)) == {"theta_e", "s_x", "s_y"} != set(params(fit))
+
+
 def tlog_frames(path):
     """(unix microseconds, MAVLink frame bytes) of each message of a tlog."""
     data, out, i = path.read_bytes(), [], 0
