@@ -117,6 +117,7 @@ class StreamAssembler:
         self.gps_wait: tuple[Any, int] | None = None     # a DataFlash fix until its GPA
         self.gpa: dict[tuple[int, int], Any] = {}
         self.utc_offset: float | None = None
+        self.fixes: list[float] = []
         self.t_zero_ns: int | None = None
         self.dropped: Counter = Counter()
         self.reasons: dict[str, str] = {}
@@ -294,6 +295,8 @@ class StreamAssembler:
         c = self.cols[stream]
         c["t_ns"].append(stamp_ns)
         c["t"].append(float(stamp_ns - self.t_zero_ns) * 1e-9)
+        if kind in ("gnss", "usbl"):
+            self.fixes.append(c["t"].last())
         if kind == "gnss":
             self._gnss_frame(c, s.data)
             return
@@ -333,8 +336,9 @@ class StreamAssembler:
             return np.inf
         return float(min(c.view(1)[0] for c in ts))
 
-    def fix_times(self) -> np.ndarray:
-        return self.cols["gnss"]["t"].view() if "gnss" in self.cols else np.zeros(0)
+    def fix_times(self) -> list[float]:
+        """Mission times of the fixes (GNSS and USBL) recorded so far, in arrival order."""
+        return self.fixes
 
     def depth_choice(self) -> None:
         """An AUV's depth source when the map names none: the first of the importer's
@@ -364,10 +368,13 @@ class StreamAssembler:
             gnss = self._gnss(t_fixes)
         if "usbl" in self.cols and len(self.cols["usbl"]["t"]):
             cu = self.cols["usbl"]
-            n = int(np.searchsorted(cu["t"].view(), t_fixes + 1e-9, side="right"))
-            el = cu["elevation"].view(n)
-            usbl = Usbl(cu["t"].view(n), cu["range"].view(n), cu["bearing"].view(n),
-                        None if np.isnan(el).all() else el)
+            tu = cu["t"].view()
+            a = int(np.searchsorted(tu, self.first_input() - 1e-12, side="left"))
+            n = int(np.searchsorted(tu, t_fixes + 1e-9, side="right"))
+            el = cu["elevation"].view(n)[a:]
+            if n > a:
+                usbl = Usbl(tu[a:n], cu["range"].view(n)[a:], cu["bearing"].view(n)[a:],
+                            None if np.isnan(el).all() else el)
         if "depth" in self.cols and len(self.cols["depth"]["t"]):
             cd = self.cols["depth"]
             depth = Depth(cd["t"].view(), cd["depth"].view())

@@ -109,7 +109,7 @@ class LiveRunner:
         """New fix times from the assembler into ``pending``."""
         ft = self.asm.fix_times()
         if len(ft) > self.n_seen:
-            self.pending.extend(float(t) for t in ft[self.n_seen:])
+            self.pending.extend(ft[self.n_seen:])
             self.n_seen = len(ft)
             self.pending.sort()
 
