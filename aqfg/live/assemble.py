@@ -133,7 +133,7 @@ class StreamAssembler:
     # ------------------------------------------------------------------ input
     def _columns(self, stream: str) -> dict[str, Column]:
         kind = stream.split(":")[0]
-        cols = {"t_ns": Column(dtype=np.int64), "t": Column()}
+        cols = {"t": Column()}
         if kind == "imu":
             cols.update(q=Column(4), gyro=Column(3))
         elif kind == "gnss":
@@ -293,7 +293,6 @@ class StreamAssembler:
         if self.t_zero_ns is None:
             self.t_zero_ns = int(stamp_ns)
         c = self.cols[stream]
-        c["t_ns"].append(stamp_ns)
         c["t"].append(float(stamp_ns - self.t_zero_ns) * 1e-9)
         if kind in ("gnss", "usbl"):
             self.fixes.append(c["t"].last())
