@@ -353,7 +353,7 @@ def test_bench_stream_feeds_the_runner_and_reports_its_figures():
     assert figs["fixes"] == len(np.arange(0.0, 60.0 + 1e-9, 8.0))
     assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
     rows = dict(lb.report_rows(figs))
-    assert len(rows) == 3 and all(v.endswith(("ms", "MB")) for v in rows.values())
+    assert len(rows) == 4 and all(v.endswith(("ms", "MB")) for v in rows.values())
 
 
 def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
 from aqfg.data.importers.mapfile import ImportMap
 from aqfg.data.mission import Mission
@@ -205,7 +206,8 @@ class LiveRunner:
 
 def position_sigma(fl: FixedLagSmoother) -> np.ndarray:
     """Horizontal 1-sigma (m) of the newest knot of the window (numpy engine: from the
-    window's Gauss-Newton system; NaN for the GTSAM engine)."""
+    window's Gauss-Newton system, a Cholesky solve of two columns; NaN for the GTSAM
+    engine)."""
     win = getattr(fl.backend, "win", None)
     if win is None:
         return np.full(2, np.nan)
@@ -214,7 +216,7 @@ def position_sigma(fl: FixedLagSmoother) -> np.ndarray:
         o = win.P + 6 * (len(win.kid) - 1)
         e = np.zeros((len(H), 2))
         e[o, 0] = e[o + 1, 1] = 1.0
-        cov = np.linalg.solve(H, e)
+        cov = scipy.linalg.solve(H, e, assume_a="pos", check_finite=False)
         return np.sqrt(np.maximum([cov[o, 0], cov[o + 1, 1]], 0.0))
     except (np.linalg.LinAlgError, ValueError):
         return np.full(2, np.nan)
