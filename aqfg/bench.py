@@ -18,7 +18,10 @@ Figures (each a median over repeated runs; the machine may be shared, so read me
   and their p90, the batch of an Otter mission of the repository's test data (global
   initialisation included; wall and CPU seconds, theta_e error against its truth) and a
   long online stream (2 h; per-update median and RSS in its first 10 minutes after the
-  warm-up and its last 10 minutes).
+  warm-up and its last 10 minutes);
+* ``aqfg live`` on the same long stream sent as MAVLink messages (:mod:`aqfg.live.bench`):
+  per-message handling median, per-fix median and p99, RSS over its first and last
+  10 minutes (the pymavlink extra installed).
 
 The fixed-lag smoother runs with its default engine (numpy where the configuration allows
 it, :mod:`aqfg.fg.fastlag`); the GTSAM engine is timed beside it on the same mission.
@@ -276,7 +279,17 @@ def run(repeat: int = 5, batch_update_error: bool = False, progress=None,
     if stream_duration > 0:
         say(f"online stream of {stream_duration:.0f} s")
         figs["stream"] = stream_times(stream_duration, edge=min(600.0, stream_duration / 2))
+        if _has_pymavlink():
+            say(f"aqfg live on a {stream_duration:.0f}-s MAVLink stream")
+            from aqfg.live.bench import live_times
+            figs["live"] = live_times(stream_duration, edge=min(600.0, stream_duration / 2),
+                                      estimate=VARIABLE, rss=_rss_mb)
     return figs
+
+
+def _has_pymavlink() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("pymavlink") is not None
 
 
 def headline(figs: dict) -> dict[str, float]:
@@ -364,6 +377,9 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
                      f"{st['rss_first']:.0f} / {st['rss_last']:.0f} MB", ""))
     else:
         rows.append(("long online stream", "not run", ""))
+    if figs.get("live"):
+        from aqfg.live.bench import report_rows
+        rows += [(a, b, "") for a, b in report_rows(figs["live"])]
     return rows
 
 

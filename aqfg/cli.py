@@ -1,4 +1,4 @@
-"""Command line: ``aqfg simulate | import | info | fit | diagnose | fleet | demo | bench``.
+"""Command line: ``aqfg simulate | import | info | fit | diagnose | fleet | live | demo | bench``.
 
 Each command's work lives in ``aqfg.commands.<name>.run(args)``; this module parses, sets
 up logging and maps failures to exit codes: 0 done, 1 internal error, 2 usage error (the
@@ -81,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
                       ("diagnose", "find which physical effect the model is missing")):
         _job_parser(sub, name, hlp, count)
     _fleet_parser(sub, count)
+    _live_parser(sub)
     _demo_parser(sub)
     _bench_parser(sub, count)
     return ap
@@ -240,6 +241,42 @@ def _fleet_parser(sub, count) -> None:
                    help="fit the model as given, without adding the effect the vehicles' "
                         "structural tests find missing")
     s.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _live_parser(sub) -> None:
+    """``aqfg live``."""
+    from aqfg.commands.options import number, seconds
+    s = sub.add_parser("live", help="run the online smoother on a MAVLink stream (or a "
+                                     "tlog replayed as one)",
+                       description="Run the fixed-lag smoother of 'aqfg fit --mode online' on "
+                                   "a MAVLink connection, or on a .tlog or DataFlash .bin "
+                                   "replayed at --speed; "
+                                   "writes live.jsonl and causal.csv as it goes, the fit's "
+                                   "outputs at the end (or on Ctrl-C). See "
+                                   "docs/on-the-vehicle.md.")
+    s.add_argument("source", metavar="SOURCE",
+                   help="a .tlog or DataFlash .bin, or a MAVLink connection: udpin:0.0.0.0:14550, "
+                        "udp:HOST:PORT, tcp:HOST:PORT, /dev/ttyUSB0,57600")
+    s.add_argument("--map", required=True, metavar="MAP.toml",
+                   help="vehicle, thrusters, origin and messages (as for aqfg import mavlink)")
+    s.add_argument("--out", required=True, metavar="DIR", type=_directory,
+                   help="output directory")
+    s.add_argument("--params-from", metavar="JSON",
+                   help="the vehicle's constants from a previous parameters.json (and the "
+                        "effects of its model, and its GNSS noise)")
+    s.add_argument("--model", metavar="MODEL_JSON",
+                   help="start from a learned model (model.json of aqfg diagnose)")
+    s.add_argument("--window", type=seconds(), default=None,
+                   help="the smoother's window, seconds (default 24)")
+    s.add_argument("--speed", type=number(0.0, 1e6), default=None, metavar="X",
+                   help="a log's replay: X times real time (default 1; 0 = as fast as "
+                        "possible)")
+    s.add_argument("--send-to", metavar="ENDPOINT", default=None,
+                   help="send the corrected position (GPS_INPUT) and the parameters "
+                        "(NAMED_VALUE_FLOAT) to this MAVLink endpoint, e.g. "
+                        "udpout:127.0.0.1:14551 (default: send nothing)")
+    s.add_argument("--force", action="store_true",
+                   help="replace the previous outputs in DIR (the whole set)")
 
 
 def _demo_parser(sub) -> None:

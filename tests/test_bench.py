@@ -14,7 +14,9 @@ def test_bench_command_prints_the_figures(capsys, tmp_path):
                   "evaluations per optimisation", "gnss8:", "usbl:",
                   # the speed targets' figures, in the same run
                   "ALL updates", "p90 fixed-lag update", "batch of otter-", "theta_e error",
-                  "per-update median, last 10 min", "RSS"):
+                  "per-update median, last 10 min", "RSS",
+                  # aqfg live on the same stream
+                  "aqfg live, 0.33-h stream", "per fix, all of it", "window solve alone"):
         assert label in out, label
     # every headline value is a finite number with its unit
     for unit in ("us", "ms", "x", "s"):

@@ -105,7 +105,7 @@ def _generic(src: str, spec: TopicSpec, stream: str, rows: list[Any]) -> dict[st
                              topic=spec.topic) from None
 
 
-def _servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
+def servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
     """``imap`` with the PWM range (and, unless mapped, the reversal) of each thruster's
     output from the log's ``SERVOn_MIN/TRIM/MAX/REVERSED``, when the map gives no range."""
     n = imap.n_thrusters
@@ -131,7 +131,7 @@ def _servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, li
     return out, notes
 
 
-def _default_depth(imap: ImportMap, present: dict[str, int]) -> TopicSpec | None:
+def default_depth(imap: ImportMap, present: dict[str, int]) -> TopicSpec | None:
     """The depth source of an AUV's tlog when the map names none (module docstring)."""
     if imap.vehicle != "auv" or "depth" in imap.topics:
         return None
@@ -147,7 +147,8 @@ def _ns(seconds: float) -> int:
 
 # ------------------------------------------------------------------------------ tlog
 
-def _mavutil():
+def load_mavutil():
+    """``pymavlink.mavutil`` set to the ArduPilot dialect of MAVLink 2 (read with 1.0 too)."""
     from pymavlink import mavutil
     # MAVLink 2 frames (and the 1.0 ones) parse only with the 2.0 dialect modules; pymavlink
     # itself switches this way when it first meets a 2.0 frame.
@@ -159,7 +160,7 @@ def _mavutil():
 
 def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     src = str(source)
-    mavutil = _mavutil()
+    mavutil = load_mavutil()
     # mavmmaplog directly: mavlink_connection() would execute a path containing "/bin/"
     try:
         log = mavutil.mavmmaplog(src)
@@ -169,7 +170,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     if not present:
         raise LogFormatError(src, "no MAVLink messages found; expected a .tlog (8-byte "
                                   "timestamp before each MAVLink message) or a DataFlash .bin")
-    depth = _default_depth(imap, present)
+    depth = default_depth(imap, present)
     chosen = _select(src, imap, TLOG_DEFAULTS, TLOG_TYPES, present, "telemetry log")
     if depth is not None:
         chosen["depth"] = depth
@@ -178,7 +179,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
         depth.fields["offset"] = None      # the first reading: set once the rows are read
     rows = _tlog_rows(log, names)
     params = {str(m.param_id).rstrip("\x00"): float(m.param_value) for m in rows["PARAM_VALUE"]}
-    imap, notes = _servo_map(imap, params)
+    imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}
     sysid = None
     for stream, spec in chosen.items():
@@ -191,7 +192,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
         if stream == "imu":
             sysid = want
         t = np.array([_ns(m._timestamp) for m in msgs], dtype=np.int64)
-        series[stream] = _tlog_series(src, stream, spec, msgs, t, imap, notes)
+        series[stream] = tlog_series(src, stream, spec, msgs, t, imap, notes)
     _no_fix(src, series)
     return assemble(src, imap, series, "mavlink", "unix (ground station log time)",
                     utc_offset=0.0, notes=notes, fixes_required=False)
@@ -231,7 +232,7 @@ def _tlog_system(src: str, stream: str, spec, msgs: list, sysid):
     return msgs, want
 
 
-def _tlog_series(src: str, stream: str, spec, msgs: list, t: np.ndarray, imap: ImportMap,
+def tlog_series(src: str, stream: str, spec, msgs: list, t: np.ndarray, imap: ImportMap,
                  notes: list[str]) -> Series:
     """One stream's series from its messages (stamps ``t``, ns); ``notes`` gets what was
     left out."""
@@ -316,40 +317,53 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
         if msg.get_type() in rows:
             rows[msg.get_type()].append(msg)
     params = {str(m.Name): float(m.Value) for m in rows["PARM"]}
-    imap, notes = _servo_map(imap, params)
+    imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}
     utc_offset = None
     for stream, spec in chosen.items():
-        msgs = rows[spec.topic]
-        if msgs and "I" in msgs[0].get_fieldnames():
-            inst = spec.instance or 0
-            msgs = [m for m in msgs if m.I == inst]
-            if not msgs:
-                raise LogFormatError(src, f"no {spec.topic} messages of instance I = {inst}",
-                                     topic=spec.topic)
-        t = np.array([int(m.TimeUS) * 1000 for m in msgs], dtype=np.int64)
-        s = Series(stream, spec.topic, spec.topic, t, {})
-        if stream == "imu":
-            att = np.radians(np.array([(m.Roll, m.Pitch, m.Yaw) for m in msgs], dtype=float))
-            s.data = {"q": euler_to_quat(att[:, 0], att[:, 1], att[:, 2])}
-        elif stream == "gnss":
-            s = _df_gnss(spec, msgs, rows.get("GPA", []), t)
+        msgs = df_instance(spec, rows[spec.topic])
+        if not msgs:
+            raise LogFormatError(src, f"no {spec.topic} messages of instance I = "
+                                      f"{spec.instance or 0}", topic=spec.topic)
+        series[stream] = df_series(src, stream, spec, msgs, rows.get("GPA", []), imap)
+        if stream == "gnss":
             utc_offset = _df_utc_offset(msgs)
-        elif stream == "motors":
-            cols = sorted(int(k[1:]) for k in msgs[0].get_fieldnames()
-                           if k[0] == "C" and k[1:].isdigit())
-            pwm = np.array([[getattr(m, f"C{k}") for k in range(1, max(cols) + 1)]
-                            for m in msgs], dtype=float)
-            s.data = {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
-                                          what="output")}
-        else:
-            s.data = _generic(src, spec, stream, msgs)
-        series[stream] = s
     _no_fix(src, series)
     if utc_offset is None:
         notes.append("no GPS week/time in the log: the mission's UTC time is unknown")
     return assemble(src, imap, series, "mavlink", "boot (DataFlash TimeUS)",
                     utc_offset=utc_offset, notes=notes, fixes_required=False)
+
+
+def df_instance(spec: TopicSpec, msgs: list[Any]) -> list[Any]:
+    """The messages of the stream's instance (field ``I``: the map's ``instance``, else 0)."""
+    if msgs and "I" in msgs[0].get_fieldnames():
+        inst = spec.instance or 0
+        return [m for m in msgs if m.I == inst]
+    return msgs
+
+
+def df_series(src: str, stream: str, spec: TopicSpec, msgs: list[Any], gpa: list[Any],
+              imap: ImportMap) -> Series:
+    """One stream's series from its DataFlash messages (one instance), stamped with their
+    ``TimeUS`` (ns); ``gpa``: the GPA messages giving the fixes' accuracy."""
+    t = np.array([int(m.TimeUS) * 1000 for m in msgs], dtype=np.int64)
+    s = Series(stream, spec.topic, spec.topic, t, {})
+    if stream == "imu":
+        att = np.radians(np.array([(m.Roll, m.Pitch, m.Yaw) for m in msgs], dtype=float))
+        s.data = {"q": euler_to_quat(att[:, 0], att[:, 1], att[:, 2])}
+    elif stream == "gnss":
+        s = _df_gnss(spec, msgs, gpa, t)
+    elif stream == "motors":
+        cols = sorted(int(k[1:]) for k in msgs[0].get_fieldnames()
+                      if k[0] == "C" and k[1:].isdigit())
+        pwm = np.array([[getattr(m, f"C{k}") for k in range(1, max(cols) + 1)]
+                        for m in msgs], dtype=float)
+        s.data = {"u": motor_commands(pwm, imap, src, spec.topic, t, pwm=True,
+                                      what="output")}
+    else:
+        s.data = _generic(src, spec, stream, msgs)
+    return s
 
 
 def _df_counts(log) -> dict[str, int]:

@@ -268,13 +268,7 @@ class FixedLagSmoother:
         be a fix time) and update the window. ``mission``: a newer copy of the mission with
         more samples (live use)."""
         if mission is not None:
-            self.mission = mission
-            self.fix_t = np.unique(mission.fix_times())
-            # inputs may have changed: no plan
-            self.steps = StepSource(self.model, mission, self.fix_t, self.settings.knot_spacing,
-                                    plan=False)
-            self.gate.set_mission(mission)
-            self.backend.set_mission(mission)
+            self.set_mission(mission)
         if t_fix is None:
             if not self.pending():
                 raise ValueError("no fix left to process")
@@ -292,6 +286,17 @@ class FixedLagSmoother:
         info = recovery.after_update(self, t_fix, info)
         self._kinematic_step(t_fix)
         return info
+
+    def set_mission(self, mission: Mission) -> None:
+        """A newer copy of the mission with more samples (live use): the inputs and fixes
+        that the next update and :meth:`result` read (its track runs to the mission's end)."""
+        self.mission = mission
+        self.fix_t = np.unique(mission.fix_times())
+        # inputs may have changed: no plan
+        self.steps = StepSource(self.model, mission, self.fix_t, self.settings.knot_spacing,
+                                plan=False)
+        self.gate.set_mission(mission)
+        self.backend.set_mission(mission)
 
     def _advance(self, t_fix: float, t_last: float, new_t: np.ndarray, all_t: np.ndarray
                  ) -> UpdateInfo:

@@ -1,0 +1,434 @@
+"""``aqfg live``: a telemetry log replayed at --speed 0, and a log streamed over UDP, give
+the answer of ``aqfg fit --mode online`` on the mission ``aqfg import mavlink`` writes
+(from the log, and from the run's own recording of the stream); --send-to sends what
+live.jsonl says; bad options and sources end with exit codes 2 and 3; duplicate, late and
+missing messages are left out and counted, a reboot or a lost link restarts the window
+with an event.
+
+Tolerance 1e-6 (parameters, and the track files' values, written to 1e-6: 1.5e-6 there).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import socket
+import struct
+import threading
+import time
+
+import log_writers as lw
+import numpy as np
+import pytest
+
+from aqfg.cli import main
+from aqfg.data.mission import with_gnss_every
+from aqfg.sim import simulate
+
+pytest.importorskip("pymavlink")
+PWM_MAP = "channels = [1, 3]\npwm_min = 1100\npwm_trim = 1500\npwm_max = 1900"
+TOL = 1e-6
+CSV_TOL = 1.5e-6          # values written with 6 decimals
+
+
+@pytest.fixture(scope="module")
+def tlog(tmp_path_factory):
+    """A simulated ASV mission (GNSS every 2 s) as a tlog, and its map file."""
+    d = tmp_path_factory.mktemp("live")
+    m, _ = simulate("asv", seed=3, duration=60.0)
+    m = with_gnss_every(m, 2.0)
+    (d / "map.toml").write_text(lw.map_toml(m, motors=PWM_MAP))
+    return lw.write_tlog(d / "a.tlog", lw.tlog_records(m)), d / "map.toml", m
+
+
+def offline(tlog_path, map_path, tmp):
+    """``aqfg import mavlink`` then ``aqfg fit --mode online``: the output directory."""
+    assert main(["import", "mavlink", str(tlog_path), "--out", str(tmp / "M"), "--map",
+                 str(map_path)]) == 0
+    assert main(["fit", str(tmp / "M"), "--mode", "online", "--out", str(tmp / "F"),
+                 "--no-plots"]) == 0
+    return tmp / "F"
+
+
+def csv(path):
+    return np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+
+def params(path):
+    doc = json.loads((path / "parameters.json").read_text())["parameters"]
+    return {k: v["value"] for k, v in doc.items()}
+
+
+def assert_same_answer(live, fit):
+    """The corrected and causal tracks and the parameters of two output directories."""
+    for f in ("trajectory.csv", "causal.csv"):
+        a, b = csv(live / f), csv(fit / f)
+        assert a.shape == b.shape, f
+        np.testing.assert_allclose(a, b, rtol=0, atol=CSV_TOL, err_msg=f)
+    pa, pb = params(live), params(fit)
+    assert pa.keys() == pb.keys()
+    for k in pa:
+        assert abs(pa[k] - pb[k]) <= TOL, k
+
+
+def lines(path):
+    return [json.loads(x) for x in (path / "live.jsonl").read_text().splitlines()]
+
+
+def test_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path, capsys):
+    path, mp, m = tlog
+    fit = offline(path, mp, tmp_path)
+    out = tmp_path / "L"
+    assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
+    assert_same_answer(out, fit)
+    fixes = [x for x in lines(out) if "parameters" in x]
+    assert len(fixes) == len(m.gnss.t)
+    assert [x["t"] for x in fixes] == pytest.approx(list(m.gnss.t), abs=1e-6)
+    # the last line's estimate is the final one; positions as lat/lon too
+    last, final = fixes[-1], params(out)
+    for k, v in last["parameters"].items():
+        assert abs(v["value"] - final[k]) <= TOL and v["sigma"] > 0
+    assert {"lat", "lon", "sigma_n", "innovation", "held"} <= last.keys()
+    assert last["sigma_n"] > 0 and last["innovation"] >= 0
+    assert "per fix update p99" in capsys.readouterr().out
+    # a second run does not overwrite the first without --force
+    assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 2
+    assert "--force" in capsys.readouterr().err
+    end = lines(out)[-1]
+    assert end["event"] == "end of the stream" and end["fixes"] == len(m.gnss.t)
+    assert end["left_out"] == {}
+
+
+def test_replay_with_params_from_gives_the_online_fit_with_them(tlog, tmp_path):
+    """The paper's protocol: the vehicle's constants from a batch fit (--params-from)."""
+    path, mp, _ = tlog
+    fit = offline(path, mp, tmp_path)              # imports tmp/M
+    assert main(["fit", str(tmp_path / "M"), "--out", str(tmp_path / "B"), "--no-plots"]) == 0
+    p = str(tmp_path / "B" / "parameters.json")
+    assert main(["fit", str(tmp_path / "M"), "--mode", "online", "--params-from", p,
+                 "--out", str(tmp_path / "F2"), "--no-plots"]) == 0
+    out = tmp_path / "L"
+    assert main(["live", str(path), "--map", str(mp), "--params-from", p, "--out", str(out),
+                 "--speed", "0"]) == 0
+    assert_same_answer(out, tmp_path / "F2")
+    assert set(params(out)) == {"theta_e", "s_x", "s_y"} != set(params(fit))
+
+
+def tlog_frames(path):
+    """(unix microseconds, MAVLink frame bytes) of each message of a tlog."""
+    data, out, i = path.read_bytes(), [], 0
+    while i + 10 <= len(data):
+        usec = struct.unpack(">Q", data[i:i + 8])[0]
+        magic, n_payload = data[i + 8], data[i + 9]
+        n = n_payload + (8 if magic == 0xFE else 12 + (13 if data[i + 10] & 1 else 0))
+        out.append((usec, data[i + 8:i + 8 + n]))
+        i += 8 + n
+    return out
+
+
+def test_dataflash_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path):
+    """An ArduPilot DataFlash log (ATT, GPS with its GPA accuracy, RCOU; TimeUS clock)
+    replayed at --speed 0: the online fit of what aqfg import mavlink reads from it."""
+    _, mp, m = tlog
+    path = lw.write_dataflash(tmp_path / "a.bin", lw.dataflash_records(m))
+    fit = offline(path, mp, tmp_path)
+    out = tmp_path / "L"
+    assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
+    assert_same_answer(out, fit)
+    assert len([x for x in lines(out) if "parameters" in x]) == len(m.gnss.t)
+
+
+def _send_tlog(path, port, speed, done):
+    """Send a tlog's MAVLink frames to 127.0.0.1:``port`` at ``speed`` x real time, then
+    interrupt this process (Ctrl-C ends aqfg live), whatever happened."""
+    try:
+        frames = tlog_frames(path)
+        for _ in range(100):                  # until aqfg live has bound the port
+            try:
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                    probe.bind(("127.0.0.1", port))
+            except OSError:
+                break
+            time.sleep(0.1)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            t0, u0 = time.perf_counter(), frames[0][0]
+            for usec, frame in frames:
+                wait = t0 + (usec - u0) * 1e-6 / speed - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
+                s.sendto(frame, ("127.0.0.1", port))
+        time.sleep(0.5)
+        done.set()
+    finally:
+        os.kill(os.getpid(), signal.SIGINT)
+
+
+def _free_port(kind=socket.SOCK_DGRAM):
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_udp_stream_gives_the_online_fit_of_its_recording(tmp_path, capsys):
+    """A 12-s tlog sent over UDP in real time: the run records what it received
+    (stream.tlog, stamped on arrival as a ground station does) and its outputs are the
+    online fit of that recording; Ctrl-C ends it with every file complete."""
+    m, _ = simulate("asv", seed=4, duration=12.0)
+    m = with_gnss_every(m, 1.0)
+    mp = tmp_path / "map.toml"
+    mp.write_text(lw.map_toml(m, motors=PWM_MAP))
+    path = lw.write_tlog(tmp_path / "a.tlog", lw.tlog_records(m))
+    port = _free_port()
+    done = threading.Event()
+    th = threading.Thread(target=_send_tlog, args=(path, port, 1.0, done), daemon=True)
+    th.start()
+    out = tmp_path / "L"
+    rc = main(["live", f"udpin:127.0.0.1:{port}", "--map", str(mp), "--out", str(out)])
+    th.join(5)
+    assert done.is_set() and rc == 0
+    assert "stopped (Ctrl-C)" in capsys.readouterr().out
+    fit = offline(out / "stream.tlog", mp, tmp_path)
+    assert_same_answer(out, fit)
+    assert len([x for x in lines(out) if "parameters" in x]) >= len(m.gnss.t) - 3
+
+
+def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    path, mp, _ = tlog
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(0.2)
+        port = rx.getsockname()[1]
+        out = tmp_path / "L"
+        assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0",
+                     "--send-to", f"udpout:127.0.0.1:{port}"]) == 0
+        mav = mavlink2.MAVLink(None)
+        got: list = []
+        while True:
+            try:
+                data = rx.recv(4096)
+            except TimeoutError:
+                break
+            got += mav.parse_buffer(data) or []
+    fixes = [x for x in lines(out) if "parameters" in x]
+    gps = [g for g in got if g.get_type() == "GPS_INPUT"]
+    named = [g for g in got if g.get_type() == "NAMED_VALUE_FLOAT"]
+    assert len(gps) == len(fixes)
+    for g, f in zip(gps, fixes):
+        assert g.lat == round(f["lat"] * 1e7) and g.lon == round(f["lon"] * 1e7)
+        assert g.vn == pytest.approx(f["vn"], abs=1e-5) and g.fix_type == 3
+        assert g.horiz_accuracy == pytest.approx(max(f["sigma_n"], f["sigma_e"]), rel=1e-6)
+    theta = [n.value for n in named if n.name == "theta_e"]
+    assert len(theta) == len(fixes)
+    assert theta[-1] == pytest.approx(fixes[-1]["parameters"]["theta_e"]["value"], abs=1e-6)
+
+
+def test_bad_options_and_sources(tlog, tmp_path, capsys):
+    path, mp, _ = tlog
+    out = str(tmp_path / "L")
+    assert main(["live", "udpin:127.0.0.1:9", "--map", str(mp), "--out", out,
+                 "--speed", "1"]) == 2
+    assert "--speed" in capsys.readouterr().err
+    assert main(["live", str(tmp_path / "none.tlog"), "--map", str(mp), "--out", out]) == 3
+    assert "no such file" in capsys.readouterr().err
+    junk = tmp_path / "junk.tlog"
+    junk.write_bytes(bytes(range(256)) * 4)
+    assert main(["live", str(junk), "--map", str(mp), "--out", out, "--speed", "0"]) == 3
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "error" in err
+    with pytest.raises(SystemExit) as e:
+        main(["live", str(path), "--out", out])           # --map is required
+    assert e.value.code == 2
+
+
+# ------------------------------------------------------------- a stream is not a file
+
+def run_records(recs, mp, tmp_path, name):
+    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments)."""
+    from aqfg.data.importers import load_map
+    from aqfg.fg.online.smoother import FixedLagSmoother
+    from aqfg.live.runner import LiveRunner
+    from aqfg.live.source import LogSource
+    path = lw.write_tlog(tmp_path / f"{name}.tlog", recs)
+    events: list = []
+    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append)
+    for item in LogSource(path, 0.0):
+        if item is not None:
+            runner.feed(*item)
+    return runner, runner.finish(), events
+
+
+def test_duplicates_are_dropped_and_counted_with_the_same_answer(tlog, tmp_path):
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    _, clean, _ = run_records(recs, mp, tmp_path, "clean")
+    twice = [r for rec in recs for r in (rec, rec)]
+    runner, segs, events = run_records(twice, mp, tmp_path, "twice")
+    assert len(segs) == 1 and not events
+    assert runner.dropped() == {"ATTITUDE: duplicate": len(m.imu.t),
+                                "GPS_RAW_INT: duplicate": len(m.gnss.t),
+                                "SERVO_OUTPUT_RAW: duplicate": len(m.motors.t)}
+    a, b = segs[0].result, clean[0].result
+    np.testing.assert_array_equal(a.history.values, b.history.values)
+
+
+def test_late_and_missing_messages_are_left_out_without_a_jump(tlog, tmp_path):
+    """Every tenth attitude message arrives after the next one (dropped as late), one in
+    five motor messages and every third fix are lost: the smoother runs on, every fix
+    left is an update, and the causal track stays near the fixes."""
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    att = [i for i, (_, msg) in enumerate(recs) if msg.get_type() == "ATTITUDE"]
+    for k in att[5::10]:
+        j = next(i for i in att if i > k)
+        recs[k], recs[j] = (recs[k][0], recs[j][1]), (recs[j][0], recs[k][1])
+    n_mot = n_gps = 0
+    kept = []
+    for us, msg in recs:
+        if msg.get_type() == "SERVO_OUTPUT_RAW":
+            n_mot += 1
+            if n_mot % 5 == 0:
+                continue
+        if msg.get_type() == "GPS_RAW_INT":
+            n_gps += 1
+            if n_gps % 3 == 0:
+                continue
+        kept.append((us, msg))
+    runner, segs, events = run_records(kept, mp, tmp_path, "late")
+    assert len(segs) == 1 and not events
+    assert runner.dropped() == {"ATTITUDE: late (older than the last of its type)":
+                                len(att[5::10])}
+    assert runner.n_fix == len(m.gnss.t) - len(m.gnss.t) // 3
+    res = segs[0].result
+    assert np.all(np.isfinite(res.missions[0].filtered.pos))
+
+
+def _shifted(recs, t_from_us, dt_us=0, boot_back_ms=0):
+    """Records from ``t_from_us`` on: stamps later by ``dt_us``, the vehicle's boot clock
+    (ATTITUDE, SERVO_OUTPUT_RAW) earlier by ``boot_back_ms`` (a reboot)."""
+    out = []
+    for us, msg in recs:
+        if us >= t_from_us:
+            msg = copy.deepcopy(msg)
+            us += dt_us
+            if msg.get_type() == "ATTITUDE":
+                msg.time_boot_ms -= boot_back_ms
+            elif msg.get_type() == "SERVO_OUTPUT_RAW":
+                msg.time_usec = (msg.time_usec - boot_back_ms * 1000) % 2**32
+        out.append((us, msg))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["reboot", "link"])
+def test_reboot_and_lost_link_restart_the_window_with_an_event(tlog, tmp_path, kind):
+    path, mp, m = tlog
+    recs = lw.tlog_records(m)
+    cut = recs[0][0] + 30_000_000
+    recs = (_shifted(recs, cut, boot_back_ms=29_000) if kind == "reboot"
+            else _shifted(recs, cut, dt_us=90_000_000))
+    runner, segs, events = run_records(recs, mp, tmp_path, kind)
+    assert len(events) == 1 and len(segs) == 2
+    assert ("vehicle reboot" if kind == "reboot" else "link lost") in events[0]["event"]
+    # each part a mission of its own, from its first message
+    assert segs[0].result.missions[0].track.t[-1] < 30.1
+    assert segs[1].mission.t0 == 0.0 and segs[1].t_zero_ns >= cut * 1000
+    assert runner.n_fix >= len(m.gnss.t) - 2
+    # from the command: the last part at the top, the first in segment-1/, the event logged
+    out = tmp_path / "L"
+    p = lw.write_tlog(tmp_path / "cli.tlog", recs)
+    assert main(["live", str(p), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
+    assert (out / "segment-1" / "trajectory.csv").is_file() and (out / "trajectory.csv").is_file()
+    ev = [x for x in lines(out) if "event" in x]
+    assert len(ev) == 2 and ev[0]["segment"] == 2 and "restart" in ev[0]["event"]
+    assert ev[1]["event"] == "end of the stream" and ev[1]["segments"] == 2
+    assert {x["segment"] for x in lines(out) if "parameters" in x} == {1, 2}
+
+
+def test_bench_stream_feeds_the_runner_and_reports_its_figures():
+    """The bench's stream of a simulated vehicle goes through LiveRunner: one update per
+    fix, and the report says each figure (timings are printed, never asserted)."""
+    from aqfg.live import bench as lb
+    figs = lb.live_times(duration=60.0, period=8.0, edge=20.0)
+    assert figs["fixes"] == len(np.arange(0.0, 60.0 + 1e-9, 8.0))
+    assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
+    rows = dict(lb.report_rows(figs))
+    assert len(rows) == 4 and all(v.endswith(("ms", "MB")) for v in rows.values())
+
+
+def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):
+    """examples/harbour-survey.tlog (the README's tour replays it): the mission of
+    examples/README.md's line, written by aqfg.live.bench.write_tlog (to the messages'
+    resolution: 1 us of PWM, 1e-7 deg; 1e-6 rad)."""
+    from pathlib import Path
+
+    from aqfg.live.bench import write_tlog
+    ex = Path(__file__).resolve().parent.parent / "examples" / "harbour-survey.tlog"
+    m, _ = simulate("asv", seed=7, duration=120.0)
+    k = np.arange(0, len(m.imu.t), 5)                    # attitude at 10 Hz
+    m.imu = copy.copy(m.imu)
+    m.imu.t, m.imu.q, m.imu.gyro = m.imu.t[k], m.imu.q[k], m.imu.gyro[k]
+    write_tlog(m, tmp_path / "again.tlog")
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    mav = mavlink2.MAVLink(None)
+    a, b = tlog_frames(ex), tlog_frames(tmp_path / "again.tlog")
+    assert len(a) == len(b) and [u for u, _ in a] == [u for u, _ in b]
+    for (_, fa), (_, fb) in zip(a, b):          # to the messages' resolution
+        ma, mb = mav.decode(bytearray(fa)), mav.decode(bytearray(fb))
+        assert ma.get_type() == mb.get_type()
+        for k, v in ma.to_dict().items():
+            if k != "mavpackettype":
+                assert v == pytest.approx(mb.to_dict()[k], abs=1.0 if k[0] in "ls" else 1e-6)
+
+
+# ------------------------------------------------------------------ pure pieces
+
+def test_replay_pacing_and_connection_strings():
+    from aqfg.live.source import is_connection, pace_delay
+    # at 2x real time, a message stamped 10 s after the first is due 5 s after the start
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=102.0, speed=2.0) == 3.0
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=106.0, speed=2.0) == 0.0
+    assert pace_delay(10_000_000_000, 0, started=100.0, now=100.0, speed=0.0) == 0.0
+    for s in ("udpin:0.0.0.0:14550", "udp:10.0.0.2:14550", "tcp:host:5760", "/dev/ttyUSB0,57600",
+              "COM3"):
+        assert is_connection(s), s
+    for s in ("run.tlog", "logs/com.tlog", "./udp.tlog"):
+        assert not is_connection(s), s
+
+
+def test_gps_input_time_and_fields():
+    from aqfg.live.send import gps_input_fields, gps_week_ms, named_values
+    # 2023-11-14T22:13:20Z, 18 leap seconds: GPS week 2288, 252818 s into it
+    assert gps_week_ms(1_700_000_000.0) == (2288, 252_818_000)
+    f = gps_input_fields(1_700_000_000.0, np.array([0.0, 0.0, 0.0, 1.5, -0.5, 0.0]),
+                         np.array([0.3, 0.4]), (46.5, 6.5))
+    assert (f["lat"], f["lon"]) == (465_000_000, 65_000_000)
+    assert f["vn"] == 1.5 and f["ve"] == -0.5 and f["horiz_accuracy"] == 0.4
+    assert named_values({"heading_drift.rate": 1e-4, "s_x": np.nan}) == [(b"heading_dr", 1e-4)]
+
+
+def test_status_line_on_a_terminal():
+    import io
+
+    from aqfg.commands.live import Status
+    from aqfg.live.runner import FixReport
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    class Runner:
+        n_fix = 7
+
+        def dropped(self):
+            return {"ATTITUDE: duplicate": 2}
+    rep = FixReport(1, 14.0, 0.0, np.zeros(6), np.ones(2), {"theta_e": np.radians(12.0)},
+                    {"theta_e": np.radians(1.5)}, False, 0.0021, 0.8)
+    tty = Tty()
+    Status(tty).show(Runner(), rep)
+    line = tty.getvalue()
+    assert line.startswith("\r") and "7 fixes" in line and "+12.00 +- 1.50 deg" in line
+    assert "innovation 0.80 m" in line and "2.1 ms" in line and "2 left out" in line
+    quiet = io.StringIO()
+    Status(quiet).show(Runner(), rep)
+    assert quiet.getvalue() == ""
