@@ -141,19 +141,31 @@ def test_the_baseline_smoother_is_the_map_of_its_model_and_the_causal_track_the_
     np.testing.assert_allclose(causal[0], rec_x[0])
 
 
-def test_the_noise_margin_is_what_fix_noise_alone_exceeds_at_two_sigma():
+def test_the_advantage_is_measured_in_sigma_of_the_fixes_noise():
     """Two predictions equally far from the true position (so neither is better), scored
-    against noisy fixes: the mean difference of their squared errors exceeds
-    noise_margin about as often as a normal variable exceeds 2 sigma (2.3 %)."""
-    from aqfg.fg.kinematic import noise_margin
+    against noisy fixes of unequal precision: the advantage of one exceeds 2 sigma about as
+    often as a normal variable does (2.3 %)."""
+    from aqfg.fg.kinematic import advantage_z
     rng = np.random.default_rng(3)
-    n, trials, sigma = 3, 20000, 0.3
+    trials = 20000
+    sigma = np.array([0.3, 3.0, 1.0])
     a = np.array([0.4, 0.1])                 # both 0.41 m from the truth (the origin)
     b = np.array([-0.1, 0.4])
-    z = rng.normal(0.0, sigma, (trials, n, 2))
-    d = np.mean(np.sum((a - z) ** 2, axis=2) - np.sum((b - z) ** 2, axis=2), axis=1)
-    margin = noise_margin(np.full(n, np.sum((a - b) ** 2)), np.full(n, sigma ** 2))
-    assert 0.015 < np.mean(d > margin) < 0.032
+    z = rng.normal(0.0, 1.0, (trials, 3, 2)) * sigma[None, :, None]
+    d = np.sum((a - z) ** 2, axis=2) - np.sum((b - z) ** 2, axis=2)
+    gap = np.full(3, np.sum((a - b) ** 2))
+    zs = np.array([advantage_z(row, gap, sigma ** 2) for row in d])
+    assert 0.015 < np.mean(zs > 2.0) < 0.032
+    assert advantage_z(np.zeros(3), np.zeros(3), sigma ** 2) == 0.0
+
+
+def test_one_precise_fix_outweighs_noisy_ones():
+    """The filter 9 m closer at a GNSS fix (sigma 1 m) decides, although at two USBL fixes
+    of 3-m sigma around it the model was a little closer."""
+    from aqfg.fg.kinematic import advantage_z
+    z = advantage_z(np.array([-14.6, 15.6, 77.4]), np.array([52.0, 138.4, 90.8]),
+                    np.array([10.0, 9.1, 1.0]))
+    assert z > 3.0
 
 
 def test_a_model_within_the_noise_of_the_floor_keeps_the_track():

@@ -32,6 +32,7 @@ if TYPE_CHECKING:                       # common imports nothing from here; keep
     from aqfg.fg.common import FGSettings
 
 FLOOR_CHOICE_FIXES = 3      # fixes whose prediction errors choose the floor or the model
+FLOOR_Z = 2.0               # the filter's advantage, in sigma of the fixes' noise, to choose it
 
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
 
@@ -177,15 +178,17 @@ def baseline_tracks(fixes: tuple, t: np.ndarray, kf: KinematicFilter
     return causal, smooth
 
 
-def noise_margin(gap_sq: np.ndarray, var: np.ndarray, z: float = 2.0) -> float:
-    """The mean difference of two predictors' squared horizontal errors at the same fixes
-    (m^2) that the fixes' noise alone exceeds with probability about that of ``z`` sigma:
-    predictions ``gap_sq`` (m^2) apart (squared distance between the two) at fixes of
-    per-axis variance ``var`` (m^2). At one fix ``|a - z|^2 - |b - z|^2`` varies with the
-    fix's noise only along ``a - b``: standard deviation ``2 |a - b| sigma``; the mean over
-    ``n`` fixes ``1/n`` times the root sum of their variances."""
-    gap_sq, var = np.asarray(gap_sq, float), np.asarray(var, float)
-    return float(z * 2.0 * math.sqrt(float(np.sum(gap_sq * var))) / len(var))
+def advantage_z(diff: np.ndarray, gap_sq: np.ndarray, var: np.ndarray) -> float:
+    """How many standard deviations of the fixes' noise one predictor's advantage over
+    another is: ``diff`` (m^2) its squared horizontal error minus the other's at each fix,
+    ``gap_sq`` (m^2) the squared distance between the two predictions, ``var`` (m^2) the
+    fix's per-axis variance. Each fix's log-likelihood ratio ``diff / (2 var)`` varies with
+    the fix's noise only along the gap (standard deviation ``sqrt(gap_sq / var)``); their
+    sum over the fixes, in units of its standard deviation (0 where the predictions
+    coincide)."""
+    diff, gap_sq, var = (np.asarray(a, float) for a in (diff, gap_sq, var))
+    sd = math.sqrt(float(np.sum(gap_sq / var)))
+    return float(np.sum(diff / (2.0 * var)) / sd) if sd > 0 else 0.0
 
 
 @dataclass
@@ -228,10 +231,11 @@ class CausalFloor:
     def chosen(self, predicted: tuple | None, last: int = FLOOR_CHOICE_FIXES) -> np.ndarray:
         """Per held fix, whether the floor (True) or the model (False) carries the causal
         track after it: the floor where its predictions of the ``last`` fixes up to it were
-        closer than the model's by more than the fixes' own noise can explain (mean squared
-        horizontal error, each predicted from the fix before: the filter's at constant
+        closer than the model's beyond what the fixes' own noise explains (squared
+        horizontal errors, each predicted from the fix before: the filter's at constant
         velocity, the model's ``predicted`` = (fix times, states (m, 6) predicted there
-        before the update); the noise: :func:`noise_margin`). Errors the fixes cannot
+        before the update), weighed by the fixes' variances: :func:`advantage_z` above
+        ``FLOOR_Z``). Errors the fixes cannot
         tell apart leave the model, which knows the thrust (a boat starting from rest
         left the floor 9 m behind 4 s later). Causal: a fix's choice uses fixes up to it.
         The first fix, and every fix without a model prediction, take the floor."""
@@ -256,8 +260,7 @@ class CausalFloor:
             sl = slice(max(1, k - last + 1), k + 1)
             a, b, w, g = e_f[sl], e_m[sl], v[sl], gap[sl]
             good = np.isfinite(a) & np.isfinite(b) & np.isfinite(w)
-            out[k] = not good.any() or (float(np.mean(b[good]) - np.mean(a[good]))
-                                        > noise_margin(g[good], w[good]))
+            out[k] = not good.any() or advantage_z(b[good] - a[good], g[good], w[good]) > FLOOR_Z
         return out
 
     def apply(self, knots: np.ndarray, X: np.ndarray, predicted: tuple | None = None) -> None:
