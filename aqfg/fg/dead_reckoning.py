@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import chi2
 
+from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.robust import huber_cost, huber_weight
@@ -227,7 +227,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
         info["reason"] = "prediction error does not determine the constants"
         return result
     cov, cov_model, dof, wald = _wald(Ai, B, w, r, x - x_fg, len(keys))
-    thr = float(chi2.ppf(1.0 - WALD_ALPHA, len(x)))
+    thr = float(dist.chi2_ppf(1.0 - WALD_ALPHA, len(x)))
     v_new = _to_v(x, logs)
     D = np.where(logs, v_new, 1.0)
     sig_new = np.sqrt(np.maximum(np.diag(cov), 0.0)) * D
