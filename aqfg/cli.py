@@ -257,7 +257,8 @@ def _bench_parser(sub, count) -> None:
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
     s.add_argument("--repeat", type=count, default=5)
     s.add_argument("--quick", action="store_true",
-                   help="a 20-minute online stream instead of 2 hours (the other figures alike)")
+                   help="a 20-minute online stream instead of 2 hours, and --repeat runs of "
+                        "each command instead of at least 5 (the other figures alike)")
     s.add_argument("--out", default=None, metavar="DIR", type=_directory,
                    help="also write bench.md here")
     s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")
