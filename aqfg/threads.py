@@ -1,4 +1,5 @@
-"""BLAS thread-pool control for the small dense matrices of aqfg's solvers."""
+"""Thread control: the BLAS thread pool for the small dense matrices of aqfg's solvers, and
+two threads for independent calls of the C++ kernel (:func:`both`)."""
 from __future__ import annotations
 
 
@@ -13,3 +14,41 @@ def blas_threads(n: int = 1):
         from contextlib import nullcontext
         return nullcontext()
     return threadpool_limits(n, user_api="blas")
+
+
+KERNEL_THREADS_ENV = "AQFG_KERNEL_THREADS"
+_pool = None
+
+
+def kernel_threads() -> int:
+    """Threads for independent calls of the C++ kernel, which releases Python's lock while
+    it integrates: ``$AQFG_KERNEL_THREADS`` (1 or 2), else 2 where this process may run on
+    two or more CPUs. A batch fit's kernel calls are half its CPU time; on a machine whose
+    cores are all busy (a fleet's workers, one per core) set it to 1."""
+    import os
+    v = os.environ.get(KERNEL_THREADS_ENV, "").strip()
+    if v in ("1", "2"):
+        return int(v)
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return 2 if n >= 2 else 1
+
+
+def both(first, second):
+    """``(first(), second())``, ``first`` in a helper thread while this one runs ``second``
+    where :func:`kernel_threads` allows two (for calls that release Python's lock: the
+    kernel's), else one after the other. An exception of either is raised here."""
+    global _pool
+    if kernel_threads() < 2:
+        return first(), second()
+    if _pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+        _pool = ThreadPoolExecutor(1, thread_name_prefix="aqfg-kernel")
+    fut = _pool.submit(first)
+    try:
+        b = second()
+    finally:
+        a = fut.result()
+    return a, b

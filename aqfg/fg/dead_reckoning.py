@@ -38,6 +38,7 @@ from aqfg.model.reference import Steps
 from aqfg.model.retrace import fixes, inertial_track
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
+from aqfg.threads import both
 
 HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction errors
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
@@ -117,13 +118,18 @@ class _Predictions:
         if self._last is not None and np.array_equal(self._last[0], x):
             return self._last[1]
         v = _to_v(x, self.logs)
-        out = []
-        for s in self.segs:
-            p = self.p_missions[s.mission].copy()
-            p[self.idx] = v
-            out.append((p, self.model.rollout_segments(s.x0, p, s.steps, s.offsets)))
-        self._last = (np.array(x, float), out)
-        return out
+
+        def roll(segs: list[_Segment]) -> list[tuple[np.ndarray, np.ndarray]]:
+            out = []
+            for s in segs:
+                p = self.p_missions[s.mission].copy()
+                p[self.idx] = v
+                out.append((p, self.model.rollout_segments(s.x0, p, s.steps, s.offsets)))
+            return out
+        h = len(self.segs) // 2           # two halves in two threads (the kernel's)
+        a, b = both(lambda: roll(self.segs[:h]), lambda: roll(self.segs[h:]))
+        self._last = (np.array(x, float), a + b)
+        return a + b
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Horizontal prediction errors at the target fixes, m (north, east per fix)."""
@@ -142,10 +148,16 @@ class _Predictions:
         # every prediction's interval Jacobians, padded to n_k intervals (identity, zero)
         JX = np.tile(np.eye(6), (len(segs), n_k, 1, 1))
         JP = np.zeros((len(segs), n_k, 6, n_x))
-        for j, (s, (p, X)) in enumerate(zip(segs, self.states(x))):
-            _, jx, jp = self.model.propagate_many(X[:-1], p, s.steps, s.offsets)
-            JX[j, :len(jx)] = jx
-            JP[j, :len(jp)] = jp[:, :, self.cols]
+        sts = self.states(x)
+
+        def fill(js: range) -> None:
+            for j in js:
+                s, (p, X) = segs[j], sts[j]
+                _, jx, jp = self.model.propagate_many(X[:-1], p, s.steps, s.offsets)
+                JX[j, :len(jx)] = jx
+                JP[j, :len(jp)] = jp[:, :, self.cols]
+        h = len(segs) // 2
+        both(lambda: fill(range(h)), lambda: fill(range(h, len(segs))))
         D = np.zeros((len(segs), n_k + 1, 6, n_x))
         for k in range(n_k):
             D[:, k + 1] = JX[:, k] @ D[:, k] + JP[:, k]
