@@ -2,6 +2,8 @@
 two threads for independent calls of the C++ kernel (:func:`both`)."""
 from __future__ import annotations
 
+import os
+
 
 def blas_threads(n: int = 1):
     """A context limiting the BLAS thread pool to ``n`` threads (threadpoolctl, when
@@ -20,12 +22,22 @@ KERNEL_THREADS_ENV = "AQFG_KERNEL_THREADS"
 _pool = None
 
 
+def _forget_pool() -> None:
+    """In a forked child: the parent's helper thread does not exist there (a task given to
+    its pool would wait forever), so the child starts its own when it needs one."""
+    global _pool
+    _pool = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def kernel_threads() -> int:
     """Threads for independent calls of the C++ kernel, which releases Python's lock while
     it integrates: ``$AQFG_KERNEL_THREADS`` (1 or 2), else 2 where this process may run on
     two or more CPUs. A batch fit's kernel calls are half its CPU time; on a machine whose
     cores are all busy (a fleet's workers, one per core) set it to 1."""
-    import os
     v = os.environ.get(KERNEL_THREADS_ENV, "").strip()
     if v in ("1", "2"):
         return int(v)

@@ -41,3 +41,25 @@ def test_both_returns_both_results_and_raises_either_error(monkeypatch):
         raise ValueError("first")
     with pytest.raises(ValueError, match="first"):
         threads.both(boom, lambda: 2)
+
+
+def _in_child(q):
+    q.put(threads.both(lambda: "a", lambda: "b"))
+
+
+def test_a_forked_child_runs_both_after_its_parent_did(monkeypatch):
+    # the parent's helper thread does not exist in a forked child (the diagnosis' worker
+    # processes): the child must start its own, not wait on the parent's forever
+    import multiprocessing as mp
+    monkeypatch.setenv(threads.KERNEL_THREADS_ENV, "2")
+    assert threads.both(lambda: 1, lambda: 2) == (1, 2)      # the parent's pool exists
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    child = ctx.Process(target=_in_child, args=(q,))
+    child.start()
+    child.join(60)
+    alive = child.is_alive()
+    if alive:
+        child.kill()
+    assert not alive, "the forked child hung in threads.both"
+    assert q.get(timeout=5) == ("a", "b")
