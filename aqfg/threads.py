@@ -51,9 +51,12 @@ def kernel_threads() -> int:
 def both(first, second):
     """``(first(), second())``, ``first`` in a helper thread while this one runs ``second``
     where :func:`kernel_threads` allows two (for calls that release Python's lock: the
-    kernel's), else one after the other. An exception of either is raised here."""
+    kernel's), else one after the other (also when called from the helper thread). An
+    exception of either is raised here."""
     global _pool
-    if kernel_threads() < 2:
+    import threading
+    if kernel_threads() < 2 or threading.current_thread().name.startswith("aqfg-kernel"):
+        # (called from the helper thread itself: waiting on it would never end)
         return first(), second()
     if _pool is None:
         from concurrent.futures import ThreadPoolExecutor

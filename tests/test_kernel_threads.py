@@ -63,3 +63,9 @@ def test_a_forked_child_runs_both_after_its_parent_did(monkeypatch):
         child.kill()
     assert not alive, "the forked child hung in threads.both"
     assert q.get(timeout=5) == ("a", "b")
+
+
+def test_both_nested_in_its_helper_thread_runs_in_line(monkeypatch):
+    monkeypatch.setenv(threads.KERNEL_THREADS_ENV, "2")
+    inner = threads.both(lambda: threads.both(lambda: 1, lambda: 2), lambda: 3)
+    assert inner == ((1, 2), 3)
