@@ -141,7 +141,7 @@ def _info_parser(sub) -> None:
 def _job_parser(sub, name: str, hlp: str, count) -> None:
     """``fit`` or ``diagnose``: the options they share, then their own."""
     from aqfg.commands.options import seconds
-    from aqfg.data.preflight import DEFAULT_MAX_KNOTS
+    from aqfg.limits import DEFAULT_MAX_KNOTS
     s = sub.add_parser(name, help=hlp, description=hlp[0].upper() + hlp[1:] + ".")
     s.add_argument("missions", nargs="+", metavar="MISSION")
     s.add_argument("--out", required=True, metavar="DIR", type=_directory,

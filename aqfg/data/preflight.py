@@ -19,6 +19,7 @@ import numpy as np
 
 from aqfg.data.io.plausibility import GNSS_SIGMA_FLOOR
 from aqfg.data.mission import Depth, Gnss, Mission, Usbl
+from aqfg.limits import DEFAULT_MAX_KNOTS
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +28,6 @@ log = logging.getLogger(__name__)
 # magnitude (a mission whose times are in milliseconds needs 1000 times too many knots).
 KNOT_BYTES = 40e3           # peak resident memory per knot, bytes (update-error; graph 15e3)
 KNOT_SECONDS = 3.5e-3       # wall time per knot and fit, s (one core)
-DEFAULT_MAX_KNOTS = 50_000   # about 14 h of mission at one knot per second: ~2 GB, ~3 min
 # Online fits re-solve their window at every fix: measured 0.24-0.26 ms per window knot and
 # update for both methods (docs/reliability.md, "Cost estimate").
 WINDOW_KNOT_SECONDS = 0.3e-3
