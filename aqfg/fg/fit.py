@@ -457,8 +457,8 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
             continue
         solved.append(o)
         # (a start whose solve ends at a non-finite cost loses to any other: on
-        # otter-dev-calm-a the one-step start, sway drag 101/s, ended at NaN after one
-        # iteration and was kept over the null start's 1427, against 3189 without it)
+        # otter-dev-calm-a the one-step start, sway drag 101/s, ends at NaN after one
+        # iteration, the null start at 1427, against 3189 without the effect)
         if new is None or _finite_cost(o) < _finite_cost(new):
             new, bs_new = o, bs_o
     if new is not None:
