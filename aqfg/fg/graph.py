@@ -28,8 +28,8 @@ from aqfg.fg.common import (
     mission_model,
 )
 from aqfg.fg.init import Start, candidate_starts, current_prior, start_states
-from aqfg.fg.mission_memo import remember
 from aqfg.fg.user_factors import FactorSource, GraphKeys
+from aqfg.memo import remember
 from aqfg.model.params import N_DYN
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
@@ -217,7 +217,7 @@ def _mission_parts(missions: list[Mission], models: list[Model],
     cur_sig = current_prior(s.prior_sigma)
     for mi, (m, model) in enumerate(zip(missions, models)):
         knots = knot_times(m, s.knot_spacing)
-        steps, off = _steps(model, m, knots)
+        steps, off = model.steps(m, knots)
         K = len(knots) - 1
         if walk:
             seg_of = np.floor((knots[:-1] - knots[0]) / s.walk_segment).astype(int)
@@ -254,18 +254,11 @@ def _mission_parts(missions: list[Mission], models: list[Model],
     return parts, guesses, all_starts
 
 
-def _steps(model: Model, m: Mission, knots: np.ndarray) -> tuple:
-    """``model.steps(m, knots)``, those of an earlier graph of the same mission and knots
-    (:mod:`aqfg.fg.mission_memo`)."""
-    return remember(m, ("steps", knots.tobytes(), model.lookback),
-                    lambda: model.steps(m, knots))
-
-
 def _starts(model: Model, m: Mission, knots: np.ndarray, p: np.ndarray, grid: bool, steps,
             cur_sig) -> list[Start]:
     """:func:`candidate_starts` of ``m``, those of an earlier graph of the same mission
     where its roll-outs are the same: the same knots and dynamics parameters ``p[:N_DYN]``
-    on the C++ kernel, which reads no others (:mod:`aqfg.fg.mission_memo`)."""
+    on the C++ kernel, which reads no others (:mod:`aqfg.memo`)."""
     def make() -> list[Start]:
         return candidate_starts(model, m, knots, p, search=grid, steps=steps,
                                 current_sigma=cur_sig)
