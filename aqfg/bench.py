@@ -19,6 +19,10 @@ Figures (each a median over repeated runs; the machine may be shared, so read me
   initialisation included; wall and CPU seconds, theta_e error against its truth) and a
   long online stream (2 h; per-update median and RSS in its first 10 minutes after the
   warm-up and its last 10 minutes);
+* the cost of a command, each run as its own process (:func:`command_times`): start-up
+  (``aqfg --version``, target <= 0.3 s) and ``aqfg fit`` of an Otter mission of the test
+  data with all defaults, outputs and figures written (target <= 1.5 s) and with
+  ``--no-plots``: process wall and CPU (user + sys) seconds, medians.
 * ``aqfg live`` on the same long stream sent as MAVLink messages (:mod:`aqfg.live.bench`):
   per-message handling median, per-fix median and p99, RSS over its first and last
   10 minutes (the pymavlink extra installed).
@@ -49,7 +53,7 @@ from aqfg.model.vehicle import Model
 TARGETS = {"kernel_us": 5.0, "fl_update_ms": 5.0, "ratio": 20.0, "batch_s": 3.0,
            # the speed targets (docs/speed.md)
            "ratio_all": 50.0, "fl_p90_ms": 3.0, "otter_s": 1.0, "otter_theta_deg": 3.0,
-           "stream_growth": 1.2}
+           "stream_growth": 1.2, "startup_s": 0.3, "fit_command_s": 1.5}
 OTTER_MISSION = "otter-dev-calm-a"      # 14 min, 1-Hz GNSS; the slowest of the five to fit
 STREAM, QUICK_STREAM = 7200.0, 1200.0   # s of the long online stream (full / --quick)
 VARIABLE = ("theta_e", "s_x", "s_y")
@@ -215,6 +219,51 @@ def otter_batch_times(repeat: int = 3, name: str = OTTER_MISSION) -> dict:
             "iterations": iters, "theta_err_deg": err, "dead_reckoning": dr}
 
 
+def _process(argv: list[str], cwd: Path) -> tuple[float, float]:
+    """Wall and CPU (user + sys of the child) seconds of one run of ``argv``; its output
+    discarded, a failure raised with its stderr's end."""
+    import os
+    import resource
+    import subprocess
+    import sys
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])      # this aqfg, not another install
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True,
+                          text=True)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} ended with {done.returncode}: "
+                           f"{done.stderr.strip()[-500:]}")
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+
+
+def command_times(repeat: int = 5, name: str = OTTER_MISSION) -> dict:
+    """The cost of a command as a user sees it, each run a fresh process (imports
+    included), ``repeat`` times, alternated: start-up (``aqfg --version``), ``aqfg fit``
+    of the test mission ``name`` with all defaults (outputs and figures written) and with
+    ``--no-plots``; wall and CPU seconds of each. Empty when the test data are not at hand."""
+    import tempfile
+    d = data_dir()
+    if d is None or not (d / name / "mission.toml").is_file():
+        return {}
+    out: dict = {"name": name, "startup": [], "startup_cpu": [], "fit": [], "fit_cpu": [],
+                 "fit_no_plots": [], "fit_no_plots_cpu": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        fit = ["-m", "aqfg", "fit", str(d / name), "--out", str(Path(tmp) / "out"),
+               "--force", "-q"]
+        for _ in range(repeat):
+            for key, argv in (("startup", ["-m", "aqfg", "--version"]), ("fit", fit),
+                              ("fit_no_plots", [*fit, "--no-plots"])):
+                wall, cpu = _process(argv, Path(tmp))
+                out[key].append(wall)
+                out[f"{key}_cpu"].append(cpu)
+    return out
+
+
 def _rss_mb() -> float:
     """Resident set size of this process (MB; NaN where /proc is missing)."""
     try:
@@ -276,6 +325,8 @@ def run(repeat: int = 5, batch_update_error: bool = False, progress=None,
     figs["batch"] = batch_times(max(1, (repeat + 1) // 2), update_error=batch_update_error)
     say(f"batch of {OTTER_MISSION}")
     figs["otter"] = otter_batch_times(max(3, repeat))
+    say(f"aqfg fit of {OTTER_MISSION}, each run a process")
+    figs["command"] = command_times(max(5, repeat) if stream_duration >= STREAM else repeat)
     if stream_duration > 0:
         say(f"online stream of {stream_duration:.0f} s")
         figs["stream"] = stream_times(stream_duration, edge=min(600.0, stream_duration / 2))
@@ -317,6 +368,10 @@ def headline(figs: dict) -> dict[str, float]:
         out["otter_s"] = _med(o["wall"])
         out["otter_cpu_s"] = _med(o["cpu"])
         out["otter_theta_deg"] = float(np.max(o["theta_err_deg"]))
+    c = figs.get("command") or {}
+    if c:
+        out["startup_s"] = _med(c["startup"])
+        out["fit_command_s"] = _med(c["fit"])
     st = figs.get("stream")
     if st:
         a, b = _med(st["first"]), _med(st["last"])
@@ -364,6 +419,7 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
                      f"{h['otter_theta_deg']:.2f} deg", ok(h["otter_theta_deg"], "otter_theta_deg")))
     else:
         rows.append(("batch of an Otter mission", "not run (no tests/data at hand)", ""))
+    rows += command_rows(figs, h, ok)
     st = figs.get("stream")
     if st:
         after = (f"after the warm-up (first {st['warmup_s']:.0f} s)" if st["warmup_s"] > 0
@@ -381,6 +437,23 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
         from aqfg.live.bench import report_rows
         rows += [(a, b, "") for a, b in report_rows(figs["live"])]
     return rows
+
+
+def command_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
+    """Rows of the command's cost (:func:`command_times`), where measured."""
+    c = figs.get("command") or {}
+    if not c:
+        return [("aqfg fit as a process", "not run (no tests/data at hand)", "")]
+    n = len(c["fit"])
+    return [(f"start-up, `aqfg --version` as a process, median of {n}",
+             f"{h['startup_s']:.2f} s (CPU {_med(c['startup_cpu']):.2f} s)",
+             ok(h["startup_s"], "startup_s")),
+            (f"`aqfg fit {c['name']}`, all defaults, outputs and figures written, process "
+             f"wall, median of {n}",
+             f"{h['fit_command_s']:.2f} s (CPU {_med(c['fit_cpu']):.2f} s)",
+             ok(h["fit_command_s"], "fit_command_s")),
+            ("the same with --no-plots",
+             f"{_med(c['fit_no_plots']):.2f} s (CPU {_med(c['fit_no_plots_cpu']):.2f} s)", "")]
 
 
 def report(figs: dict) -> str:

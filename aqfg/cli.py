@@ -142,7 +142,7 @@ def _info_parser(sub) -> None:
 def _job_parser(sub, name: str, hlp: str, count) -> None:
     """``fit`` or ``diagnose``: the options they share, then their own."""
     from aqfg.commands.options import seconds
-    from aqfg.data.preflight import DEFAULT_MAX_KNOTS
+    from aqfg.limits import DEFAULT_MAX_KNOTS
     s = sub.add_parser(name, help=hlp, description=hlp[0].upper() + hlp[1:] + ".")
     s.add_argument("missions", nargs="+", metavar="MISSION")
     s.add_argument("--out", required=True, metavar="DIR", type=_directory,
@@ -294,7 +294,8 @@ def _bench_parser(sub, count) -> None:
                        description="Measure kernel, fixed-lag, update-error and batch timings.")
     s.add_argument("--repeat", type=count, default=5)
     s.add_argument("--quick", action="store_true",
-                   help="a 20-minute online stream instead of 2 hours (the other figures alike)")
+                   help="a 20-minute online stream instead of 2 hours, and --repeat runs of "
+                        "each command instead of at least 5 (the other figures alike)")
     s.add_argument("--out", default=None, metavar="DIR", type=_directory,
                    help="also write bench.md here")
     s.add_argument("--force", action="store_true", help="replace an existing DIR/bench.md")

@@ -21,6 +21,21 @@ def _plt():
     return plt
 
 
+def prefetch() -> None:
+    """Start importing matplotlib (0.5-0.8 s of a command) in a background thread, for a
+    command that will plot after computing: the import runs while the computation holds
+    no lock (the kernel and LAPACK release Python's), and :func:`_plt` then finds it done
+    or waits for it (Python's per-module import locks)."""
+    import threading
+
+    def load() -> None:
+        try:
+            _plt()
+        except Exception:  # noqa: BLE001 -- the plot's own import reports it
+            pass
+    threading.Thread(target=load, name="aqfg-prefetch-matplotlib", daemon=True).start()
+
+
 def plot_map(result: Result, missions: Sequence[Mission], path: str | Path) -> Path:
     """Map of every mission: GNSS fixes, USBL fixes (converted with the estimated track's
     depth), the smoothed (or filtered-then-corrected) track, the causal track (online) and

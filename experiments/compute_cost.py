@@ -53,6 +53,8 @@ def main(argv=None) -> int:
     figs["batch"] = bench.batch_times(repeat=rep, update_error=True)
     say(f"batch of {bench.OTTER_MISSION} x {max(3, rep)}")
     figs["otter"] = bench.otter_batch_times(max(3, rep))
+    say(f"aqfg fit of {bench.OTTER_MISSION} as a process x {max(5, rep)}")
+    figs["command"] = bench.command_times(max(5, rep))
     stream = bench.QUICK_STREAM if args.quick else bench.STREAM
     say(f"online stream of {stream:.0f} s")
     figs["stream"] = bench.stream_times(stream, edge=min(600.0, stream / 2))

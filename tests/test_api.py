@@ -18,6 +18,15 @@ def test_import_aqfg_loads_no_numerics():
     assert out.stdout.strip() == ""
 
 
+def test_the_command_lines_parser_loads_no_numerics():
+    # `aqfg --version` (the start-up of every command) builds the whole parser
+    code = ("import sys; from aqfg.cli import build_parser; build_parser(); heavy = [m for m in "
+            "('numpy', 'scipy', 'gtsam', 'aqfg._kernel') if m in sys.modules]; "
+            "print(','.join(heavy))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
+
+
 @pytest.fixture(scope="module")
 def mission_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("api") / "run"

@@ -290,3 +290,23 @@ def test_an_untested_effect_pays_for_its_parameters():
     assert n_fix_residuals([m]) == n and n_fix_residuals([m, m]) == 2 * n
     assert np.isclose(bic_cost("linear_drag", [m]), 0.5 * 2 * np.log(n))
     assert np.isclose(bic_cost("ground_advance", [m]), 0.5 * 1 * np.log(n))
+
+
+def test_a_start_that_ends_at_a_nan_cost_loses_to_the_other(heldout111, monkeypatch):
+    """The refit's first start (the effect's one-step values) can diverge to a non-finite
+    cost (otter-dev-calm-a: a one-step sway drag of 101/s, NaN after one iteration); the
+    other start's finite fit is the one judged, not the NaN one."""
+    m, _truth, _res, given = heldout111
+    bad, good = copy.copy(given), copy.copy(given)
+    bad.info = {**given.info, "cost": float("nan")}
+    good.info = {**given.info, "cost": float(given.info["cost"]) - 100.0}
+    outs = iter([(bad, "bs-bad"), (good, "bs-good")])
+    monkeypatch.setattr(fit_module, "_solve", lambda *a, **k: next(outs))
+    pick = {"effect": "linear_drag", "p_value_robust": 1e-6,
+            "estimate": {"linear_drag.c_x": 0.1, "linear_drag.c_yz": 101.0}}
+    base = fit_module.variable_estimates(given)
+    out = fit_module._try_effect(pick, base, float(given.info["cost"]), [m], None, (), None,
+                                 None, False)
+    assert out["new"] is good and out["bs"] == "bs-good"
+    assert out["rec"]["cost_after"] == float(given.info["cost"]) - 100.0
+    assert out["why"] == ""

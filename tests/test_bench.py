@@ -16,7 +16,10 @@ def test_bench_command_prints_the_figures(capsys, tmp_path):
                   "ALL updates", "p90 fixed-lag update", "batch of otter-", "theta_e error",
                   "per-update median, last 10 min", "RSS",
                   # aqfg live on the same stream
-                  "aqfg live, 0.33-h stream", "per fix, all of it", "window solve alone"):
+                  "aqfg live, 0.33-h stream", "per fix, all of it", "window solve alone",
+                  # the cost of a command, each run a process
+                  "start-up, `aqfg --version` as a process", "`aqfg fit otter-",
+                  "the same with --no-plots"):
         assert label in out, label
     # every headline value is a finite number with its unit
     for unit in ("us", "ms", "x", "s"):
@@ -52,3 +55,16 @@ def test_headline_reads_the_done_when_figures():
     h = bench.headline(figs)
     assert abs(h["ratio_all"] - 50.0) < 1e-9 and abs(h["otter_s"] - 0.7) < 1e-9
     assert abs(h["otter_theta_deg"] - 0.7) < 1e-9 and abs(h["stream_growth"] - 1.1) < 1e-9
+
+
+def test_headline_reads_the_command_figures():
+    figs = {"kernel": [5e-6], "gnss8": {"fl_update": [0.001], "ue_opt": [0.1]},
+            "usbl": {"ue_eval": [1e-4], "ue_nevals": [40]}, "batch": {"fg_batch": [1.0]},
+            "command": {"name": "x", "startup": [0.2, 0.3, 0.25], "startup_cpu": [0.2],
+                        "fit": [1.0, 3.0, 2.0], "fit_cpu": [1.5], "fit_no_plots": [1.0],
+                        "fit_no_plots_cpu": [0.9]}}
+    h = bench.headline(figs)
+    assert abs(h["startup_s"] - 0.25) < 1e-9 and abs(h["fit_command_s"] - 2.0) < 1e-9
+    rows = bench.command_rows(figs, h, lambda v, key, above=False: key)
+    assert [r[2] for r in rows] == ["startup_s", "fit_command_s", ""]
+    assert "2.00 s (CPU 1.50 s)" in rows[1][1]

@@ -2,10 +2,11 @@
 
 Runs :func:`aqfg.bench.run` (C++ dynamics factor, fixed-lag update vs update-error
 optimisation of the same window, a 15 s window evaluation, batch of a 15-minute simulated
-mission and of an Otter mission of the test data, a 2-hour online stream, and the same
-stream through ``aqfg live``; ``--quick``: a 20-minute stream) and prints medians with the
-targets; ``--out`` also writes ``DIR/bench.md``. Timings only:
-nothing here asserts on them.
+mission and of an Otter mission of the test data, ``aqfg --version`` and ``aqfg fit`` of
+that mission each run as a process, a 2-hour online stream, and the same stream through
+``aqfg live``; ``--quick``: a 20-minute stream and ``--repeat`` command runs instead of at
+least 5) and prints medians with the targets; ``--out`` also writes ``DIR/bench.md``.
+Timings only: nothing here asserts on them.
 """
 from __future__ import annotations
 

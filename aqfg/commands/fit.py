@@ -183,6 +183,9 @@ def run(args) -> int:
     subdirs = unique_safe_names(names) if len(missions) > 1 else []
     outs = OutputSet(out, [*RESULT_FILES, *PLOTS, *subdirs], force=args.force)
     outs.check()                       # refuse now, not after the fit
+    if not args.no_plots:
+        from aqfg.plots import prefetch
+        prefetch()                     # matplotlib's import beside the fit
     kw = {"mode": args.mode, "estimate": estimate, "init": init, "effects": effects,
           "window": args.window}
     if args.method == "fg":

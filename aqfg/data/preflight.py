@@ -19,6 +19,7 @@ import numpy as np
 
 from aqfg.data.io.plausibility import GNSS_SIGMA_FLOOR
 from aqfg.data.mission import Depth, Gnss, Mission, Usbl
+from aqfg.limits import DEFAULT_MAX_KNOTS
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +30,6 @@ KNOT_BYTES = 50e3           # peak resident memory per knot, bytes
 KNOT_SECONDS = 2e-3         # wall time per knot and batch solve, s (a shared 2-core machine)
 LOAD_KNOT_SECONDS = 1e-3    # wall time per knot of the rest: loading, checks, dead reckoning,
 #                             outputs, once per command
-DEFAULT_MAX_KNOTS = 50_000   # about 14 h of mission at one knot per second: ~2 GB, ~3 min
 # Online fits re-solve their window at every fix: measured 0.24-0.26 ms per window knot and
 # update for both methods (docs/reliability.md, "Cost estimate").
 WINDOW_KNOT_SECONDS = 0.3e-3

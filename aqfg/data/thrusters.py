@@ -31,8 +31,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 
 ALPHA = 1e-3               # false-alarm probability of one mission's check (all tests)
@@ -102,7 +102,7 @@ def negative_correlation(x: np.ndarray, y: np.ndarray) -> tuple[float, float, fl
     if n_eff <= 3 or not np.isfinite(r):
         return r, n_eff, 1.0
     t = r * np.sqrt((n_eff - 2.0) / max(1.0 - r * r, 1e-12))
-    return r, n_eff, float(stats.t.cdf(t, n_eff - 2.0))
+    return r, n_eff, float(dist.t_cdf(t, n_eff - 2.0))
 
 
 def _yaw(q: np.ndarray) -> np.ndarray:
@@ -219,8 +219,8 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
         va = v_acc @ h
         held = np.column_stack([others_acc, va * np.abs(va)])
         r_acc, _, p2 = negative_correlation(_residual(d_acc, held), _residual(acc @ h, held))
-        z = (stats.norm.ppf(np.clip(p1, 1e-300, 1.0)) + stats.norm.ppf(np.clip(p2, 1e-300, 1.0)))
-        p = float(stats.norm.cdf(z / np.sqrt(2.0)))
+        z = (dist.norm_ppf(np.clip(p1, 1e-300, 1.0)) + dist.norm_ppf(np.clip(p2, 1e-300, 1.0)))
+        p = float(dist.norm_cdf(z / np.sqrt(2.0)))
         if p < level and r < 0 and r_acc < 0:
             axis = (1.0, 0.0, 0.0) if k is None else tuple(float(c) for c in dirs[k])
             out.append(ThrusterFinding(k, axis, r, r_acc, len(d), n_eff, p))  # type: ignore[arg-type]

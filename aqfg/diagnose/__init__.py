@@ -1,13 +1,28 @@
 """Diagnosis: compare the model with the measurements, find where it fails, and rank the
-candidate effects that would explain it; the loop that adds them one at a time."""
+candidate effects that would explain it; the loop that adds them one at a time.
+
+The names below load on first use (PEP 562): a fit that uses one of the subpackage's
+modules (the structural test, :mod:`aqfg.diagnose.structure`) does not import the whole
+diagnosis."""
+import importlib
 import sys
 import types
 
-from aqfg.diagnose.sequence import DiagnosisSequence, diagnose_sequence, save_sequence
-from aqfg.diagnose.workflow import Diagnosis, diagnose, save_diagnosis
+_LAZY = {"Diagnosis": "aqfg.diagnose.workflow", "diagnose": "aqfg.diagnose.workflow",
+         "save_diagnosis": "aqfg.diagnose.workflow",
+         "DiagnosisSequence": "aqfg.diagnose.sequence",
+         "diagnose_sequence": "aqfg.diagnose.sequence", "save_sequence": "aqfg.diagnose.sequence"}
 
 __all__ = ["Diagnosis", "DiagnosisSequence", "diagnose", "diagnose_sequence", "save_diagnosis",
            "save_sequence"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class _CallablePackage(types.ModuleType):

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy import stats
+
+from aqfg import distributions as dist
 
 
 @dataclass
@@ -181,7 +182,7 @@ def _lm(g: np.ndarray, S: np.ndarray, dlo: np.ndarray, dhi: np.ndarray):
 def log_chi2_sf(x: float, k: int) -> float:
     """Natural log of the chi-square(k) upper tail, also far beyond float underflow
     (leading term of the incomplete gamma function: ``Gamma(s, y) ~ y^(s-1) e^-y``)."""
-    lp = float(stats.chi2.logsf(x, k))
+    lp = float(dist.chi2_logsf(x, k))
     if np.isfinite(lp):
         return lp
     s, y = k / 2.0, x / 2.0
@@ -205,7 +206,7 @@ def _log10_p(stat: np.ndarray, dim: int, one_sided: bool) -> np.ndarray:
     the float range of the tail use its leading term, as :func:`log_chi2_sf`)."""
     stat = np.maximum(np.asarray(stat, float), 0.0)
     with np.errstate(divide="ignore"):
-        lp = stats.chi2.logsf(stat, dim)
+        lp = dist.chi2_logsf(stat, dim)
     bad = ~np.isfinite(lp)
     if bad.any():
         lp[bad] = [log_chi2_sf(float(x), dim) for x in stat[bad]]

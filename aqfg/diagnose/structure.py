@@ -87,8 +87,8 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
     Holm-adjusted robust p is below ``ALPHA_SIGMA`` (its ranking is still every candidate's);
     None where there is nothing to test or no candidate moves a variable parameter."""
+    from aqfg.diagnose.candidates import candidate_effects, holm_log
     from aqfg.diagnose.score import Projected, score_tests
-    from aqfg.diagnose.workflow import _holm_log, candidate_effects
 
     names = [n for n in estimated if model.spec(n).group == "variable"]
     cands = [e for e in candidate_effects(missions, model.effects)
@@ -141,7 +141,7 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     # Holm over the robust p-values (NaN: too few time blocks for the sandwich, no test)
     with np.errstate(divide="ignore", invalid="ignore"):
         lp = np.log10(np.array([t.p_value_robust for t in tests]))
-    adj = _holm_log(np.where(np.isnan(lp), 0.0, lp))
+    adj = holm_log(np.where(np.isnan(lp), 0.0, lp))
     ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
     suggested = [i for i in range(len(tests)) if adj[i] < ALPHA_SIGMA]
 

@@ -67,6 +67,8 @@ import numpy as np
 from scipy import stats
 
 from aqfg.data.mission import Mission
+from aqfg.diagnose.candidates import candidate_effects
+from aqfg.diagnose.candidates import holm_log as _holm_log
 from aqfg.diagnose.compare import sensor_series, split_fixes
 from aqfg.diagnose.conditions import (
     ConditionEffect,
@@ -101,7 +103,7 @@ from aqfg.diagnose.score import (
 )
 from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
-from aqfg.model.effects import BUILTIN, Effect, resolve
+from aqfg.model.effects import Effect, resolve
 
 __all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
            "evaluate", "save_diagnosis"]
@@ -398,22 +400,6 @@ def _ok(c: ConsistencyTest | None) -> str:
 
 
 # ---------------------------------------------------------------- the steps
-def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
-                      pool: Sequence | None = None) -> list:
-    """The effects to rank: ``pool`` (default: the built-in catalogue) plus ``extra`` (e.g.
-    :class:`~aqfg.model.effects.UserEffect` objects), without duplicates, without those already
-    in the model, and only those applicable to at least one mission."""
-    have = {resolve(e).name for e in model_effects}
-    out: list[Effect] = []
-    for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
-        e = resolve(c)
-        if e.name in have or any(e.name == o.name for o in out):
-            continue
-        if any(e.applicable(m) for m in missions):
-            out.append(e)
-    return out
-
-
 def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
            n_blocks: int = 20) -> Screen:
     """Score tests of ``cands`` at the full fit ``fit`` (a :class:`~aqfg.result.Result`),
@@ -702,18 +688,6 @@ def resolve_description(name: str, cands) -> str:
         if c.name == name:
             return c.description
     return ""
-
-
-def _holm_log(log10_p: np.ndarray) -> np.ndarray:
-    """Holm-adjusted p-values from log10 p-values (exact for tiny p)."""
-    m = len(log10_p)
-    o = np.argsort(log10_p)
-    adj = np.empty(m)
-    run = -np.inf
-    for k, i in enumerate(o):
-        run = max(run, min(0.0, math.log10(m - k) + log10_p[i]))
-        adj[i] = 10 ** run
-    return adj
 
 
 def _conditions(missions, base: FitEval, memory: float):

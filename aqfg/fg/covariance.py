@@ -24,8 +24,8 @@ import gtsam
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.stats import chi2, norm
-from scipy.stats import t as student_t
+
+from aqfg import distributions as dist
 
 SANDWICH_ALPHA = 0.05
 
@@ -114,7 +114,7 @@ def block_sandwich(gfg: gtsam.GaussianFactorGraph, key_dims: list[tuple[int, int
 def significant_ratio(dof: int, alpha: float = SANDWICH_ALPHA) -> float:
     """Variance ratio sandwich/Hessian that a correct model exceeds with probability
     ``alpha`` when the sandwich has ``dof`` degrees of freedom."""
-    return float(chi2.ppf(1.0 - alpha, max(int(dof), 1)) / max(int(dof), 1))
+    return float(dist.chi2_ppf(1.0 - alpha, max(int(dof), 1)) / max(int(dof), 1))
 
 
 def honest_covariance(cov_model: dict[int, np.ndarray], cov_sw: dict[int, np.ndarray] | None,
@@ -149,8 +149,8 @@ def t_tail_factor(dof: int | None, n_sigma: float = 3.0) -> float:
     unknown dof)."""
     if dof is None or dof <= 0:
         return 1.0
-    p = float(norm.cdf(n_sigma))
-    return float(student_t.ppf(p, int(dof)) / n_sigma)
+    p = float(dist.norm_cdf(n_sigma))
+    return float(dist.t_ppf(p, int(dof)) / n_sigma)
 
 
 def sigma_inflation(sigma: dict[str, float], sigma_model: dict[str, float]) -> dict[str, float]:

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import chi2
 
+from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.robust import huber_cost, huber_weight
@@ -42,6 +42,7 @@ from aqfg.model.reference import Steps
 from aqfg.model.retrace import fixes, inertial_track
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
+from aqfg.threads import both
 
 HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction errors
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
@@ -103,6 +104,84 @@ def _segments(model: Model, missions: list[Mission], result: Result, horizon: fl
     return out
 
 
+class _Predictions:
+    """The prediction errors of every segment as functions of the fit's variables ``x``
+    (the constants at ``idx`` of each mission's parameter vector, the ``logs`` ones by
+    their logarithm); the states of the last ``x`` kept for its Jacobian."""
+
+    def __init__(self, model: Model, segs: list[_Segment], p_missions: list[np.ndarray],
+                 idx: np.ndarray, logs: np.ndarray):
+        self.model, self.segs, self.p_missions, self.idx, self.logs = \
+            model, segs, p_missions, idx, logs
+        self._last: tuple[np.ndarray, list] | None = None
+        dyn = list(model.dyn_columns())
+        self.cols = [dyn.index(i) for i in idx] if all(i in dyn for i in idx) else None
+        self.analytic = (model.uses_cpp and model.lookback <= 0 and self.cols is not None
+                         and bool(segs))
+        # each error divided by its lead time (module docstring)
+        self.per_lead = (np.concatenate([np.repeat(1.0 / np.maximum(s.lead, MIN_LEAD), 2)
+                                         for s in segs]) if segs else np.zeros(0))
+
+    def states(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each segment's parameter vector and predicted states at its knots."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1]
+        v = _to_v(x, self.logs)
+
+        def roll(segs: list[_Segment]) -> list[tuple[np.ndarray, np.ndarray]]:
+            out = []
+            for s in segs:
+                p = self.p_missions[s.mission].copy()
+                p[self.idx] = v
+                out.append((p, self.model.rollout_segments(s.x0, p, s.steps, s.offsets)))
+            return out
+        h = len(self.segs) // 2           # two halves in two threads (the kernel's)
+        a, b = both(lambda: roll(self.segs[:h]), lambda: roll(self.segs[h:]))
+        self._last = (np.array(x, float), a + b)
+        return a + b
+
+    def errors(self, x: np.ndarray) -> np.ndarray:
+        """Horizontal prediction errors at the target fixes, m (north, east per fix)."""
+        return np.concatenate([(X[s.rows, :2] - s.z).ravel()
+                               for s, (_, X) in zip(self.segs, self.states(x))])
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """The errors divided by their lead times, m/s."""
+        r = self.errors(x) * self.per_lead
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The exact Jacobian of :meth:`residuals` (where :attr:`analytic`): each
+        prediction's state sensitivity to the constants chained along its knot intervals,
+        ``D_{k+1} = J_x,k D_k + J_p,k`` (the kernel's interval Jacobians at the predicted
+        states; ``D_0 = 0``, the start is the smoothed state), times ``dv/dx``."""
+        assert self.cols is not None
+        segs, n_x = self.segs, len(self.idx)
+        n_k = max(len(s.offsets) - 1 for s in segs)
+        # every prediction's interval Jacobians, padded to n_k intervals (identity, zero)
+        JX = np.tile(np.eye(6), (len(segs), n_k, 1, 1))
+        JP = np.zeros((len(segs), n_k, 6, n_x))
+        sts = self.states(x)
+
+        def fill(js: range) -> None:
+            for j in js:
+                s, (p, X) = segs[j], sts[j]
+                _, jx, jp = self.model.propagate_many(X[:-1], p, s.steps, s.offsets)
+                JX[j, :len(jx)] = jx
+                JP[j, :len(jp)] = jp[:, :, self.cols]
+        h = len(segs) // 2
+        both(lambda: fill(range(h)), lambda: fill(range(h, len(segs))))
+        D = np.zeros((len(segs), n_k + 1, 6, n_x))
+        for k in range(n_k):
+            D[:, k + 1] = JX[:, k] @ D[:, k] + JP[:, k]
+        rows = np.concatenate([np.repeat(s.rows, 2) for s in segs])
+        seg_of = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
+        comp = np.concatenate([np.tile([0, 1], len(s.rows)) for s in segs])
+        J = (D[seg_of, rows, comp] * np.where(self.logs, _to_v(x, self.logs), 1.0)
+             * self.per_lead[:, None])
+        return np.where(np.isfinite(J), J, 0.0)
+
+
 def _huber(r: np.ndarray, c: float) -> float:
     return float(np.sum(huber_cost(np.abs(r), c)))
 
@@ -121,11 +200,13 @@ def _rms(q: np.ndarray) -> float:
 
 
 def _huber_fit(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, r0: np.ndarray,
-               lo: np.ndarray, hi: np.ndarray, both: np.ndarray, scale: float
+               lo: np.ndarray, hi: np.ndarray, both: np.ndarray, scale: float,
+               jac: Callable[[np.ndarray], np.ndarray] | None = None
                ) -> tuple[np.ndarray, np.ndarray, float]:
     """The constants ``x`` minimising the Huber cost of the prediction errors from ``x0``
-    (residuals ``r0``, robust scale ``scale``), refitted once where the scale at the fit
-    differs by more than 20 %: ``(x, residuals, scale)``."""
+    (residuals ``r0``, robust scale ``scale``; Jacobian ``jac``, forward differences
+    without), refitted once where the scale at the fit differs by more than 20 %:
+    ``(x, residuals, scale)``."""
     # start: the smoother's constants with thrust and surge drag (``both``) scaled together
     # (the same top speed, a faster response), the best of a coarse grid by the Huber cost;
     # the smoother's are sluggish where the model is not the vehicle (10-30x on the Otter)
@@ -139,9 +220,9 @@ def _huber_fit(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, r0
         x0 = best[1]
 
     def huber_fit(x_start, scale):
-        return least_squares(residuals, x_start, bounds=(lo, hi), loss="huber",
-                             f_scale=HUBER_C * scale, diff_step=1e-4, xtol=1e-6, ftol=1e-8,
-                             max_nfev=100)
+        return least_squares(residuals, x_start, jac="2-point" if jac is None else jac,
+                             bounds=(lo, hi), loss="huber", f_scale=HUBER_C * scale,
+                             diff_step=1e-4, xtol=1e-6, ftol=1e-8, max_nfev=100)
     sol = huber_fit(x0, scale)
     r1 = residuals(sol.x)
     s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
@@ -153,16 +234,20 @@ def _huber_fit(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, r0
 
 
 def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r: np.ndarray,
-                 c_h: float, segs: list, blocks: set, horizon: float):
+                 c_h: float, segs: list, blocks: set, horizon: float,
+                 jac: Callable[[np.ndarray], np.ndarray] | None = None):
     """At the fit ``x`` (residuals ``r``, Huber threshold ``c_h``): the weighted
-    Gauss-Newton information ``A`` (Jacobian by forward differences), the per-block score
+    Gauss-Newton information ``A`` (Jacobian ``jac``, by forward differences without), the per-block score
     outer products ``B`` (segments grouped by mission and start time, Bartlett lag 1
     within a mission), the Huber weights and the sorted block keys."""
-    J = np.empty((len(r), len(x)))
-    for c in range(len(x)):
-        h = 1e-5 * max(1.0, abs(x[c]))
-        e = np.zeros(len(x)); e[c] = h
-        J[:, c] = (residuals(x + e) - r) / h
+    if jac is not None:
+        J = jac(x)
+    else:
+        J = np.empty((len(r), len(x)))
+        for c in range(len(x)):
+            h = 1e-5 * max(1.0, abs(x[c]))
+            e = np.zeros(len(x)); e[c] = h
+            J[:, c] = (residuals(x + e) - r) / h
     w = huber_weight(np.abs(r), c_h)
     A = (J * w[:, None]).T @ J
     seg_rows = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
@@ -206,22 +291,9 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     specs = [model.spec(n) for n in names]
     p_missions = [mr.p.copy() for mr in result.missions]
 
-    per_lead = np.concatenate([np.repeat(1.0 / np.maximum(s.lead, MIN_LEAD), 2) for s in segs])
-
-    def errors(x: np.ndarray) -> np.ndarray:
-        """Horizontal prediction errors (m) of the constants ``x``."""
-        v = _to_v(x, logs)
-        out = []
-        for s in segs:
-            p = p_missions[s.mission].copy()
-            p[idx] = v
-            X = model.rollout_segments(s.x0, p, s.steps, s.offsets)
-            out.append((X[s.rows, :2] - s.z).ravel())
-        return np.concatenate(out)
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        r = errors(x) * per_lead
-        return np.where(np.isfinite(r), r, 1e6)
+    pred = _Predictions(model, segs, p_missions, idx, logs)
+    residuals = pred.residuals
+    jac = pred.jacobian if pred.analytic else None
 
     lo = np.array([np.log(max(sp.lower, 1e-12)) if lg else sp.lower for sp, lg in zip(specs, logs)])
     hi = np.array([np.log(sp.upper) if lg and np.isfinite(sp.upper) else
@@ -231,15 +303,15 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     r0 = residuals(x0)
     scale = max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
     both = np.array([n in ("k", "k_x") for n in names]) & logs
-    x, r, scale = _huber_fit(residuals, x0, r0, lo, hi, both, scale)
-    A, B, w, keys = _information(residuals, x, r, HUBER_C * scale, segs, blocks, horizon)
+    x, r, scale = _huber_fit(residuals, x0, r0, lo, hi, both, scale, jac)
+    A, B, w, keys = _information(residuals, x, r, HUBER_C * scale, segs, blocks, horizon, jac)
     try:
         Ai = np.linalg.inv(A)
     except np.linalg.LinAlgError:
         info["reason"] = "prediction error does not determine the constants"
         return result
     cov, cov_model, dof, wald = _wald(Ai, B, w, r, x - x_fg, len(keys))
-    thr = float(chi2.ppf(1.0 - WALD_ALPHA, len(x)))
+    thr = float(dist.chi2_ppf(1.0 - WALD_ALPHA, len(x)))
     v_new = _to_v(x, logs)
     D = np.where(logs, v_new, 1.0)
     sig_new = np.sqrt(np.maximum(np.diag(cov), 0.0)) * D
@@ -250,7 +322,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
                  "sigma_before": {n: float(result.sigma.get(n, np.nan)) for n in names},
                  "after": {n: float(v) for n, v in zip(names, v_new)},
                  "sigma_after": {n: float(s) for n, s in zip(names, sig_new)},
-                 **_error_summary(errors(x0), errors(x))})
+                 **_error_summary(pred.errors(x0), pred.errors(x))})
     if not (wald > thr and np.all(np.isfinite(sig_new))):
         result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
         info["reason"] = ("the smoother's constants predict as well (Wald "

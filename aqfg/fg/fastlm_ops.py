@@ -12,6 +12,7 @@ import scipy.linalg as sla
 from aqfg.model.measurements import USBL_TERMS, sensor_position
 from aqfg.model.params import N_DYN
 from aqfg.model.vehicle import compiled_kernel
+from aqfg.threads import both
 
 if TYPE_CHECKING:                       # the system is built on these operations
     from aqfg.fg.fastlm import FastSystem
@@ -55,6 +56,9 @@ def tri(cb: np.ndarray, B: np.ndarray, trans: bool = False) -> np.ndarray:
     return x
 
 
+SPLIT_MIN = 200      # intervals from which a parameter segment's kernel call is split in two
+
+
 def propagator(model, sl):
     """``f(X0, p) -> (X1, J_x0, J_p)`` of one parameter segment's intervals, with the
     kernel's step arguments converted once (:meth:`Model.propagate_many`)."""
@@ -70,8 +74,25 @@ def propagator(model, sl):
             np.ascontiguousarray(g.dirs, float), np.ascontiguousarray(g.side, float),
             bool(g.planar))
     kernel = cpp.propagate_many
-    return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
-                                np.ascontiguousarray(p[:N_DYN], float), *args)
+    K = len(offs) - 1
+    if K < SPLIT_MIN:
+        return lambda X0, p: kernel(np.ascontiguousarray(X0, float),
+                                    np.ascontiguousarray(p[:N_DYN], float), *args)
+    # the intervals in two halves, each one kernel call, in two threads (aqfg.threads.both;
+    # the intervals are independent: the same numbers as one call)
+    offs = np.asarray(offs, np.int64)
+    mid, o = K // 2, int(offs[K // 2])
+    halves = [tuple(np.ascontiguousarray(a[i]) for a in args[:5])
+              + (np.ascontiguousarray(offs[j] - offs[j][0], np.int64),) + args[6:]
+              for i, j in ((slice(0, o), slice(0, mid + 1)), (slice(o, None), slice(mid, None)))]
+
+    def run(X0, p):
+        X0 = np.ascontiguousarray(X0, float)
+        q = np.ascontiguousarray(p[:N_DYN], float)
+        a, b = both(lambda: kernel(X0[:mid], q, *halves[0]),
+                    lambda: kernel(X0[mid:], q, *halves[1]))
+        return tuple(np.concatenate([x, y]) for x, y in zip(a, b))
+    return run
 
 
 def sandwich(fs: FastSystem, ev: dict, fac, key_time: dict, block: float):

@@ -29,6 +29,8 @@ from aqfg.fg.common import (
 )
 from aqfg.fg.init import Start, candidate_starts, current_prior, start_states
 from aqfg.fg.user_factors import FactorSource, GraphKeys
+from aqfg.memo import remember
+from aqfg.model.params import N_DYN
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
 
@@ -232,8 +234,7 @@ def _mission_parts(missions: list[Mission], models: list[Model],
             a, b = int(ii[0]), int(ii[-1]) + 1
             slices.append((a, b, steps.slice(int(off[a]), int(off[b])), off[a:b + 1] - off[a]))
         keys = [fc.state_key(mi, i) for i in range(len(knots))]
-        starts = candidate_starts(model, m, knots, layout.base, search=grid,
-                                  steps=(steps, off), current_sigma=cur_sig)
+        starts = _starts(model, m, knots, layout.base, grid, (steps, off), cur_sig)
         if starts:
             guess = starts[0]
             X0 = start_states(guess, m, knots)
@@ -251,6 +252,23 @@ def _mission_parts(missions: list[Mission], models: list[Model],
         parts.append(MissionPart(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
         nf += K
     return parts, guesses, all_starts
+
+
+def _starts(model: Model, m: Mission, knots: np.ndarray, p: np.ndarray, grid: bool, steps,
+            cur_sig) -> list[Start]:
+    """:func:`candidate_starts` of ``m``, those of an earlier graph of the same mission
+    where its roll-outs are the same: the same knots and dynamics parameters ``p[:N_DYN]``
+    on the C++ kernel, which reads no others (:mod:`aqfg.memo`)."""
+    def make() -> list[Start]:
+        return candidate_starts(model, m, knots, p, search=grid, steps=steps,
+                                current_sigma=cur_sig)
+    if not model.uses_cpp or model.lookback > 0:
+        return make()
+    g = model.geometry
+    key = ("starts", knots.tobytes(), np.asarray(p[:N_DYN], float).tobytes(), grid, cur_sig,
+           np.asarray(g.dirs, float).tobytes(), np.asarray(g.side, float).tobytes(),
+           bool(g.planar))
+    return list(remember(m, key, make))
 
 
 def _param_nodes(layout: fc.ParamLayout, parts: list[MissionPart],

@@ -20,6 +20,7 @@ from types import ModuleType
 import numpy as np
 
 from aqfg.data.mission import Mission
+from aqfg.memo import remember
 from aqfg.model import batched
 from aqfg.model import measurements as meas
 from aqfg.model import reference as ref
@@ -260,7 +261,12 @@ class Model:
 
     # ---- dynamics
     def steps(self, mission: Mission, knots: np.ndarray, max_step: float = MAX_STEP):
-        return build_steps(mission, knots, self.lookback, max_step)
+        """:func:`build_steps` of ``mission`` for this model's lookback, those of an
+        earlier call with the same mission object and knots where kept (:mod:`aqfg.memo`;
+        the steps are read, never written)."""
+        knots = np.asarray(knots, dtype=float)
+        return remember(mission, ("steps", knots.tobytes(), self.lookback, max_step),
+                        lambda: build_steps(mission, knots, self.lookback, max_step))
 
     def propagate(self, x0: np.ndarray, p: np.ndarray, steps: Steps):
         """State [pos, vel] (NED) after ``steps``; J_x0 (6x6), J_p (6 x len(dyn_columns()))."""

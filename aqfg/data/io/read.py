@@ -189,15 +189,18 @@ _TRUNCATED = re.compile(r"(?:^|,)[ \t]*[-+]?[0-9]+\.[ \t]*\r?(?=,|$)", re.MULTIL
 def _truncated_numbers(f: str, header: list[str], body: list[str]) -> list[MissionWarning]:
     """Cells like "91." (digits, a point and nothing after): legal floats, but what a
     number cut short looks like (a file truncated mid-write, a copy/paste)."""
-    rows, cols = [], []
-    for i, line in enumerate(body):
-        if "." not in line:
-            continue
-        for mt in _TRUNCATED.finditer(line):
-            rows.append(i + 2)
-            cols.append(line.count(",", 0, mt.start() + 1))
-    if not rows:
+    # one search over the whole body (a match never spans a line), each match then placed
+    # on its line by the lines' start offsets
+    text = "\n".join(body)
+    hits = [mt.start() for mt in _TRUNCATED.finditer(text)]
+    if not hits:
         return []
+    starts = np.cumsum([0] + [len(line) + 1 for line in body[:-1]])
+    rows, cols = [], []
+    for at in hits:
+        i = int(np.searchsorted(starts, at, side="right")) - 1
+        rows.append(i + 2)
+        cols.append(body[i].count(",", 0, at - int(starts[i]) + 1))
     col = header[cols[0]] if 0 <= cols[0] < len(header) else None
     return [MissionWarning(f, f"{len(rows)} number(s) end in a bare decimal point (like "
                               "\"91.\"): cut short? read as written", rows=rows, column=col)]
