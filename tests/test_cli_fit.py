@@ -62,14 +62,20 @@ def test_fit_batch_writes_outputs_and_plots(missions, tmp_path, capsys):
     assert not (out / "map.png").exists()          # --force replaced the whole set
 
 
-def test_fit_online_and_two_missions(missions, tmp_path, capsys):
+def test_fit_online_and_two_missions(missions, tmp_path, capsys, monkeypatch):
     (d1, tr1), (d2, _) = missions
     out = tmp_path / "online"
     fixed = tmp_path / "fixed.json"
     fixed.write_text(json.dumps({n: {"value": tr1.params[n], "sigma": 0.0}   # earlier layout
                                  for n in ("k", "k_x", "k_yz")}))
+    import aqfg.outputs
+    reads: list[str] = []
+    real_read = aqfg.outputs.read_json
+    monkeypatch.setattr(aqfg.outputs, "read_json", lambda p, *a: reads.append(str(p)) or
+                        real_read(p, *a))
     assert main(["fit", str(d1), "--out", str(out), "--mode", "online", "--window", "24",
                  "--gnss-every", "8", "--params-from", str(fixed)]) == 0
+    assert reads.count(str(fixed)) == 1                  # the file is read once
     doc = json.loads((out / "parameters.json").read_text())
     assert set(doc["parameters"]) == {"theta_e", "s_x", "s_y"}
     # the online run's record: its batch re-initialisations (the heading was not given)

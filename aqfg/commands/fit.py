@@ -10,6 +10,7 @@ with 1-sigma.
 """
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -28,15 +29,22 @@ def _float(name: str, text: str, where: str) -> float:
         raise UsageError(str(e)) from None
 
 
+@functools.lru_cache(maxsize=4)
+def _params_document(path: str):
+    """The ``--params-from`` document, read once per command (its values and its GNSS
+    noise are both taken from it)."""
+    from aqfg.outputs import read_json
+    return read_json(Path(path), "--params-from")
+
+
 def initial_values(init: list[tuple[str, str]], params_from: str | None) -> dict[str, float]:
     """``--params-from`` values (a previous parameters.json), then ``--init NAME=VALUE``;
     each checked by :func:`aqfg.commands.options.parameter_value` (a bad value in the file
     is a data error, on the command line a usage error)."""
     out: dict[str, float] = {}
     if params_from:
-        from aqfg.outputs import read_json
         p = Path(params_from)
-        data = read_json(p, "--params-from")
+        data = _params_document(params_from)
         if not isinstance(data, dict):
             raise ValueError(f"--params-from {p}: expected a parameters.json document")
         try:
@@ -57,8 +65,7 @@ def gnss_noise_from(params_from: str | None):
     if not params_from:
         return None
     from aqfg.fg.gnss_noise import GnssNoise
-    from aqfg.outputs import read_json
-    data = read_json(Path(params_from), "--params-from")
+    data = _params_document(params_from)
     doc = data.get("gnss_noise") if isinstance(data, dict) else None
     return None if doc is None else GnssNoise.from_document(doc, f"--params-from {params_from}")
 
