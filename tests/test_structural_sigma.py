@@ -1,4 +1,4 @@
-"""The structural part of the batch's honest sigma (aqfg.diagnose.structure): the shift of
+"""The structural part of the batch's honest sigma (aqfg.fg.structure): the shift of
 the heading offset and the current that the best-supported missing effect would cause,
 from the batch's own numpy system, checked against refitting with that effect."""
 from __future__ import annotations

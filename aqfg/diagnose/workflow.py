@@ -15,7 +15,7 @@ The steps (each in its own module):
 3. **Where it fails** (:mod:`aqfg.diagnose.conditions`): rank correlation of the residual
    size with turns, speed, heading, thrust, reverse commands, distance to the station and
    elapsed time, in words.
-4. **Which effect** (:mod:`aqfg.diagnose.score`, :mod:`aqfg.diagnose.linearise`): every
+4. **Which effect** (:mod:`aqfg.fg.score`, :mod:`aqfg.diagnose.linearise`): every
    applicable catalogue effect gets a score (Lagrange-multiplier) test at its null on the
    full fit's linearised graph (no refit), Holm-corrected; a block bootstrap over time
    says how stable the ranking is. The significant ones (and the first whatever its
@@ -91,17 +91,19 @@ from aqfg.diagnose.confirm import (
 from aqfg.diagnose.consistency import ConsistencyTest
 from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
 from aqfg.diagnose.linearise import linear_system
-from aqfg.diagnose.score import (
+from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
+from aqfg.fg.common import FGSettings, check_missions, progress_fn
+from aqfg.fg.score import (
     Projected,
     ScoreTest,
     bootstrap_ranking,
+    holm_log,
     project,
     score_tests,
     shared_information,
 )
-from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
-from aqfg.fg.common import FGSettings, check_missions, progress_fn
-from aqfg.model.effects import BUILTIN, Effect, resolve
+from aqfg.fg.structure import candidate_effects
+from aqfg.model.effects import Effect, resolve
 
 __all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
            "evaluate", "save_diagnosis"]
@@ -395,22 +397,6 @@ def _ok(c: ConsistencyTest | None) -> str:
 
 
 # ---------------------------------------------------------------- the steps
-def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
-                      pool: Sequence | None = None) -> list:
-    """The effects to rank: ``pool`` (default: the built-in catalogue) plus ``extra`` (e.g.
-    :class:`~aqfg.model.effects.UserEffect` objects), without duplicates, without those already
-    in the model, and only those applicable to at least one mission."""
-    have = {resolve(e).name for e in model_effects}
-    out: list[Effect] = []
-    for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
-        e = resolve(c)
-        if e.name in have or any(e.name == o.name for o in out):
-            continue
-        if any(e.applicable(m) for m in missions):
-            out.append(e)
-    return out
-
-
 def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
            n_blocks: int = 20) -> Screen:
     """Score tests of ``cands`` at the full fit ``fit`` (a :class:`~aqfg.result.Result`),
@@ -420,7 +406,7 @@ def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
     lin = linear_system(missions, fit, cands, settings=settings)
     proj = project(lin)
     tests = score_tests(proj, {c.name: tuple(c.params) for c in cands}, n_blocks=n_blocks)
-    return Screen(fit, proj, tests, _holm_log(np.array([t.log10_p for t in tests])))
+    return Screen(fit, proj, tests, holm_log(np.array([t.log10_p for t in tests])))
 
 
 def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float,
@@ -698,18 +684,6 @@ def resolve_description(name: str, cands) -> str:
         if c.name == name:
             return c.description
     return ""
-
-
-def _holm_log(log10_p: np.ndarray) -> np.ndarray:
-    """Holm-adjusted p-values from log10 p-values (exact for tiny p)."""
-    m = len(log10_p)
-    o = np.argsort(log10_p)
-    adj = np.empty(m)
-    run = -np.inf
-    for k, i in enumerate(o):
-        run = max(run, min(0.0, math.log10(m - k) + log10_p[i]))
-        adj[i] = 10 ** run
-    return adj
 
 
 def _conditions(missions, base: FitEval, memory: float):

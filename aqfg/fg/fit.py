@@ -25,6 +25,7 @@ from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
+from aqfg.fg.structure import structural_shift
 from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
 from aqfg.model.params import difference
 from aqfg.model.retrace import inertial_track
@@ -389,7 +390,6 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     fixes (a sigma inflated more than ``MISFIT_INFLATION`` times by the sandwich) on its
     nominal-noise solution; else none. The ranking :func:`structural_sigma` recorded
     (``info["structural_test"]``), or the test's where it recorded none."""
-    from aqfg.diagnose.structure import structural_shift
     infl = max(res.info.get("sigma_inflation", {}).values(), default=0.0)
     if infl <= MISFIT_INFLATION or bs.fast_solution is None or res.model is None:
         return []
@@ -486,7 +486,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     ``STRUCTURAL_MISFIT``, or the data are too short for the sandwich)
     and the data call for a missing effect, the sigma of the heading offset and the
     current widened by the shift that effect would cause
-    (:func:`aqfg.diagnose.structure.structural_shift`, on the batch's numpy system ``fs``
+    (:func:`aqfg.fg.structure.structural_shift`, on the batch's numpy system ``fs``
     at its nominal-noise solution, or the evidence's on short data, evaluation ``ev``),
     in place; ``info["sigma_structure"]``
     and a warning say which effect and how much. ``test_always``: the test also where the
@@ -502,7 +502,6 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     if (not settings.structural_sigma or settings.walk_sigma or res.model is None
             or not (misfit or test_always)):
         return res
-    from aqfg.diagnose.structure import structural_shift
     sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
     if sh is None:
         return res
