@@ -7,11 +7,11 @@ effect to an online run."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
 import pytest
-
 from conftest import data_path
 
 from aqfg.cli import main
@@ -19,6 +19,7 @@ from aqfg.data import load_mission, load_truth
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg import FGSettings, fit_fg
 from aqfg.fg import fit as fit_module
+from aqfg.fg.effect_guard import widen_by_other_minimum
 
 VAR = ("theta_e", "s_x", "s_y")
 
@@ -63,15 +64,14 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     refit's heading offset and current are then far outside it, so the fit keeps the
     model as given and says why."""
     m, _truth, _res, fitted = heldout111
-    given = copy.copy(fitted)                 # the fixture's result stays as it was
-    given.sigma, given.info = dict(fitted.sigma), dict(fitted.info)
-    given.info["warnings"] = list(fitted.info.get("warnings", []))
-    given.info["structural_test"] = st = dict(fitted.info["structural_test"])
-    for n in VAR:
-        given.sigma[n] *= 1e-3
+    st = dict(fitted.info["structural_test"])
     # and the moves the test predicts (which widen the guard) as small
     st["ranked"] = [{**c, "shift": {n: 1e-3 * v for n, v in c.get("shift", {}).items()}}
                     for c in st["ranked"]]
+    given = dataclasses.replace(
+        fitted, sigma={n: s * 1e-3 if n in VAR else s for n, s in fitted.sigma.items()},
+        info={**fitted.info, "structural_test": st})
+    warnings = list(given.info.get("warnings", []))
     calls = []
 
     def finish(res, bs, missions, model, effects):    # completes the solve it is given
@@ -80,9 +80,12 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     monkeypatch.setattr(fit_module, "_finish", finish)
     out = fit_module.adopt_effect(given, object(), [m], None, (), None, None)
     ae = out.info["auto_effect"]
-    assert out is given and not ae["adopted"] and "by more than 3 sigma" in ae["reason"]
+    assert not ae["adopted"] and "by more than 3 sigma" in ae["reason"]
+    assert out.values == given.values and out.effects == given.effects == ()
     assert calls[-1] == ()                    # the model as given was finished
     assert any("was not added" in w for w in out.info["warnings"])
+    # the step returns its result: the fit it was given stays as it was
+    assert "auto_effect" not in given.info and given.info.get("warnings", []) == warnings
 
 
 def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_comes_right():
@@ -239,10 +242,7 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     wd = next(c for c in st["ranked"] if c["effect"] == "wind_drag")
     st["called_for"] = [wd]
     st["ranked"] = [ld, wd]
-    base = copy.copy(given)
-    base.info = {**given.info, "structural_test": st,
-                 "warnings": list(given.info.get("warnings", []))}
-    base.sigma = dict(given.sigma)
+    base = dataclasses.replace(given, info={**given.info, "structural_test": st})
     monkeypatch.setattr(fit_module, "_finish", lambda res, bs, missions, model, effects: res)
     out = fit_module.adopt_effect(base, object(), [m], None, (), None, None)
     ae = out.info["auto_effect"]
@@ -270,21 +270,23 @@ def test_a_second_minimum_as_good_widens_the_sigma():
         r.info = {"cost": cost, "per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
                                                       "s_x": {"value": sx, "sigma": 0.005}}}}
         return r
-    chosen = res(1080.2, -1.1748, 0.0196, 1.388)
-    fit_module._widen_by_other_minimum(chosen, [res(1084.6, -1.1723, 0.0084, 1.30)])
+    given = res(1080.2, -1.1748, 0.0196, 1.388)
+    chosen = widen_by_other_minimum(given, [res(1084.6, -1.1723, 0.0084, 1.30)])
     assert chosen.sigma["s_x"] == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.sigma["k"] == pytest.approx(np.hypot(0.06, 0.088))
     assert chosen.info["per_mission"]["a"]["s_x"]["sigma"] == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.info["other_minimum"]["cost"] == [1084.6]
+    # (the widened result is a new one: the fit it widens stays as it was)
+    assert given.sigma["s_x"] == 0.005 and given.info["per_mission"]["a"]["s_x"]["sigma"] == 0.005
     far = res(1080.2, -1.1748, 0.0196, 1.388)
-    fit_module._widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
-    assert far.sigma["s_x"] == 0.005 and "other_minimum" not in far.info
+    out = widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
+    assert out.sigma["s_x"] == 0.005 and "other_minimum" not in out.info
 
 
 def test_an_untested_effect_pays_for_its_parameters():
     """BIC: half the effect's parameter count times log n, n the fix residuals (GNSS and
     USBL two each, depth one)."""
-    from aqfg.fg.fit import bic_cost, n_fix_residuals
+    from aqfg.fg.effect_guard import bic_cost, n_fix_residuals
     m = with_gnss_every(load_mission(data_path("remus-heldout-13")), 4.0)
     n = 2 * len(m.gnss.t) + 2 * len(m.usbl.t) + (len(m.depth.t) if m.depth is not None else 0)
     assert n_fix_residuals([m]) == n and n_fix_residuals([m, m]) == 2 * n

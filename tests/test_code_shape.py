@@ -21,9 +21,6 @@ EXCEPTIONS: dict[str, str] = {
     "aqfg/diagnose/heldout.py:heldout_innovations": "held-out innovations of every sensor kind",
     "aqfg/diagnose/linearise.py:linear_system": "the diagnosis' linear system, one block per factor kind",
     "aqfg/fg/structure.py:structural_shift": "the structural score test and its ranking",
-    "aqfg/fg/fit.py": "fit_fg's pipeline: the effect step and the jackknife beside it; to "
-                      "split by step",
-    "aqfg/fg/fit.py:adopt_effect": "the effect step's guards, in one place",
     "aqfg/model/effects.py": "the built-in catalogue, one class per effect; to split by term kind",
 }
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from aqfg.fg.fit import base_record, cover_refit, dynamics_effect, guard_estimates, moves, variable_estimates
+from aqfg.fg.effect_guard import base_record, dynamics_effect, guard_estimates, moves, variable_estimates
+from aqfg.fg.structural_sigma import cover_refit
 from aqfg.result import Result
 
 
@@ -43,7 +44,7 @@ def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> s
     """Why the fleet's refit ``after`` with ``effect`` may not replace ``before`` ("" where
     it may): it must lower the fleet's cost, every vehicle's fit must be plausible, and
     every mission's heading offset and current must stay within 3 of ``before``'s honest
-    sigmas widened by the effect's predicted shift (:func:`aqfg.fg.fit.guard_estimates`)."""
+    sigmas widened by the effect's predicted shift (:func:`aqfg.fg.effect_guard.guard_estimates`)."""
     c0, c1 = _cost(before), _cost(after)
     why = []
     for v, r in before.items():
@@ -82,7 +83,7 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
         if after is not None and st.get("effect") == name and st.get("proven"):
             # the model-as-given fit's structural sigma checked by the refit with its
             # effect, as aqfg fit's effect step does (aqfg.fg.fit.refit_structure)
-            cover_refit(r, after[v])
+            r = before[v] = cover_refit(r, after[v])
         rec: dict = {"effect": name, "p_value_robust": pick["p_value_robust"].get(v, p),
                      "fixes_explained": "sigma_structure" not in r.info,
                      "cost_before": float(r.info.get("cost", math.nan)),
