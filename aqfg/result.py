@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
+    from aqfg.fg.gnss_noise import GnssNoise
     from aqfg.model.vehicle import Model
 
 
@@ -63,6 +64,38 @@ class Estimate:
     sigma: float = float("nan")
 
 
+@dataclass(frozen=True)
+class BlockJackknife:
+    """The block jackknife of a short batch fit (:mod:`aqfg.fg.jackknife`): how many time
+    blocks were left out one at a time, their length (s), the jackknife's sigma of each
+    estimated parameter and the former sigma of those it widened; or why it failed
+    (``failed``: the first refit's error, the sigmas left as they were)."""
+    blocks: int
+    block_s: float = float("nan")
+    sigma: dict[str, float] = field(default_factory=dict)
+    sigma_before: dict[str, float] = field(default_factory=dict)
+    failed: str = ""
+
+    def document(self) -> dict | None:
+        """``parameters.json``'s ``block_jackknife`` (None where the jackknife failed)."""
+        if self.failed:
+            return None
+        return {"blocks": int(self.blocks), "block_s": float(self.block_s),
+                "sigma": {n: float(v) for n, v in self.sigma.items()},
+                "sigma_before": {n: float(v) for n, v in self.sigma_before.items()}}
+
+
+@dataclass(frozen=True)
+class OtherMinimum:
+    """Other local minima of a refit that explain the fixes as well as the one reported
+    (:func:`aqfg.fg.effect_guard.widen_by_other_minimum`): their costs, the largest
+    difference of each parameter from the one reported, and the sigmas before that
+    difference was added."""
+    cost: list[float]
+    difference: dict[str, float]
+    sigma_before: dict[str, float]
+
+
 @dataclass
 class Result:
     """What every estimator returns.
@@ -70,6 +103,9 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
+    The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
+    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``block_jackknife`` and
+    ``other_minimum``.
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -82,6 +118,9 @@ class Result:
     info: dict = field(default_factory=dict)
     effects: tuple[str, ...] = ()
     model: Model | None = None         # the model used
+    gnss_noise: GnssNoise | None = None
+    block_jackknife: BlockJackknife | None = None
+    other_minimum: OtherMinimum | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -243,24 +282,20 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     dr = result.info.get("dead_reckoning")
     if dr and dr.get("segments"):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
-    gn = result.info.get("gnss_noise")
-    if gn:
+    if result.gnss_noise is not None:
         # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
         # (aqfg.fg.gnss_noise)
-        doc["gnss_noise"] = dict(gn)
+        doc["gnss_noise"] = result.gnss_noise.document()
     tq = result.info.get("track_noise_scale")
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with
         # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
-    jk = result.info.get("block_jackknife")
-    if result.mode == "batch" and jk and "sigma" in jk:
+    jk = result.block_jackknife.document() if result.block_jackknife is not None else None
+    if result.mode == "batch" and jk:
         # the spread of the fit without each time block's fixes, which the sigma includes
         # where larger (data too short for the sandwich; aqfg.fg.jackknife)
-        doc["block_jackknife"] = {"blocks": int(jk["blocks"]), "block_s": float(jk["block_s"]),
-                                  "sigma": {n: float(v) for n, v in jk["sigma"].items()},
-                                  "sigma_before": {n: float(v)
-                                                   for n, v in jk["sigma_before"].items()}}
+        doc["block_jackknife"] = jk
     st = result.info.get("sigma_structure")
     if result.mode == "batch" and st:
         doc["sigma_structure"] = sigma_structure_document(st)

@@ -275,12 +275,12 @@ def test_a_second_minimum_as_good_widens_the_sigma():
     assert chosen.sigma["s_x"] == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.sigma["k"] == pytest.approx(np.hypot(0.06, 0.088))
     assert chosen.info["per_mission"]["a"]["s_x"]["sigma"] == pytest.approx(np.hypot(0.005, 0.0112))
-    assert chosen.info["other_minimum"]["cost"] == [1084.6]
+    assert chosen.other_minimum is not None and chosen.other_minimum.cost == [1084.6]
     # (the widened result is a new one: the fit it widens stays as it was)
     assert given.sigma["s_x"] == 0.005 and given.info["per_mission"]["a"]["s_x"]["sigma"] == 0.005
     far = res(1080.2, -1.1748, 0.0196, 1.388)
     out = widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
-    assert out.sigma["s_x"] == 0.005 and "other_minimum" not in out.info
+    assert out.sigma["s_x"] == 0.005 and out.other_minimum is None
 
 
 def test_an_untested_effect_pays_for_its_parameters():

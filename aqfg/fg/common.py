@@ -102,7 +102,7 @@ class FGSettings:
     block_jackknife: a one-mission batch fit (:func:`aqfg.fg.fit.fit_fg`) on data too
         short for the sandwich is run again with each of 4-8 time blocks' fixes left out,
         and each sigma widened to the spread of those refits where that is larger
-        (:mod:`aqfg.fg.jackknife`; ``info["block_jackknife"]``): on 2.5-5 min Otter crops
+        (:mod:`aqfg.fg.jackknife`; ``Result.block_jackknife``): on 2.5-5 min Otter crops
         the current was up to 15 of its sigmas off (docs/independent-vehicle.md). The
         online re-initialisations do not run it.
     online_init_after, online_reinit_until: online without a given heading offset, the

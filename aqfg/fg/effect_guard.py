@@ -15,7 +15,7 @@ from aqfg.data.mission import Mission
 from aqfg.fg.batch import ambiguity_margin
 from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
 from aqfg.model.params import difference
-from aqfg.result import Result
+from aqfg.result import OtherMinimum, Result
 
 
 def per_mission_copy(info: dict) -> dict | None:
@@ -31,7 +31,7 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     """Where another local minimum of the same model (another start) explains the fixes as
     well as ``res`` (cost within :func:`aqfg.fg.batch.ambiguity_margin`), the data do not
     decide between them: ``res`` with each estimated parameter's sigma (and each
-    mission's) widened by its difference between the two; ``info["other_minimum"]``
+    mission's) widened by its difference between the two; its ``other_minimum``
     records it. (On `heldout-103` at 8-s fixes the lower of two minima 4.4 apart in cost
     put the current 0.019 m/s off with sigma 0.005, the other 0.008 off:
     docs/independent-vehicle.md.)"""
@@ -65,9 +65,8 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     sigma = dict(res.sigma)
     for n, d in d_top.items():
         sigma[n] = float(np.hypot(sigma[n], d))
-    info["other_minimum"] = {"cost": [float(o.info.get("cost", np.nan)) for o in near],
-                             "difference": d_top, "sigma_before": before}
-    return dataclasses.replace(res, sigma=sigma, info=info)
+    other = OtherMinimum([float(o.info.get("cost", np.nan)) for o in near], d_top, before)
+    return dataclasses.replace(res, sigma=sigma, info=info, other_minimum=other)
 
 
 def base_record(res: Result) -> dict:

@@ -76,10 +76,8 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
 
 
 def with_gnss_noise(res: Result, noise: gnss_noise.GnssNoise | None) -> Result:
-    """``res`` with ``info["gnss_noise"]``, the GNSS noise its fixes were weighted by."""
-    if noise is None:
-        return res
-    return dataclasses.replace(res, info={**res.info, "gnss_noise": noise.document()})
+    """``res`` with the GNSS noise its fixes were weighted by (its ``gnss_noise``)."""
+    return res if noise is None else dataclasses.replace(res, gnss_noise=noise)
 
 
 def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,

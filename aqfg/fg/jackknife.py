@@ -19,7 +19,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission, samples
 from aqfg.model.params import difference
-from aqfg.result import Result
+from aqfg.result import BlockJackknife, Result
 
 BLOCK = 30.0        # s, the shortest block left out
 MIN_BLOCKS = 4      # fewer: the jackknife's spread is itself too uncertain to report
@@ -72,7 +72,7 @@ def jackknife_sigma(full: dict[str, float], replicates: list[dict[str, float]]
 def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> Result:
     """``res`` (a one-mission batch fit too short for the sandwich) with its sigmas widened
     to the block jackknife's where that is larger: ``refit`` fits a mission with
-    ``res``'s model. ``info["block_jackknife"]`` records the blocks, the jackknife's
+    ``res``'s model. Its ``block_jackknife`` records the blocks, the jackknife's
     sigmas and the former ones (``sigma_before``, of the widened parameters); a refit
     that fails leaves the sigmas as they were and says why."""
     edges = blocks(mission)
@@ -83,9 +83,8 @@ def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> 
         try:
             r = refit(without_fixes(mission, float(a), float(b)))
         except Exception as e:  # noqa: BLE001 -- an optional widening; the fit stands
-            return dataclasses.replace(res, info={
-                **res.info, "block_jackknife": {"blocks": len(edges) - 1,
-                                                "failed": f"{type(e).__name__}: {e}"[:200]}})
+            return dataclasses.replace(res, block_jackknife=BlockJackknife(
+                len(edges) - 1, failed=f"{type(e).__name__}: {e}"[:200]))
         reps.append({n: float(r.values[n]) for n in res.estimated if n in r.values})
     sj = jackknife_sigma({n: float(res.values[n]) for n in res.estimated}, reps)
     before = {}
@@ -94,9 +93,7 @@ def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> 
         if n in sigma and not s <= sigma[n]:
             before[n] = float(sigma[n])
             sigma[n] = s
-    info = {**res.info, "block_jackknife": {"blocks": len(edges) - 1,
-                                            "block_s": float(edges[1] - edges[0]),
-                                            "sigma": sj, "sigma_before": before}}
+    info = dict(res.info)
     moved = [n for n in ("theta_e", "s_x", "s_y") if n in before and sj[n] > 2.0 * before[n]]
     if moved:
         parts = [f"theta_e {math.degrees(before['theta_e']):.2g} -> "
@@ -107,4 +104,5 @@ def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> 
             f"{len(edges) - 1} {edges[1] - edges[0]:.0f}-s blocks of fixes moved the fit by "
             f"more than its sigma claimed: sigma widened to the block jackknife's "
             f"({', '.join(parts)})")]
-    return dataclasses.replace(res, sigma=sigma, info=info)
+    return dataclasses.replace(res, sigma=sigma, info=info, block_jackknife=BlockJackknife(
+        len(edges) - 1, float(edges[1] - edges[0]), sj, before))
