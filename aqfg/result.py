@@ -96,6 +96,56 @@ class OtherMinimum:
     sigma_before: dict[str, float]
 
 
+@dataclass(frozen=True)
+class BaseFit:
+    """The model-as-given fit kept beside a fit whose effect step added an effect: its
+    effects, values and sigmas, and each mission's estimates for a joint fit (None: one
+    mission), as ``info["per_mission"]``."""
+    effects: list[str]
+    values: dict[str, float]
+    sigma: dict[str, float]
+    per_mission: dict | None = None
+
+
+@dataclass(frozen=True)
+class FleetEffect:
+    """The fleet's part of its effect step (:mod:`aqfg.fleet.effect`): the vehicles whose
+    tests called for the effect, the fleet's cost without and with it, and the step's
+    message (the same in every vehicle's warnings)."""
+    vehicles_calling: list[str]
+    cost_before: float
+    cost_after: float
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class EffectStep:
+    """The effect step of a batch fit (``FGSettings.auto_effect``:
+    :func:`aqfg.fg.fit.adopt_effect`, the fleet's :mod:`aqfg.fleet.effect`): the effect
+    tried, whether it was added (else ``reason``), its robust score-test p, the costs
+    without and with it, whether the model as given explained the fixes, the model-as-given
+    fit (``base``), the move of the heading offset and the current the test predicted and
+    the refit's (None: not known), whether the effect was ``untested`` (it did not reach
+    the test's level), every try where two were made (``tried``, with the effect the test
+    called for), the model-as-given solve's time (s) and the fleet's part (None: a fit's
+    own step)."""
+    effect: str
+    adopted: bool
+    p_value_robust: float
+    cost_before: float
+    base: BaseFit
+    cost_after: float = float("nan")
+    fixes_explained: bool = True
+    predicted_move: dict[str, float] | None = None
+    moved: dict[str, float] | None = None
+    reason: str = ""
+    untested: bool = False
+    tried: list[dict] | None = None
+    called_for: str | None = None
+    seconds_base: float | None = None
+    fleet: FleetEffect | None = None
+
+
 @dataclass
 class Result:
     """What every estimator returns.
@@ -104,8 +154,8 @@ class Result:
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
     The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
-    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``block_jackknife`` and
-    ``other_minimum``.
+    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``block_jackknife``, ``other_minimum``
+    and ``effect_step``.
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -121,6 +171,7 @@ class Result:
     gnss_noise: GnssNoise | None = None
     block_jackknife: BlockJackknife | None = None
     other_minimum: OtherMinimum | None = None
+    effect_step: EffectStep | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -217,35 +268,35 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
 ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
 
 
-def effect_step_document(ae: dict) -> dict:
+def effect_step_document(step: EffectStep) -> dict:
     """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
-    fleet's share, from a result's ``info["auto_effect"]``: the effect, whether it was
-    added (and why not), its robust p, the costs without and with it, and how far its
-    refit moved the heading offset and the current beside the move the test predicted."""
-    return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
-            "p_value_robust": float(ae["p_value_robust"]),
-            "cost_before": float(ae["cost_before"]),
-            "cost_after": float(ae.get("cost_after", float("nan"))),
-            **({"moved": {n: float(v) for n, v in ae["moved"].items()}} if "moved" in ae else {}),
-            **({"predicted_move": {n: float(v) for n, v in ae["predicted_move"].items()}}
-               if "predicted_move" in ae else {}),
-            **({"reason": ae["reason"]} if "reason" in ae else {}),
-            **({"untested": True} if ae.get("untested") else {})}
+    fleet's share, from a result's ``effect_step``: the effect, whether it was added (and
+    why not), its robust p, the costs without and with it, and how far its refit moved the
+    heading offset and the current beside the move the test predicted."""
+    return {"effect": step.effect, "adopted": bool(step.adopted),
+            "p_value_robust": float(step.p_value_robust),
+            "cost_before": float(step.cost_before),
+            "cost_after": float(step.cost_after),
+            **({"moved": {n: float(v) for n, v in step.moved.items()}}
+               if step.moved is not None else {}),
+            **({"predicted_move": {n: float(v) for n, v in step.predicted_move.items()}}
+               if step.predicted_move is not None else {}),
+            **({"reason": step.reason} if step.reason else {}),
+            **({"untested": True} if step.untested else {})}
 
 
-def without_effect_document(base: dict) -> dict:
+def without_effect_document(base: BaseFit) -> dict:
     """``auto_effect.without_effect`` of ``parameters.json`` (``aqfg fit``'s and the
-    fleet's): the heading offset and current of the model as given (``base``, the step's
-    ``info["auto_effect"]["base"]``), and each mission's under ``per_mission`` for a joint
-    fit."""
-    out: dict = {n: {"value": float(base["values"][n]),
-                     "sigma": float(base["sigma"].get(n, float("nan")))}
-                 for n in ("theta_e", "s_x", "s_y") if n in base.get("values", {})}
-    if base.get("per_mission"):
+    fleet's): the heading offset and current of the model as given (``base``, the effect
+    step's), and each mission's under ``per_mission`` for a joint fit."""
+    out: dict = {n: {"value": float(base.values[n]),
+                     "sigma": float(base.sigma.get(n, float("nan")))}
+                 for n in ("theta_e", "s_x", "s_y") if n in base.values}
+    if base.per_mission:
         out["per_mission"] = {
             m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
                 for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
-            for m, d in base["per_mission"].items()}
+            for m, d in base.per_mission.items()}
     return out
 
 
@@ -299,12 +350,12 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     st = result.info.get("sigma_structure")
     if result.mode == "batch" and st:
         doc["sigma_structure"] = sigma_structure_document(st)
-    ae = result.info.get("auto_effect")
-    if result.mode == "batch" and ae:
+    ae = result.effect_step
+    if result.mode == "batch" and ae is not None:
         # the effect the structural test named, whether the fit added it (FGSettings.
         # auto_effect), and the heading offset and current of the model as given
         doc["auto_effect"] = {**effect_step_document(ae),
-                              "without_effect": without_effect_document(ae["base"])}
+                              "without_effect": without_effect_document(ae.base)}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)

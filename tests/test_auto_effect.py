@@ -43,9 +43,10 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
     is within 0.02 m/s (and 2x closer) and the heading offset within 1 deg, each within 3
     sigma, at a cost less than half the model-as-given's."""
     _m, truth, res, given = heldout111
-    ae = res.info["auto_effect"]
-    assert ae["adopted"] and ae["effect"] == "linear_drag" and res.effects == ("linear_drag",)
-    assert ae["cost_after"] < 0.5 * ae["cost_before"]
+    ae = res.effect_step
+    assert ae is not None and ae.adopted and ae.effect == "linear_drag"
+    assert res.effects == ("linear_drag",)
+    assert ae.cost_after < 0.5 * ae.cost_before
     assert "linear_drag.c_x" in res.estimated
     e, e0 = _errors(res, truth), _errors(given, truth)
     cur, cur0 = float(np.hypot(e["s_x"], e["s_y"])), float(np.hypot(e0["s_x"], e0["s_y"]))
@@ -54,7 +55,7 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
     for n in VAR:
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
     # the record keeps the model-as-given estimates, and the warning says what was added
-    assert ae["base"]["values"]["s_x"] == given.values["s_x"]
+    assert ae.base.values["s_x"] == given.values["s_x"]
     assert any(w.startswith("added the effect linear_drag") for w in res.info["warnings"])
 
 
@@ -79,13 +80,13 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
         return res
     monkeypatch.setattr(fit_module, "_finish", finish)
     out = fit_module.adopt_effect(given, object(), [m], None, (), None, None)
-    ae = out.info["auto_effect"]
-    assert not ae["adopted"] and "by more than 3 sigma" in ae["reason"]
+    ae = out.effect_step
+    assert ae is not None and not ae.adopted and "by more than 3 sigma" in ae.reason
     assert out.values == given.values and out.effects == given.effects == ()
     assert calls[-1] == ()                    # the model as given was finished
     assert any("was not added" in w for w in out.info["warnings"])
     # the step returns its result: the fit it was given stays as it was
-    assert "auto_effect" not in given.info and given.info.get("warnings", []) == warnings
+    assert given.effect_step is None and given.info.get("warnings", []) == warnings
 
 
 def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_comes_right():
@@ -98,8 +99,8 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     m, truth = with_gnss_every(load_mission(d), 8.0), load_truth(d)
     res = fit_fg([m])
     given = fit_fg([m], settings=FGSettings(auto_effect=False))
-    ae = res.info["auto_effect"]
-    assert ae["adopted"] and res.effects == ("ground_advance",), ae
+    ae = res.effect_step
+    assert ae is not None and ae.adopted and res.effects == ("ground_advance",), ae
     e, e0 = _errors(res, truth), _errors(given, truth)
     # the model as given: its current 4-6 sandwich sigmas off; its reported sigma holds the
     # shift the proven effect would cause (the structural sigma, the sandwich having raised
@@ -109,8 +110,9 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     assert max(abs(e0[n]) / sw[n] for n in ("s_x", "s_y")) > 3.0
     assert max(abs(e0[n]) / given.sigma[n] for n in ("s_x", "s_y")) <= 3.0
     # the move is many of the model-as-given's sigmas, and about what the test predicted
-    pred = ae["predicted_move"]
-    moved = max(abs(ae["moved"][n]) for n in ("s_x", "s_y"))
+    pred, moves = ae.predicted_move, ae.moved
+    assert pred is not None and moves is not None
+    moved = max(abs(moves[n]) for n in ("s_x", "s_y"))
     assert moved > 3 * max(sw[n] for n in ("s_x", "s_y"))
     assert moved < 3 * max(pred[n] for n in ("s_x", "s_y"))
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.005
@@ -129,13 +131,13 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     d = data_path("remus-heldout-13")
     m, truth = with_gnss_every(load_mission(d), 4.0), load_truth(d)
     auto = fit_fg([m])
-    assert auto.effects == ("ground_advance",) and auto.info["auto_effect"]["untested"]
+    assert auto.effects == ("ground_advance",) and auto.effect_step is not None and auto.effect_step.untested
     e = _errors(auto, truth)
     assert max(abs(e[n]) for n in ("s_x", "s_y")) < 0.005
     for n in VAR:
         assert abs(e[n]) <= 3 * auto.sigma[n], (n, e[n], auto.sigma[n])
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
-    assert res.effects == () and "auto_effect" not in res.info
+    assert res.effects == () and res.effect_step is None
     st = res.info["sigma_structure"]
     assert st["effect"] == "ground_advance" and st["proven"] is False
     assert not res.info["structural_test"]["called_for"]
@@ -153,7 +155,7 @@ def test_a_vehicle_that_is_the_model_gets_no_effect():
     from aqfg.sim.simulator import simulate
     m, _ = simulate("asv", seed=5, duration=300.0)
     res = fit_fg([m])
-    assert res.effects == () and "auto_effect" not in res.info
+    assert res.effects == () and res.effect_step is None
 
 
 def test_cli_writes_the_step_and_params_from_carries_the_effect(tmp_path, capsys):
@@ -199,7 +201,8 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     names = ("otter-example", "otter-dev-calm-b")
     ms = [with_gnss_every(load_mission(data_path(n)), 8.0) for n in names]
     res = fit_fg(ms)
-    assert res.info["auto_effect"]["adopted"] and res.effects == ("linear_drag",)
+    assert res.effect_step is not None and res.effect_step.adopted
+    assert res.effects == ("linear_drag",)
     per = parameters_document(res)["auto_effect"]["without_effect"]["per_mission"]
     assert set(per) == set(names)
     given = fit_fg(ms, settings=FGSettings(auto_effect=False))
@@ -245,11 +248,12 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     base = dataclasses.replace(given, info={**given.info, "structural_test": st})
     monkeypatch.setattr(fit_module, "_finish", lambda res, bs, missions, model, effects: res)
     out = fit_module.adopt_effect(base, object(), [m], None, (), None, None)
-    ae = out.info["auto_effect"]
-    assert ae["adopted"] and ae["effect"] == "linear_drag" and ae["called_for"] == "wind_drag"
-    costs = {t["effect"]: t["cost_after"] for t in ae["tried"]}
+    ae = out.effect_step
+    assert ae is not None and ae.adopted and ae.effect == "linear_drag"
+    assert ae.called_for == "wind_drag" and ae.tried is not None
+    costs = {t["effect"]: t["cost_after"] for t in ae.tried}
     assert set(costs) == {"linear_drag", "wind_drag"}
-    assert costs["linear_drag"] < costs["wind_drag"] < ae["cost_before"]
+    assert costs["linear_drag"] < costs["wind_drag"] < ae.cost_before
     assert out.effects == ("linear_drag",)
     e = _errors(out, truth)
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02

@@ -74,7 +74,7 @@ def test_a_vehicle_that_is_the_model_gets_no_structural_sigma():
     m, _ = simulate("asv", seed=3, duration=400.0)
     res = fit_fg([m])
     assert "sigma_structure" not in res.info
-    assert "auto_effect" not in res.info and res.effects == ()
+    assert res.effect_step is None and res.effects == ()
 
 
 def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_misses():

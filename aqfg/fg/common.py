@@ -97,7 +97,7 @@ class FGSettings:
         heading offset or the current) fits again with that effect added (and with the
         dynamics effect of largest score statistic, if another), returning the lower-cost
         fit of those that lower the cost, are plausible and keep the heading offset and
-        current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``);
+        current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``Result.effect_step``);
         False fits the model as given.
     block_jackknife: a one-mission batch fit (:func:`aqfg.fg.fit.fit_fg`) on data too
         short for the sandwich is run again with each of 4-8 time blocks' fixes left out,

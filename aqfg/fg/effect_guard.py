@@ -15,7 +15,7 @@ from aqfg.data.mission import Mission
 from aqfg.fg.batch import ambiguity_margin
 from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
 from aqfg.model.params import difference
-from aqfg.result import OtherMinimum, Result
+from aqfg.result import BaseFit, OtherMinimum, Result
 
 
 def per_mission_copy(info: dict) -> dict | None:
@@ -69,15 +69,15 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     return dataclasses.replace(res, sigma=sigma, info=info, other_minimum=other)
 
 
-def base_record(res: Result) -> dict:
-    """``info["auto_effect"]["base"]``: the model-as-given fit's effects, values and sigmas
-    (and each mission's, for a joint fit), kept beside a fit that added an effect."""
-    return {"effects": list(res.effects),
-            "values": {n: float(res.values[n]) for n in
-                       (res.model.active_names if res.model is not None else res.values)},
-            "sigma": {n: float(v) for n, v in res.sigma.items()},
-            **({"per_mission": res.info["per_mission"]}
-               if len(res.missions) > 1 and res.info.get("per_mission") else {})}
+def base_record(res: Result) -> BaseFit:
+    """The effect step's ``base``: the model-as-given fit's effects, values and sigmas (and
+    each mission's, for a joint fit), kept beside a fit that added an effect."""
+    return BaseFit(list(res.effects),
+                   {n: float(res.values[n]) for n in
+                    (res.model.active_names if res.model is not None else res.values)},
+                   {n: float(v) for n, v in res.sigma.items()},
+                   res.info["per_mission"]
+                   if len(res.missions) > 1 and res.info.get("per_mission") else None)
 
 
 def variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:

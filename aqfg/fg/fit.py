@@ -39,7 +39,7 @@ from aqfg.fg.structural_sigma import cover_refit, structural_sigma
 from aqfg.fg.structure import structural_shift
 from aqfg.model.effects import resolve
 from aqfg.model.retrace import inertial_track
-from aqfg.result import Result
+from aqfg.result import EffectStep, Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
 
@@ -208,8 +208,8 @@ def with_inertial_tracks(res: Result, missions: Sequence[Mission], model,
 
 @dataclasses.dataclass(frozen=True)
 class EffectTry:
-    """A refit with a candidate effect (:func:`_try_effect`): its record for
-    ``info["auto_effect"]``, the refit and its solver (None where it failed), why it may
+    """A refit with a candidate effect (:func:`_try_effect`): its record (the fields of
+    :class:`aqfg.result.EffectStep` it gives), the refit and its solver (None where it failed), why it may
     not be adopted (empty: it may), and how far it moved each variable estimate,
     ``{(mission or "", name): refit - base}``."""
     rec: dict
@@ -228,8 +228,8 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     (:func:`effect_candidates`); the lower-cost result of those that explain the fixes
     better (lower cost), are plausible, and keep the heading offset and the current within
     3 sigma of ``res``'s honest sigma (which includes the effect's predicted shift);
-    otherwise ``res``, saying why. ``info["auto_effect"]`` records the step and the base
-    fit's estimates. Returns the finished fit (:func:`_finish`)."""
+    otherwise ``res``, saying why. Its ``effect_step`` records the step and the base fit's
+    estimates. Returns the finished fit (:func:`_finish`)."""
     called, picks = effect_candidates(res, bs, missions, effects)
     if not picks:
         return _finish(res, bs, missions, model, effects)
@@ -244,10 +244,10 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                           tried=next((t for t in tried if t.rec["effect"] == ss_effect), None))
     ok = [t for t in tried if not t.why]
     best = min(ok, key=lambda t: t.rec["cost_after"]) if ok else tried[0]
-    rec = _effect_record(res, tried, best, called, cost0)
-    name = best.rec["effect"]
+    step = _effect_record(res, tried, best, called, cost0)
+    name = step.effect
     if best.why:
-        refused = dataclasses.replace(res, info={**res.info, "auto_effect": rec, "warnings": [
+        refused = dataclasses.replace(res, effect_step=step, info={**res.info, "warnings": [
             *res.info.get("warnings", []),
             f"the effect {name} was not added ({best.why}): the model is fitted as given"]})
         return _finish(refused, bs, missions, model, effects)
@@ -256,13 +256,12 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                           best.bs.settings, progress)
     new = _finish(new, best.bs, missions, model, (*effects, name))
     # the batch time is both solves'
-    rec["seconds_base"] = float(res.timings.get("batch", [0.0])[0])
-    timings = {**new.timings,
-               "batch": [rec["seconds_base"] + float(new.timings.get("batch", [0.0])[0])]}
-    info = {**new.info, "auto_effect": rec,
-            "warnings": [_added_warning(res, rec, best.moved, called),
-                         *new.info.get("warnings", [])]}
-    return dataclasses.replace(new, timings=timings, info=info)
+    base_s = float(res.timings.get("batch", [0.0])[0])
+    step = dataclasses.replace(step, seconds_base=base_s)
+    timings = {**new.timings, "batch": [base_s + float(new.timings.get("batch", [0.0])[0])]}
+    info = {**new.info, "warnings": [_added_warning(res, step, best.moved, called),
+                                     *new.info.get("warnings", [])]}
+    return dataclasses.replace(new, timings=timings, info=info, effect_step=step)
 
 
 def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
@@ -296,31 +295,30 @@ def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
 
 
 def _effect_record(res: Result, tried: list[EffectTry], best: EffectTry, called: dict | None,
-                   cost0: float) -> dict:
-    """``info["auto_effect"]``: the chosen try's record, whether the fixes were explained,
-    the model-as-given fit's cost and estimates (:func:`base_record`), every try where
-    there were two, and whether the effect was adopted (else why not)."""
-    rec: dict = {**best.rec, "fixes_explained": "sigma_structure" not in res.info,
-                 "cost_before": cost0, "base": base_record(res)}
-    if len(tried) > 1:
-        assert called is not None           # two are tried only where the test calls for one
-        rec["tried"] = [{**{k: v for k, v in t.rec.items() if k != "moved"},
-                         **({"reason": t.why} if t.why else {})} for t in tried]
-        rec["called_for"] = called["effect"]
-    if called is None:
-        rec["untested"] = True
-    rec["adopted"] = not best.why
-    if best.why:
-        rec["reason"] = best.why
-    return rec
+                   cost0: float) -> EffectStep:
+    """The effect step's record: the chosen try's, whether the fixes were explained, the
+    model-as-given fit's cost and estimates (:func:`base_record`), every try where there
+    were two, and whether the effect was adopted (else why not)."""
+    r = best.rec
+    two = len(tried) > 1
+    assert called is not None or not two    # two are tried only where the test calls for one
+    return EffectStep(
+        effect=r["effect"], adopted=not best.why, p_value_robust=r["p_value_robust"],
+        cost_before=cost0, base=base_record(res), cost_after=r["cost_after"],
+        fixes_explained="sigma_structure" not in res.info,
+        predicted_move=r["predicted_move"], moved=r.get("moved"), reason=best.why,
+        untested=called is None,
+        tried=[{**{k: v for k, v in t.rec.items() if k != "moved"},
+                **({"reason": t.why} if t.why else {})} for t in tried] if two else None,
+        called_for=called["effect"] if two and called is not None else None)
 
 
-def _added_warning(res: Result, rec: dict, moved: dict[tuple[str, str], float],
+def _added_warning(res: Result, step: EffectStep, moved: dict[tuple[str, str], float],
                    called: dict | None) -> str:
-    """The warning of a fit that added the effect ``rec["effect"]`` to the model as given
+    """The warning of a fit that added the effect ``step.effect`` to the model as given
     (``res``): why that effect, the costs, and how far the heading offset and the current
     moved (the largest move over the missions)."""
-    name = rec["effect"]
+    name = step.effect
     th = [abs(d) for (_, n), d in moved.items() if n == "theta_e"]
     cur = [math.hypot(d, moved.get((m, "s_y"), 0.0)) for (m, n), d in moved.items()
            if n == "s_x"]
@@ -332,15 +330,15 @@ def _added_warning(res: Result, rec: dict, moved: dict[tuple[str, str], float],
     infl = max(res.info.get("sigma_inflation", {}).values(), default=float("nan"))
     why_this = (f"which explains the fixes best of those tried (the model as given does not "
                 f"explain them, sigma inflated {infl:.1f}x, and no effect reached the "
-                f"structural test's level: {name}'s robust p = {rec['p_value_robust']:.2g}"
+                f"structural test's level: {name}'s robust p = {step.p_value_robust:.2g}"
                 if called is None else
-                f"which the data call for (robust score test p = {rec['p_value_robust']:.2g}"
+                f"which the data call for (robust score test p = {step.p_value_robust:.2g}"
                 if name == called["effect"] else
                 f"which explains the fixes best of those tried (the data call for "
                 f"{called['effect']}, robust score test p = {called['p_value_robust']:.2g}; "
-                f"{name}'s p = {rec['p_value_robust']:.2g}")
-    return (f"added the effect {name}, {why_this}; cost {rec['cost_before']:.1f} -> "
-            f"{rec['cost_after']:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
+                f"{name}'s p = {step.p_value_robust:.2g}")
+    return (f"added the effect {name}, {why_this}; cost {step.cost_before:.1f} -> "
+            f"{step.cost_after:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
             f"--no-auto-effect fits the model as given")
 
 
