@@ -140,7 +140,8 @@ def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> s
 
 def settle(result, missions=()) -> list[str]:
     """Apply the module's rules to ``result`` in place: the accelerometer check on each
-    mission's track (a disagreement makes ``theta_e`` not determined), then a sigma of NaN
+    mission's track (``result.heading_check``; a disagreement makes ``theta_e`` not
+    determined), then a sigma of NaN
     (written ``null``) with the reason in ``info["sigma_notes"]`` for every parameter whose
     verdict is "not determined". Returns the new warnings (also appended to
     ``info["warnings"]``)."""
@@ -149,7 +150,7 @@ def settle(result, missions=()) -> list[str]:
     new: list[str] = []
     by_name = {m.name: m for m in missions}
     if "theta_e" in result.estimated:
-        checks = {}
+        checks: dict[str, HeadingCheck] = {}
         for mr in result.missions:
             m = by_name.get(mr.name)
             if m is None:
@@ -163,8 +164,8 @@ def settle(result, missions=()) -> list[str]:
                                "its thrust (a thruster's command sign or [thrusters] direction "
                                "reversed); the IMU has no accelerometer columns to tell")
                 continue
-            checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
-                               "agreement": round(chk.agreement, 3), "windows": chk.windows}
+            checks[mr.name] = HeadingCheck(round(chk.offset_deg, 2), round(chk.agreement, 3),
+                                           chk.windows)
             words = heading_finding(chk, th, mr.name)
             if words:
                 new.append(words)
@@ -173,7 +174,7 @@ def settle(result, missions=()) -> list[str]:
                                      "(a reversed thruster sign or direction?)" if flipped else
                                      "the accelerometer disagrees with the fitted heading")
         if checks:
-            info["heading_check"] = checks
+            result.heading_check = checks
     notes = info.setdefault("sigma_notes", {})
     for n in result.estimated:
         verdict, reason = _verdict(info, n)

@@ -13,6 +13,7 @@ import numpy as np
 
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
     from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.identifiability import HeadingCheck
     from aqfg.model.vehicle import Model
 
 
@@ -155,7 +156,8 @@ class Result:
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
     The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
     were weighted by, :mod:`aqfg.fg.gnss_noise`), ``block_jackknife``, ``other_minimum``
-    and ``effect_step``.
+    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
+    accelerometer's (:func:`aqfg.identifiability.settle`).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -172,6 +174,7 @@ class Result:
     block_jackknife: BlockJackknife | None = None
     other_minimum: OtherMinimum | None = None
     effect_step: EffectStep | None = None
+    heading_check: dict[str, HeadingCheck] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -360,9 +363,11 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
-    if result.info.get("heading_check"):
+    if result.heading_check:
         # the fitted heading against the accelerometer's (aqfg.identifiability)
-        doc["heading_check"] = result.info["heading_check"]
+        doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,
+                                    "windows": c.windows}
+                                for m, c in result.heading_check.items()}
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
