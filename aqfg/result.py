@@ -13,6 +13,7 @@ import numpy as np
 
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
     from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.fg.structure import StructuralShift
     from aqfg.identifiability import HeadingCheck
     from aqfg.model.vehicle import Model
 
@@ -155,8 +156,9 @@ class Result:
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
     The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
-    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``block_jackknife``, ``other_minimum``
-    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
+    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
+    test's ranking, :mod:`aqfg.fg.structure`), ``block_jackknife``, ``other_minimum`` and
+    ``effect_step``; ``heading_check`` is each mission's fitted heading against its
     accelerometer's (:func:`aqfg.identifiability.settle`).
     """
     method: str                        # "fg" or "update-error"
@@ -173,6 +175,7 @@ class Result:
     gnss_noise: GnssNoise | None = None
     block_jackknife: BlockJackknife | None = None
     other_minimum: OtherMinimum | None = None
+    structural_test: StructuralShift | None = None
     effect_step: EffectStep | None = None
     heading_check: dict[str, HeadingCheck] | None = None
 

@@ -6,7 +6,6 @@ their honest sigma is refused; the CLI writes the step and --params-from carries
 effect to an online run."""
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 
@@ -65,13 +64,14 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     refit's heading offset and current are then far outside it, so the fit keeps the
     model as given and says why."""
     m, _truth, _res, fitted = heldout111
-    st = dict(fitted.info["structural_test"])
+    st = fitted.structural_test
+    assert st is not None
     # and the moves the test predicts (which widen the guard) as small
-    st["ranked"] = [{**c, "shift": {n: 1e-3 * v for n, v in c.get("shift", {}).items()}}
-                    for c in st["ranked"]]
+    st = dataclasses.replace(st, ranked=[
+        {**c, "shift": {n: 1e-3 * v for n, v in c.get("shift", {}).items()}} for c in st.ranked])
     given = dataclasses.replace(
         fitted, sigma={n: s * 1e-3 if n in VAR else s for n, s in fitted.sigma.items()},
-        info={**fitted.info, "structural_test": st})
+        structural_test=st)
     warnings = list(given.info.get("warnings", []))
     calls = []
 
@@ -140,7 +140,7 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     assert res.effects == () and res.effect_step is None
     st = res.info["sigma_structure"]
     assert st["effect"] == "ground_advance" and st["proven"] is False
-    assert not res.info["structural_test"]["called_for"]
+    assert res.structural_test is not None and not res.structural_test.called_for
     assert any("suggest (do not prove) the effect ground_advance" in w
                for w in res.info["warnings"])
     e = _errors(res, truth)
@@ -228,7 +228,8 @@ def test_a_drift_of_the_current_is_named_but_not_added():
     from aqfg.sim.cases import simulate_case
     m, _ = simulate_case("current_drift", 1, 600.0)
     res = fit_fg([with_gnss_every(m, 8.0)])
-    named = [c["effect"] for c in res.info["structural_test"]["called_for"]]
+    assert res.structural_test is not None
+    named = [c["effect"] for c in res.structural_test.called_for]
     assert named[0] == "current_drift"
     assert not {"current_drift", "heading_drift"} & set(res.effects)
 
@@ -240,12 +241,13 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     result on `otter-heldout-111`, the fit tries both and adds the one of lower cost, the
     linear drag, and records both; the wind drag alone leaves the cost higher."""
     m, truth, _res, given = heldout111
-    st = copy.deepcopy(given.info["structural_test"])
-    ld = next(c for c in st["ranked"] if c["effect"] == "linear_drag")
-    wd = next(c for c in st["ranked"] if c["effect"] == "wind_drag")
-    st["called_for"] = [wd]
-    st["ranked"] = [ld, wd]
-    base = dataclasses.replace(given, info={**given.info, "structural_test": st})
+    st = given.structural_test
+    assert st is not None
+    ld = next(c for c in st.ranked if c["effect"] == "linear_drag")
+    wd = next(c for c in st.ranked if c["effect"] == "wind_drag")
+    # the wind drag alone called for, the linear drag first by its statistic
+    st = dataclasses.replace(st, ranked=[{**ld, "called_for": False}, {**wd, "called_for": True}])
+    base = dataclasses.replace(given, structural_test=st)
     monkeypatch.setattr(fit_module, "_finish", lambda res, bs, missions, model, effects: res)
     out = fit_module.adopt_effect(base, object(), [m], None, (), None, None)
     ae = out.effect_step

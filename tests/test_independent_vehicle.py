@@ -702,7 +702,8 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     assert "held_sway" in given.info and given.info["plausible"]
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.info["warnings"])
-    assert given.info["structural_test"]["called_for"][0]["effect"] == "linear_drag"
+    assert given.structural_test is not None
+    assert given.structural_test.called_for[0]["effect"] == "linear_drag"
     assert res.effect_step is not None and res.effect_step.adopted
     assert res.effects == ("linear_drag",)
     assert res.info["plausible"] and "k_yz" in res.estimated

@@ -104,12 +104,12 @@ def guard_estimates(res: Result, effect: str) -> dict[tuple[str, str], tuple[flo
     a REMUS 100 whose current the effect corrects by 0.015 m/s (7 of the fit's sigmas, the
     fixes explained) was refused (docs/independent-vehicle.md)."""
     est = variable_estimates(res)
-    st = res.info.get("structural_test") or {}
+    st = res.structural_test
     if (res.info.get("sigma_structure") or {}).get("effect") == effect \
-            or not st.get("suggested", True):
+            or (st is not None and not st.suggested):
         # (a test that suggests nothing predicts no move the guard should allow)
         return est
-    ranked = st.get("ranked", [])
+    ranked = st.ranked if st is not None else []
     shift: dict[str, float] = next((c.get("shift", {}) for c in ranked if c["effect"] == effect), {})
     return {(m, n): (v, float(math.hypot(s, shift.get(n, 0.0)))) for (m, n), (v, s) in est.items()}
 

@@ -222,7 +222,7 @@ class EffectTry:
 def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                  effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
     """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
-    names missing effects (``info["structural_test"]``), the fit again with the
+    names missing effects (its ``structural_test``), the fit again with the
     best-supported one of the vehicle's dynamics (not a drift of the heading offset or the
     current) added, and with the one of largest score statistic if that is another
     (:func:`effect_candidates`); the lower-cost result of those that explain the fixes
@@ -268,7 +268,7 @@ def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
                       effects: Sequence) -> tuple[dict | None, list[dict]]:
     """The effect step's candidates for the batch fit ``res`` (structural-test entries),
     at most two, and the best-supported one the test calls for (None: none is)."""
-    st = res.info.get("structural_test")
+    st = res.structural_test
     have = {getattr(e, "name", e) for e in effects}
 
     def dynamics(c: dict) -> bool:
@@ -280,9 +280,10 @@ def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
     # refit left the current 0.07 m/s off at cost 3015, where the linear drag, ranked first
     # by its statistic, fits at cost 1681 with the current 0.003 off;
     # docs/independent-vehicle.md)
-    called = next((c for c in (st or {}).get("called_for", []) if dynamics(c)), None)
+    called = next((c for c in (st.called_for if st is not None else []) if dynamics(c)), None)
     if called is not None:
-        top = next((c for c in (st or {}).get("ranked", []) if dynamics(c)), called)
+        assert st is not None
+        top = next((c for c in st.ranked if dynamics(c)), called)
         return called, [called] + ([top] if top["effect"] != called["effect"] else [])
     # the fixes not explained (the sandwich's sigma MISFIT_INFLATION times the model's)
     # and no effect reaching the test's level: the one of largest score statistic is
@@ -348,11 +349,11 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     their score statistic whatever their p-values, where the fit does not explain its
     fixes (a sigma inflated more than ``MISFIT_INFLATION`` times by the sandwich) on its
     nominal-noise solution; else none. The ranking :func:`structural_sigma` recorded
-    (``info["structural_test"]``), or the test's where it recorded none."""
+    (``structural_test``), or the test's where it recorded none."""
     infl = max(res.info.get("sigma_inflation", {}).values(), default=0.0)
     if infl <= MISFIT_INFLATION or bs.fast_solution is None or res.model is None:
         return []
-    ranked = (res.info.get("structural_test") or {}).get("ranked")
+    ranked = res.structural_test.ranked if res.structural_test is not None else None
     if ranked is None:
         fs, ev = bs.fast_solution
         sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))

@@ -38,7 +38,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     its nominal-noise solution, or the evidence's on short data, evaluation ``ev``);
     ``info["sigma_structure"]`` and a warning say which effect and how much.
     ``test_always``: the test also where the fixes are explained (for
-    :attr:`FGSettings.auto_effect`), its result in ``info["structural_test"]`` (the sigma
+    :attr:`FGSettings.auto_effect`), its result in ``structural_test`` (the sigma
     is widened only where they are not); the test's ranking is recorded there whether or
     not it suggests an effect (``suggested``)."""
     infl = res.info.get("sigma_inflation", {})
@@ -53,9 +53,9 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
     if sh is None:
         return res
-    info = {**res.info, "structural_test": sh.to_json()}
     if not misfit or not sh.suggested:
-        return dataclasses.replace(res, info=info)
+        return dataclasses.replace(res, structural_test=sh)
+    info = dict(res.info)
     sigma = dict(res.sigma)
     per = per_mission_copy(info)
     before = {n: float(sigma[n]) for n in sh.shift if n in sigma}
@@ -73,7 +73,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     info["warnings"] = [*info.get("warnings", []), w]
     if log_warnings:
         log.warning("fg: %s", w)
-    return dataclasses.replace(res, sigma=sigma, info=info)
+    return dataclasses.replace(res, sigma=sigma, info=info, structural_test=sh)
 
 
 def structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],

@@ -46,7 +46,7 @@ ALPHA = 1e-3          # Holm-adjusted robust score-test level for an effect to c
 ALPHA_SIGMA = 0.05
 
 
-@dataclass
+@dataclass(frozen=True)
 class StructuralShift:
     """The effect the data call for most (where none is ``suggested``, the one of largest
     score statistic), and the shift of each variable parameter it would cause (model

@@ -15,15 +15,17 @@ from aqfg.result import EffectStep, FleetEffect, Result
 
 def choose(results: dict[str, Result], effects: Sequence) -> dict | None:
     """The effect of the vehicle's dynamics (not a drift) that the most vehicles' structural
-    tests call for (``info["structural_test"]["called_for"]``), ties broken by the summed
+    tests call for (``structural_test.called_for``), ties broken by the summed
     score statistic: ``{"effect", "vehicles", "statistic", "p_value_robust": {vehicle: p}}``;
     None where no vehicle's test calls for one not already in ``effects``."""
     have = {getattr(e, "name", e) for e in effects}
     votes: dict[str, dict] = {}
     for v, r in results.items():
-        st = r.info.get("structural_test") or {}
-        stat = {c["effect"]: float(c.get("statistic", 0.0)) for c in st.get("ranked", [])}
-        for c in st.get("called_for", []):
+        st = r.structural_test
+        if st is None:
+            continue
+        stat = {c["effect"]: float(c.get("statistic", 0.0)) for c in st.ranked}
+        for c in st.called_for:
             e = c["effect"]
             if e in have or not dynamics_effect(e):
                 continue
