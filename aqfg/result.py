@@ -99,6 +99,47 @@ class OtherMinimum:
 
 
 @dataclass(frozen=True)
+class RefitCheck:
+    """The structural sigma checked by the fit again with its effect
+    (:func:`aqfg.fg.structural_sigma.cover_refit`): that fit's cost (None: it failed,
+    ``failed`` says why), the exact move of each variable estimate (``name``, and
+    ``mission:name`` for a joint fit) and the sigmas before they were widened to hold it,
+    or why the refit was not used (``not_used``)."""
+    effect: str
+    cost: float | None = None
+    move: dict[str, float] | None = None
+    sigma_before: dict[str, float] | None = None
+    not_used: str = ""
+    failed: str = ""
+
+    def document(self) -> dict:
+        """``parameters.json``'s ``sigma_structure.refit``."""
+        return {**({"failed": self.failed} if self.failed else {}),
+                **({"cost": float(self.cost)} if self.cost is not None else {}),
+                **({"not_used": self.not_used} if self.not_used else {}),
+                **({"move": {n: float(x) for n, x in self.move.items()}}
+                   if self.move is not None else {})}
+
+
+@dataclass(frozen=True)
+class SigmaStructure:
+    """The structural part of a batch fit's sigma (``FGSettings.structural_sigma``,
+    :mod:`aqfg.fg.structural_sigma`): the effect the data call for most (or, not
+    ``proven``, suggest), its robust score-test p, the shift of each variable parameter it
+    would cause (model units), the test's ranking (as ``StructuralShift.ranked``), the
+    sigmas before the shift was added, the warning, and the check by the refit with the
+    effect (None: not made)."""
+    effect: str
+    p_value_robust: float
+    shift: dict[str, float]
+    proven: bool
+    ranked: list[dict]
+    sigma_before: dict[str, float]
+    warning: str
+    refit: RefitCheck | None = None
+
+
+@dataclass(frozen=True)
 class BaseFit:
     """The model-as-given fit kept beside a fit whose effect step added an effect: its
     effects, values and sigmas, and each mission's estimates for a joint fit (None: one
@@ -157,7 +198,7 @@ class Result:
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
     The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
     were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
-    test's ranking, :mod:`aqfg.fg.structure`), ``block_jackknife``, ``other_minimum`` and
+    test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
     ``effect_step``; ``heading_check`` is each mission's fitted heading against its
     accelerometer's (:func:`aqfg.identifiability.settle`).
     """
@@ -176,6 +217,7 @@ class Result:
     block_jackknife: BlockJackknife | None = None
     other_minimum: OtherMinimum | None = None
     structural_test: StructuralShift | None = None
+    sigma_structure: SigmaStructure | None = None
     effect_step: EffectStep | None = None
     heading_check: dict[str, HeadingCheck] | None = None
 
@@ -353,8 +395,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # the spread of the fit without each time block's fixes, which the sigma includes
         # where larger (data too short for the sandwich; aqfg.fg.jackknife)
         doc["block_jackknife"] = jk
-    st = result.info.get("sigma_structure")
-    if result.mode == "batch" and st:
+    st = result.sigma_structure
+    if result.mode == "batch" and st is not None:
         doc["sigma_structure"] = sigma_structure_document(st)
     ae = result.effect_step
     if result.mode == "batch" and ae is not None:
@@ -376,21 +418,17 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     return doc
 
 
-def sigma_structure_document(st: dict) -> dict:
+def sigma_structure_document(st: SigmaStructure) -> dict:
     """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
     # the shift of the variable parameters the missing effect the data call for most
     # would cause, included in their sigma (FGSettings.structural_sigma)
-    out = {"effect": st["effect"], "p_value_robust": float(st["p_value_robust"]),
-           "shift": {n: float(v) for n, v in st["shift"].items()},
-           "proven": bool(st.get("proven", True)),
-           "sigma_before": {n: float(v) for n, v in st["sigma_before"].items()}}
-    rf = st.get("refit")
-    if rf:
+    out = {"effect": st.effect, "p_value_robust": float(st.p_value_robust),
+           "shift": {n: float(v) for n, v in st.shift.items()},
+           "proven": bool(st.proven),
+           "sigma_before": {n: float(v) for n, v in st.sigma_before.items()}}
+    if st.refit is not None:
         # the fit again with the effect (aqfg.fg.fit.refit_structure)
-        out["refit"] = {
-            k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict)
-                else v if isinstance(v, str) else float(v))
-            for k, v in rf.items() if k in ("cost", "move", "not_used", "failed")}
+        out["refit"] = st.refit.document()
     return out
 
 

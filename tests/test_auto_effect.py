@@ -105,8 +105,9 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     # the model as given: its current 4-6 sandwich sigmas off; its reported sigma holds the
     # shift the proven effect would cause (the structural sigma, the sandwich having raised
     # a sigma), which covers it
-    sw = given.info["sigma_structure"]["sigma_before"]
-    assert given.info["sigma_structure"]["effect"] == "ground_advance"
+    assert given.sigma_structure is not None
+    sw = given.sigma_structure.sigma_before
+    assert given.sigma_structure.effect == "ground_advance"
     assert max(abs(e0[n]) / sw[n] for n in ("s_x", "s_y")) > 3.0
     assert max(abs(e0[n]) / given.sigma[n] for n in ("s_x", "s_y")) <= 3.0
     # the move is many of the model-as-given's sigmas, and about what the test predicted
@@ -138,13 +139,13 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
         assert abs(e[n]) <= 3 * auto.sigma[n], (n, e[n], auto.sigma[n])
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
     assert res.effects == () and res.effect_step is None
-    st = res.info["sigma_structure"]
-    assert st["effect"] == "ground_advance" and st["proven"] is False
+    st = res.sigma_structure
+    assert st is not None and st.effect == "ground_advance" and st.proven is False
     assert res.structural_test is not None and not res.structural_test.called_for
     assert any("suggest (do not prove) the effect ground_advance" in w
                for w in res.info["warnings"])
     e = _errors(res, truth)
-    before = st["sigma_before"]
+    before = st.sigma_before
     assert max(abs(e[n]) / before[n] for n in ("s_x", "s_y")) > 3.0
     for n in VAR:
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
@@ -207,8 +208,10 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     assert set(per) == set(names)
     given = fit_fg(ms, settings=FGSettings(auto_effect=False))
     plain = fit_fg(ms, settings=FGSettings(structural_sigma=False))
-    shift = given.info["sigma_structure"]["shift"]
-    move = given.info["sigma_structure"].get("refit", {}).get("move", {})
+    ss = given.sigma_structure
+    assert ss is not None
+    shift = ss.shift
+    move = (ss.refit.move if ss.refit is not None else None) or {}
     for m in names:
         g, o = given.per_mission[m], plain.per_mission[m]
         for n in VAR:

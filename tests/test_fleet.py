@@ -148,13 +148,15 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
     fixed parameters and every mission's own; the same sigmas (model and inflated, within
     ``sig_rel``; the structural shift, linearised at the two solutions, within 2 %)."""
     sm = batch.info.get("sigma_model", batch.sigma)
-    st_f, st_b = (r.info.get("sigma_structure") for r in (fr_res, batch))
-    assert (st_f or {}).get("effect") == (st_b or {}).get("effect")
+    st_f, st_b = fr_res.sigma_structure, batch.sigma_structure
+    assert (st_f is None) == (st_b is None)
+    assert st_f is None or st_b is None or st_f.effect == st_b.effect
     for n in batch.estimated:
         assert abs(fr_res.values[n] - batch.values[n]) < tol * sm[n], \
             (n, fr_res.values[n], batch.values[n], sm[n])
-        if st_b and n in st_b["shift"]:
-            assert st_f["sigma_before"][n] == pytest.approx(st_b["sigma_before"][n], rel=1e-6)
+        if st_b is not None and n in st_b.shift:
+            assert st_f is not None
+            assert st_f.sigma_before[n] == pytest.approx(st_b.sigma_before[n], rel=1e-6)
             assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
             continue
         assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=sig_rel), n

@@ -89,7 +89,7 @@ class FGSettings:
     structural_sigma: the batch fit (:func:`aqfg.fg.fit.fit_fg`) widens the sigma of the
         heading offset and the current by the shift the best-supported missing effect
         would cause, where the fixes are not explained and the data call for one
-        (:mod:`aqfg.fg.structure`; ``info["sigma_structure"]``): the sandwich covers
+        (:mod:`aqfg.fg.structure`; ``Result.sigma_structure``): the sandwich covers
         the model's error that varies over time, not a bias that holds all mission.
     auto_effect: the batch fit with the default parameters (:func:`aqfg.fg.fit.fit_fg`,
         no ``estimate``) runs the structural test even where the fixes are explained, and

@@ -105,7 +105,7 @@ def guard_estimates(res: Result, effect: str) -> dict[tuple[str, str], tuple[flo
     fixes explained) was refused (docs/independent-vehicle.md)."""
     est = variable_estimates(res)
     st = res.structural_test
-    if (res.info.get("sigma_structure") or {}).get("effect") == effect \
+    if (res.sigma_structure is not None and res.sigma_structure.effect == effect) \
             or (st is not None and not st.suggested):
         # (a test that suggests nothing predicts no move the guard should allow)
         return est

@@ -178,8 +178,8 @@ def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init
         if refit:
             res = refit_structure(res, list(missions), model, effects, estimate, init,
                                   bs.settings, progress)
-            if log_warnings and "sigma_structure" in res.info:
-                log.warning("fg: %s", res.info["sigma_structure"]["warning"])
+            if log_warnings and res.sigma_structure is not None:
+                log.warning("fg: %s", res.sigma_structure.warning)
     return res, bs
 
 
@@ -239,7 +239,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
              for pick in picks]
     # the model-as-given fit's structural sigma checked by the refit with its effect, as
     # `--no-auto-effect` checks it (refit_structure): its record and a refused step's fit
-    ss_effect = (res.info.get("sigma_structure") or {}).get("effect")
+    ss_effect = res.sigma_structure.effect if res.sigma_structure is not None else None
     res = refit_structure(res, missions, model, effects, None, init, settings, progress,
                           tried=next((t for t in tried if t.rec["effect"] == ss_effect), None))
     ok = [t for t in tried if not t.why]
@@ -306,7 +306,7 @@ def _effect_record(res: Result, tried: list[EffectTry], best: EffectTry, called:
     return EffectStep(
         effect=r["effect"], adopted=not best.why, p_value_robust=r["p_value_robust"],
         cost_before=cost0, base=base_record(res), cost_after=r["cost_after"],
-        fixes_explained="sigma_structure" not in res.info,
+        fixes_explained=res.sigma_structure is None,
         predicted_move=r["predicted_move"], moved=r.get("moved"), reason=best.why,
         untested=called is None,
         tried=[{**{k: v for k, v in t.rec.items() if k != "moved"},
@@ -431,15 +431,14 @@ def refit_structure(res: Result, missions: list[Mission], model, effects: Sequen
     estimates move linearly with the effect; on a GNSS-only Otter the sway drag changed
     basin when `reverse_thrust` joined, and the current moved 0.009 m/s where 0.0007 was
     predicted (docs/independent-vehicle.md)."""
-    ss = res.info.get("sigma_structure")
+    ss = res.sigma_structure
     have = {getattr(e, "name", e) for e in effects}
-    if not ss or not ss.get("proven") or ss["effect"] in have \
-            or not dynamics_effect(ss["effect"]):
+    if ss is None or not ss.proven or ss.effect in have or not dynamics_effect(ss.effect):
         return res
-    name = ss["effect"]
+    name = ss.effect
     if tried is None:
-        pick = next((c for c in ss.get("ranked", []) if c["effect"] == name),
-                    {"effect": name, "p_value_robust": ss["p_value_robust"]})
+        pick = next((c for c in ss.ranked if c["effect"] == name),
+                    {"effect": name, "p_value_robust": ss.p_value_robust})
         tried = _try_effect(pick, variable_estimates(res), float(res.info.get("cost", np.nan)),
                             missions, model, effects, init, settings, progress, estimate)
     return cover_refit(res, tried.new, tried.why)

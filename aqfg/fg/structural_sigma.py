@@ -16,7 +16,7 @@ from aqfg.fg.effect_guard import per_mission_copy
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.structure import structural_shift
 from aqfg.model.params import difference
-from aqfg.result import Result
+from aqfg.result import RefitCheck, Result, SigmaStructure
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     widened by the shift that effect would cause
     (:func:`aqfg.fg.structure.structural_shift`, on the batch's numpy system ``fs`` at
     its nominal-noise solution, or the evidence's on short data, evaluation ``ev``);
-    ``info["sigma_structure"]`` and a warning say which effect and how much.
+    its ``sigma_structure`` and a warning say which effect and how much.
     ``test_always``: the test also where the fixes are explained (for
     :attr:`FGSettings.auto_effect`), its result in ``structural_test`` (the sigma
     is widened only where they are not); the test's ranking is recorded there whether or
@@ -69,11 +69,13 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     w = structure_warning(sh.effect, sh.proven, sh.p_robust, sh.shift)
     if per is not None:
         info["per_mission"] = per
-    info["sigma_structure"] = {**sh.to_json(), "sigma_before": before, "warning": w}
+    ss = SigmaStructure(sh.effect, sh.p_robust, dict(sh.shift), sh.proven,
+                        [dict(c) for c in sh.ranked], before, w)
     info["warnings"] = [*info.get("warnings", []), w]
     if log_warnings:
         log.warning("fg: %s", w)
-    return dataclasses.replace(res, sigma=sigma, info=info, structural_test=sh)
+    return dataclasses.replace(res, sigma=sigma, info=info, structural_test=sh,
+                               sigma_structure=ss)
 
 
 def structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],
@@ -100,24 +102,23 @@ def structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[st
 def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
     """``res`` with its variable parameters' sigmas (top level and each mission's) widened
     to hold their exact move to ``new``, the fit again with the effect of its structural
-    sigma (``info["sigma_structure"]``), where that move exceeds the first-order shift
-    they hold; used where ``new`` is plausible and lowers the cost. The record:
-    ``info["sigma_structure"]["refit"]``; the structural warning says the move."""
-    ss = dict(res.info["sigma_structure"])
-    rec: dict = {"effect": ss["effect"]}
-    ss["refit"] = rec
-    info = {**res.info, "sigma_structure": ss}
+    sigma (``sigma_structure``), where that move exceeds the first-order shift they hold;
+    used where ``new`` is plausible and lowers the cost. The record:
+    ``sigma_structure.refit``; the structural warning says the move."""
+    ss = res.sigma_structure
+    assert ss is not None
+
+    def checked(check: RefitCheck) -> Result:
+        return dataclasses.replace(res, sigma_structure=dataclasses.replace(ss, refit=check))
     if new is None:
-        rec["failed"] = why or "no solution"
-        return dataclasses.replace(res, info=info)
-    rec["cost"] = float(new.info.get("cost", np.nan))
+        return checked(RefitCheck(ss.effect, failed=why or "no solution"))
+    cost = float(new.info.get("cost", np.nan))
     if not new.info.get("plausible", True):
-        rec["not_used"] = "implausible"
-        return dataclasses.replace(res, info=info)
-    if not rec["cost"] < float(res.info.get("cost", np.nan)):
-        rec["not_used"] = "it does not lower the cost"
-        return dataclasses.replace(res, info=info)
-    first = ss.get("shift", {})
+        return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
+    if not cost < float(res.info.get("cost", np.nan)):
+        return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))
+    info = dict(res.info)
+    first = ss.shift
     names: list[str] = [n for n in ("theta_e", "s_x", "s_y")
                         if n in res.sigma and n in new.values]
     move: dict[str, float] = {n: abs(difference(n, new.values[n], res.values[n])) for n in names}
@@ -135,12 +136,12 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
                 move[f"{m}:{n}"] = d
     if per is not None:
         info["per_mission"] = per
-    rec.update(move=move, sigma_before=before)
-    w = structure_warning(ss["effect"], True, float(ss["p_value_robust"]), first,
+    w = structure_warning(ss.effect, True, float(ss.p_value_robust), first,
                           moved={n: move[n] for n in names})
-    info["warnings"] = [w if x == ss.get("warning") else x for x in info.get("warnings", [])]
-    ss["warning"] = w
-    return dataclasses.replace(res, sigma=sigma, info=info)
+    info["warnings"] = [w if x == ss.warning else x for x in info.get("warnings", [])]
+    checked_ss = dataclasses.replace(ss, refit=RefitCheck(ss.effect, cost, move, before),
+                                     warning=w)
+    return dataclasses.replace(res, sigma=sigma, info=info, sigma_structure=checked_ss)
 
 
 def _cover(sigma: float, move: float, first: float) -> float:

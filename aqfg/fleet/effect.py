@@ -84,8 +84,8 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
         "aqfg fleet --no-auto-effect (FGSettings(auto_effect=False)) fits the model as given")
     fleet = FleetEffect(list(pick["vehicles"]), cost_before, cost_after, message)
     for v, r in before.items():
-        st = r.info.get("sigma_structure") or {}
-        if after is not None and st.get("effect") == name and st.get("proven"):
+        st = r.sigma_structure
+        if after is not None and st is not None and st.effect == name and st.proven:
             # the model-as-given fit's structural sigma checked by the refit with its
             # effect, as aqfg fit's effect step does (aqfg.fg.fit.refit_structure)
             r = before[v] = cover_refit(r, after[v])
@@ -94,7 +94,7 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
                           cost_before=float(r.info.get("cost", math.nan)), base=base_record(r),
                           cost_after=(float(after[v].info.get("cost", math.nan))
                                       if after is not None else math.nan),
-                          fixes_explained="sigma_structure" not in r.info, reason=why,
+                          fixes_explained=r.sigma_structure is None, reason=why,
                           fleet=fleet)
         if why:
             before[v] = dataclasses.replace(r, effect_step=step, info={
