@@ -172,9 +172,8 @@ def _mission_excitation(result, new: list[str]) -> None:
 def _heading_checks(result, missions, new: list[str]) -> None:
     """The accelerometer check of each mission's track (:func:`settle`)."""
     from aqfg.model.params import INDEX
-    info = result.info
     by_name = {m.name: m for m in missions}
-    checks = {}
+    checks: dict[str, HeadingCheck] = {}
     for i, mr in enumerate(result.missions):
         m = by_name.get(mr.name)
         if m is None:
@@ -188,8 +187,8 @@ def _heading_checks(result, missions, new: list[str]) -> None:
                            "its thrust (a thruster's command sign or [thrusters] direction "
                            "reversed); the IMU has no accelerometer columns to tell")
             continue
-        checks[mr.name] = {"offset_deg": round(chk.offset_deg, 2),
-                           "agreement": round(chk.agreement, 3), "windows": chk.windows}
+        checks[mr.name] = HeadingCheck(round(chk.offset_deg, 2), round(chk.agreement, 3),
+                                       chk.windows)
         words = heading_finding(chk, th, mr.name)
         if not words:
             continue
@@ -200,7 +199,7 @@ def _heading_checks(result, missions, new: list[str]) -> None:
         # a joint fit's heading offset is each mission's own: only this mission's
         _mark(result, i, "theta_e", reason)
     if checks:
-        info["heading_check"] = checks
+        result.heading_check = checks
 
 
 def settle(result, missions=()) -> list[str]:

@@ -12,6 +12,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
+    from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.fg.structure import StructuralShift
+    from aqfg.identifiability import HeadingCheck
     from aqfg.model.vehicle import Model
 
 
@@ -63,6 +66,129 @@ class Estimate:
     sigma: float = float("nan")
 
 
+@dataclass(frozen=True)
+class BlockJackknife:
+    """The block jackknife of a short batch fit (:mod:`aqfg.fg.jackknife`): how many time
+    blocks were left out one at a time, their length (s), the jackknife's sigma of each
+    estimated parameter and the former sigma of those it widened; or why it failed
+    (``failed``: the first refit's error, the sigmas left as they were)."""
+    blocks: int
+    block_s: float = float("nan")
+    sigma: dict[str, float] = field(default_factory=dict)
+    sigma_before: dict[str, float] = field(default_factory=dict)
+    failed: str = ""
+
+    def document(self) -> dict | None:
+        """``parameters.json``'s ``block_jackknife`` (None where the jackknife failed)."""
+        if self.failed:
+            return None
+        return {"blocks": int(self.blocks), "block_s": float(self.block_s),
+                "sigma": {n: float(v) for n, v in self.sigma.items()},
+                "sigma_before": {n: float(v) for n, v in self.sigma_before.items()}}
+
+
+@dataclass(frozen=True)
+class OtherMinimum:
+    """Other local minima of a refit that explain the fixes as well as the one reported
+    (:func:`aqfg.fg.effect_guard.widen_by_other_minimum`): their costs, the largest
+    difference of each parameter from the one reported, and the sigmas before that
+    difference was added."""
+    cost: list[float]
+    difference: dict[str, float]
+    sigma_before: dict[str, float]
+
+
+@dataclass(frozen=True)
+class RefitCheck:
+    """The structural sigma checked by the fit again with its effect
+    (:func:`aqfg.fg.structural_sigma.cover_refit`): that fit's cost (None: it failed,
+    ``failed`` says why), the exact move of each variable estimate (``name``, and
+    ``mission:name`` for a joint fit) and the sigmas before they were widened to hold it,
+    or why the refit was not used (``not_used``)."""
+    effect: str
+    cost: float | None = None
+    move: dict[str, float] | None = None
+    sigma_before: dict[str, float] | None = None
+    not_used: str = ""
+    failed: str = ""
+
+    def document(self) -> dict:
+        """``parameters.json``'s ``sigma_structure.refit``."""
+        return {**({"failed": self.failed} if self.failed else {}),
+                **({"cost": float(self.cost)} if self.cost is not None else {}),
+                **({"not_used": self.not_used} if self.not_used else {}),
+                **({"move": {n: float(x) for n, x in self.move.items()}}
+                   if self.move is not None else {})}
+
+
+@dataclass(frozen=True)
+class SigmaStructure:
+    """The structural part of a batch fit's sigma (``FGSettings.structural_sigma``,
+    :mod:`aqfg.fg.structural_sigma`): the effect the data call for most (or, not
+    ``proven``, suggest), its robust score-test p, the shift of each variable parameter it
+    would cause (model units), the test's ranking (as ``StructuralShift.ranked``), the
+    sigmas before the shift was added, the warning, and the check by the refit with the
+    effect (None: not made)."""
+    effect: str
+    p_value_robust: float
+    shift: dict[str, float]
+    proven: bool
+    ranked: list[dict]
+    sigma_before: dict[str, float]
+    warning: str
+    refit: RefitCheck | None = None
+
+
+@dataclass(frozen=True)
+class BaseFit:
+    """The model-as-given fit kept beside a fit whose effect step added an effect: its
+    effects, values and sigmas, and each mission's estimates for a joint fit (None: one
+    mission), as ``info["per_mission"]``."""
+    effects: list[str]
+    values: dict[str, float]
+    sigma: dict[str, float]
+    per_mission: dict | None = None
+
+
+@dataclass(frozen=True)
+class FleetEffect:
+    """The fleet's part of its effect step (:mod:`aqfg.fleet.effect`): the vehicles whose
+    tests called for the effect, the fleet's cost without and with it, and the step's
+    message (the same in every vehicle's warnings)."""
+    vehicles_calling: list[str]
+    cost_before: float
+    cost_after: float
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class EffectStep:
+    """The effect step of a batch fit (``FGSettings.auto_effect``:
+    :func:`aqfg.fg.fit.adopt_effect`, the fleet's :mod:`aqfg.fleet.effect`): the effect
+    tried, whether it was added (else ``reason``), its robust score-test p, the costs
+    without and with it, whether the model as given explained the fixes, the model-as-given
+    fit (``base``), the move of the heading offset and the current the test predicted and
+    the refit's (None: not known), whether the effect was ``untested`` (it did not reach
+    the test's level), every try where two were made (``tried``, with the effect the test
+    called for), the model-as-given solve's time (s) and the fleet's part (None: a fit's
+    own step)."""
+    effect: str
+    adopted: bool
+    p_value_robust: float
+    cost_before: float
+    base: BaseFit
+    cost_after: float = float("nan")
+    fixes_explained: bool = True
+    predicted_move: dict[str, float] | None = None
+    moved: dict[str, float] | None = None
+    reason: str = ""
+    untested: bool = False
+    tried: list[dict] | None = None
+    called_for: str | None = None
+    seconds_base: float | None = None
+    fleet: FleetEffect | None = None
+
+
 @dataclass
 class Result:
     """What every estimator returns.
@@ -70,6 +196,11 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
+    The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
+    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
+    test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
+    ``effect_step``; ``heading_check`` is each mission's fitted heading against its
+    accelerometer's (:func:`aqfg.identifiability.settle`).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -82,6 +213,13 @@ class Result:
     info: dict = field(default_factory=dict)
     effects: tuple[str, ...] = ()
     model: Model | None = None         # the model used
+    gnss_noise: GnssNoise | None = None
+    block_jackknife: BlockJackknife | None = None
+    other_minimum: OtherMinimum | None = None
+    structural_test: StructuralShift | None = None
+    sigma_structure: SigmaStructure | None = None
+    effect_step: EffectStep | None = None
+    heading_check: dict[str, HeadingCheck] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -178,35 +316,35 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
 ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
 
 
-def effect_step_document(ae: dict) -> dict:
+def effect_step_document(step: EffectStep) -> dict:
     """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
-    fleet's share, from a result's ``info["auto_effect"]``: the effect, whether it was
-    added (and why not), its robust p, the costs without and with it, and how far its
-    refit moved the heading offset and the current beside the move the test predicted."""
-    return {"effect": ae["effect"], "adopted": bool(ae["adopted"]),
-            "p_value_robust": float(ae["p_value_robust"]),
-            "cost_before": float(ae["cost_before"]),
-            "cost_after": float(ae.get("cost_after", float("nan"))),
-            **({"moved": {n: float(v) for n, v in ae["moved"].items()}} if "moved" in ae else {}),
-            **({"predicted_move": {n: float(v) for n, v in ae["predicted_move"].items()}}
-               if "predicted_move" in ae else {}),
-            **({"reason": ae["reason"]} if "reason" in ae else {}),
-            **({"untested": True} if ae.get("untested") else {})}
+    fleet's share, from a result's ``effect_step``: the effect, whether it was added (and
+    why not), its robust p, the costs without and with it, and how far its refit moved the
+    heading offset and the current beside the move the test predicted."""
+    return {"effect": step.effect, "adopted": bool(step.adopted),
+            "p_value_robust": float(step.p_value_robust),
+            "cost_before": float(step.cost_before),
+            "cost_after": float(step.cost_after),
+            **({"moved": {n: float(v) for n, v in step.moved.items()}}
+               if step.moved is not None else {}),
+            **({"predicted_move": {n: float(v) for n, v in step.predicted_move.items()}}
+               if step.predicted_move is not None else {}),
+            **({"reason": step.reason} if step.reason else {}),
+            **({"untested": True} if step.untested else {})}
 
 
-def without_effect_document(base: dict) -> dict:
+def without_effect_document(base: BaseFit) -> dict:
     """``auto_effect.without_effect`` of ``parameters.json`` (``aqfg fit``'s and the
-    fleet's): the heading offset and current of the model as given (``base``, the step's
-    ``info["auto_effect"]["base"]``), and each mission's under ``per_mission`` for a joint
-    fit."""
-    out: dict = {n: {"value": float(base["values"][n]),
-                     "sigma": float(base["sigma"].get(n, float("nan")))}
-                 for n in ("theta_e", "s_x", "s_y") if n in base.get("values", {})}
-    if base.get("per_mission"):
+    fleet's): the heading offset and current of the model as given (``base``, the effect
+    step's), and each mission's under ``per_mission`` for a joint fit."""
+    out: dict = {n: {"value": float(base.values[n]),
+                     "sigma": float(base.sigma.get(n, float("nan")))}
+                 for n in ("theta_e", "s_x", "s_y") if n in base.values}
+    if base.per_mission:
         out["per_mission"] = {
             m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
                 for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
-            for m, d in base["per_mission"].items()}
+            for m, d in base.per_mission.items()}
     return out
 
 
@@ -243,60 +381,54 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     dr = result.info.get("dead_reckoning")
     if dr and dr.get("segments"):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
-    gn = result.info.get("gnss_noise")
-    if gn:
+    if result.gnss_noise is not None:
         # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
         # (aqfg.fg.gnss_noise)
-        doc["gnss_noise"] = dict(gn)
+        doc["gnss_noise"] = result.gnss_noise.document()
     tq = result.info.get("track_noise_scale")
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with
         # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
-    jk = result.info.get("block_jackknife")
-    if result.mode == "batch" and jk and "sigma" in jk:
+    jk = result.block_jackknife.document() if result.block_jackknife is not None else None
+    if result.mode == "batch" and jk:
         # the spread of the fit without each time block's fixes, which the sigma includes
         # where larger (data too short for the sandwich; aqfg.fg.jackknife)
-        doc["block_jackknife"] = {"blocks": int(jk["blocks"]), "block_s": float(jk["block_s"]),
-                                  "sigma": {n: float(v) for n, v in jk["sigma"].items()},
-                                  "sigma_before": {n: float(v)
-                                                   for n, v in jk["sigma_before"].items()}}
-    st = result.info.get("sigma_structure")
-    if result.mode == "batch" and st:
+        doc["block_jackknife"] = jk
+    st = result.sigma_structure
+    if result.mode == "batch" and st is not None:
         doc["sigma_structure"] = sigma_structure_document(st)
-    ae = result.info.get("auto_effect")
-    if result.mode == "batch" and ae:
+    ae = result.effect_step
+    if result.mode == "batch" and ae is not None:
         # the effect the structural test named, whether the fit added it (FGSettings.
         # auto_effect), and the heading offset and current of the model as given
         doc["auto_effect"] = {**effect_step_document(ae),
-                              "without_effect": without_effect_document(ae["base"])}
+                              "without_effect": without_effect_document(ae.base)}
     if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
-    if result.info.get("heading_check"):
+    if result.heading_check:
         # the fitted heading against the accelerometer's (aqfg.identifiability)
-        doc["heading_check"] = result.info["heading_check"]
+        doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,
+                                    "windows": c.windows}
+                                for m, c in result.heading_check.items()}
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
 
 
-def sigma_structure_document(st: dict) -> dict:
+def sigma_structure_document(st: SigmaStructure) -> dict:
     """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
     # the shift of the variable parameters the missing effect the data call for most
     # would cause, included in their sigma (FGSettings.structural_sigma)
-    out = {"effect": st["effect"], "p_value_robust": float(st["p_value_robust"]),
-           "shift": {n: float(v) for n, v in st["shift"].items()},
-           "proven": bool(st.get("proven", True)),
-           "sigma_before": {n: float(v) for n, v in st["sigma_before"].items()}}
-    rf = st.get("refit")
-    if rf:
+    out = {"effect": st.effect, "p_value_robust": float(st.p_value_robust),
+           "shift": {n: float(v) for n, v in st.shift.items()},
+           "proven": bool(st.proven),
+           "sigma_before": {n: float(v) for n, v in st.sigma_before.items()}}
+    if st.refit is not None:
         # the fit again with the effect (aqfg.fg.fit.refit_structure)
-        out["refit"] = {
-            k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict)
-                else v if isinstance(v, str) else float(v))
-            for k, v in rf.items() if k in ("cost", "move", "not_used", "failed")}
+        out["refit"] = st.refit.document()
     return out
 
 

@@ -53,9 +53,10 @@ def fits(m, params: dict, t_mean: float) -> dict:
     t1 = time.perf_counter()
     g = fit_fg([m], settings=FGSettings(auto_effect=False))
     t2 = time.perf_counter()
-    ae = r.info.get("auto_effect") or {}
-    return {"added": ae.get("effect") if ae.get("adopted") else None,
-            "refused": ae.get("reason"), "auto": errors(r, params, t_mean),
+    ae = r.effect_step
+    return {"added": ae.effect if ae is not None and ae.adopted else None,
+            "refused": (ae.reason or None) if ae is not None else None,
+            "auto": errors(r, params, t_mean),
             "given": errors(g, params, t_mean), "t_auto": t1 - t0, "t_given": t2 - t1}
 
 

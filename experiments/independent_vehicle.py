@@ -91,8 +91,8 @@ def batch_row(method: str, m, truth, effects=(), settings=None) -> dict:
     return {"theta_err": e_th, "cur_err": float(np.hypot(*e_s)), "z_max": float(np.nanmax(z)),
             "rmse": track_rmse(mr.track, truth), "inertial": track_rmse(inert, truth),
             "dr60": dead_reckoning_error(r.model, m, mr.p, truth), "seconds": dt,
-            "added": (r.info.get("auto_effect") or {}).get("effect")
-            if (r.info.get("auto_effect") or {}).get("adopted") else None}
+            "added": r.effect_step.effect
+            if r.effect_step is not None and r.effect_step.adopted else None}
 
 
 def online_row(method: str, m, truth, init: dict, effects: tuple = ()) -> dict:

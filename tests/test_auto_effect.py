@@ -6,12 +6,11 @@ their honest sigma is refused; the CLI writes the step and --params-from carries
 effect to an online run."""
 from __future__ import annotations
 
-import copy
+import dataclasses
 import json
 
 import numpy as np
 import pytest
-
 from conftest import data_path
 
 from aqfg.cli import main
@@ -19,6 +18,7 @@ from aqfg.data import load_mission, load_truth
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg import FGSettings, fit_fg
 from aqfg.fg import fit as fit_module
+from aqfg.fg.effect_guard import widen_by_other_minimum
 
 VAR = ("theta_e", "s_x", "s_y")
 
@@ -42,9 +42,10 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
     is within 0.02 m/s (and 2x closer) and the heading offset within 1 deg, each within 3
     sigma, at a cost less than half the model-as-given's."""
     _m, truth, res, given = heldout111
-    ae = res.info["auto_effect"]
-    assert ae["adopted"] and ae["effect"] == "linear_drag" and res.effects == ("linear_drag",)
-    assert ae["cost_after"] < 0.5 * ae["cost_before"]
+    ae = res.effect_step
+    assert ae is not None and ae.adopted and ae.effect == "linear_drag"
+    assert res.effects == ("linear_drag",)
+    assert ae.cost_after < 0.5 * ae.cost_before
     assert "linear_drag.c_x" in res.estimated
     e, e0 = _errors(res, truth), _errors(given, truth)
     cur, cur0 = float(np.hypot(e["s_x"], e["s_y"])), float(np.hypot(e0["s_x"], e0["s_y"]))
@@ -53,7 +54,7 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
     for n in VAR:
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
     # the record keeps the model-as-given estimates, and the warning says what was added
-    assert ae["base"]["values"]["s_x"] == given.values["s_x"]
+    assert ae.base.values["s_x"] == given.values["s_x"]
     assert any(w.startswith("added the effect linear_drag") for w in res.info["warnings"])
 
 
@@ -63,15 +64,15 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     refit's heading offset and current are then far outside it, so the fit keeps the
     model as given and says why."""
     m, _truth, _res, fitted = heldout111
-    given = copy.copy(fitted)                 # the fixture's result stays as it was
-    given.sigma, given.info = dict(fitted.sigma), dict(fitted.info)
-    given.info["warnings"] = list(fitted.info.get("warnings", []))
-    given.info["structural_test"] = st = dict(fitted.info["structural_test"])
-    for n in VAR:
-        given.sigma[n] *= 1e-3
+    st = fitted.structural_test
+    assert st is not None
     # and the moves the test predicts (which widen the guard) as small
-    st["ranked"] = [{**c, "shift": {n: 1e-3 * v for n, v in c.get("shift", {}).items()}}
-                    for c in st["ranked"]]
+    st = dataclasses.replace(st, ranked=[
+        {**c, "shift": {n: 1e-3 * v for n, v in c.get("shift", {}).items()}} for c in st.ranked])
+    given = dataclasses.replace(
+        fitted, sigma={n: s * 1e-3 if n in VAR else s for n, s in fitted.sigma.items()},
+        structural_test=st)
+    warnings = list(given.info.get("warnings", []))
     calls = []
 
     def finish(res, bs, missions, model, effects):    # completes the solve it is given
@@ -79,10 +80,13 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
         return res
     monkeypatch.setattr(fit_module, "_finish", finish)
     out = fit_module.adopt_effect(given, object(), [m], None, (), None, None)
-    ae = out.info["auto_effect"]
-    assert out is given and not ae["adopted"] and "by more than 3 sigma" in ae["reason"]
+    ae = out.effect_step
+    assert ae is not None and not ae.adopted and "by more than 3 sigma" in ae.reason
+    assert out.values == given.values and out.effects == given.effects == ()
     assert calls[-1] == ()                    # the model as given was finished
     assert any("was not added" in w for w in out.info["warnings"])
+    # the step returns its result: the fit it was given stays as it was
+    assert given.effect_step is None and given.info.get("warnings", []) == warnings
 
 
 def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_comes_right():
@@ -95,19 +99,21 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     m, truth = with_gnss_every(load_mission(d), 8.0), load_truth(d)
     res = fit_fg([m])
     given = fit_fg([m], settings=FGSettings(auto_effect=False))
-    ae = res.info["auto_effect"]
-    assert ae["adopted"] and res.effects == ("ground_advance",), ae
+    ae = res.effect_step
+    assert ae is not None and ae.adopted and res.effects == ("ground_advance",), ae
     e, e0 = _errors(res, truth), _errors(given, truth)
     # the model as given: its current 4-6 sandwich sigmas off; its reported sigma holds the
     # shift the proven effect would cause (the structural sigma, the sandwich having raised
     # a sigma), which covers it
-    sw = given.info["sigma_structure"]["sigma_before"]
-    assert given.info["sigma_structure"]["effect"] == "ground_advance"
+    assert given.sigma_structure is not None
+    sw = given.sigma_structure.sigma_before
+    assert given.sigma_structure.effect == "ground_advance"
     assert max(abs(e0[n]) / sw[n] for n in ("s_x", "s_y")) > 3.0
     assert max(abs(e0[n]) / given.sigma[n] for n in ("s_x", "s_y")) <= 3.0
     # the move is many of the model-as-given's sigmas, and about what the test predicted
-    pred = ae["predicted_move"]
-    moved = max(abs(ae["moved"][n]) for n in ("s_x", "s_y"))
+    pred, moves = ae.predicted_move, ae.moved
+    assert pred is not None and moves is not None
+    moved = max(abs(moves[n]) for n in ("s_x", "s_y"))
     assert moved > 3 * max(sw[n] for n in ("s_x", "s_y"))
     assert moved < 3 * max(pred[n] for n in ("s_x", "s_y"))
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.005
@@ -126,20 +132,20 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     d = data_path("remus-heldout-13")
     m, truth = with_gnss_every(load_mission(d), 4.0), load_truth(d)
     auto = fit_fg([m])
-    assert auto.effects == ("ground_advance",) and auto.info["auto_effect"]["untested"]
+    assert auto.effects == ("ground_advance",) and auto.effect_step is not None and auto.effect_step.untested
     e = _errors(auto, truth)
     assert max(abs(e[n]) for n in ("s_x", "s_y")) < 0.005
     for n in VAR:
         assert abs(e[n]) <= 3 * auto.sigma[n], (n, e[n], auto.sigma[n])
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
-    assert res.effects == () and "auto_effect" not in res.info
-    st = res.info["sigma_structure"]
-    assert st["effect"] == "ground_advance" and st["proven"] is False
-    assert not res.info["structural_test"]["called_for"]
+    assert res.effects == () and res.effect_step is None
+    st = res.sigma_structure
+    assert st is not None and st.effect == "ground_advance" and st.proven is False
+    assert res.structural_test is not None and not res.structural_test.called_for
     assert any("suggest (do not prove) the effect ground_advance" in w
                for w in res.info["warnings"])
     e = _errors(res, truth)
-    before = st["sigma_before"]
+    before = st.sigma_before
     assert max(abs(e[n]) / before[n] for n in ("s_x", "s_y")) > 3.0
     for n in VAR:
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
@@ -150,7 +156,7 @@ def test_a_vehicle_that_is_the_model_gets_no_effect():
     from aqfg.sim.simulator import simulate
     m, _ = simulate("asv", seed=5, duration=300.0)
     res = fit_fg([m])
-    assert res.effects == () and "auto_effect" not in res.info
+    assert res.effects == () and res.effect_step is None
 
 
 def test_cli_writes_the_step_and_params_from_carries_the_effect(tmp_path, capsys):
@@ -196,13 +202,16 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     names = ("otter-example", "otter-dev-calm-b")
     ms = [with_gnss_every(load_mission(data_path(n)), 8.0) for n in names]
     res = fit_fg(ms)
-    assert res.info["auto_effect"]["adopted"] and res.effects == ("linear_drag",)
+    assert res.effect_step is not None and res.effect_step.adopted
+    assert res.effects == ("linear_drag",)
     per = parameters_document(res)["auto_effect"]["without_effect"]["per_mission"]
     assert set(per) == set(names)
     given = fit_fg(ms, settings=FGSettings(auto_effect=False))
     plain = fit_fg(ms, settings=FGSettings(structural_sigma=False))
-    shift = given.info["sigma_structure"]["shift"]
-    move = given.info["sigma_structure"].get("refit", {}).get("move", {})
+    ss = given.sigma_structure
+    assert ss is not None
+    shift = ss.shift
+    move = (ss.refit.move if ss.refit is not None else None) or {}
     for m in names:
         g, o = given.per_mission[m], plain.per_mission[m]
         for n in VAR:
@@ -222,7 +231,8 @@ def test_a_drift_of_the_current_is_named_but_not_added():
     from aqfg.sim.cases import simulate_case
     m, _ = simulate_case("current_drift", 1, 600.0)
     res = fit_fg([with_gnss_every(m, 8.0)])
-    named = [c["effect"] for c in res.info["structural_test"]["called_for"]]
+    assert res.structural_test is not None
+    named = [c["effect"] for c in res.structural_test.called_for]
     assert named[0] == "current_drift"
     assert not {"current_drift", "heading_drift"} & set(res.effects)
 
@@ -234,22 +244,21 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     result on `otter-heldout-111`, the fit tries both and adds the one of lower cost, the
     linear drag, and records both; the wind drag alone leaves the cost higher."""
     m, truth, _res, given = heldout111
-    st = copy.deepcopy(given.info["structural_test"])
-    ld = next(c for c in st["ranked"] if c["effect"] == "linear_drag")
-    wd = next(c for c in st["ranked"] if c["effect"] == "wind_drag")
-    st["called_for"] = [wd]
-    st["ranked"] = [ld, wd]
-    base = copy.copy(given)
-    base.info = {**given.info, "structural_test": st,
-                 "warnings": list(given.info.get("warnings", []))}
-    base.sigma = dict(given.sigma)
+    st = given.structural_test
+    assert st is not None
+    ld = next(c for c in st.ranked if c["effect"] == "linear_drag")
+    wd = next(c for c in st.ranked if c["effect"] == "wind_drag")
+    # the wind drag alone called for, the linear drag first by its statistic
+    st = dataclasses.replace(st, ranked=[{**ld, "called_for": False}, {**wd, "called_for": True}])
+    base = dataclasses.replace(given, structural_test=st)
     monkeypatch.setattr(fit_module, "_finish", lambda res, bs, missions, model, effects: res)
     out = fit_module.adopt_effect(base, object(), [m], None, (), None, None)
-    ae = out.info["auto_effect"]
-    assert ae["adopted"] and ae["effect"] == "linear_drag" and ae["called_for"] == "wind_drag"
-    costs = {t["effect"]: t["cost_after"] for t in ae["tried"]}
+    ae = out.effect_step
+    assert ae is not None and ae.adopted and ae.effect == "linear_drag"
+    assert ae.called_for == "wind_drag" and ae.tried is not None
+    costs = {t["effect"]: t["cost_after"] for t in ae.tried}
     assert set(costs) == {"linear_drag", "wind_drag"}
-    assert costs["linear_drag"] < costs["wind_drag"] < ae["cost_before"]
+    assert costs["linear_drag"] < costs["wind_drag"] < ae.cost_before
     assert out.effects == ("linear_drag",)
     e = _errors(out, truth)
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02
@@ -270,21 +279,23 @@ def test_a_second_minimum_as_good_widens_the_sigma():
         r.info = {"cost": cost, "per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
                                                       "s_x": {"value": sx, "sigma": 0.005}}}}
         return r
-    chosen = res(1080.2, -1.1748, 0.0196, 1.388)
-    fit_module._widen_by_other_minimum(chosen, [res(1084.6, -1.1723, 0.0084, 1.30)])
+    given = res(1080.2, -1.1748, 0.0196, 1.388)
+    chosen = widen_by_other_minimum(given, [res(1084.6, -1.1723, 0.0084, 1.30)])
     assert chosen.sigma["s_x"] == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.sigma["k"] == pytest.approx(np.hypot(0.06, 0.088))
     assert chosen.info["per_mission"]["a"]["s_x"]["sigma"] == pytest.approx(np.hypot(0.005, 0.0112))
-    assert chosen.info["other_minimum"]["cost"] == [1084.6]
+    assert chosen.other_minimum is not None and chosen.other_minimum.cost == [1084.6]
+    # (the widened result is a new one: the fit it widens stays as it was)
+    assert given.sigma["s_x"] == 0.005 and given.info["per_mission"]["a"]["s_x"]["sigma"] == 0.005
     far = res(1080.2, -1.1748, 0.0196, 1.388)
-    fit_module._widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
-    assert far.sigma["s_x"] == 0.005 and "other_minimum" not in far.info
+    out = widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
+    assert out.sigma["s_x"] == 0.005 and out.other_minimum is None
 
 
 def test_an_untested_effect_pays_for_its_parameters():
     """BIC: half the effect's parameter count times log n, n the fix residuals (GNSS and
     USBL two each, depth one)."""
-    from aqfg.fg.fit import bic_cost, n_fix_residuals
+    from aqfg.fg.effect_guard import bic_cost, n_fix_residuals
     m = with_gnss_every(load_mission(data_path("remus-heldout-13")), 4.0)
     n = 2 * len(m.gnss.t) + 2 * len(m.usbl.t) + (len(m.depth.t) if m.depth is not None else 0)
     assert n_fix_residuals([m]) == n and n_fix_residuals([m, m]) == 2 * n

@@ -20,10 +20,7 @@ EXCEPTIONS: dict[str, str] = {
     "aqfg/diagnose/workflow.py:diagnose_step": "one diagnosis pass end to end; to split into steps",
     "aqfg/diagnose/heldout.py:heldout_innovations": "held-out innovations of every sensor kind",
     "aqfg/diagnose/linearise.py:linear_system": "the diagnosis' linear system, one block per factor kind",
-    "aqfg/diagnose/structure.py:structural_shift": "the structural score test and its ranking",
-    "aqfg/fg/fit.py": "fit_fg's pipeline: the effect step and the jackknife beside it; to "
-                      "split by step",
-    "aqfg/fg/fit.py:adopt_effect": "the effect step's guards, in one place",
+    "aqfg/fg/structure.py:structural_shift": "the structural score test and its ranking",
     "aqfg/model/effects.py": "the built-in catalogue, one class per effect; to split by term kind",
 }
 
@@ -99,6 +96,30 @@ def test_no_import_cycles():
         if m not in state:
             visit(m, [m])
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_fg_never_imports_diagnose():
+    """The factor graph is below the diagnosis: no module under ``aqfg/fg`` imports
+    ``aqfg.diagnose`` or anything in it, at any level (inside functions and under
+    ``if TYPE_CHECKING:`` included)."""
+    up = []
+    for p, rel in _modules():
+        if not rel.startswith("aqfg/fg/"):
+            continue
+        for n in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if not isinstance(n, (ast.Import, ast.ImportFrom)):
+                continue
+            if isinstance(n, ast.Import):
+                names = [a.name for a in n.names]
+            else:                                   # relative imports resolved from ``rel``
+                base = ".".join(rel[:-3].split("/")[:len(rel.split("/")) - n.level]) \
+                    if n.level else ""
+                mod = ".".join(x for x in (base, n.module or "") if x)
+                names = [mod, *(f"{mod}.{a.name}" for a in n.names)]
+            hit = [m for m in names if m == "aqfg.diagnose" or m.startswith("aqfg.diagnose.")]
+            if hit:
+                up.append(f"{rel}:{n.lineno} imports {hit[0]}")
+    assert not up, "; ".join(up)
 
 
 def test_the_checks_see_what_they_check():

@@ -48,8 +48,9 @@ def test_on_the_otter_the_refined_constants_dead_reckon_better(calm_b):
     # the heading offset and current are the smoother's, untouched (their sigma widened
     # only by the structural shift, FGSettings.structural_sigma, or the move of the refit
     # that checks it where larger: aqfg.fg.fit.refit_structure)
-    st = r.info.get("sigma_structure", {})
-    shift, move = st.get("shift", {}), st.get("refit", {}).get("move", {})
+    st = r.sigma_structure
+    shift = st.shift if st is not None else {}
+    move = (st.refit.move if st is not None and st.refit is not None else None) or {}
     for n in ("theta_e", "s_x", "s_y"):
         assert r.values[n] == smoother.values[n]
         assert r.sigma[n] == pytest.approx(np.hypot(smoother.sigma[n],

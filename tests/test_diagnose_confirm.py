@@ -19,7 +19,7 @@ from aqfg.diagnose.confirm import (
 )
 from aqfg.diagnose.heldout import HeldOut
 from aqfg.diagnose.marginals import anchor_covariances
-from aqfg.diagnose.score import LinearSystem, Projected, covariance, shared_information
+from aqfg.fg.score import LinearSystem, Projected, covariance, shared_information
 from aqfg.model.modelfile import ModelFile, ModelFileError, read_model
 
 

@@ -7,7 +7,7 @@ from scipy import stats
 from aqfg.diagnose.conditions import (ConditionSignals, circular_linear, effective_n, holm,
                                       in_words, relate, adjust, spearman_autocorr)
 from aqfg.diagnose.consistency import nis_test
-from aqfg.diagnose.score import (LinearSystem, bootstrap_ranking, covariance, log_chi2_sf,
+from aqfg.fg.score import (LinearSystem, bootstrap_ranking, covariance, log_chi2_sf,
                                  project, score_tests)
 
 

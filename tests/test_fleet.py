@@ -21,6 +21,7 @@ from aqfg.fg.fit import fit_fg
 from aqfg.fleet import ManifestError, fit_fleet, load_manifest, write_manifest
 from aqfg.fleet.report import differs_from_fleet, effect_document, save_fleet
 from aqfg.outputs import dumps
+from aqfg.result import BaseFit, EffectStep, FleetEffect
 from aqfg.sim import simulate, true_params
 
 distributed = pytest.importorskip("distributed")
@@ -147,13 +148,15 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
     fixed parameters and every mission's own; the same sigmas (model and inflated, within
     ``sig_rel``; the structural shift, linearised at the two solutions, within 2 %)."""
     sm = batch.info.get("sigma_model", batch.sigma)
-    st_f, st_b = (r.info.get("sigma_structure") for r in (fr_res, batch))
-    assert (st_f or {}).get("effect") == (st_b or {}).get("effect")
+    st_f, st_b = fr_res.sigma_structure, batch.sigma_structure
+    assert (st_f is None) == (st_b is None)
+    assert st_f is None or st_b is None or st_f.effect == st_b.effect
     for n in batch.estimated:
         assert abs(fr_res.values[n] - batch.values[n]) < tol * sm[n], \
             (n, fr_res.values[n], batch.values[n], sm[n])
-        if st_b and n in st_b["shift"]:
-            assert st_f["sigma_before"][n] == pytest.approx(st_b["sigma_before"][n], rel=1e-6)
+        if st_b is not None and n in st_b.shift:
+            assert st_f is not None
+            assert st_f.sigma_before[n] == pytest.approx(st_b.sigma_before[n], rel=1e-6)
             assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
             continue
         assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=sig_rel), n
@@ -168,9 +171,9 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
 def test_effect_document_writes_a_missing_fleet_cost_as_aqfg_fit_does():
     """A fleet cost that was not computed (no refit) is written as the shared fields are:
     null with a null_reason, not a bare null."""
-    ae = {"effect": "linear_drag", "adopted": False, "p_value_robust": 1e-4,
-          "cost_before": 10.0, "reason": "refit not plausible",
-          "fleet": {"vehicles_calling": ["otter"], "cost_before": 12.5, "cost_after": float("nan")}}
+    ae = EffectStep("linear_drag", adopted=False, p_value_robust=1e-4, cost_before=10.0,
+                    base=BaseFit([], {}, {}), reason="refit not plausible",
+                    fleet=FleetEffect(["otter"], cost_before=12.5, cost_after=float("nan")))
     doc = json.loads(dumps({"auto_effect": effect_document(ae)}))
     e = doc["auto_effect"]
     assert e["fleet_cost_before"] == 12.5
@@ -194,11 +197,12 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
     # serves the fleet, so both vehicles are fitted with it; the step records the model-
     # as-given estimates
     for v in ("otter", "sim-asv"):
-        ae = fr.results[v].info["auto_effect"]
-        assert ae["adopted"] and ae["effect"] == "linear_drag", ae.get("reason")
+        ae = fr.results[v].effect_step
+        assert ae is not None and ae.fleet is not None
+        assert ae.adopted and ae.effect == "linear_drag", ae.reason
         assert fr.results[v].effects == ("linear_drag",)
-        assert ae["fleet"]["vehicles_calling"] == ["otter"]
-        assert ae["fleet"]["cost_after"] < ae["fleet"]["cost_before"]
+        assert ae.fleet.vehicles_calling == ["otter"]
+        assert ae.fleet.cost_after < ae.fleet.cost_before
     for name in ("otter-example", "otter-dev-calm-a"):
         truth = load_truth(data_path(name)).params
         cur = fr.results["otter"].info["per_mission"][name]

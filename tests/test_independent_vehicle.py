@@ -69,7 +69,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     assert res.sigma["s_x"] > res.info["sigma_model"]["s_x"]
     assert any("does not explain the fixes" in w for w in res.info["warnings"])
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
-    assert not res.info["too_short_for_sandwich"] and "block_jackknife" not in res.info
+    assert not res.info["too_short_for_sandwich"] and res.block_jackknife is None
 
 
 def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
@@ -80,10 +80,10 @@ def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
     (BIC). theta_e -1.18 -> -0.05 deg off."""
     m, truth = mission("otter-dev-calm-a", 8.0)
     res = fit_fg([m])
-    rec = res.info["auto_effect"]
-    assert rec["untested"] and rec["adopted"] and res.effects == ("linear_drag",)
-    assert "tried" not in rec                       # the one of largest statistic alone
-    e_base = abs(wrap(rec["base"]["values"]["theta_e"] - truth.params["theta_e"]))
+    rec = res.effect_step
+    assert rec is not None and rec.untested and rec.adopted and res.effects == ("linear_drag",)
+    assert rec.tried is None                        # the one of largest statistic alone
+    e_base = abs(wrap(rec.base.values["theta_e"] - truth.params["theta_e"]))
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e < 0.5 * e_base
     check_batch(res, truth)
@@ -702,8 +702,10 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     assert "held_sway" in given.info and given.info["plausible"]
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.info["warnings"])
-    assert given.info["structural_test"]["called_for"][0]["effect"] == "linear_drag"
-    assert res.info["auto_effect"]["adopted"] and res.effects == ("linear_drag",)
+    assert given.structural_test is not None
+    assert given.structural_test.called_for[0]["effect"] == "linear_drag"
+    assert res.effect_step is not None and res.effect_step.adopted
+    assert res.effects == ("linear_drag",)
     assert res.info["plausible"] and "k_yz" in res.estimated
     for r in (given, res):
         e = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
@@ -726,7 +728,7 @@ def test_a_suspiciously_sliding_fit_names_the_non_sliding_answer():
     assert abs(wrap(alt["values"]["theta_e"] - truth.params["theta_e"])) < 3 * DEG
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) > 30 * DEG
     auto = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
-    assert auto.effects == ("linear_drag",) and auto.info["auto_effect"]["untested"]
+    assert auto.effects == ("linear_drag",) and auto.effect_step is not None and auto.effect_step.untested
     check_batch(auto, truth)
 
 

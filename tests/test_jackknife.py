@@ -73,13 +73,14 @@ def test_a_short_crop_current_sigma_holds_its_error(calm_b):
     def worst_z(r):
         return max(abs(r.values[n] - truth.params.get(n, 0.0)) / r.sigma[n] for n in ("s_x", "s_y"))
     before = fit_fg([m], settings=FGSettings(block_jackknife=False))
-    assert "block_jackknife" not in before.info
+    assert before.block_jackknife is None
     assert worst_z(before) > 5.0                       # the defect, without the jackknife
     r = fit_fg([m])
     assert r.values == pytest.approx(before.values)    # the values stay the fit's
-    jk = r.info["block_jackknife"]
+    jk = r.block_jackknife
     k = len(blocks(m)) - 1
-    assert k >= 4 and jk["blocks"] == k and set(jk["sigma_before"]) <= set(r.estimated)
+    assert jk is not None and not jk.failed
+    assert k >= 4 and jk.blocks == k and set(jk.sigma_before) <= set(r.estimated)
     assert worst_z(r) <= 3.0
     for n in r.estimated:
         assert r.sigma[n] >= before.sigma[n]           # widened only

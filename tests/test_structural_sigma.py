@@ -1,4 +1,4 @@
-"""The structural part of the batch's honest sigma (aqfg.diagnose.structure): the shift of
+"""The structural part of the batch's honest sigma (aqfg.fg.structure): the shift of
 the heading offset and the current that the best-supported missing effect would cause,
 from the batch's own numpy system, checked against refitting with that effect."""
 from __future__ import annotations
@@ -29,22 +29,22 @@ def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
     sigma is the sandwich's widened by that shift; with the setting off it is not."""
     m = load_mission(data_path("otter-example"))
     res = fit_fg([m], settings=AS_GIVEN)
-    st = res.info["sigma_structure"]
-    assert st["effect"] == "linear_drag" and st["p_value_robust"] < 1e-3
+    st = res.sigma_structure
+    assert st is not None and st.effect == "linear_drag" and st.p_value_robust < 1e-3
     off = fit_fg([m], settings=FGSettings(structural_sigma=False))
-    assert "sigma_structure" not in off.info
+    assert off.sigma_structure is None
     refit = fit_fg([m], effects=("linear_drag",), settings=AS_GIVEN)
-    rf = st["refit"]                        # the fit again with the effect (refit_structure)
+    rf = st.refit                           # the fit again with the effect (refit_structure)
+    assert rf is not None and rf.move is not None
     for n in VAR:
         assert off.values[n] == res.values[n]              # the estimate is not touched
-        assert st["sigma_before"][n] == off.sigma[n]
+        assert st.sigma_before[n] == off.sigma[n]
         # the sigma holds the larger of the first-order shift and the refit's exact move
-        assert np.isclose(res.sigma[n], np.hypot(off.sigma[n], max(st["shift"][n],
-                                                                  rf["move"][n])))
+        assert np.isclose(res.sigma[n], np.hypot(off.sigma[n], max(st.shift[n], rf.move[n])))
     for n in ("s_x", "s_y"):
         moved = abs(refit.values[n] - res.values[n])
-        assert 0.5 * moved < st["shift"][n] < 2.0 * moved, (n, st["shift"][n], moved)
-        assert rf["move"][n] == pytest.approx(moved, rel=0.05, abs=1e-4), (n, rf, moved)
+        assert 0.5 * moved < st.shift[n] < 2.0 * moved, (n, st.shift[n], moved)
+        assert rf.move[n] == pytest.approx(moved, rel=0.05, abs=1e-4), (n, rf, moved)
     assert any("linear_drag" in w and "sigma includes" in w for w in res.info["warnings"])
 
 
@@ -58,7 +58,7 @@ def test_a_heldout_otter_current_biased_by_the_missing_drag_is_within_its_sigma(
     m = load_mission(d)
     res = fit_fg([m], settings=AS_GIVEN.with_(prior_sigma=PAPER_SWAY))
     off = fit_fg([m], settings=FGSettings(structural_sigma=False, prior_sigma=PAPER_SWAY))
-    assert res.info["sigma_structure"]["effect"] == "linear_drag"
+    assert res.sigma_structure is not None and res.sigma_structure.effect == "linear_drag"
     z_off = abs(off.values["s_x"] - truth.params["s_x"]) / off.sigma["s_x"]
     assert z_off > 3.0, z_off                         # what the sandwich alone reports
     for n in VAR:
@@ -73,8 +73,8 @@ def test_a_vehicle_that_is_the_model_gets_no_structural_sigma():
     is called for, the sigma is the sandwich's."""
     m, _ = simulate("asv", seed=3, duration=400.0)
     res = fit_fg([m])
-    assert "sigma_structure" not in res.info
-    assert "auto_effect" not in res.info and res.effects == ()
+    assert res.sigma_structure is None
+    assert res.effect_step is None and res.effects == ()
 
 
 def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_misses():
@@ -87,12 +87,13 @@ def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_m
     m, truth = with_gnss_every(load_mission(d), 8.0), load_truth(d)
     res = fit_fg([m], settings=FGSettings(prior_sigma=PAPER_SWAY))
     assert res.effects == ("linear_drag",)
-    st = res.info["sigma_structure"]
-    assert st["effect"] == "reverse_thrust" and st["proven"]
-    rf = st["refit"]
-    assert rf["cost"] < res.info["cost"]
-    assert rf["move"]["s_y"] > 5.0 * st["shift"]["s_y"], (rf, st["shift"])
-    first_order = float(np.hypot(st["sigma_before"]["s_y"], st["shift"]["s_y"]))
+    st = res.sigma_structure
+    assert st is not None and st.effect == "reverse_thrust" and st.proven
+    rf = st.refit
+    assert rf is not None and rf.cost is not None and rf.move is not None
+    assert rf.cost < res.info["cost"]
+    assert rf.move["s_y"] > 5.0 * st.shift["s_y"], (rf, st.shift)
+    first_order = float(np.hypot(st.sigma_before["s_y"], st.shift["s_y"]))
     assert abs(res.values["s_y"] - truth.params["s_y"]) > 3.0 * first_order
     for n in VAR:
         err = res.values[n] - truth.params[n]
@@ -112,10 +113,11 @@ def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test
                 load_truth(data_path("otter-heldout-73-170s")))
     res = fit_fg([m], settings=AS_GIVEN.with_(block_jackknife=False))
     assert res.info["too_short_for_sandwich"]
-    st = res.info["sigma_structure"]
+    st = res.sigma_structure
+    assert st is not None
     P = truth.params
     for n in ("s_x", "s_y"):
-        assert np.isclose(res.sigma[n], np.hypot(st["sigma_before"][n], st["shift"][n]))
+        assert np.isclose(res.sigma[n], np.hypot(st.sigma_before[n], st.shift[n]))
         assert abs(res.values[n] - P[n]) <= 3 * res.sigma[n], n
     th = P["theta_e"] + P["heading_drift.rate"] * 0.5 * (m.t0 + float(m.fix_times()[-1]))
     assert abs(np.angle(np.exp(1j * (res.values["theta_e"] - th)))) <= 3 * res.sigma["theta_e"]

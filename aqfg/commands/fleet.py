@@ -43,8 +43,8 @@ def run(args) -> int:
         d = e["test"]["differs"]
         print(f"{v:<20}{cells}{'-' if d is None else ('yes' if d else 'no'):>9}")
     # the fleet's effect step: one message for the fleet (each vehicle's record holds it)
-    step = next((r.info["auto_effect"]["fleet"]["message"] for r in fr.results.values()
-                 if r.info.get("auto_effect")), None)
+    step = next((r.effect_step.fleet.message for r in fr.results.values()
+                 if r.effect_step is not None and r.effect_step.fleet is not None), None)
     if step:
         print(f"warning: {step}", file=sys.stderr)
     for v, e in table["vehicles"].items():

@@ -1,9 +1,8 @@
 """Diagnosis: compare the model with the measurements, find where it fails, and rank the
 candidate effects that would explain it; the loop that adds them one at a time.
 
-The names below load on first use (PEP 562): a fit that uses one of the subpackage's
-modules (the structural test, :mod:`aqfg.diagnose.structure`) does not import the whole
-diagnosis."""
+The names below load on first use (PEP 562): importing one of the subpackage's modules
+does not import the whole diagnosis."""
 import importlib
 import sys
 import types

@@ -41,7 +41,7 @@ A candidate that passes these tests is still not named *missing* unless it is
 The remaining candidates are labelled relative to the one chosen (the *missing* effect):
 an *echo* has a significant score at the base model but none once the missing effect is
 in the model (its score test at the missing effect's refit); *independent* evidence stays
-significant after that conditioning. :func:`~aqfg.diagnose.score.shared_information` says
+significant after that conditioning. :func:`~aqfg.fg.score.shared_information` says
 whether the data can tell two effects apart at all.
 """
 from __future__ import annotations

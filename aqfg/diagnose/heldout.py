@@ -27,8 +27,8 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.diagnose.consistency import ConsistencyTest, nis_test
 from aqfg.diagnose.marginals import anchor_covariances
-from aqfg.diagnose.score import LinearSystem
 from aqfg.fg.common import FGSettings, interp_states
+from aqfg.fg.score import LinearSystem
 from aqfg.model.reference import wrap_angle
 from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import MissionResult, Track

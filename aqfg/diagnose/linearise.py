@@ -1,6 +1,6 @@
 """The base fit's linearised factor graph with candidate effects added at their null value.
 
-This is the hook the score test needs (:mod:`aqfg.diagnose.score`): rebuild the batch
+This is the hook the score test needs (:mod:`aqfg.fg.score`): rebuild the batch
 smoother's graph (:class:`aqfg.fg.batch.BatchSmoother`, same settings, same knots) for
 a model with the candidate effects switched on and their parameters estimated, set every
 variable to the base fit's optimum with the candidate parameters at their null value,
@@ -16,9 +16,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from aqfg.data.mission import Mission
-from aqfg.diagnose.score import LinearSystem
 from aqfg.fg.batch import BatchSmoother, BuiltGraph, solution_values
 from aqfg.fg.common import FGSettings
+from aqfg.fg.score import LinearSystem
 from aqfg.result import Result
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from aqfg.diagnose.score import LinearSystem, covariance, factorise
+from aqfg.fg.score import LinearSystem, covariance, factorise
 
 
 def _chain_blocks(N: sp.csr_matrix, kc: np.ndarray):
@@ -68,7 +68,7 @@ def anchor_covariances(lin: LinearSystem, mission_index: int, knots: np.ndarray,
     """Joint covariance (n, 6 + p, 6 + p) of ``[x_k, theta]`` for each knot index in
     ``knots`` of mission ``mission_index``, ``theta`` the columns ``pcols`` of ``lin.A``
     (the fit's own marginal covariance at its optimum, same ridge as
-    :func:`aqfg.diagnose.score.covariance`, to which it falls back when the states are not
+    :func:`aqfg.fg.score.covariance`, to which it falls back when the states are not
     a chain)."""
     assert lin.knot_cols is not None, "a LinearSystem from aqfg.diagnose.linearise"
     A = sp.csc_matrix(lin.A)

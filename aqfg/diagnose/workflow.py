@@ -15,7 +15,7 @@ The steps (each in its own module):
 3. **Where it fails** (:mod:`aqfg.diagnose.conditions`): rank correlation of the residual
    size with turns, speed, heading, thrust, reverse commands, distance to the station and
    elapsed time, in words.
-4. **Which effect** (:mod:`aqfg.diagnose.score`, :mod:`aqfg.diagnose.linearise`): every
+4. **Which effect** (:mod:`aqfg.fg.score`, :mod:`aqfg.diagnose.linearise`): every
    applicable catalogue effect gets a score (Lagrange-multiplier) test at its null on the
    full fit's linearised graph (no refit), Holm-corrected; a block bootstrap over time
    says how stable the ranking is. The significant ones (and the first whatever its
@@ -67,8 +67,6 @@ import numpy as np
 from scipy import stats
 
 from aqfg.data.mission import Mission
-from aqfg.diagnose.candidates import candidate_effects
-from aqfg.diagnose.candidates import holm_log as _holm_log
 from aqfg.diagnose.compare import sensor_series, split_fixes
 from aqfg.diagnose.conditions import (
     ConditionEffect,
@@ -93,16 +91,18 @@ from aqfg.diagnose.confirm import (
 from aqfg.diagnose.consistency import ConsistencyTest
 from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
 from aqfg.diagnose.linearise import linear_system
-from aqfg.diagnose.score import (
+from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
+from aqfg.fg.common import FGSettings, check_missions, progress_fn
+from aqfg.fg.score import (
     Projected,
     ScoreTest,
     bootstrap_ranking,
+    holm_log,
     project,
     score_tests,
     shared_information,
 )
-from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
-from aqfg.fg.common import FGSettings, check_missions, progress_fn
+from aqfg.fg.structure import candidate_effects
 from aqfg.model.effects import Effect, resolve
 
 __all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
@@ -409,7 +409,7 @@ def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
     lin = linear_system(missions, fit, cands, settings=settings)
     proj = project(lin)
     tests = score_tests(proj, {c.name: tuple(c.params) for c in cands}, n_blocks=n_blocks)
-    return Screen(fit, proj, tests, _holm_log(np.array([t.log10_p for t in tests])))
+    return Screen(fit, proj, tests, holm_log(np.array([t.log10_p for t in tests])))
 
 
 def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float,

@@ -56,7 +56,7 @@ AMBIGUOUS_GAP = np.radians(10.0)
 
 
 # the honest sigma this many times the model's: the fixes are not explained as the noise
-# model says (warned; the structural sigma is looked for, aqfg.diagnose.structure)
+# model says (warned; the structural sigma is looked for, aqfg.fg.structure)
 MISFIT_INFLATION = 3.0
 
 

@@ -195,11 +195,11 @@ class BatchSmoother:
                          "kernel": "cpp" if bg.parts[0].model.uses_cpp else "numpy",
                          "settings": s})
         self._track_job = None
-        # the nominal-noise solution on the numpy system (aqfg.fg.fit.structural_sigma)
+        # the nominal-noise solution on the numpy system (aqfg.fg.structural_sigma.structural_sigma)
         self.fast_solution = ((fs, out.fast) if sol.q_scale == 1.0 and fs is not None
                               and out.fast is not None else None)
         # data too short for the sandwich: its solution at the evidence's noise, for the
-        # structural sigma (the only misfit check left there, aqfg.fg.fit.structural_sigma)
+        # structural sigma (the only misfit check left there, aqfg.fg.structural_sigma.structural_sigma)
         self.short_solution = ((fs, out.fast) if sol.short and fs is not None
                                and out.fast is not None else None)
         res.info["too_short_for_sandwich"] = bool(sol.short)
@@ -330,7 +330,7 @@ class BatchSmoother:
         if not res.info.get("plausible"):
             return None
         self._track_job = sm._track_job
-        # its numpy system too, for the structural sigma (aqfg.fg.fit.structural_sigma): a
+        # its numpy system too, for the structural sigma (aqfg.fg.structural_sigma.structural_sigma): a
         # held-sway fit went without it, and its current sat 7 sigma off on a GNSS-only
         # weak-propeller Otter (docs/independent-vehicle.md)
         self.fast_solution = sm.fast_solution

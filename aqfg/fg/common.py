@@ -89,7 +89,7 @@ class FGSettings:
     structural_sigma: the batch fit (:func:`aqfg.fg.fit.fit_fg`) widens the sigma of the
         heading offset and the current by the shift the best-supported missing effect
         would cause, where the fixes are not explained and the data call for one
-        (:mod:`aqfg.diagnose.structure`; ``info["sigma_structure"]``): the sandwich covers
+        (:mod:`aqfg.fg.structure`; ``Result.sigma_structure``): the sandwich covers
         the model's error that varies over time, not a bias that holds all mission.
     auto_effect: the batch fit with the default parameters (:func:`aqfg.fg.fit.fit_fg`,
         no ``estimate``) runs the structural test even where the fixes are explained, and
@@ -97,12 +97,12 @@ class FGSettings:
         heading offset or the current) fits again with that effect added (and with the
         dynamics effect of largest score statistic, if another), returning the lower-cost
         fit of those that lower the cost, are plausible and keep the heading offset and
-        current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``info["auto_effect"]``);
+        current within 3 sigma (:func:`aqfg.fg.fit.adopt_effect`; ``Result.effect_step``);
         False fits the model as given.
     block_jackknife: a one-mission batch fit (:func:`aqfg.fg.fit.fit_fg`) on data too
         short for the sandwich is run again with each of 4-8 time blocks' fixes left out,
         and each sigma widened to the spread of those refits where that is larger
-        (:mod:`aqfg.fg.jackknife`; ``info["block_jackknife"]``): on 2.5-5 min Otter crops
+        (:mod:`aqfg.fg.jackknife`; ``Result.block_jackknife``): on 2.5-5 min Otter crops
         the current was up to 15 of its sigmas off (docs/independent-vehicle.md). The
         online re-initialisations do not run it.
     online_init_after, online_reinit_until: online without a given heading offset, the

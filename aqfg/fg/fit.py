@@ -13,6 +13,7 @@ shared model, GNSS/USBL/depth factors, and parameter nodes (fixed / variable / s
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -23,21 +24,26 @@ from aqfg.data.mission import Mission
 from aqfg.fg import dead_reckoning, gnss_noise, jackknife
 from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions, mission_model
-from aqfg.fg.fastlm import FastSystem
+from aqfg.fg.effect_guard import (
+    base_record,
+    bic_cost,
+    dynamics_effect,
+    guard_estimates,
+    label,
+    moves,
+    variable_estimates,
+    widen_by_other_minimum,
+)
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
-from aqfg.model.effects import CurrentTerm, HeadingTerm, resolve
-from aqfg.model.params import difference
+from aqfg.fg.structural_sigma import cover_refit, structural_sigma
+from aqfg.fg.structure import structural_shift
+from aqfg.model.effects import resolve
 from aqfg.model.retrace import inertial_track
-from aqfg.result import Result
+from aqfg.result import EffectStep, Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
 
 log = logging.getLogger(__name__)
-
-# the structural sigma looks for a missing effect where the block sandwich raised any sigma
-# of the fit above the model's (significantly: aqfg.fg.covariance), not only where it
-# raised one 3x (the warning's level, batch.MISFIT_INFLATION): docs/independent-vehicle.md
-STRUCTURAL_MISFIT = 1.0 + 1e-9
 # The effect step's batch solves, for the cost estimate: the model as given, the refit with
 # the effect tried and the structural refit (measured 3 where it tried one; 1 where the
 # model explained the fixes); and the most parameters an effect it adopts adds.
@@ -56,69 +62,86 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     parameter names (default batch: the six base parameters and those of the effects;
     online: the variable ones). ``init``: initial values, and the values of the parameters
     not estimated. ``effects``: model effects (names or UserEffect objects).
+
+    The steps: the fixes weighted by the GNSS noise (``FGSettings.gnss_noise``), the
+    batch (:func:`fit_batch`) or online (:func:`fit_online`) fit of the weighted
+    missions, and the noise's record (:func:`with_gnss_noise`).
     """
     missions = check_missions(missions)
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
-    res = _fit(missions, mode, estimate, init, effects, window, progress, settings, model)
-    return res
-
-
-def _fit(missions, mode, estimate, init, effects, window, progress, settings, model) -> Result:
-    """:func:`fit_fg` with the fixes weighted by the GNSS noise (``FGSettings.gnss_noise``)."""
-    st0 = settings or FGSettings()
-    missions, noise = gnss_noise.apply(list(missions), st0.gnss_noise, st0.online_kinematic_q,
-                                       st0.sensors.gnss_sigma, track=mode == "online")
-    res = _fit_weighted(missions, mode, estimate, init, effects, window, progress, settings, model)
-    if noise is not None:
-        res.info["gnss_noise"] = noise.document()
-    return res
-
-
-def _fit_weighted(missions, mode, estimate, init, effects, window, progress, settings, model
-                  ) -> Result:
+    st = settings or FGSettings()
+    weighted, noise = gnss_noise.apply(list(missions), st.gnss_noise, st.online_kinematic_q,
+                                       st.sensors.gnss_sigma, track=mode == "online")
     if mode == "batch":
-        st = settings or FGSettings()
-        auto = auto_effect_applies(st, estimate)
-        res, bs = _solve(missions, model, effects, estimate, init, settings, progress,
-                         log_warnings=not auto, test_always=auto, refit=not auto)
-        if auto:
-            res = adopt_effect(res, bs, list(missions), model, effects, init, settings,
-                               progress)
-        else:
-            res = _finish(res, bs, missions, model, effects)
-        n_warn = len(res.info.get("warnings", []))
-        if st.block_jackknife and len(missions) == 1 and res.info.get("too_short_for_sandwich"):
-            _block_jackknife(res, missions[0], model, effects, init, st)
-        for w in res.info.get("warnings", [])[0 if auto else n_warn:]:
-            log.warning("fg: %s", w)
-        return res
+        res = fit_batch(weighted, model, effects, estimate, init, settings, progress)
+    else:
+        res = fit_online(weighted, model, effects, estimate, init, window, settings, progress)
+    return with_gnss_noise(res, noise)
+
+
+def with_gnss_noise(res: Result, noise: gnss_noise.GnssNoise | None) -> Result:
+    """``res`` with the GNSS noise its fixes were weighted by (its ``gnss_noise``)."""
+    return res if noise is None else dataclasses.replace(res, gnss_noise=noise)
+
+
+def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,
+              settings: FGSettings | None, progress) -> Result:
+    """The batch fit of :func:`fit_fg`: the solve with the model as given (and its
+    structural sigma, :func:`_solve`), then the effect step (:func:`adopt_effect`, where
+    :func:`auto_effect_applies`) or the tracks (:func:`_finish`), then the block jackknife
+    of a one-mission fit too short for the sandwich (:func:`_block_jackknife`); the
+    warnings not logged by the steps are logged last."""
+    st = settings or FGSettings()
+    auto = auto_effect_applies(st, estimate)
+    res, bs = _solve(missions, model, effects, estimate, init, settings, progress,
+                     log_warnings=not auto, test_always=auto, refit=not auto)
+    if auto:
+        res = adopt_effect(res, bs, list(missions), model, effects, init, settings, progress)
+    else:
+        res = _finish(res, bs, missions, model, effects)
+    logged = 0 if auto else len(res.info.get("warnings", []))
+    if st.block_jackknife and len(missions) == 1 and res.info.get("too_short_for_sandwich"):
+        res = _block_jackknife(res, missions[0], model, effects, init, st)
+    for w in res.info.get("warnings", [])[logged:]:
+        log.warning("fg: %s", w)
+    return res
+
+
+def fit_online(missions: list[Mission], model, effects: Sequence, estimate, init,
+               window: float | None, settings: FGSettings | None, progress) -> Result:
+    """The online fit of :func:`fit_fg`: a fixed-lag smoother per mission, each from
+    ``init``; several missions' results merged by :func:`merge_online`."""
     results = [FixedLagSmoother(model, effects=effects, estimate=estimate, init=init,
                                 window=window or 24.0, settings=settings,
                                 progress=progress).run(m) for m in missions]
-    if len(results) == 1:
-        return results[0]
-    # several missions online: each from ``init``; the first mission's history and values
-    # (as aqfg.ekf.estimator does), all of them in info
+    return results[0] if len(results) == 1 else merge_online(results)
+
+
+def merge_online(results: list[Result]) -> Result:
+    """Several missions' online results as one: the first mission's history and values
+    (as :mod:`aqfg.ekf.estimator` does), every mission's track and timings, and every
+    mission's history and estimates in ``info`` (``histories``, ``per_mission``)."""
     r0 = results[0]
     timings: dict = {}
     for r in results:
         for k, v in r.timings.items():
             timings.setdefault(k, []).extend(v)
-    r0.missions = [r.missions[0] for r in results]
-    r0.timings = timings
-    r0.info["histories"] = [r.history for r in results]
-    r0.info["per_mission"] = {r.missions[0].name: {n: {"value": r.values[n], "sigma": r.sigma.get(n, np.nan)}
-                                                   for n in r.estimated} for r in results}
-    return r0
+    info = {**r0.info, "histories": [r.history for r in results],
+            "per_mission": {r.missions[0].name: {n: {"value": r.values[n],
+                                                     "sigma": r.sigma.get(n, np.nan)}
+                                                 for n in r.estimated} for r in results}}
+    return dataclasses.replace(r0, missions=[r.missions[0] for r in results], timings=timings,
+                               info=info)
 
 
 def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, init,
-                     settings: FGSettings) -> None:
-    """:attr:`FGSettings.block_jackknife` on the batch fit ``res`` of ``mission``, in place:
-    its refits keep ``res``'s model (its effects, the effect step's among them) and its
-    estimated parameters, without the effect step, the heading profile or the track's
-    noise, and log nothing (their warnings are theirs, not the fit's)."""
+                     settings: FGSettings) -> Result:
+    """:attr:`FGSettings.block_jackknife` on the batch fit ``res`` of ``mission``
+    (:func:`aqfg.fg.jackknife.widen`): its refits keep ``res``'s model (its effects, the
+    effect step's among them) and its estimated parameters, without the effect step, the
+    heading profile or the track's noise, and log nothing (their warnings are theirs, not
+    the fit's)."""
     have = {getattr(e, "name", e) for e in effects}
     eff = (*effects, *(n for n in res.effects if n not in have))
     quick = settings.with_(auto_effect=False, heading_profile=False, adapt_track=False)
@@ -127,7 +150,7 @@ def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, in
     def refit(m: Mission) -> Result:
         r, b = _solve([m], model, eff, est, init, quick, progress=False, log_warnings=False)
         return _finish(r, b, [m], model, eff)
-    jackknife.widen(res, mission, refit)
+    return jackknife.widen(res, mission, refit)
 
 
 def auto_effect_applies(settings: FGSettings, estimate: Sequence[str] | None) -> bool:
@@ -160,8 +183,8 @@ def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init
         if refit:
             res = refit_structure(res, list(missions), model, effects, estimate, init,
                                   bs.settings, progress)
-            if log_warnings and "sigma_structure" in res.info:
-                log.warning("fg: %s", res.info["sigma_structure"]["warning"])
+            if log_warnings and res.sigma_structure is not None:
+                log.warning("fg: %s", res.sigma_structure.warning)
     return res, bs
 
 
@@ -173,195 +196,135 @@ def _finish(res: Result, bs: BatchSmoother, missions: Sequence[Mission], model,
     # the nominal fit's states (as the fleet's)
     res = dead_reckoning.refine(res, list(missions), bs.settings.dr_horizon)
     res = bs.smooth_tracks(res)
-    for m, mr in zip(missions, res.missions):
+    return with_inertial_tracks(res, missions, model, effects)
+
+
+def with_inertial_tracks(res: Result, missions: Sequence[Mission], model,
+                         effects: Sequence) -> Result:
+    """``res`` with each mission's model-only re-trace (:func:`aqfg.model.retrace.
+    inertial_track`) where its result has none."""
+    out = list(res.missions)
+    for i, (m, mr) in enumerate(zip(missions, res.missions)):
         if not len(mr.inertial.t):
-            mr.inertial = inertial_track(mission_model(model, m, effects), m, mr.p)
-    return res
+            out[i] = dataclasses.replace(
+                mr, inertial=inertial_track(mission_model(model, m, effects), m, mr.p))
+    return dataclasses.replace(res, missions=out)
 
 
-def _widen_by_other_minimum(res: Result, others: list[Result]) -> None:
-    """Where another local minimum of the same model (another start) explains the fixes as
-    well as ``res`` (cost within :func:`aqfg.fg.batch.ambiguity_margin`), the data do not
-    decide between them: each estimated parameter's sigma (and each mission's) widened by
-    its difference between the two, in place; ``info["other_minimum"]`` records it. (On
-    `heldout-103` at 8-s fixes the lower of two minima 4.4 apart in cost put the current
-    0.019 m/s off with sigma 0.005, the other 0.008 off: docs/independent-vehicle.md.)"""
-    from aqfg.fg.batch import ambiguity_margin
-    cost = float(res.info.get("cost", np.nan))
-    near = [o for o in others
-            if float(o.info.get("cost", np.inf)) - cost < ambiguity_margin(cost)]
-    if not near:
-        return
-    # the largest difference over the near minima, top-level and per mission
-    d_top: dict[str, float] = {}
-    d_per: dict[tuple[str, str], float] = {}
-    for o in near:
-        for n in res.estimated:
-            if n in res.sigma and n in o.values:
-                d_top[n] = max(d_top.get(n, 0.0), abs(difference(n, o.values[n], res.values[n])))
-        for m, est in (res.info.get("per_mission") or {}).items():
-            oe = (o.info.get("per_mission") or {}).get(m, {})
-            for n, e in est.items():
-                if n in oe and isinstance(e, dict) and e.get("sigma") is not None:
-                    d = abs(difference(n, float(oe[n]["value"]), float(e["value"])))
-                    d_per[m, n] = max(d_per.get((m, n), 0.0), d)
-    for (m, n), d in d_per.items():
-        e = res.info["per_mission"][m][n]
-        e["sigma"] = float(np.hypot(float(e["sigma"]), d))
-    before = {n: float(res.sigma[n]) for n in d_top}
-    for n, d in d_top.items():
-        res.sigma[n] = float(np.hypot(res.sigma[n], d))
-    res.info["other_minimum"] = {"cost": [float(o.info.get("cost", np.nan)) for o in near],
-                                 "difference": d_top, "sigma_before": before}
-
-
-def base_record(res: Result) -> dict:
-    """``info["auto_effect"]["base"]``: the model-as-given fit's effects, values and sigmas
-    (and each mission's, for a joint fit), kept beside a fit that added an effect."""
-    return {"effects": list(res.effects),
-            "values": {n: float(res.values[n]) for n in
-                       (res.model.active_names if res.model is not None else res.values)},
-            "sigma": {n: float(v) for n, v in res.sigma.items()},
-            **({"per_mission": res.info["per_mission"]}
-               if len(res.missions) > 1 and res.info.get("per_mission") else {})}
-
-
-def variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:
-    """``{(mission or "", name): (value, sigma)}`` of the heading offset and the current:
-    per mission where a joint fit has them per mission, else the fit's."""
-    names = [n for n in ("theta_e", "s_x", "s_y") if n in res.estimated]
-    per = res.per_mission
-    out: dict[tuple[str, str], tuple[float, float]] = {}
-    for n in names:
-        rows = [(m, e[n]) for m, e in per.items() if n in e] if len(res.missions) > 1 else []
-        if rows:
-            out.update({(m, n): (e.value, e.sigma) for m, e in rows})
-        else:
-            out[("", n)] = (float(res.values[n]), float(res.sigma.get(n, np.nan)))
-    return out
-
-
-def guard_estimates(res: Result, effect: str) -> dict[tuple[str, str], tuple[float, float]]:
-    """The effect step's guard for a refit of ``res`` with ``effect``: ``res``'s
-    :func:`variable_estimates` with each sigma widened (in quadrature) by the move the
-    structural test predicts for that effect (its ``shift``), unless the sigma already
-    holds it (``sigma_structure``). A refit that moves the estimates as predicted is the
-    effect at work; one that moves them far beyond went elsewhere. Without the prediction
-    a REMUS 100 whose current the effect corrects by 0.015 m/s (7 of the fit's sigmas, the
-    fixes explained) was refused (docs/independent-vehicle.md)."""
-    est = variable_estimates(res)
-    st = res.info.get("structural_test") or {}
-    if (res.info.get("sigma_structure") or {}).get("effect") == effect \
-            or not st.get("suggested", True):
-        # (a test that suggests nothing predicts no move the guard should allow)
-        return est
-    ranked = st.get("ranked", [])
-    shift: dict[str, float] = next((c.get("shift", {}) for c in ranked if c["effect"] == effect), {})
-    return {(m, n): (v, float(math.hypot(s, shift.get(n, 0.0)))) for (m, n), (v, s) in est.items()}
-
-
-def _label(mission: str, name: str) -> str:
-    """``name``, or ``mission:name`` for a joint fit's per-mission value."""
-    return f"{mission}:{name}" if mission else name
-
-
-def moves(base: dict, after: dict) -> tuple[dict[tuple[str, str], float], list[str]]:
-    """From the :func:`variable_estimates` ``base`` (the model as given) to ``after`` (a
-    refit): each estimate's move, ``{(mission or "", name): after - base}``, and the labels
-    of those beyond 3 of ``base``'s sigmas (a NaN sigma counts as beyond: nothing says the
-    move is within it), the effect step's guard."""
-    moved = {(m, n): difference(n, after[m, n][0], v)
-             for (m, n), (v, _) in base.items() if (m, n) in after}
-    far = [_label(m, n) for (m, n), d in moved.items() if not abs(d) <= 3.0 * base[m, n][1]]
-    return moved, far
-
-
-def dynamics_effect(name: str) -> bool:
-    """An effect the effect step may add: one of the vehicle's dynamics, not a drift of the
-    heading offset or the current, which would make the reported values those at the start
-    (and the two drifts stand in for each other: docs/independent-vehicle.md)."""
-    return not isinstance(resolve(name), (HeadingTerm, CurrentTerm))
+@dataclasses.dataclass(frozen=True)
+class EffectTry:
+    """A refit with a candidate effect (:func:`_try_effect`): its record (the fields of
+    :class:`aqfg.result.EffectStep` it gives), the refit and its solver (None where it failed), why it may
+    not be adopted (empty: it may), and how far it moved each variable estimate,
+    ``{(mission or "", name): refit - base}``."""
+    rec: dict
+    new: Result | None
+    bs: BatchSmoother | None
+    why: str
+    moved: dict[tuple[str, str], float]
 
 
 def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                  effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
     """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
-    names missing effects (``info["structural_test"]``), the fit again with the
+    names missing effects (its ``structural_test``), the fit again with the
     best-supported one of the vehicle's dynamics (not a drift of the heading offset or the
-    current) added, and with the one of largest score statistic if that is another; the
-    lower-cost result of those that explain the fixes better (lower cost), are plausible,
-    and keep the heading offset and the current within 3 sigma of ``res``'s honest sigma
-    (which includes the effect's predicted shift); otherwise ``res``, saying why.
-    ``info["auto_effect"]`` records the step and the base fit's estimates."""
-    st = res.info.get("structural_test")
+    current) added, and with the one of largest score statistic if that is another
+    (:func:`effect_candidates`); the lower-cost result of those that explain the fixes
+    better (lower cost), are plausible, and keep the heading offset and the current within
+    3 sigma of ``res``'s honest sigma (which includes the effect's predicted shift);
+    otherwise ``res``, saying why. Its ``effect_step`` records the step and the base fit's
+    estimates. Returns the finished fit (:func:`_finish`)."""
+    called, picks = effect_candidates(res, bs, missions, effects)
+    if not picks:
+        return _finish(res, bs, missions, model, effects)
+    cost0 = float(res.info.get("cost", np.nan))
+    tried = [_try_effect(pick, guard_estimates(res, pick["effect"]), cost0, missions, model,
+                         effects, init, settings, progress, untested=called is None)
+             for pick in picks]
+    # the model-as-given fit's structural sigma checked by the refit with its effect, as
+    # `--no-auto-effect` checks it (refit_structure): its record and a refused step's fit
+    ss_effect = res.sigma_structure.effect if res.sigma_structure is not None else None
+    res = refit_structure(res, missions, model, effects, None, init, settings, progress,
+                          tried=next((t for t in tried if t.rec["effect"] == ss_effect), None))
+    ok = [t for t in tried if not t.why]
+    best = min(ok, key=lambda t: t.rec["cost_after"]) if ok else tried[0]
+    step = _effect_record(res, tried, best, called, cost0)
+    name = step.effect
+    if best.why:
+        refused = dataclasses.replace(res, effect_step=step, info={**res.info, "warnings": [
+            *res.info.get("warnings", []),
+            f"the effect {name} was not added ({best.why}): the model is fitted as given"]})
+        return _finish(refused, bs, missions, model, effects)
+    assert best.new is not None and best.bs is not None
+    new = refit_structure(best.new, missions, model, (*effects, name), None, init,
+                          best.bs.settings, progress)
+    new = _finish(new, best.bs, missions, model, (*effects, name))
+    # the batch time is both solves'
+    base_s = float(res.timings.get("batch", [0.0])[0])
+    step = dataclasses.replace(step, seconds_base=base_s)
+    timings = {**new.timings, "batch": [base_s + float(new.timings.get("batch", [0.0])[0])]}
+    info = {**new.info, "warnings": [_added_warning(res, step, best.moved, called),
+                                     *new.info.get("warnings", [])]}
+    return dataclasses.replace(new, timings=timings, info=info, effect_step=step)
+
+
+def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
+                      effects: Sequence) -> tuple[dict | None, list[dict]]:
+    """The effect step's candidates for the batch fit ``res`` (structural-test entries),
+    at most two, and the best-supported one the test calls for (None: none is)."""
+    st = res.structural_test
     have = {getattr(e, "name", e) for e in effects}
 
     def dynamics(c: dict) -> bool:
         return c["effect"] not in have and dynamics_effect(c["effect"])
-    # the candidates, at most two: the best-supported one the test calls for, and the one
-    # of largest score statistic whether or not it passes the test's level alone (the test
-    # says the model misses something; which effect explains it best, the refit's cost
-    # decides: on a weak-propeller Otter at 1-s fixes the test called for the wind drag
-    # alone, whose refit left the current 0.07 m/s off at cost 3015, where the linear drag,
-    # ranked first by its statistic, fits at cost 1681 with the current 0.003 off;
+    # the candidates: the best-supported one the test calls for, and the one of largest
+    # score statistic whether or not it passes the test's level alone (the test says the
+    # model misses something; which effect explains it best, the refit's cost decides: on a
+    # weak-propeller Otter at 1-s fixes the test called for the wind drag alone, whose
+    # refit left the current 0.07 m/s off at cost 3015, where the linear drag, ranked first
+    # by its statistic, fits at cost 1681 with the current 0.003 off;
     # docs/independent-vehicle.md)
-    called = next((c for c in (st or {}).get("called_for", []) if dynamics(c)), None)
+    called = next((c for c in (st.called_for if st is not None else []) if dynamics(c)), None)
     if called is not None:
-        top = next((c for c in (st or {}).get("ranked", []) if dynamics(c)), called)
-        picks = [called] + ([top] if top["effect"] != called["effect"] else [])
-    else:
-        # the fixes not explained (the sandwich's sigma MISFIT_INFLATION times the
-        # model's) and no effect reaching the test's level: the one of largest score
-        # statistic is tried, adopted only where it also lowers the cost by what its
-        # parameters cost (BIC; a second candidate doubled the extra time). Under such a
-        # misfit the robust test loses its power: a wide-condition Otter at 8-s fixes
-        # (0.17 m/s current) was 14x inflated and its linear drag's p 0.52, and the refit
-        # with it lowered the cost 1162 -> 376 and put the current 0.087 -> 0.007 m/s off
-        # (docs/independent-vehicle.md)
-        picks = [c for c in _ranked_if_unexplained(res, bs, missions) if dynamics(c)][:1]
-        if not picks:
-            return _finish(res, bs, missions, model, effects)
-    cost0 = float(res.info.get("cost", np.nan))
-    tried = []
-    for pick in picks:
-        tried.append(_try_effect(pick, guard_estimates(res, pick["effect"]), cost0, missions,
-                                 model, effects, init, settings, progress,
-                                 untested=called is None))
-    # the model-as-given fit's structural sigma checked by the refit with its effect, as
-    # `--no-auto-effect` checks it (refit_structure): its record and a refused step's fit
-    ss_effect = (res.info.get("sigma_structure") or {}).get("effect")
-    res = refit_structure(res, missions, model, effects, None, init, settings, progress,
-                          tried=next((t for t in tried if t["rec"]["effect"] == ss_effect),
-                                     None))
-    ok = [t for t in tried if not t["why"]]
-    best = min(ok, key=lambda t: t["rec"]["cost_after"]) if ok else tried[0]
-    name, new, bs_new, why, moved = (best["rec"]["effect"], best["new"], best["bs"],
-                                     best["why"], best["moved"])
-    rec: dict = {**best["rec"], "fixes_explained": "sigma_structure" not in res.info,
-                 "cost_before": cost0, "base": base_record(res)}
-    if len(tried) > 1:
-        assert called is not None           # two are tried only where the test calls for one
-        rec["tried"] = [{**{k: v for k, v in t["rec"].items() if k != "moved"},
-                         **({"reason": t["why"]} if t["why"] else {})} for t in tried]
-        rec["called_for"] = called["effect"]
-    if called is None:
-        rec["untested"] = True
-    rec["adopted"] = not why
-    if why:
-        rec["reason"] = why
-        res.info["auto_effect"] = rec
-        res.info.setdefault("warnings", []).append(
-            f"the effect {name} was not added ({why}): the model is fitted as given")
-        return _finish(res, bs, missions, model, effects)
-    assert new is not None
-    new = refit_structure(new, missions, model, (*effects, name), None, init,
-                          bs_new.settings, progress)
-    new = _finish(new, bs_new, missions, model, (*effects, name))
-    # the batch time is both solves'
-    rec["seconds_base"] = float(res.timings.get("batch", [0.0])[0])
-    new.timings["batch"] = [rec["seconds_base"] + float(new.timings.get("batch", [0.0])[0])]
-    new.info["auto_effect"] = rec
-    # the largest move over the missions
+        assert st is not None
+        top = next((c for c in st.ranked if dynamics(c)), called)
+        return called, [called] + ([top] if top["effect"] != called["effect"] else [])
+    # the fixes not explained (the sandwich's sigma MISFIT_INFLATION times the model's)
+    # and no effect reaching the test's level: the one of largest score statistic is
+    # tried, adopted only where it also lowers the cost by what its parameters cost (BIC;
+    # a second candidate doubled the extra time). Under such a misfit the robust test
+    # loses its power: a wide-condition Otter at 8-s fixes (0.17 m/s current) was 14x
+    # inflated and its linear drag's p 0.52, and the refit with it lowered the cost
+    # 1162 -> 376 and put the current 0.087 -> 0.007 m/s off (docs/independent-vehicle.md)
+    return None, [c for c in _ranked_if_unexplained(res, bs, missions) if dynamics(c)][:1]
+
+
+def _effect_record(res: Result, tried: list[EffectTry], best: EffectTry, called: dict | None,
+                   cost0: float) -> EffectStep:
+    """The effect step's record: the chosen try's, whether the fixes were explained, the
+    model-as-given fit's cost and estimates (:func:`base_record`), every try where there
+    were two, and whether the effect was adopted (else why not)."""
+    r = best.rec
+    two = len(tried) > 1
+    assert called is not None or not two    # two are tried only where the test calls for one
+    return EffectStep(
+        effect=r["effect"], adopted=not best.why, p_value_robust=r["p_value_robust"],
+        cost_before=cost0, base=base_record(res), cost_after=r["cost_after"],
+        fixes_explained=res.sigma_structure is None,
+        predicted_move=r["predicted_move"], moved=r.get("moved"), reason=best.why,
+        untested=called is None,
+        tried=[{**{k: v for k, v in t.rec.items() if k != "moved"},
+                **({"reason": t.why} if t.why else {})} for t in tried] if two else None,
+        called_for=called["effect"] if two and called is not None else None)
+
+
+def _added_warning(res: Result, step: EffectStep, moved: dict[tuple[str, str], float],
+                   called: dict | None) -> str:
+    """The warning of a fit that added the effect ``step.effect`` to the model as given
+    (``res``): why that effect, the costs, and how far the heading offset and the current
+    moved (the largest move over the missions)."""
+    name = step.effect
     th = [abs(d) for (_, n), d in moved.items() if n == "theta_e"]
     cur = [math.hypot(d, moved.get((m, "s_y"), 0.0)) for (m, n), d in moved.items()
            if n == "s_x"]
@@ -373,18 +336,16 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     infl = max(res.info.get("sigma_inflation", {}).values(), default=float("nan"))
     why_this = (f"which explains the fixes best of those tried (the model as given does not "
                 f"explain them, sigma inflated {infl:.1f}x, and no effect reached the "
-                f"structural test's level: {name}'s robust p = {rec['p_value_robust']:.2g}"
+                f"structural test's level: {name}'s robust p = {step.p_value_robust:.2g}"
                 if called is None else
-                f"which the data call for (robust score test p = {rec['p_value_robust']:.2g}"
+                f"which the data call for (robust score test p = {step.p_value_robust:.2g}"
                 if name == called["effect"] else
                 f"which explains the fixes best of those tried (the data call for "
                 f"{called['effect']}, robust score test p = {called['p_value_robust']:.2g}; "
-                f"{name}'s p = {rec['p_value_robust']:.2g}")
-    new.info.setdefault("warnings", []).insert(
-        0, f"added the effect {name}, {why_this}; cost {rec['cost_before']:.1f} -> "
-           f"{rec['cost_after']:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
-           f"--no-auto-effect fits the model as given")
-    return new
+                f"{name}'s p = {step.p_value_robust:.2g}")
+    return (f"added the effect {name}, {why_this}; cost {step.cost_before:.1f} -> "
+            f"{step.cost_after:.1f}){': ' + ' and '.join(parts) if parts else ''}; "
+            f"--no-auto-effect fits the model as given")
 
 
 def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Mission]
@@ -393,12 +354,11 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     their score statistic whatever their p-values, where the fit does not explain its
     fixes (a sigma inflated more than ``MISFIT_INFLATION`` times by the sandwich) on its
     nominal-noise solution; else none. The ranking :func:`structural_sigma` recorded
-    (``info["structural_test"]``), or the test's where it recorded none."""
-    from aqfg.diagnose.structure import structural_shift
+    (``structural_test``), or the test's where it recorded none."""
     infl = max(res.info.get("sigma_inflation", {}).values(), default=0.0)
     if infl <= MISFIT_INFLATION or bs.fast_solution is None or res.model is None:
         return []
-    ranked = (res.info.get("structural_test") or {}).get("ranked")
+    ranked = res.structural_test.ranked if res.structural_test is not None else None
     if ranked is None:
         fs, ev = bs.fast_solution
         sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
@@ -406,35 +366,16 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     return [c for c in ranked if c["statistic"] > 0.0]
 
 
-def n_fix_residuals(missions: Sequence[Mission]) -> int:
-    """How many scalar fix residuals ``missions`` have (GNSS and USBL two each, depth one):
-    the n of an information criterion."""
-    n = 0
-    for m in missions:
-        n += 2 * (len(m.gnss.t) if m.gnss is not None else 0)
-        n += 2 * (len(m.usbl.t) if m.usbl is not None else 0)
-        n += len(m.depth.t) if m.depth is not None else 0
-    return n
-
-
-def bic_cost(effect: str, missions: Sequence[Mission]) -> float:
-    """What ``effect``'s parameters cost in the batch's cost (1/2 chi-square) by the
-    Bayesian information criterion: half their count times log n, n the fix residuals
-    (:func:`n_fix_residuals`)."""
-    return 0.5 * len(resolve(effect).params) * math.log(max(n_fix_residuals(missions), 2))
-
-
 def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], model,
                 effects: Sequence, init, settings: FGSettings | None, progress,
-                estimate: Sequence[str] | None = None, untested: bool = False) -> dict:
+                estimate: Sequence[str] | None = None, untested: bool = False) -> EffectTry:
     """The fit again with the candidate effect ``pick`` (a structural-test entry) added,
     judged against the model-as-given fit (``base``: its variable estimates and the guard's
-    sigmas, :func:`guard_estimates`; ``cost0``: its cost). Returns ``{"rec", "new",
-    "bs", "why", "moved"}``; ``why`` is empty where the refit may be adopted: it lowers the
-    cost, is plausible, and keeps the heading offset and the current within 3 of ``base``'s
-    sigmas; ``untested``: the effect did not reach the structural test's level, and must
-    also lower the cost by half its parameter count times log n (BIC, n the fix residuals,
-    :func:`n_fix_residuals`)."""
+    sigmas, :func:`guard_estimates`; ``cost0``: its cost). Its ``why`` is empty where the
+    refit may be adopted: it lowers the cost, is plausible, and keeps the heading offset
+    and the current within 3 of ``base``'s sigmas; ``untested``: the effect did not reach
+    the structural test's level, and must also lower the cost by half its parameter count
+    times log n (BIC, n the fix residuals, :func:`aqfg.fg.effect_guard.n_fix_residuals`)."""
     name = pick["effect"]
     # solved from the effect's one-step values and from its null, the lower cost kept: with
     # the linear drag the sway drag has two local minima (linear, c_yz > 0 and k_yz small;
@@ -466,170 +407,52 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
         # iteration, the null start at 1427, against 3189 without the effect)
         if new is None or _finite_cost(o) < _finite_cost(new):
             new, bs_new = o, bs_o
-    if new is not None:
-        why = ""
-        _widen_by_other_minimum(new, [o for o in solved if o is not new])
-        rec["cost_after"] = float(new.info.get("cost", np.nan))
-        moved, far = moves(base, variable_estimates(new))
-        rec["moved"] = {_label(m, n): d for (m, n), d in moved.items()}
-        if not new.info.get("plausible", True):
-            why = "its fit is not plausible"
-        elif not rec["cost_after"] < cost0:
-            why = f"it does not lower the cost ({cost0:.1f} -> {rec['cost_after']:.1f})"
-        elif untested and not cost0 - rec["cost_after"] > (bic := bic_cost(name, missions)):
-            why = (f"untested, it lowers the cost by {cost0 - rec['cost_after']:.1f}, not "
-                   f"the {bic:.1f} its parameters cost (BIC)")
-        elif far:
-            why = f"it moves {', '.join(far)} by more than 3 sigma of the fit without it"
-    else:
+    if new is None:
         rec["cost_after"] = float("nan")
-    return {"rec": rec, "new": new, "bs": bs_new, "why": why, "moved": moved}
+        return EffectTry(rec, None, None, why, moved)
+    new = widen_by_other_minimum(new, [o for o in solved if o is not new])
+    rec["cost_after"] = float(new.info.get("cost", np.nan))
+    moved, far = moves(base, variable_estimates(new))
+    rec["moved"] = {label(m, n): d for (m, n), d in moved.items()}
+    if not new.info.get("plausible", True):
+        why = "its fit is not plausible"
+    elif not rec["cost_after"] < cost0:
+        why = f"it does not lower the cost ({cost0:.1f} -> {rec['cost_after']:.1f})"
+    elif untested and not cost0 - rec["cost_after"] > (bic := bic_cost(name, missions)):
+        why = (f"untested, it lowers the cost by {cost0 - rec['cost_after']:.1f}, not "
+               f"the {bic:.1f} its parameters cost (BIC)")
+    elif far:
+        why = f"it moves {', '.join(far)} by more than 3 sigma of the fit without it"
+    else:
+        why = ""
+    return EffectTry(rec, new, bs_new, why, moved)
+
+
+def refit_structure(res: Result, missions: list[Mission], model, effects: Sequence,
+                    estimate, init, settings: FGSettings | None, progress=False,
+                    tried: EffectTry | None = None) -> Result:
+    """Where the structural sigma of the batch fit ``res`` (:func:`structural_sigma`) rests
+    on an effect the data prove (a dynamics effect), the fit again with that effect added
+    (as the effect step tries it, :func:`_try_effect`; ``tried``: that try where the effect
+    step made it), and ``res`` with sigmas that hold its exact move
+    (:func:`aqfg.fg.structural_sigma.cover_refit`). The first-order shift assumes the
+    estimates move linearly with the effect; on a GNSS-only Otter the sway drag changed
+    basin when `reverse_thrust` joined, and the current moved 0.009 m/s where 0.0007 was
+    predicted (docs/independent-vehicle.md)."""
+    ss = res.sigma_structure
+    have = {getattr(e, "name", e) for e in effects}
+    if ss is None or not ss.proven or ss.effect in have or not dynamics_effect(ss.effect):
+        return res
+    name = ss.effect
+    if tried is None:
+        pick = next((c for c in ss.ranked if c["effect"] == name),
+                    {"effect": name, "p_value_robust": ss.p_value_robust})
+        tried = _try_effect(pick, variable_estimates(res), float(res.info.get("cost", np.nan)),
+                            missions, model, effects, init, settings, progress, estimate)
+    return cover_refit(res, tried.new, tried.why)
 
 
 def _finite_cost(res: Result) -> float:
     """The batch cost of ``res``, infinite where it is missing or not finite."""
     c = float(res.info.get("cost", np.inf))
     return c if math.isfinite(c) else math.inf
-
-
-def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: dict,
-                     settings: FGSettings, log_warnings: bool = True,
-                     test_always: bool = False) -> Result:
-    """:attr:`FGSettings.structural_sigma`: where the batch fit ``res`` (nominal noise) does
-    not explain the fixes (the block sandwich raised a sigma above the model's,
-    ``STRUCTURAL_MISFIT``, or the data are too short for the sandwich)
-    and the data call for a missing effect, the sigma of the heading offset and the
-    current widened by the shift that effect would cause
-    (:func:`aqfg.diagnose.structure.structural_shift`, on the batch's numpy system ``fs``
-    at its nominal-noise solution, or the evidence's on short data, evaluation ``ev``),
-    in place; ``info["sigma_structure"]``
-    and a warning say which effect and how much. ``test_always``: the test also where the
-    fixes are explained (for :attr:`FGSettings.auto_effect`), its result in
-    ``info["structural_test"]`` (the sigma is widened only where they are not); the test's
-    ranking is recorded there whether or not it suggests an effect (``suggested``)."""
-    infl = res.info.get("sigma_inflation", {})
-    # data too short for the sandwich cannot show a misfit by it: the test decides alone
-    # there (a 170-s crop of an Otter mission put the current 0.46 m/s off with sigma 0.03,
-    # where the effects the test suggested would move it 0.3: docs/independent-vehicle.md)
-    misfit = max(infl.values(), default=0.0) > STRUCTURAL_MISFIT or \
-        bool(res.info.get("too_short_for_sandwich"))
-    if (not settings.structural_sigma or settings.walk_sigma or res.model is None
-            or not (misfit or test_always)):
-        return res
-    from aqfg.diagnose.structure import structural_shift
-    sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))
-    if sh is None:
-        return res
-    res.info["structural_test"] = sh.to_json()
-    if not misfit or not sh.suggested:
-        return res
-    before = {n: float(res.sigma[n]) for n in sh.shift if n in res.sigma}
-    for n, d in sh.shift.items():
-        if n in res.sigma:
-            res.sigma[n] = float(np.hypot(res.sigma[n], d))
-        for e in (res.info.get("per_mission") or {}).values():
-            # a joint fit's per-mission values: the same shift (the largest over them)
-            if isinstance(e.get(n), dict) and "sigma" in e[n]:
-                e[n]["sigma"] = float(np.hypot(e[n]["sigma"], d))
-    w = _structure_warning(sh.effect, sh.proven, sh.p_robust, sh.shift)
-    res.info["sigma_structure"] = {**sh.to_json(), "sigma_before": before, "warning": w}
-    res.info.setdefault("warnings", []).append(w)
-    if log_warnings:
-        log.warning("fg: %s", w)
-    return res
-
-
-def _structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],
-                       moved: dict[str, float] | None = None) -> str:
-    """The structural sigma's warning: which effect and how far it moves the heading offset
-    and the current (its first-order ``shift``; with ``moved``, the refit's move beside it),
-    which the sigma includes (the larger of the two)."""
-    def words(d: dict[str, float]) -> str:
-        parts = []
-        if "theta_e" in d:
-            parts.append(f"theta_e by {np.degrees(d['theta_e']):.2g} deg")
-        cur = [d[n] for n in ("s_x", "s_y") if n in d]
-        if cur:
-            parts.append(f"the current by {math.sqrt(sum(c * c for c in cur)):.2g} m/s")
-        return " and ".join(parts) or "the estimates"
-    verb = "call for" if proven else "suggest (do not prove)"
-    how = (f"refitted with it, {words(moved)} move (to first order {words(shift)}); sigma "
-           "includes the larger" if moved is not None else
-           f"with it {words(shift)} would move; sigma includes that shift")
-    return (f"the data {verb} the effect {effect} (robust score test p = {p_robust:.2g}): "
-            f"{how} (try --effect {effect}, or `aqfg diagnose`)")
-
-
-def refit_structure(res: Result, missions: list[Mission], model, effects: Sequence,
-                    estimate, init, settings: FGSettings | None, progress=False,
-                    tried: dict | None = None) -> Result:
-    """Where the structural sigma of the batch fit ``res`` (:func:`structural_sigma`) rests
-    on an effect the data prove (a dynamics effect), the fit again with that effect added
-    (as the effect step tries it, :func:`_try_effect`; ``tried``: that try where the effect
-    step made it), and ``res``'s sigmas hold its exact move (:func:`cover_refit`), in
-    place. The first-order shift assumes the estimates move linearly with the effect; on a
-    GNSS-only Otter the sway drag changed basin when `reverse_thrust` joined, and the
-    current moved 0.009 m/s where 0.0007 was predicted (docs/independent-vehicle.md)."""
-    ss = res.info.get("sigma_structure")
-    have = {getattr(e, "name", e) for e in effects}
-    if not ss or not ss.get("proven") or ss["effect"] in have \
-            or not dynamics_effect(ss["effect"]):
-        return res
-    name = ss["effect"]
-    if tried is None:
-        pick = next((c for c in ss.get("ranked", []) if c["effect"] == name),
-                    {"effect": name, "p_value_robust": ss["p_value_robust"]})
-        tried = _try_effect(pick, variable_estimates(res), float(res.info.get("cost", np.nan)),
-                            missions, model, effects, init, settings, progress, estimate)
-    return cover_refit(res, tried["new"], tried["why"])
-
-
-def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
-    """``res``'s variable parameters' sigmas (top level and each mission's) widened to hold
-    their exact move to ``new``, the fit again with the effect of its structural sigma
-    (``info["sigma_structure"]``), where that move exceeds the first-order shift they
-    hold, in place; used where ``new`` is plausible and lowers the cost. The record:
-    ``info["sigma_structure"]["refit"]``; the structural warning says the move."""
-    ss = res.info["sigma_structure"]
-    rec: dict = {"effect": ss["effect"]}
-    ss["refit"] = rec
-    if new is None:
-        rec["failed"] = why or "no solution"
-        return res
-    rec["cost"] = float(new.info.get("cost", np.nan))
-    if not new.info.get("plausible", True):
-        rec["not_used"] = "implausible"
-        return res
-    if not rec["cost"] < float(res.info.get("cost", np.nan)):
-        rec["not_used"] = "it does not lower the cost"
-        return res
-    first = ss.get("shift", {})
-    names: list[str] = [n for n in ("theta_e", "s_x", "s_y")
-                        if n in res.sigma and n in new.values]
-    move: dict[str, float] = {n: abs(difference(n, new.values[n], res.values[n])) for n in names}
-    before = {n: float(res.sigma[n]) for n in names}
-    for n in names:
-        res.sigma[n] = _cover(res.sigma[n], move[n], first.get(n, 0.0))
-    per, per_new = res.info.get("per_mission") or {}, new.info.get("per_mission") or {}
-    for m, est_m in per.items():
-        for n in names:
-            em, en = est_m.get(n), per_new.get(m, {}).get(n)
-            if isinstance(em, dict) and isinstance(en, dict) and em.get("sigma") is not None:
-                d = abs(difference(n, float(en["value"]), float(em["value"])))
-                em["sigma"] = _cover(float(em["sigma"]), d, first.get(n, 0.0))
-                move[f"{m}:{n}"] = d
-    rec.update(move=move, sigma_before=before)
-    w = _structure_warning(ss["effect"], True, float(ss["p_value_robust"]), first,
-                           moved={n: move[n] for n in names})
-    warns = res.info.setdefault("warnings", [])
-    warns[:] = [w if x == ss.get("warning") else x for x in warns]
-    ss["warning"] = w
-    return res
-
-
-def _cover(sigma: float, move: float, first: float) -> float:
-    """``sigma`` (which holds the first-order shift ``first`` in quadrature) widened to
-    hold the exact ``move`` instead, where that is larger."""
-    if not move > first:
-        return float(sigma)
-    return float(math.sqrt(sigma * sigma + move * move - first * first))

@@ -134,7 +134,7 @@ def too_short_for_sandwich(bg: BuiltGraph, s: FGSettings) -> bool:
     """Whether ``bg``'s missions have fewer of the sandwich's time blocks
     (``s.sandwich_block``) than its parameters + 2: there the evidence chooses the batch's
     process noise (``FGSettings.adapt_batch``) and the structural test alone decides
-    whether the fit explains its fixes (:func:`aqfg.fg.fit.structural_sigma`)."""
+    whether the fit explains its fixes (:func:`aqfg.fg.structural_sigma.structural_sigma`)."""
     b = s.sandwich_block or np.inf
     n_blocks = sum(int(np.floor((float(p.knots[-1]) - float(p.knots[0])) / b)) + 1
                    for p in bg.parts)

@@ -11,6 +11,7 @@ Measurements: docs/independent-vehicle.md.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 
@@ -18,7 +19,7 @@ import numpy as np
 
 from aqfg.data.mission import Mission, samples
 from aqfg.model.params import difference
-from aqfg.result import Result
+from aqfg.result import BlockJackknife, Result
 
 BLOCK = 30.0        # s, the shortest block left out
 MIN_BLOCKS = 4      # fewer: the jackknife's spread is itself too uncertain to report
@@ -85,39 +86,40 @@ def jackknife_sigma(full: dict[str, float], replicates: list[dict[str, float]]
     return out
 
 
-def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> None:
-    """Widen ``res``'s sigmas (a one-mission batch fit too short for the sandwich) to the
-    block jackknife's where that is larger, in place: ``refit`` fits a mission with
-    ``res``'s model. ``info["block_jackknife"]`` records the blocks, the jackknife's
+def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> Result:
+    """``res`` (a one-mission batch fit too short for the sandwich) with its sigmas widened
+    to the block jackknife's where that is larger: ``refit`` fits a mission with
+    ``res``'s model. Its ``block_jackknife`` records the blocks, the jackknife's
     sigmas and the former ones (``sigma_before``, of the widened parameters); a refit
     that fails leaves the sigmas as they were and says why."""
     edges = blocks(mission)
     if not len(edges):
-        return
+        return res
     reps = []
     for a, b in zip(edges[:-1], edges[1:]):
         try:
             r = refit(without_fixes(mission, float(a), float(b)))
         except Exception as e:  # noqa: BLE001 -- an optional widening; the fit stands
-            res.info["block_jackknife"] = {"blocks": len(edges) - 1,
-                                           "failed": f"{type(e).__name__}: {e}"[:200]}
-            return
+            return dataclasses.replace(res, block_jackknife=BlockJackknife(
+                len(edges) - 1, failed=f"{type(e).__name__}: {e}"[:200]))
         reps.append({n: float(r.values[n]) for n in res.estimated if n in r.values})
     sj = jackknife_sigma({n: float(res.values[n]) for n in res.estimated}, reps)
     before = {}
+    sigma = dict(res.sigma)
     for n, s in sj.items():
-        if n in res.sigma and not s <= res.sigma[n]:
-            before[n] = float(res.sigma[n])
-            res.sigma[n] = s
-    res.info["block_jackknife"] = {"blocks": len(edges) - 1, "block_s": float(edges[1] - edges[0]),
-                                   "sigma": sj, "sigma_before": before}
+        if n in sigma and not s <= sigma[n]:
+            before[n] = float(sigma[n])
+            sigma[n] = s
+    info = dict(res.info)
     moved = [n for n in ("theta_e", "s_x", "s_y") if n in before and sj[n] > 2.0 * before[n]]
     if moved:
         parts = [f"theta_e {math.degrees(before['theta_e']):.2g} -> "
                  f"{math.degrees(sj['theta_e']):.2g} deg" if n == "theta_e" else
                  f"{n} {before[n]:.2g} -> {sj[n]:.2g} m/s" for n in moved]
-        res.info.setdefault("warnings", []).append(
+        info["warnings"] = [*info.get("warnings", []), (
             f"these fixes are too short to test the model; leaving out each of "
             f"{len(edges) - 1} {edges[1] - edges[0]:.0f}-s blocks of fixes moved the fit by "
             f"more than its sigma claimed: sigma widened to the block jackknife's "
-            f"({', '.join(parts)})")
+            f"({', '.join(parts)})")]
+    return dataclasses.replace(res, sigma=sigma, info=info, block_jackknife=BlockJackknife(
+        len(edges) - 1, float(edges[1] - edges[0]), sj, before))

@@ -4,24 +4,28 @@ whether the fleet's refit with it is kept, and the record of the step. One model
 the whole fleet, so that its vehicles' constants compare (``fleet.json``'s test)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
-from aqfg.fg.fit import base_record, cover_refit, dynamics_effect, guard_estimates, moves, variable_estimates
-from aqfg.result import Result
+from aqfg.fg.effect_guard import base_record, dynamics_effect, guard_estimates, moves, variable_estimates
+from aqfg.fg.structural_sigma import cover_refit
+from aqfg.result import EffectStep, FleetEffect, Result
 
 
 def choose(results: dict[str, Result], effects: Sequence) -> dict | None:
     """The effect of the vehicle's dynamics (not a drift) that the most vehicles' structural
-    tests call for (``info["structural_test"]["called_for"]``), ties broken by the summed
+    tests call for (``structural_test.called_for``), ties broken by the summed
     score statistic: ``{"effect", "vehicles", "statistic", "p_value_robust": {vehicle: p}}``;
     None where no vehicle's test calls for one not already in ``effects``."""
     have = {getattr(e, "name", e) for e in effects}
     votes: dict[str, dict] = {}
     for v, r in results.items():
-        st = r.info.get("structural_test") or {}
-        stat = {c["effect"]: float(c.get("statistic", 0.0)) for c in st.get("ranked", [])}
-        for c in st.get("called_for", []):
+        st = r.structural_test
+        if st is None:
+            continue
+        stat = {c["effect"]: float(c.get("statistic", 0.0)) for c in st.ranked}
+        for c in st.called_for:
             e = c["effect"]
             if e in have or not dynamics_effect(e):
                 continue
@@ -43,7 +47,7 @@ def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> s
     """Why the fleet's refit ``after`` with ``effect`` may not replace ``before`` ("" where
     it may): it must lower the fleet's cost, every vehicle's fit must be plausible, and
     every mission's heading offset and current must stay within 3 of ``before``'s honest
-    sigmas widened by the effect's predicted shift (:func:`aqfg.fg.fit.guard_estimates`)."""
+    sigmas widened by the effect's predicted shift (:func:`aqfg.fg.effect_guard.guard_estimates`)."""
     c0, c1 = _cost(before), _cost(after)
     why = []
     for v, r in before.items():
@@ -62,38 +66,41 @@ def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> s
 
 def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | None,
            why: str) -> None:
-    """Each vehicle's ``info["auto_effect"]`` (as :func:`aqfg.fg.fit.adopt_effect`'s, plus
+    """Each vehicle's ``effect_step`` (as :func:`aqfg.fg.fit.adopt_effect`'s, plus
     ``fleet``: the vehicles whose tests called for it, the fleet's cost and the step's
     message) and that message among its warnings, on ``after``'s results (the refit, None
-    where it failed) where the effect was added (``why`` empty), else on ``before``'s."""
-    fleet = {"vehicles_calling": list(pick["vehicles"]), "cost_before": _cost(before),
-             "cost_after": _cost(after) if after is not None else math.nan}
+    where it failed) where the effect was added (``why`` empty), else on ``before``'s:
+    the results in those dicts are replaced by the recorded ones."""
+    cost_before = _cost(before)
+    cost_after = _cost(after) if after is not None else math.nan
     name, p = pick["effect"], min(pick["p_value_robust"].values())
-    # one message for the fleet (``fleet["message"]``), the same in every vehicle's warnings
-    fleet["message"] = (
+    # one message for the fleet, the same in every vehicle's warnings
+    message = (
         f"the effect {name} was not added to the fleet's model ({why}): the model is fitted "
         "as given" if why else
         f"added the effect {name} to the fleet's model, which the fits of "
         f"{len(pick['vehicles'])} of {len(before)} vehicles call for (robust score test "
-        f"p = {p:.2g}; fleet cost {fleet['cost_before']:.1f} -> {fleet['cost_after']:.1f}); "
+        f"p = {p:.2g}; fleet cost {cost_before:.1f} -> {cost_after:.1f}); "
         "aqfg fleet --no-auto-effect (FGSettings(auto_effect=False)) fits the model as given")
+    fleet = FleetEffect(list(pick["vehicles"]), cost_before, cost_after, message)
     for v, r in before.items():
-        st = r.info.get("sigma_structure") or {}
-        if after is not None and st.get("effect") == name and st.get("proven"):
+        st = r.sigma_structure
+        if after is not None and st is not None and st.effect == name and st.proven:
             # the model-as-given fit's structural sigma checked by the refit with its
             # effect, as aqfg fit's effect step does (aqfg.fg.fit.refit_structure)
-            cover_refit(r, after[v])
-        rec: dict = {"effect": name, "p_value_robust": pick["p_value_robust"].get(v, p),
-                     "fixes_explained": "sigma_structure" not in r.info,
-                     "cost_before": float(r.info.get("cost", math.nan)),
-                     "cost_after": (float(after[v].info.get("cost", math.nan))
-                                    if after is not None else math.nan),
-                     "base": base_record(r), "fleet": fleet, "adopted": not why}
+            r = before[v] = cover_refit(r, after[v])
+        step = EffectStep(effect=name, adopted=not why,
+                          p_value_robust=pick["p_value_robust"].get(v, p),
+                          cost_before=float(r.info.get("cost", math.nan)), base=base_record(r),
+                          cost_after=(float(after[v].info.get("cost", math.nan))
+                                      if after is not None else math.nan),
+                          fixes_explained=r.sigma_structure is None, reason=why,
+                          fleet=fleet)
         if why:
-            rec["reason"] = why
-            r.info["auto_effect"] = rec
-            r.info.setdefault("warnings", []).append(fleet["message"])
+            before[v] = dataclasses.replace(r, effect_step=step, info={
+                **r.info, "warnings": [*r.info.get("warnings", []), message]})
             continue
         assert after is not None
-        after[v].info["auto_effect"] = rec
-        after[v].info.setdefault("warnings", []).insert(0, fleet["message"])
+        a = after[v]
+        after[v] = dataclasses.replace(a, effect_step=step, info={
+            **a.info, "warnings": [message, *a.info.get("warnings", [])]})

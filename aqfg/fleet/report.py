@@ -17,6 +17,7 @@ from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult
 from aqfg.result import (
     PARAMETERS_FORMAT,
+    EffectStep,
     Result,
     dead_reckoning_document,
     effect_step_document,
@@ -135,9 +136,8 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
             dr = res.info.get("dead_reckoning")
             if dr and dr.get("segments"):
                 doc["dead_reckoning"] = dead_reckoning_document(dr)
-            ae = res.info.get("auto_effect")
-            if ae:
-                doc["auto_effect"] = effect_document(ae)
+            if res.effect_step is not None:
+                doc["auto_effect"] = effect_document(res.effect_step)
             write_json(vdir / "parameters.json", doc)
             written.append(out / v.name / "parameters.json")
             names_f = fixed_names(res)
@@ -160,19 +160,17 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
     return written
 
 
-def effect_document(ae: dict) -> dict:
+def effect_document(step: EffectStep) -> dict:
     """A vehicle's ``parameters.json`` ``auto_effect``: the effect the fleet's step tried,
     whether it was added (and why not), the vehicles whose tests called for it, the costs,
     and each mission's heading offset and current without it."""
-    def num(x) -> float:
-        # NaN, like the shared fields: the JSON writer makes it null with a null_reason
-        return float(x) if x is not None else math.nan
-    fl = ae.get("fleet", {})
-    return {**effect_step_document(ae),
-            "vehicles_calling": list(fl.get("vehicles_calling", [])),
-            "fleet_cost_before": num(fl.get("cost_before")),
-            "fleet_cost_after": num(fl.get("cost_after")),
-            "without_effect": without_effect_document(ae.get("base", {}))}
+    fl = step.fleet
+    return {**effect_step_document(step),
+            # NaN, like the shared fields: the JSON writer makes it null with a null_reason
+            "vehicles_calling": list(fl.vehicles_calling) if fl is not None else [],
+            "fleet_cost_before": float(fl.cost_before) if fl is not None else math.nan,
+            "fleet_cost_after": float(fl.cost_after) if fl is not None else math.nan,
+            "without_effect": without_effect_document(step.base)}
 
 
 def _unit(res: Result, name: str) -> str | None:

@@ -315,7 +315,7 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     fleet, so that its vehicles' constants compare. Kept where it lowers the fleet's cost,
     every vehicle's fit is plausible and every mission's heading offset and current stay
     within 3 sigma (:func:`aqfg.fleet.effect.judge`); otherwise the model as given, saying
-    why. Each vehicle's ``info["auto_effect"]`` records the step."""
+    why. Each vehicle's ``effect_step`` records the step."""
     from aqfg.fleet import effect as fe
     pick = fe.choose(results, effects)
     if pick is None:

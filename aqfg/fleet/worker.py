@@ -112,12 +112,13 @@ def finish_op(specs: list[MissionSpec], result):
 
 def structural(specs: list[MissionSpec], missions: list, result):
     """The structural part of the sigma of a vehicle's joint fit, as ``aqfg fit``'s batch
-    (:func:`aqfg.fg.fit.structural_sigma`): its missions' graph built on the worker, the
+    (:func:`aqfg.fg.structural_sigma.structural_sigma`): its missions' graph built on the worker, the
     numpy system evaluated at the joint solution (the smoothed states and each mission's
     parameters)."""
     from aqfg.fg.batch import BatchSmoother, solution_values, too_short_for_sandwich
     from aqfg.fg.fastlm import FastSystem
-    from aqfg.fg.fit import auto_effect_applies, refit_structure, structural_sigma
+    from aqfg.fg.fit import auto_effect_applies, refit_structure
+    from aqfg.fg.structural_sigma import structural_sigma
     st = specs[0].settings
     if not st.structural_sigma or result.model is None:
         return result

@@ -340,3 +340,15 @@ def shared_information(proj: Projected, a: tuple[str, ...], b: tuple[str, ...]) 
         return float("nan")
     ev = np.linalg.eigvals(M).real
     return float(np.clip(ev.max(initial=0.0), 0.0, 1.0))
+
+
+def holm_log(log10_p: np.ndarray) -> np.ndarray:
+    """Holm-adjusted p-values from log10 p-values (exact for tiny p)."""
+    m = len(log10_p)
+    o = np.argsort(log10_p)
+    adj = np.empty(m)
+    run = -np.inf
+    for k, i in enumerate(o):
+        run = max(run, min(0.0, math.log10(m - k) + log10_p[i]))
+        adj[i] = 10 ** run
+    return adj

@@ -8,7 +8,7 @@ shows it. Local misspecification (Copas & Eguchi 2005, "Local model uncertainty 
 incomplete-data bias"): if the model misses an effect with parameters ``gamma`` (null at
 ``gamma_0``), the base estimates are off by about ``-(A^T A)^-1 A^T C delta``, with ``C`` the
 effect's columns of the linearised graph and ``delta`` its one-step estimate -- the same
-quantities as the diagnosis's score test (:mod:`aqfg.diagnose.score`), here from the batch's
+quantities as the diagnosis's score test (:mod:`aqfg.fg.score`), here from the batch's
 own numpy system for the catalogue's dynamics effects (the kernel's parameter Jacobian
 already has their columns at the null), which costs a few banded solves instead of a
 graph built and linearised again.
@@ -26,6 +26,7 @@ one), so their shift is not a bias.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +34,8 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg.fastlm import FastSystem
-from aqfg.model.effects import DemandLagTerm
+from aqfg.fg.score import Projected, holm_log, score_tests
+from aqfg.model.effects import BUILTIN, DemandLagTerm, Effect, resolve
 from aqfg.model.params import N_DYN
 from aqfg.model.vehicle import Model
 
@@ -44,7 +46,7 @@ ALPHA = 1e-3          # Holm-adjusted robust score-test level for an effect to c
 ALPHA_SIGMA = 0.05
 
 
-@dataclass
+@dataclass(frozen=True)
 class StructuralShift:
     """The effect the data call for most (where none is ``suggested``, the one of largest
     score statistic), and the shift of each variable parameter it would cause (model
@@ -78,6 +80,22 @@ class StructuralShift:
                 "ranked": [dict(c) for c in self.ranked]}
 
 
+def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
+                      pool: Sequence | None = None) -> list:
+    """The effects to rank: ``pool`` (default: the built-in catalogue) plus ``extra`` (e.g.
+    :class:`~aqfg.model.effects.UserEffect` objects), without duplicates, without those already
+    in the model, and only those applicable to at least one mission."""
+    have = {resolve(e).name for e in model_effects}
+    out: list[Effect] = []
+    for c in list(BUILTIN.values() if pool is None else pool) + list(extra):
+        e = resolve(c)
+        if e.name in have or any(e.name == o.name for o in out):
+            continue
+        if any(e.applicable(m) for m in missions):
+            out.append(e)
+    return out
+
+
 def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
                      estimated: tuple[str, ...]) -> StructuralShift | None:
     """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
@@ -87,9 +105,6 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
     Holm-adjusted robust p is below ``ALPHA_SIGMA`` (its ranking is still every candidate's);
     None where there is nothing to test or no candidate moves a variable parameter."""
-    from aqfg.diagnose.candidates import candidate_effects, holm_log
-    from aqfg.diagnose.score import Projected, score_tests
-
     names = [n for n in estimated if model.spec(n).group == "variable"]
     cands = [e for e in candidate_effects(missions, model.effects)
              if not isinstance(e, DemandLagTerm)
