@@ -308,16 +308,16 @@ def test_a_start_that_ends_at_a_nan_cost_loses_to_the_other(heldout111, monkeypa
     cost (otter-dev-calm-a: a one-step sway drag of 101/s, NaN after one iteration); the
     other start's finite fit is the one judged, not the NaN one."""
     m, _truth, _res, given = heldout111
-    bad, good = copy.copy(given), copy.copy(given)
-    bad.info = {**given.info, "cost": float("nan")}
-    good.info = {**given.info, "cost": float(given.info["cost"]) - 100.0}
+    bad = dataclasses.replace(given, info={**given.info, "cost": float("nan")})
+    good = dataclasses.replace(given, info={**given.info, "cost": float(given.info["cost"]) - 100.0})
     outs = iter([(bad, "bs-bad"), (good, "bs-good")])
     monkeypatch.setattr(fit_module, "_solve", lambda *a, **k: next(outs))
     pick = {"effect": "linear_drag", "p_value_robust": 1e-6,
             "estimate": {"linear_drag.c_x": 0.1, "linear_drag.c_yz": 101.0}}
-    base = fit_module.variable_estimates(given)
+    from aqfg.fg.effect_guard import variable_estimates
+    base = variable_estimates(given)
     out = fit_module._try_effect(pick, base, float(given.info["cost"]), [m], None, (), None,
                                  None, False)
-    assert out["new"] is good and out["bs"] == "bs-good"
-    assert out["rec"]["cost_after"] == float(given.info["cost"]) - 100.0
-    assert out["why"] == ""
+    assert out.new is good and out.bs == "bs-good"
+    assert out.rec["cost_after"] == float(given.info["cost"]) - 100.0
+    assert out.why == ""
