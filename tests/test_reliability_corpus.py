@@ -679,3 +679,27 @@ def test_ctrl_c_on_a_fleet_run_stops_it_and_its_workers_quietly(otter, tmp_path)
             break
         time.sleep(0.1)
     assert all(_gone(w) for w in workers)
+
+
+def test_a_reversal_in_one_mission_of_a_fleet_vehicle_is_that_missions_alone(otter, tmp_path,
+                                                                              capsys):
+    """``aqfg fleet`` says what the data cannot determine as ``aqfg fit`` does: a vehicle
+    whose second mission's commands are negated gets that mission's theta_e not determined
+    (sigma null, the reason), the other mission's kept, and a warning naming both."""
+    from aqfg.fleet.manifest import write_manifest
+    good = crop(otter, tmp_path / "good")
+    edit_toml(good / "mission.toml", 'name = "otter-example"', 'name = "good"')
+    bad = crop(otter, tmp_path / "bad")
+    edit_toml(bad / "mission.toml", 'name = "otter-example"', 'name = "reversed"')
+    edit_csv(bad / "motors.csv", lambda c: [c[0], *(f"{-float(x):.6f}" for x in c[1:])])
+    man = write_manifest(tmp_path / "fleet.toml", {"otter": ["good", "bad"]})
+    out = tmp_path / "out"
+    code, err = run("fleet", man, "--out", out, "--workers", "1", "--no-auto-effect",
+                    capsys=capsys)
+    assert code == 0, err
+    rev = json.loads((out / "otter" / "bad" / "parameters.json").read_text())
+    th = rev["parameters"]["theta_e"]
+    assert th["sigma"] is None and "moves against its thrust" in th["sigma_note"], th
+    ok = json.loads((out / "otter" / "good" / "parameters.json").read_text())
+    assert 0 < ok["parameters"]["theta_e"]["sigma"] < np.radians(2)
+    assert "warning: otter: reversed: the vehicle moves against its thrust" in err, err

@@ -47,6 +47,9 @@ def run(args) -> int:
                  if r.effect_step is not None and r.effect_step.fleet is not None), None)
     if step:
         print(f"warning: {step}", file=sys.stderr)
+    for v, r in fr.results.items():
+        for w in r.info.get("identifiability_warnings") or ():
+            print(f"warning: {v}: {w}", file=sys.stderr)
     for v, e in table["vehicles"].items():
         if e.get("plausible") is False:
             print(f"warning: {v}: a mission's solution is implausible (see fleet.json); "

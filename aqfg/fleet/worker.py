@@ -101,13 +101,20 @@ def structural_op(specs: list[MissionSpec], result):
 
 def finish_op(specs: list[MissionSpec], result):
     """A vehicle's final joint fit with its thrust/drag constants re-estimated by prediction
-    error over its missions (:func:`aqfg.fg.dead_reckoning.refine`) and its missions' tracks
-    smoothed under the noise their evidence chooses (:func:`smooth_tracks`), as ``aqfg fit``
-    does once for the fit it returns; the missions are read on the worker."""
+    error over its missions (:func:`aqfg.fg.dead_reckoning.refine`), its missions' tracks
+    smoothed under the noise their evidence chooses (:func:`smooth_tracks`) and what its data
+    cannot determine marked so (:func:`aqfg.identifiability.settle`; its warnings in
+    ``info["identifiability_warnings"]``), as ``aqfg fit`` does once for the fit it returns;
+    the missions are read on the worker."""
     from aqfg.fg import dead_reckoning
+    from aqfg.identifiability import settle
     missions = _vehicle(specs, result)
     result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
-    return smooth_tracks(specs, missions, result)
+    result = smooth_tracks(specs, missions, result)
+    # what the data cannot determine, as aqfg fit says it (the accelerometer check needs
+    # the missions, which are here)
+    result.info["identifiability_warnings"] = settle(result, missions)
+    return result
 
 
 def structural(specs: list[MissionSpec], missions: list, result):
