@@ -114,6 +114,10 @@ class WindowWalk:
         Mi = _small_inv(M)
         CM = C @ Mi
         H[:L, :L] -= CM @ C.T
+        # kept symmetric: each step rescales the walking columns by 1/a and subtracts a
+        # product that is symmetric only to rounding; left to accumulate over ~80 steps
+        # (40 min) the asymmetry ran the current to its bound and the window diverged
+        H[:L, :L] = 0.5 * (H[:L, :L] + H[:L, :L].T)
         b[:L] -= CM @ (sd * bw)
 
 
