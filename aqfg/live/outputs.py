@@ -32,27 +32,12 @@ import numpy as np
 from aqfg.data.geodesy import ne_to_latlon
 from aqfg.export import track_csv, write_result
 from aqfg.live.runner import FixReport, Segment
-from aqfg.outputs import OutputSet
+from aqfg.outputs import OutputSet, jsonable
 from aqfg.result import RESULT_FILES, Track
 
 STREAM_FILES = ("live.jsonl", "causal.csv")
 RECORDING = "stream.tlog"
 LIVE_SET = (*RESULT_FILES, *STREAM_FILES, RECORDING, "segment-*")
-
-
-def clean(v: Any) -> Any:
-    """``v`` for JSON: numpy scalars and arrays as Python numbers and lists, NaN and
-    infinities as None."""
-    if isinstance(v, dict):
-        return {str(k): clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return [clean(x) for x in v]
-    if isinstance(v, (np.integer, np.bool_)):
-        return v.item()
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    return v
 
 
 def fix_line(rep: FixReport, origin: tuple[float, float] | None) -> dict[str, Any]:
@@ -68,7 +53,7 @@ def fix_line(rep: FixReport, origin: tuple[float, float] | None) -> dict[str, An
              parameters={n: {"value": v, "sigma": rep.sigma.get(n, math.nan)}
                          for n, v in rep.values.items()},
              events=rep.events)
-    return clean(d)
+    return jsonable(d)
 
 
 class LiveFiles:
@@ -96,7 +81,7 @@ class LiveFiles:
         self._line(self.csv, text)
 
     def event(self, ev: dict) -> None:
-        self._line(self.jsonl, json.dumps(clean(ev), allow_nan=False) + "\n")
+        self._line(self.jsonl, json.dumps(jsonable(ev), allow_nan=False) + "\n")
 
     def close(self) -> None:
         self.jsonl.close()
