@@ -301,6 +301,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     x_fg = _to_x(np.array([result.values[n] for n in names]), logs)
     x0 = np.clip(x_fg, lo + 1e-9, hi - 1e-9)
     r0 = residuals(x0)
+    e0 = pred.errors(x0)             # in m, for the report (the states of x0 are cached)
     scale = max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
     both = np.array([n in ("k", "k_x") for n in names]) & logs
     x, r, scale = _huber_fit(residuals, x0, r0, lo, hi, both, scale, jac)
@@ -322,7 +323,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
                  "sigma_before": {n: float(result.sigma.get(n, np.nan)) for n in names},
                  "after": {n: float(v) for n, v in zip(names, v_new)},
                  "sigma_after": {n: float(s) for n, s in zip(names, sig_new)},
-                 **_error_summary(pred.errors(x0), pred.errors(x))})
+                 **_error_summary(e0, pred.errors(x))})
     if not (wald > thr and np.all(np.isfinite(sig_new))):
         result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
         info["reason"] = ("the smoother's constants predict as well (Wald "
