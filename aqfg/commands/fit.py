@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from pathlib import Path
 
 from aqfg.commands.common import UsageError, printable
@@ -29,10 +30,19 @@ def _float(name: str, text: str, where: str) -> float:
         raise UsageError(str(e)) from None
 
 
-@functools.lru_cache(maxsize=4)
 def _params_document(path: str):
-    """The ``--params-from`` document, read once per command (its values and its GNSS
-    noise are both taken from it)."""
+    """The ``--params-from`` document, read once while the file stays as it was (its values
+    and its GNSS noise are both taken from it; a file rewritten since is read again)."""
+    try:
+        st = os.stat(path)
+        version: tuple | None = (st.st_ino, st.st_mtime_ns, st.st_size)
+    except OSError:
+        version = None                 # read_json names what is wrong
+    return _read_params_document(path, version)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_params_document(path: str, version: tuple | None):
     from aqfg.outputs import read_json
     return read_json(Path(path), "--params-from")
 
