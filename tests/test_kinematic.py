@@ -85,7 +85,8 @@ def test_the_floor_carries_the_track_only_where_it_predicted_the_fixes_better():
     """A boat at rest for 8 s, then accelerating at 1 m/s^2 north, fixes every 2 s (sigma
     0.3 m). A model that predicts the fixes (knows the thrust) keeps the track: at rest the
     two predict alike, within the fixes' noise; a model 5 m off hands it to the filter
-    while that predicts better (at rest), not once the filter falls further behind."""
+    while that predicts better (at rest), not once the filter falls further behind. The
+    first fix, which nothing has predicted yet, leaves the model."""
     from aqfg.fg.kinematic import CausalFloor
     t = np.arange(0.0, 20.0, 2.0)
     north = np.where(t > 8.0, 0.5 * (t - 8.0) ** 2, 0.0)
@@ -96,15 +97,19 @@ def test_the_floor_carries_the_track_only_where_it_predicted_the_fixes_better():
         fl.step(float(tk), fixes, held=True)
     good = np.column_stack([pos, np.zeros((len(t), 4))])[1:]        # exact predictions
     ch = fl.chosen((t[1:], good))
-    assert ch[0] and not ch[1:].any()                 # the first fix: the floor; then the model
+    assert not ch.any()                               # the model throughout
     bad = good.copy()
     bad[:, 1] += 5.0
     ch = fl.chosen((t[1:], bad))
-    assert ch[t <= 8.0].all() and not ch[t >= 16.0].any()
+    assert not ch[0] and ch[(t > 0.0) & (t <= 8.0)].all() and not ch[t >= 16.0].any()
     knots = np.arange(0.0, 19.0, 1.0)
     X = np.full((len(knots), 6), 7.0)
     fl.apply(knots, X, (t[1:], good))
-    assert np.all(X[knots >= 2.0] == 7.0) and not np.all(X[knots < 2.0] == 7.0)
+    assert np.all(X == 7.0)
+    fl.apply(knots, X, (t[1:], bad))
+    floor = ch[np.searchsorted(t, knots + 1e-9) - 1]  # after each fix the floor was chosen at
+    assert floor[2] and not floor[:2].any()
+    assert np.all(X[~floor] == 7.0) and not np.any(X[floor][:, 0] == 7.0)
 
 
 def test_the_baseline_smoother_is_the_map_of_its_model_and_the_causal_track_the_filters():

@@ -237,8 +237,11 @@ class CausalFloor:
         before the update), weighed by the fixes' variances: :func:`advantage_z` above
         ``FLOOR_Z``). Errors the fixes cannot
         tell apart leave the model, which knows the thrust (a boat starting from rest
-        left the floor 9 m behind 4 s later). Causal: a fix's choice uses fixes up to it.
-        The first fix, and every fix without a model prediction, take the floor."""
+        left the floor 9 m behind 4 s later); so does the first fix, which no prediction
+        has tested yet (a real ASV throttling up in its first 8-s gap: the floor 5 m
+        behind, the model 0.5 m). Causal: a fix's choice uses fixes up to it. Every
+        later fix without a model prediction in its last ``last`` takes the floor, and
+        all do where there is no model prediction at all."""
         n = len(self.t)
         out = np.ones(n, bool)
         if predicted is None or n < 2:
@@ -253,6 +256,7 @@ class CausalFloor:
         j = np.clip(np.searchsorted(pt, t - 1e-6), 0, len(pt) - 1)
         ok = np.abs(pt[j] - t) < 1e-6
         p_m[ok] = px[j[ok], :2]
+        out[0] = False                          # no evidence yet: the model
         e_f = np.sum((p_f - z) ** 2, axis=1)
         e_m = np.sum((p_m - z) ** 2, axis=1)
         gap = np.sum((p_m - p_f) ** 2, axis=1)
