@@ -54,7 +54,7 @@ class MissionResult:
     name: str
     track: Track                       # smoothed (batch) or filtered-then-corrected (online)
     inertial: Track                    # re-traced by the model alone from the first fix
-    p: np.ndarray                      # full parameter vector used for this mission
+    p: np.ndarray                      # full parameter vector used for this mission's re-trace
     residuals: dict[str, Residuals] = field(default_factory=dict)
     filtered: Track | None = None      # online modes: the causal (uncorrected) track
 
@@ -379,7 +379,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if per and len(result.missions) > 1:
         doc["per_mission"] = per
     dr = result.info.get("dead_reckoning")
-    if dr and dr.get("segments"):
+    if dr and (dr.get("segments") or dr.get("current")):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
     if result.gnss_noise is not None:
         # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
@@ -447,6 +447,9 @@ def dead_reckoning_document(dr: dict) -> dict:
         out["refined"] = {n: {"value": v, "sigma": _finite_or_none(dr.get("sigma_after", {}).get(n))}
                           for n, v in dr.get("after", {}).items()}
         out["reason"] = dr.get("reason")
+    if dr.get("current"):
+        # each mission's current by prediction error (aqfg.fg.dr_current)
+        out["current"] = {c.mission: c.document() for c in dr["current"]}
     return out
 
 

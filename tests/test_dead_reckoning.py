@@ -118,24 +118,3 @@ def test_fit_says_it_refined(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "refined for dead reckoning over 60 s" in text
 
-
-def test_the_prediction_errors_jacobian_is_exact(calm_b):
-    # the refinement's Jacobian (the kernel's interval Jacobians chained along each
-    # prediction) against central differences of the prediction errors
-    from aqfg.fg import dead_reckoning as dr
-    m, _, _, r = calm_b
-    model = r.model
-    segs = dr._segments(model, [m], r, 60.0)
-    idx = np.array([model.index(n) for n in CONSTANTS])
-    logs = np.ones(3, bool)
-    pred = dr._Predictions(model, segs, [r.missions[0].p.copy()], idx, logs)
-    assert pred.analytic
-    x = np.log([r.values[n] for n in CONSTANTS])
-    J = pred.jacobian(x)
-    Jn = np.empty_like(J)
-    for c in range(3):
-        e = np.zeros(3)
-        e[c] = 1e-6
-        Jn[:, c] = (pred.residuals(x + e) - pred.residuals(x - e)) / 2e-6
-    assert J.shape == (len(pred.residuals(x)), 3)
-    np.testing.assert_allclose(J, Jn, rtol=0, atol=1e-5 * np.abs(Jn).max())

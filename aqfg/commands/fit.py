@@ -310,6 +310,12 @@ def _print_summary(result) -> None:
               f"(median prediction error {dr['median_abs_before_m']:.2f} -> "
               f"{dr['median_abs_after_m']:.2f} m); the smoother's: "
               + ", ".join(f"{n} {v:.4g}" for n, v in dr["before"].items()))
+    for c in dr.get("current") or ():
+        if c.applied:
+            print(f"{c.mission}: the model-only re-trace drifts with the current refined for dead "
+                  f"reckoning over {dr['horizon_s']:.0f} s, ({c.after[0]:.3f}, {c.after[1]:.3f}) m/s "
+                  f"N/E: the smoother's ({c.before[0]:.3f}, {c.before[1]:.3f}) predicted the "
+                  "left-out time blocks worse")
     tq = {n: q for n, q in (result.info.get("track_noise_scale") or {}).items() if q > 1.0}
     if tq and result.mode == "batch":
         print("trajectory smoothed with the process noise x"

@@ -8,13 +8,13 @@ fixes. On the Otter USV missions the smoother's constants were sluggish (k, k_x 
 below what predicts well) and its dead reckoning 2-5x worse than the update-error method's,
 whose criterion is a multi-step prediction (docs/independent-vehicle.md).
 
-:func:`refine` keeps the smoother's heading offset, current and trajectory and re-estimates
-the estimated *fixed* parameters (k, k_x, k_yz and the fixed effects' parameters) by the
-error of the model's own prediction, started from the smoothed state at a fix and run
-without corrections to every fix within ``horizon`` s (the gap a user dead-reckons
-through). The residuals are the horizontal position errors divided by their lead time (the
-mean velocity error since the start, m/s; leads under ``MIN_LEAD`` s count as that), under a
-Huber loss: a prediction's error grows with its lead, and raw position errors let the
+:func:`refine_constants` keeps the smoother's heading offset, current and trajectory and
+re-estimates the estimated *fixed* parameters (k, k_x, k_yz and the fixed effects'
+parameters) by the error of the model's own prediction, started from the smoothed state at
+a fix and run without corrections to every fix within ``horizon`` s (the gap a user
+dead-reckons through; :mod:`aqfg.fg.predictions`). The residuals are the horizontal
+position errors divided by their lead time (the mean velocity error since the start, m/s),
+under a Huber loss: a prediction's error grows with its lead, and raw position errors let the
 longest leads alone choose constants that damp every prediction (on a real ASV, constants
 that predicted the seconds between online fixes worse than the smoother's). Their
 1-sigma is a time-block sandwich (blocks of ``horizon`` s, one Bartlett lag: overlapping
@@ -22,13 +22,13 @@ horizons share model error), reported wider by the Student-t factor of its dof
 (:func:`aqfg.fg.covariance.honest_covariance`). The refined constants replace the
 smoother's only where the two differ significantly (Wald test at 1 % with the refined
 covariance): on a vehicle that is the model the smoother's own, more efficient, estimate
-stays.
+stays. :func:`refine` then re-estimates each mission's current the same way
+(:mod:`aqfg.fg.dr_current`).
 """
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -36,163 +36,21 @@ from scipy.optimize import least_squares
 from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.dr_current import refine_current
+from aqfg.fg.predictions import Predictions, forward_jacobian, segments, to_v, to_x
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
-from aqfg.model.reference import Steps
-from aqfg.model.retrace import fixes, inertial_track
+from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
-from aqfg.threads import both
 
 HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction errors
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
 MIN_BLOCKS = 3         # fewer time blocks than parameters + this: not refined
-STRIDE_DIV = 4.0      # starts at least horizon / STRIDE_DIV s apart
-MIN_LEAD = 1.0        # s, the shortest lead time a residual is divided by
-
-
-@dataclass
-class _Segment:
-    """One prediction: from the smoothed state at ``t0`` to the fixes in its horizon."""
-    mission: int
-    t0: float
-    x0: np.ndarray          # smoothed [pos, vel] at t0
-    steps: Steps
-    offsets: np.ndarray
-    rows: np.ndarray        # knot index of each target fix
-    z: np.ndarray           # (n, 2) target fix positions (north, east), m
-    lead: np.ndarray        # (n,) s from t0 to each target fix
-
-
-def _segments(model: Model, missions: list[Mission], result: Result, horizon: float
-              ) -> list[_Segment]:
-    """Starts at fixes at least ``horizon / 4`` s apart, each predicting the fixes within
-    ``horizon`` s after it."""
-    stride = horizon / STRIDE_DIV
-    out: list[_Segment] = []
-    for i, (m, mr) in enumerate(zip(missions, result.missions)):
-        tf, pf = fixes(m, mr.p)
-        if len(tf) < 3:
-            continue
-        tr = mr.track
-        # the kernel steps between all fixes at once, sliced per segment (a segment's knots
-        # are consecutive fixes; building them per segment took 40 % of the refinement);
-        # with a lookback (warm-up steps) each segment builds its own
-        u = np.unique(tf)
-        whole = model.steps(m, u) if model.lookback <= 0 else None
-        last = -np.inf
-        for t0 in tf:
-            if t0 - last < stride or t0 < tr.t[0] or t0 > tr.t[-1]:
-                continue
-            js = np.nonzero((tf > t0 + 1e-6) & (tf <= t0 + horizon))[0]
-            if len(js) < 2:
-                continue
-            last = t0
-            x0 = np.array([np.interp(t0, tr.t, tr.pos[:, c]) for c in range(3)]
-                          + [np.interp(t0, tr.t, tr.vel[:, c]) for c in range(3)])
-            knots = np.concatenate([[t0], np.unique(tf[js])])
-            if whole is not None:
-                a = int(np.searchsorted(u, t0 - 1e-9))
-                b = a + len(knots) - 1
-                off_all = whole[1]
-                steps = whole[0].slice(int(off_all[a]), int(off_all[b]))
-                off = off_all[a:b + 1] - off_all[a]
-            else:
-                steps, off = model.steps(m, knots)
-            rows = np.searchsorted(knots, tf[js] - 1e-9)
-            out.append(_Segment(i, float(t0), x0, steps, off, rows, pf[js, :2], tf[js] - t0))
-    return out
-
-
-class _Predictions:
-    """The prediction errors of every segment as functions of the fit's variables ``x``
-    (the constants at ``idx`` of each mission's parameter vector, the ``logs`` ones by
-    their logarithm); the states of the last ``x`` kept for its Jacobian."""
-
-    def __init__(self, model: Model, segs: list[_Segment], p_missions: list[np.ndarray],
-                 idx: np.ndarray, logs: np.ndarray):
-        self.model, self.segs, self.p_missions, self.idx, self.logs = \
-            model, segs, p_missions, idx, logs
-        self._last: tuple[np.ndarray, list] | None = None
-        dyn = list(model.dyn_columns())
-        self.cols = [dyn.index(i) for i in idx] if all(i in dyn for i in idx) else None
-        self.analytic = (model.uses_cpp and model.lookback <= 0 and self.cols is not None
-                         and bool(segs))
-        # each error divided by its lead time (module docstring)
-        self.per_lead = (np.concatenate([np.repeat(1.0 / np.maximum(s.lead, MIN_LEAD), 2)
-                                         for s in segs]) if segs else np.zeros(0))
-
-    def states(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Each segment's parameter vector and predicted states at its knots."""
-        if self._last is not None and np.array_equal(self._last[0], x):
-            return self._last[1]
-        v = _to_v(x, self.logs)
-
-        def roll(segs: list[_Segment]) -> list[tuple[np.ndarray, np.ndarray]]:
-            out = []
-            for s in segs:
-                p = self.p_missions[s.mission].copy()
-                p[self.idx] = v
-                out.append((p, self.model.rollout_segments(s.x0, p, s.steps, s.offsets)))
-            return out
-        h = len(self.segs) // 2           # two halves in two threads (the kernel's)
-        a, b = both(lambda: roll(self.segs[:h]), lambda: roll(self.segs[h:]))
-        self._last = (np.array(x, float), a + b)
-        return a + b
-
-    def errors(self, x: np.ndarray) -> np.ndarray:
-        """Horizontal prediction errors at the target fixes, m (north, east per fix)."""
-        return np.concatenate([(X[s.rows, :2] - s.z).ravel()
-                               for s, (_, X) in zip(self.segs, self.states(x))])
-
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        """The errors divided by their lead times, m/s."""
-        r = self.errors(x) * self.per_lead
-        return np.where(np.isfinite(r), r, 1e6)
-
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """The exact Jacobian of :meth:`residuals` (where :attr:`analytic`): each
-        prediction's state sensitivity to the constants chained along its knot intervals,
-        ``D_{k+1} = J_x,k D_k + J_p,k`` (the kernel's interval Jacobians at the predicted
-        states; ``D_0 = 0``, the start is the smoothed state), times ``dv/dx``."""
-        assert self.cols is not None
-        segs, n_x = self.segs, len(self.idx)
-        n_k = max(len(s.offsets) - 1 for s in segs)
-        # every prediction's interval Jacobians, padded to n_k intervals (identity, zero)
-        JX = np.tile(np.eye(6), (len(segs), n_k, 1, 1))
-        JP = np.zeros((len(segs), n_k, 6, n_x))
-        sts = self.states(x)
-
-        def fill(js: range) -> None:
-            for j in js:
-                s, (p, X) = segs[j], sts[j]
-                _, jx, jp = self.model.propagate_many(X[:-1], p, s.steps, s.offsets)
-                JX[j, :len(jx)] = jx
-                JP[j, :len(jp)] = jp[:, :, self.cols]
-        h = len(segs) // 2
-        both(lambda: fill(range(h)), lambda: fill(range(h, len(segs))))
-        D = np.zeros((len(segs), n_k + 1, 6, n_x))
-        for k in range(n_k):
-            D[:, k + 1] = JX[:, k] @ D[:, k] + JP[:, k]
-        rows = np.concatenate([np.repeat(s.rows, 2) for s in segs])
-        seg_of = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
-        comp = np.concatenate([np.tile([0, 1], len(s.rows)) for s in segs])
-        J = (D[seg_of, rows, comp] * np.where(self.logs, _to_v(x, self.logs), 1.0)
-             * self.per_lead[:, None])
-        return np.where(np.isfinite(J), J, 0.0)
 
 
 def _huber(r: np.ndarray, c: float) -> float:
     return float(np.sum(huber_cost(np.abs(r), c)))
-
-
-def _to_x(v: np.ndarray, logs: np.ndarray) -> np.ndarray:
-    """Constants to the fit's variables (the ``logs`` ones by their logarithm)."""
-    return np.where(logs, np.log(np.maximum(v, 1e-12)), v)
-
-
-def _to_v(x: np.ndarray, logs: np.ndarray) -> np.ndarray:
-    return np.where(logs, np.exp(np.clip(x, -300.0, 300.0)), x)
 
 
 def _rms(q: np.ndarray) -> float:
@@ -240,14 +98,7 @@ def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r
     Gauss-Newton information ``A`` (Jacobian ``jac``, by forward differences without), the per-block score
     outer products ``B`` (segments grouped by mission and start time, Bartlett lag 1
     within a mission), the Huber weights and the sorted block keys."""
-    if jac is not None:
-        J = jac(x)
-    else:
-        J = np.empty((len(r), len(x)))
-        for c in range(len(x)):
-            h = 1e-5 * max(1.0, abs(x[c]))
-            e = np.zeros(len(x)); e[c] = h
-            J[:, c] = (residuals(x + e) - r) / h
+    J = jac(x) if jac is not None else forward_jacobian(residuals, x, r)
     w = huber_weight(np.abs(r), c_h)
     A = (J * w[:, None]).T @ J
     seg_rows = np.repeat(np.arange(len(segs)), [2 * len(s.rows) for s in segs])
@@ -267,6 +118,13 @@ def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r
 
 
 def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
+    """The constants (:func:`refine_constants`), then each mission's current
+    (:func:`aqfg.fg.dr_current.refine_current`) a dead reckoning of ``horizon`` s drifts
+    with, by prediction error; ``result`` updated in place and returned."""
+    return refine_current(refine_constants(result, missions, horizon), missions, horizon)
+
+
+def refine_constants(result: Result, missions: list[Mission], horizon: float) -> Result:
     """Re-estimate the estimated fixed parameters of a batch ``result`` by ``horizon``-s
     prediction error (module docstring); ``result`` is updated in place and returned, with
     ``info["dead_reckoning"]`` saying what was done and why (``horizon`` <= 0: the result as
@@ -281,7 +139,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     if model is None or not names:
         info["reason"] = "no thrust/drag constant estimated"
         return result
-    segs = _segments(model, missions, result, horizon)
+    segs = segments(model, missions, result, horizon)
     blocks = {(s.mission, int(s.t0 // horizon)) for s in segs}
     if len(blocks) < len(names) + MIN_BLOCKS:
         info["reason"] = f"too little data: {len(blocks)} blocks of {horizon:.0f} s"
@@ -291,14 +149,14 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     specs = [model.spec(n) for n in names]
     p_missions = [mr.p.copy() for mr in result.missions]
 
-    pred = _Predictions(model, segs, p_missions, idx, logs)
+    pred = Predictions(model, segs, p_missions, idx, logs)
     residuals = pred.residuals
     jac = pred.jacobian if pred.analytic else None
 
     lo = np.array([np.log(max(sp.lower, 1e-12)) if lg else sp.lower for sp, lg in zip(specs, logs)])
     hi = np.array([np.log(sp.upper) if lg and np.isfinite(sp.upper) else
                    (np.inf if lg else sp.upper) for sp, lg in zip(specs, logs)])
-    x_fg = _to_x(np.array([result.values[n] for n in names]), logs)
+    x_fg = to_x(np.array([result.values[n] for n in names]), logs)
     x0 = np.clip(x_fg, lo + 1e-9, hi - 1e-9)
     r0 = residuals(x0)
     e0 = pred.errors(x0)             # in m, for the report (the states of x0 are cached)
@@ -313,7 +171,7 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
         return result
     cov, cov_model, dof, wald = _wald(Ai, B, w, r, x - x_fg, len(keys))
     thr = float(dist.chi2_ppf(1.0 - WALD_ALPHA, len(x)))
-    v_new = _to_v(x, logs)
+    v_new = to_v(x, logs)
     D = np.where(logs, v_new, 1.0)
     sig_new = np.sqrt(np.maximum(np.diag(cov), 0.0)) * D
     sig_mod = np.sqrt(np.maximum(np.diag(cov_model), 0.0)) * D

@@ -154,16 +154,17 @@ def smooth_tracks(specs: list[MissionSpec], missions: list, result):
     """Each mission's track (and residuals) of a vehicle's joint fit smoothed again with the
     parameters held under the process noise its evidence chooses, as ``aqfg fit``'s batch
     does (:attr:`aqfg.fg.common.FGSettings.adapt_track`): with the smoother's constants,
-    not those refined for dead reckoning."""
+    not those (nor the current) refined for dead reckoning."""
     from aqfg.fg.batch import smooth_track
+    from aqfg.fg.dr_current import smoother_vector
     st = specs[0].settings
     if not st.adapt_track or result.model is None:
         return result
     dr = result.info.get("dead_reckoning") or {}
     before = dr.get("before", {}) if dr.get("applied") else {}
     q = {}
-    for spec, m, mr in zip(specs, missions, result.missions):
-        p = mr.p.copy()
+    for i, (spec, m, mr) in enumerate(zip(specs, missions, result.missions)):
+        p = smoother_vector(result, i)
         for n, v in before.items():
             p[result.model.index(n)] = v
         mr.track, mr.residuals, q[mr.name] = smooth_track(m, p, effects=spec.effects,
