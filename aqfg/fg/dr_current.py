@@ -34,7 +34,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from aqfg.data.mission import Mission
 from aqfg.fg.predictions import Predictions, forward_jacobian, segments
@@ -45,6 +44,8 @@ from aqfg.result import Result
 CURRENT = ("s_x", "s_y")
 HUBER_C = 1.5          # Huber threshold, in robust scales of the smoother's prediction errors
 MIN_BLOCKS = 2         # fewer time blocks: the smoother's current stays
+MAX_STEPS = 4          # Gauss-Newton steps of the fit at most
+STEP_TOL = 1e-4        # m/s, a step this small ends the fit
 
 
 @dataclass(frozen=True)
@@ -105,13 +106,9 @@ def refine_current(result: Result, missions: list[Mission], horizon: float) -> R
         c_h = HUBER_C * max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
         rows = np.repeat(np.concatenate([np.full(len(s.rows), k) for s, k in zip(segs, keys)]), 2)
 
-        jac = pred.jacobian if pred.analytic else "2-point"
-        x_all = least_squares(pred.residuals, x_sm, jac=jac, loss="huber", f_scale=c_h,
-                              diff_step=1e-4, xtol=1e-8, ftol=1e-10, max_nfev=50).x
+        x_all, r, J = _irls(pred, x_sm, r0, c_h)
         # leave-one-block-out: one Gauss-Newton step from the full fit without the block,
         # its residuals linearised (the current enters nearly linearly over a horizon)
-        r = pred.residuals(x_all)
-        J = pred.jacobian(x_all) if pred.analytic else forward_jacobian(pred.residuals, x_all, r)
         w = huber_weight(np.abs(r), c_h)
         cost_sm = cost_cv = 0.0
         x_loo = []
@@ -143,6 +140,26 @@ def refine_current(result: Result, missions: list[Mission], horizon: float) -> R
             _apply(result, m, i, idx, x_all)
     dr["current"] = records
     return result
+
+
+def _irls(pred: Predictions, x: np.ndarray, r: np.ndarray, c_h: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The current minimising the Huber cost (threshold ``c_h``) of ``pred``'s residuals
+    from ``x`` (residuals ``r``) by reweighted Gauss-Newton (the residuals are nearly linear
+    in the current: two or three steps); the current, its residuals and the Jacobian of
+    the last step."""
+    for _ in range(MAX_STEPS):
+        J = pred.jacobian(x) if pred.analytic else forward_jacobian(pred.residuals, x, r)
+        w = huber_weight(np.abs(r), c_h)
+        try:
+            d = -np.linalg.solve((J * w[:, None]).T @ J, J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            break
+        x = x + d
+        r = pred.residuals(x)
+        if np.max(np.abs(d)) < STEP_TOL:
+            break
+    return x, r, J
 
 
 def _apply(result: Result, mission: Mission, i: int, idx: np.ndarray, x: np.ndarray) -> None:
