@@ -435,17 +435,22 @@ def sigma_structure_document(st: SigmaStructure) -> dict:
 def dead_reckoning_document(dr: dict) -> dict:
     """The ``dead_reckoning`` entry of ``parameters.json``: whether the thrust/drag
     constants were refined by prediction error (:mod:`aqfg.fg.dead_reckoning`), the
-    smoother's own values, and the prediction errors before and after."""
+    smoother's own values, and the prediction errors before and after (or why they were
+    not tried); each mission's current for dead reckoning (:mod:`aqfg.fg.dr_current`)."""
     sig_fg = dr.get("sigma_before", {})
-    out = {"horizon_s": dr["horizon_s"], "applied": bool(dr["applied"]),
-           "smoother": {n: {"value": v, "sigma": _finite_or_none(sig_fg.get(n))}
-                        for n, v in dr.get("before", {}).items()},
-           "prediction_error_m": {"median_before": dr.get("median_abs_before_m"),
-                                  "median_after": dr.get("median_abs_after_m")},
-           "wald": _finite_or_none(dr.get("wald")), "wald_threshold": dr.get("wald_threshold")}
+    out: dict = {"horizon_s": dr["horizon_s"], "applied": bool(dr["applied"])}
+    if dr.get("segments"):            # the constants' refinement ran
+        out.update({
+            "smoother": {n: {"value": v, "sigma": _finite_or_none(sig_fg.get(n))}
+                         for n, v in dr.get("before", {}).items()},
+            "prediction_error_m": {"median_before": dr.get("median_abs_before_m"),
+                                   "median_after": dr.get("median_abs_after_m")},
+            "wald": _finite_or_none(dr.get("wald")), "wald_threshold": dr.get("wald_threshold")})
     if not dr["applied"]:
-        out["refined"] = {n: {"value": v, "sigma": _finite_or_none(dr.get("sigma_after", {}).get(n))}
-                          for n, v in dr.get("after", {}).items()}
+        if dr.get("segments"):
+            out["refined"] = {n: {"value": v,
+                                  "sigma": _finite_or_none(dr.get("sigma_after", {}).get(n))}
+                              for n, v in dr.get("after", {}).items()}
         out["reason"] = dr.get("reason")
     if dr.get("current"):
         # each mission's current by prediction error (aqfg.fg.dr_current)
