@@ -454,13 +454,14 @@ def test_duplicates_over_udp_are_dropped_with_the_answer_of_the_clean_stream(tmp
 
 def faulty(kind, recs):
     """The records of a stream with one kind of fault 5 s in: "late" (and missing
-    messages, :func:`late_and_missing`), "link" (nothing for 6 s), "reboot" (the boot
-    clock, 20 s at the start, back 24 s); and the map's ``[time]`` table."""
+    messages, :func:`late_and_missing`), "link" (nothing for 10 s: 5 s at twice real time,
+    against a max_gap of 2.5 s), "reboot" (the boot clock, 20 s at the start, back 24 s);
+    and the map's ``[time]`` table."""
     cut = recs[0][0] + 5_000_000
     if kind == "late":
         return late_and_missing(recs)[0], {}
     if kind == "link":
-        return _shifted(recs, cut, dt_us=6_000_000), {"time": "max_gap = 2.0"}
+        return _shifted(recs, cut, dt_us=10_000_000), {"time": "max_gap = 2.5"}
     booted = _shifted(recs, 0, boot_back_ms=-20_000)
     return _shifted(booted, cut, boot_back_ms=24_000), {}
 
