@@ -83,22 +83,27 @@ def lines(path):
     return [json.loads(x) for x in (path / "live.jsonl").read_text().splitlines()]
 
 
+def fix_rows(rows):
+    """The first line of each fix (not the revised ones)."""
+    return [x for x in rows if "parameters" in x and not x.get("revised")]
+
+
 def test_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path, capsys):
     path, mp, m = tlog
     fit = offline(path, mp, tmp_path)
     out = tmp_path / "L"
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
     assert_same_answer(out, fit)
-    fixes = [x for x in lines(out) if "parameters" in x]
+    fixes = fix_rows(lines(out))
     assert len(fixes) == len(m.gnss.t)
     assert [x["t"] for x in fixes] == pytest.approx(list(m.gnss.t), abs=1e-6)
     # the last line's estimate is the final one; positions as lat/lon too
-    last, final = fixes[-1], params(out)
+    last, final = [x for x in lines(out) if "parameters" in x][-1], params(out)
     for k, v in last["parameters"].items():
         assert abs(v["value"] - final[k]) <= TOL and v["sigma"] > 0
     assert {"lat", "lon", "sigma_n", "innovation", "held"} <= last.keys()
     assert last["sigma_n"] > 0 and last["innovation"] >= 0
-    assert "per fix update p99" in capsys.readouterr().out
+    assert "per fix to its report p99" in capsys.readouterr().out
     # a second run does not overwrite the first without --force
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 2
     assert "--force" in capsys.readouterr().err
@@ -131,7 +136,7 @@ def test_dataflash_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp
     out = tmp_path / "L"
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
     assert_same_answer(out, fit)
-    assert len([x for x in lines(out) if "parameters" in x]) == len(m.gnss.t)
+    assert len(fix_rows(lines(out))) == len(m.gnss.t)
 
 
 def _send_tlog(path, port, speed, done):
@@ -173,7 +178,7 @@ def test_udp_stream_gives_the_online_fit_of_its_recording(tmp_path, capsys):
     assert "stopped (Ctrl-C)" in capsys.readouterr().out
     fit = offline(out / "stream.tlog", mp, tmp_path)
     assert_same_answer(out, fit)
-    assert len([x for x in lines(out) if "parameters" in x]) >= len(m.gnss.t) - 3
+    assert len(fix_rows(lines(out))) >= len(m.gnss.t) - 3
 
 
 def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path):
@@ -194,7 +199,7 @@ def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path
             except TimeoutError:
                 break
             got += mav.parse_buffer(data) or []
-    fixes = [x for x in lines(out) if "parameters" in x]
+    fixes = fix_rows(lines(out))
     gps = [g for g in got if g.get_type() == "GPS_INPUT"]
     named = [g for g in got if g.get_type() == "NAMED_VALUE_FLOAT"]
     assert len(gps) == len(fixes)
@@ -227,19 +232,50 @@ def test_bad_options_and_sources(tlog, tmp_path, capsys):
 
 # ------------------------------------------------------------- a stream is not a file
 
-def run_records(recs, mp, tmp_path, name):
-    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments)."""
+def run_records(recs, mp, tmp_path, name, on_fix=None):
+    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments,
+    restart events)."""
     from aqfg.data.importers import load_map
     from aqfg.fg.online.smoother import FixedLagSmoother
     from aqfg.live.runner import LiveRunner
     from aqfg.live.source import LogSource
     path = lw.write_tlog(tmp_path / f"{name}.tlog", recs)
     events: list = []
-    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append)
+    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append,
+                        on_fix=on_fix)
     for item in LogSource(path, 0.0):
         if item is not None:
             runner.feed(*item)
     return runner, runner.finish(), events
+
+
+def test_a_fix_is_reported_before_its_reinitialisation_and_revised_after_it(tmp_path):
+    """Each fix is reported as the window took it; the batch re-initialisation due there
+    runs after that report, and where it changed anything a revised report of the fix
+    follows at once: the last report of every fix is the online fit's estimate there (its
+    history), and a restart's first report is the estimate before the batch."""
+    m, _ = simulate("asv", seed=3, duration=60.0, params={"theta_e": np.radians(60.0)})
+    m = with_gnss_every(m, 2.0)
+    mp = tmp_path / "map.toml"
+    mp.write_text(lw.map_toml(m, motors=PWM_MAP))
+    reps: list = []
+    _, segs, _ = run_records(lw.tlog_records(m), mp, tmp_path, "a", on_fix=reps.append)
+    res = segs[0].result
+    hist, batches = res.history, res.info["reinit_batches"]
+    assert [r.t for r in reps if not r.revised] == list(hist.t)
+    revised = [(i, r) for i, r in enumerate(reps) if r.revised]
+    assert {r.t for _, r in revised} >= {b["t"] for b in batches} and batches
+    for i, r in revised:
+        assert reps[i - 1].t == r.t and not reps[i - 1].revised and r.seconds > 0
+    last = {r.t: r for r in reps}
+    for k, t in enumerate(hist.t):
+        assert [last[t].values[n] for n in hist.names] == list(hist.values[k])
+    restarts = [b["t"] for b in batches if b["restarted"]]
+    assert restarts
+    for t in restarts:
+        first, again = (r for r in reps if r.t == t)
+        assert first.held and first.values != again.values
+        assert any("re-initialised" in e["event"] for e in again.events)
 
 
 def test_duplicates_are_dropped_and_counted_with_the_same_answer(tlog, tmp_path):
@@ -393,7 +429,7 @@ def assert_clean_end(rc, so, se, out):
         assert (out / f).is_file(), f
     rows = lines(out)
     assert rows[-1]["event"] == "stopped (Ctrl-C)"
-    assert rows[-1]["fixes"] == len([x for x in rows if "parameters" in x]) > 0
+    assert rows[-1]["fixes"] == len(fix_rows(rows)) > 0
     for k, v in rows[-1]["left_out"].items():      # every count said on stderr too
         assert f"left out: {k}: {v}" in se
     return rows
@@ -508,9 +544,19 @@ def test_bench_stream_feeds_the_runner_and_reports_its_figures():
     from aqfg.live import bench as lb
     figs = lb.live_times(duration=60.0, period=8.0, edge=20.0)
     assert figs["fixes"] == len(np.arange(0.0, 60.0 + 1e-9, 8.0))
-    assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
-    rows = dict(lb.report_rows(figs))
-    assert len(rows) == 4 and all(v.endswith(("ms", "MB")) for v in rows.values())
+    assert len(figs["fix"]) == len(figs["after"]) == len(figs["fix_t"]) == figs["fixes"]
+    assert figs["messages"] > 60 * 50
+    rows = lb.report_rows(figs)
+    assert len(rows) == 7 and all(v.endswith(("ms", "MB", "ms)")) for _, v, _ in rows)
+    assert [r[2].split(" ")[0] in ("met", "NOT") for r in rows] == [True] * 2 + [False] * 4 + [True]
+
+
+def test_at_pace_a_fix_waits_for_the_work_after_the_previous_one():
+    """At real time, fixes at 0, 1, 2 s, each 0.01 s to its report: 1.5 s of work after
+    the first delays the second by 0.51 s, and the third not at all."""
+    from aqfg.live.bench import at_pace
+    np.testing.assert_allclose(at_pace([0.0, 1.0, 2.0], [0.01] * 3, [1.5, 0.0, 0.0]),
+                               [0.01, 0.52, 0.01])
 
 
 def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):
