@@ -211,7 +211,7 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
     def set_mission(self, mission) -> None:
         """The fix table of ``mission`` (again when a live mission grows)."""
         from aqfg.fg.common import Measurements
-        m = Measurements.of(mission, self.s)
+        m = Measurements.of(mission, self.s, attitudes=False)
         self.tab_g = (m.gnss_t, m.gnss_z, m.gnss_sigma)
         self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
         self.tab_d = (m.depth_t, m.depth_z)
