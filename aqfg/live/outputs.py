@@ -17,9 +17,9 @@ start values), ``update_s`` (s, wall time of the update), ``parameters`` (name -
 ``{"value", "sigma"}``, units of docs/mission-format.md), ``events``. A fix whose
 re-initialisation (run after its line was written) changed the estimate has a second
 line, the same fields and ``revised: true`` (``update_s``: the re-initialisation's wall
-time). Event line (a restart): ``event``, ``t_stamp``, ``segment``; the last line: ``event`` ("end of the
-stream" or "stopped (Ctrl-C)"), ``fixes``, ``segments``, ``left_out`` (reason -> count).
-Values that are not numbers are written ``null``.
+time). Event line (a restart): ``event``, ``t_stamp``, ``segment``; the last line:
+``event`` ("end of the stream" or "stopped (Ctrl-C)"), ``fixes``, ``segments``,
+``left_out`` (reason -> count). Values that are not numbers are written ``null``.
 """
 from __future__ import annotations
 

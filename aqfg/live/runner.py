@@ -6,9 +6,9 @@ after it) is one update of :class:`~aqfg.fg.online.FixedLagSmoother` (``start`` 
 first, then ``update(t_fix, mission=grown)``), the same updates that ``FixedLagSmoother.run``
 makes on the recorded mission. Each fix is reported (``on_fix``) as soon as the window has
 taken it; what the smoother does next at that fix (a batch re-initialisation where one is
-due: a solve of every fix so far, 0.1-1 s; :meth:`FixedLagSmoother.recover`) runs after
-the report, before the next message is taken, and is reported again (``revised``) where it
-changed the estimate. A reboot or a lost link (a :class:`~aqfg.live.assemble.Restart`)
+due: a solve of every fix so far, up to about a second; :meth:`FixedLagSmoother.recover`)
+runs after the report, before the next message is taken, and is reported again
+(``revised``) where it changed the estimate. A reboot or a lost link (a :class:`~aqfg.live.assemble.Restart`)
 ends the mission there: its result is kept as a finished segment and a new smoother starts
 on the mission that begins with that message.
 """
@@ -159,11 +159,11 @@ class LiveRunner:
         fl = self.fl
         assert fl is not None
         t_a = time.perf_counter()
-        before = (len(fl.events), fl.held, len(fl.reinit_batches))
+        before = (len(fl.events), fl.held)
         after = fl.recover(t, info)
         dt = time.perf_counter() - t_a
-        if after is not info or (len(fl.events), fl.held, len(fl.reinit_batches)) != before:
-            self._report(t, after, revised=dt)
+        if after is not info or (len(fl.events), fl.held) != before:
+            self._report(t, after, revised=dt)      # restarted, released, or an event
         return dt
 
     def _report(self, t: float, info, revised: float | None = None) -> None:
