@@ -416,9 +416,6 @@ class Measurements:
     @classmethod
     def of(cls, mission: Mission, settings: FGSettings, t_start: float = -np.inf,
            t_end: float = np.inf, attitudes: bool = True) -> Measurements:
-        """``attitudes=False``: ``gnss_R`` and ``usbl_R`` left empty, (0, 3, 3), for a
-        caller that reads the tables only (the attitude at every fix of a long mission is
-        most of the cost)."""
         sn = settings.sensors
         z2 = np.zeros((0, 2))
         g = mission.gnss
