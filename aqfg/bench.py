@@ -435,7 +435,7 @@ def done_rows(figs: dict, h: dict, ok) -> list[tuple[str, str, str]]:
         rows.append(("long online stream", "not run", ""))
     if figs.get("live"):
         from aqfg.live.bench import report_rows
-        rows += [(a, b, "") for a, b in report_rows(figs["live"])]
+        rows += report_rows(figs["live"])
     return rows
 
 

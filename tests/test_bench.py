@@ -16,7 +16,8 @@ def test_bench_command_prints_the_figures(capsys, tmp_path):
                   "ALL updates", "p90 fixed-lag update", "batch of otter-", "theta_e error",
                   "per-update median, last 10 min", "RSS",
                   # aqfg live on the same stream
-                  "aqfg live, 0.33-h stream", "per fix, all of it", "window solve alone",
+                  "aqfg live, 0.33-h stream", "per fix, to its report", "per fix, all of it",
+                  "real-time pace", "window solve alone",
                   # the cost of a command, each run a process
                   "start-up, `aqfg --version` as a process", "`aqfg fit otter-",
                   "the same with --no-plots"):

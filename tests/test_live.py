@@ -3,7 +3,8 @@ the answer of ``aqfg fit --mode online`` on the mission ``aqfg import mavlink`` 
 (from the log, and from the run's own recording of the stream); --send-to sends what
 live.jsonl says; bad options and sources end with exit codes 2 and 3; duplicate, late and
 missing messages are left out and counted, a reboot or a lost link restarts the window
-with an event.
+with an event: fed to the runner, and sent over UDP by another process
+(tests/udp_sender.py) to ``aqfg live`` running as a process of its own.
 
 Tolerance 1e-6 (parameters, and the track files' values, written to 1e-6: 1.5e-6 there).
 """
@@ -15,12 +16,18 @@ import os
 import signal
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
+from collections import Counter
+from pathlib import Path
 
 import log_writers as lw
 import numpy as np
 import pytest
+import udp_sender
+from udp_sender import tlog_frames
 
 from aqfg.cli import main
 from aqfg.data.mission import with_gnss_every
@@ -76,22 +83,27 @@ def lines(path):
     return [json.loads(x) for x in (path / "live.jsonl").read_text().splitlines()]
 
 
+def fix_rows(rows):
+    """The first line of each fix (not the revised ones)."""
+    return [x for x in rows if "parameters" in x and not x.get("revised")]
+
+
 def test_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path, capsys):
     path, mp, m = tlog
     fit = offline(path, mp, tmp_path)
     out = tmp_path / "L"
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
     assert_same_answer(out, fit)
-    fixes = [x for x in lines(out) if "parameters" in x]
+    fixes = fix_rows(lines(out))
     assert len(fixes) == len(m.gnss.t)
     assert [x["t"] for x in fixes] == pytest.approx(list(m.gnss.t), abs=1e-6)
     # the last line's estimate is the final one; positions as lat/lon too
-    last, final = fixes[-1], params(out)
+    last, final = [x for x in lines(out) if "parameters" in x][-1], params(out)
     for k, v in last["parameters"].items():
         assert abs(v["value"] - final[k]) <= TOL and v["sigma"] > 0
     assert {"lat", "lon", "sigma_n", "innovation", "held"} <= last.keys()
     assert last["sigma_n"] > 0 and last["innovation"] >= 0
-    assert "per fix update p99" in capsys.readouterr().out
+    assert "per fix to its report p99" in capsys.readouterr().out
     # a second run does not overwrite the first without --force
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 2
     assert "--force" in capsys.readouterr().err
@@ -115,18 +127,6 @@ def test_replay_with_params_from_gives_the_online_fit_with_them(tlog, tmp_path):
     assert set(params(out)) == {"theta_e", "s_x", "s_y"} != set(params(fit))
 
 
-def tlog_frames(path):
-    """(unix microseconds, MAVLink frame bytes) of each message of a tlog."""
-    data, out, i = path.read_bytes(), [], 0
-    while i + 10 <= len(data):
-        usec = struct.unpack(">Q", data[i:i + 8])[0]
-        magic, n_payload = data[i + 8], data[i + 9]
-        n = n_payload + (8 if magic == 0xFE else 12 + (13 if data[i + 10] & 1 else 0))
-        out.append((usec, data[i + 8:i + 8 + n]))
-        i += 8 + n
-    return out
-
-
 def test_dataflash_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp_path):
     """An ArduPilot DataFlash log (ATT, GPS with its GPA accuracy, RCOU; TimeUS clock)
     replayed at --speed 0: the online fit of what aqfg import mavlink reads from it."""
@@ -136,7 +136,7 @@ def test_dataflash_replay_gives_the_online_fit_of_the_imported_mission(tlog, tmp
     out = tmp_path / "L"
     assert main(["live", str(path), "--map", str(mp), "--out", str(out), "--speed", "0"]) == 0
     assert_same_answer(out, fit)
-    assert len([x for x in lines(out) if "parameters" in x]) == len(m.gnss.t)
+    assert len(fix_rows(lines(out))) == len(m.gnss.t)
 
 
 def _send_tlog(path, port, speed, done):
@@ -144,22 +144,10 @@ def _send_tlog(path, port, speed, done):
     interrupt this process (Ctrl-C ends aqfg live), whatever happened."""
     try:
         frames = tlog_frames(path)
-        for _ in range(100):                  # until aqfg live has bound the port
-            try:
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-                    probe.bind(("127.0.0.1", port))
-            except OSError:
-                break
-            time.sleep(0.1)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            t0, u0 = time.perf_counter(), frames[0][0]
-            for usec, frame in frames:
-                wait = t0 + (usec - u0) * 1e-6 / speed - time.perf_counter()
-                if wait > 0:
-                    time.sleep(wait)
-                s.sendto(frame, ("127.0.0.1", port))
-        time.sleep(0.5)
-        done.set()
+        if udp_sender.wait_bound(port, 10.0):
+            udp_sender.send_frames(frames, port, speed)
+            time.sleep(0.5)
+            done.set()
     finally:
         os.kill(os.getpid(), signal.SIGINT)
 
@@ -190,7 +178,7 @@ def test_udp_stream_gives_the_online_fit_of_its_recording(tmp_path, capsys):
     assert "stopped (Ctrl-C)" in capsys.readouterr().out
     fit = offline(out / "stream.tlog", mp, tmp_path)
     assert_same_answer(out, fit)
-    assert len([x for x in lines(out) if "parameters" in x]) >= len(m.gnss.t) - 3
+    assert len(fix_rows(lines(out))) >= len(m.gnss.t) - 3
 
 
 def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path):
@@ -211,7 +199,7 @@ def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path
             except TimeoutError:
                 break
             got += mav.parse_buffer(data) or []
-    fixes = [x for x in lines(out) if "parameters" in x]
+    fixes = fix_rows(lines(out))
     gps = [g for g in got if g.get_type() == "GPS_INPUT"]
     named = [g for g in got if g.get_type() == "NAMED_VALUE_FLOAT"]
     assert len(gps) == len(fixes)
@@ -244,19 +232,50 @@ def test_bad_options_and_sources(tlog, tmp_path, capsys):
 
 # ------------------------------------------------------------- a stream is not a file
 
-def run_records(recs, mp, tmp_path, name):
-    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments)."""
+def run_records(recs, mp, tmp_path, name, on_fix=None):
+    """LiveRunner on a tlog of ``recs`` read as a replay at --speed 0: (runner, segments,
+    restart events)."""
     from aqfg.data.importers import load_map
     from aqfg.fg.online.smoother import FixedLagSmoother
     from aqfg.live.runner import LiveRunner
     from aqfg.live.source import LogSource
     path = lw.write_tlog(tmp_path / f"{name}.tlog", recs)
     events: list = []
-    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append)
+    runner = LiveRunner(load_map(mp), str(path), FixedLagSmoother, on_event=events.append,
+                        on_fix=on_fix)
     for item in LogSource(path, 0.0):
         if item is not None:
             runner.feed(*item)
     return runner, runner.finish(), events
+
+
+def test_a_fix_is_reported_before_its_reinitialisation_and_revised_after_it(tmp_path):
+    """Each fix is reported as the window took it; the batch re-initialisation due there
+    runs after that report, and where it changed anything a revised report of the fix
+    follows at once: the last report of every fix is the online fit's estimate there (its
+    history), and a restart's first report is the estimate before the batch."""
+    m, _ = simulate("asv", seed=3, duration=60.0, params={"theta_e": np.radians(60.0)})
+    m = with_gnss_every(m, 2.0)
+    mp = tmp_path / "map.toml"
+    mp.write_text(lw.map_toml(m, motors=PWM_MAP))
+    reps: list = []
+    _, segs, _ = run_records(lw.tlog_records(m), mp, tmp_path, "a", on_fix=reps.append)
+    res = segs[0].result
+    hist, batches = res.history, res.info["reinit_batches"]
+    assert [r.t for r in reps if not r.revised] == list(hist.t)
+    revised = [(i, r) for i, r in enumerate(reps) if r.revised]
+    restarts = [b["t"] for b in batches if b["restarted"]]
+    assert restarts and set(restarts) <= {r.t for _, r in revised} <= \
+        {b["t"] for b in batches} | {e["t"] for e in res.info["events"]}
+    for i, r in revised:
+        assert reps[i - 1].t == r.t and not reps[i - 1].revised and r.seconds > 0
+    last = {r.t: r for r in reps}
+    for k, t in enumerate(hist.t):
+        assert [last[t].values[n] for n in hist.names] == list(hist.values[k])
+    for t in restarts:
+        first, again = (r for r in reps if r.t == t)
+        assert first.held and first.values != again.values
+        assert any("re-initialised" in e["event"] for e in again.events)
 
 
 def test_duplicates_are_dropped_and_counted_with_the_same_answer(tlog, tmp_path):
@@ -273,12 +292,10 @@ def test_duplicates_are_dropped_and_counted_with_the_same_answer(tlog, tmp_path)
     np.testing.assert_array_equal(a.history.values, b.history.values)
 
 
-def test_late_and_missing_messages_are_left_out_without_a_jump(tlog, tmp_path):
-    """Every tenth attitude message arrives after the next one (dropped as late), one in
-    five motor messages and every third fix are lost: the smoother runs on, every fix
-    left is an update, and the causal track stays near the fixes."""
-    path, mp, m = tlog
-    recs = lw.tlog_records(m)
+def late_and_missing(recs):
+    """Every tenth attitude message after the next one (stamps in order), one in five
+    motor messages and every third fix lost: (records, attitude messages made late)."""
+    recs = list(recs)
     att = [i for i, (_, msg) in enumerate(recs) if msg.get_type() == "ATTITUDE"]
     for k in att[5::10]:
         j = next(i for i in att if i > k)
@@ -295,10 +312,18 @@ def test_late_and_missing_messages_are_left_out_without_a_jump(tlog, tmp_path):
             if n_gps % 3 == 0:
                 continue
         kept.append((us, msg))
+    return kept, len(att[5::10])
+
+
+def test_late_and_missing_messages_are_left_out_without_a_jump(tlog, tmp_path):
+    """Every tenth attitude message arrives after the next one (dropped as late), one in
+    five motor messages and every third fix are lost: the smoother runs on, every fix
+    left is an update, and the causal track stays near the fixes."""
+    path, mp, m = tlog
+    kept, n_late = late_and_missing(lw.tlog_records(m))
     runner, segs, events = run_records(kept, mp, tmp_path, "late")
     assert len(segs) == 1 and not events
-    assert runner.dropped() == {"ATTITUDE: late (older than the last of its type)":
-                                len(att[5::10])}
+    assert runner.dropped() == {"ATTITUDE: late (older than the last of its type)": n_late}
     assert runner.n_fix == len(m.gnss.t) - len(m.gnss.t) // 3
     res = segs[0].result
     assert np.all(np.isfinite(res.missions[0].filtered.pos))
@@ -345,15 +370,193 @@ def test_reboot_and_lost_link_restart_the_window_with_an_event(tlog, tmp_path, k
     assert {x["segment"] for x in lines(out) if "parameters" in x} == {1, 2}
 
 
+# ---------------------------------------- the same faults over UDP, from another process
+
+ROOT = Path(__file__).resolve().parent.parent
+SENDER = Path(__file__).resolve().parent / "udp_sender.py"
+LATE = "ATTITUDE: late (older than the last of its type)"
+
+
+def short_mission(tmp_path, **tables):
+    """A 10-s simulated ASV mission (GNSS every 1 s), its map file (with ``tables``)."""
+    m, _ = simulate("asv", seed=5, duration=10.0)
+    m = with_gnss_every(m, 1.0)
+    mp = tmp_path / "map.toml"
+    mp.write_text(lw.map_toml(m, motors=PWM_MAP, **tables))
+    return m, mp
+
+
+def live_over_udp(recs, mp, tmp_path, speed=2.0):
+    """``aqfg live udpin:127.0.0.1:PORT`` as a process of its own, fed the records (as a
+    tlog) by another (tests/udp_sender.py, once the port is bound) at ``speed`` x real
+    time; Ctrl-C once the run has recorded every frame sent (at most 10 s after the last:
+    a datagram lost is not waited for). (return code, stdout, stderr, output dir, tlog sent)."""
+    sent = lw.write_tlog(tmp_path / "sent.tlog", recs)
+    port, out = _free_port(), tmp_path / "L"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    live = subprocess.Popen([sys.executable, "-m", "aqfg", "live", f"udpin:127.0.0.1:{port}",
+                             "--map", str(mp), "--out", str(out)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        snd = subprocess.run([sys.executable, str(SENDER), str(sent), str(port), str(speed)],
+                             capture_output=True, text=True, timeout=120)
+        assert snd.returncode == 0 and int(snd.stdout) == len(recs), snd.stderr
+        rec, end = out / "stream.tlog", time.monotonic() + 10.0
+        while time.monotonic() < end and (not rec.is_file()
+                                          or rec.stat().st_size < sent.stat().st_size):
+            time.sleep(0.05)
+        live.send_signal(signal.SIGINT)
+        so, se = live.communicate(timeout=120)
+    finally:
+        if live.poll() is None:
+            live.kill()
+            live.communicate()
+    return live.returncode, so, se, out, sent
+
+
+def received(out):
+    """(stamp s, pymavlink message, frame) of each message the run recorded."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    mav = mavlink2.MAVLink(None)
+    return [(u * 1e-6, mav.decode(bytearray(f)), f) for u, f in tlog_frames(out / "stream.tlog")]
+
+
+def assert_clean_end(rc, so, se, out):
+    """Exit 0 without a traceback, the files complete, the end line after every fix."""
+    assert rc == 0 and "Traceback" not in se, se
+    assert "stopped (Ctrl-C)" in so
+    for f in ("parameters.json", "trajectory.csv", "causal.csv", "stream.tlog"):
+        assert (out / f).is_file(), f
+    rows = lines(out)
+    assert rows[-1]["event"] == "stopped (Ctrl-C)"
+    assert rows[-1]["fixes"] == len(fix_rows(rows)) > 0
+    for k, v in rows[-1]["left_out"].items():      # every count said on stderr too
+        assert f"left out: {k}: {v}" in se
+    return rows
+
+
+def assert_no_silent_jump(rows, got):
+    """Each fix's causal position within 5 m (5 sigma of the fixes) of the fix received at
+    its time; a new segment only after its restart line; within a segment, the causal
+    track moves between fixes no more than the fixes do, plus 5 m."""
+    from aqfg.data.geodesy import latlon_to_ne
+    fixes = [(t, msg.lat * 1e-7, msg.lon * 1e-7) for t, msg, _ in got
+             if msg.get_type() == "GPS_RAW_INT"]
+    ft = np.array([f[0] for f in fixes])
+    seg, prev = 1, None
+    for x in rows:
+        if "event" in x and "restart" in x["event"]:
+            assert x["segment"] == seg + 1
+            seg, prev = seg + 1, None
+        if "parameters" not in x:
+            continue
+        assert x["segment"] == seg
+        i = int(np.argmin(abs(ft - x["time"])))
+        assert abs(ft[i] - x["time"]) < 1e-3            # the fix it was updated with
+        lat, lon = fixes[i][1:]
+        off = latlon_to_ne(np.array([x["lat"]]), np.array([x["lon"]]), (lat, lon))[0]
+        assert np.linalg.norm(off) < 5.0, x
+        if prev is not None:
+            moved = np.hypot(x["n"] - prev[0]["n"], x["e"] - prev[0]["e"])
+            d_fix = latlon_to_ne(np.array([lat]), np.array([lon]), prev[1:])[0]
+            assert moved <= np.linalg.norm(d_fix) + 5.0, x
+        prev = (x, lat, lon)
+
+
+def test_duplicates_over_udp_are_dropped_with_the_answer_of_the_clean_stream(tmp_path):
+    """Every message sent twice by another process: the second copies are dropped and
+    counted (as many as the run received), and the outputs are those of the stream it
+    received without them (aqfg fit --mode online on its recording, deduplicated)."""
+    m, mp = short_mission(tmp_path)
+    recs = lw.tlog_records(m)
+    rc, so, se, out, _ = live_over_udp([r for rec in recs for r in (rec, rec)], mp, tmp_path)
+    rows = assert_clean_end(rc, so, se, out)
+    got = received(out)
+    twice = Counter(msg.get_type() for i, (_, msg, f) in enumerate(got)
+                    if i and f == got[i - 1][2])
+    assert sum(twice.values()) >= len(recs) // 2          # most copies arrived
+    left = rows[-1]["left_out"]
+    assert {k: v for k, v in left.items() if k.endswith("duplicate")} == \
+        {f"{k}: duplicate": v for k, v in twice.items()}
+    assert set(left) - {f"{k}: duplicate" for k in twice} <= {
+        "fixes: after the last input message"}
+    assert not [x for x in rows if "event" in x and "restart" in x["event"]]
+    assert_no_silent_jump(rows, got)
+    clean = [(round(t * 1e6), f) for i, (t, _, f) in enumerate(got) if not i or f != got[i - 1][2]]
+    path = tmp_path / "clean.tlog"
+    path.write_bytes(b"".join(struct.pack(">Q", u) + f for u, f in clean))
+    assert_same_answer(out, offline(path, mp, tmp_path))
+
+
+def faulty(kind, recs):
+    """The records of a stream with one kind of fault 5 s in: "late" (and missing
+    messages, :func:`late_and_missing`), "link" (nothing for 10 s: 5 s at twice real time,
+    against a max_gap of 2.5 s), "reboot" (the boot clock, 20 s at the start, back 24 s);
+    and the map's ``[time]`` table."""
+    cut = recs[0][0] + 5_000_000
+    if kind == "late":
+        return late_and_missing(recs)[0], {}
+    if kind == "link":
+        return _shifted(recs, cut, dt_us=10_000_000), {"time": "max_gap = 2.5"}
+    booted = _shifted(recs, 0, boot_back_ms=-20_000)
+    return _shifted(booted, cut, boot_back_ms=24_000), {}
+
+
+@pytest.mark.parametrize("kind", ["late", "link", "reboot"])
+def test_faults_over_udp_are_counted_or_restart_with_an_event(tmp_path, kind):
+    """A stream sent over UDP by another process with late and missing messages, a lost
+    link or a vehicle reboot: the run ends cleanly, the late messages are left out and
+    counted (as many as arrived out of order), a lost link or a reboot restarts the
+    window with its event line between the two parts, and the causal track never jumps
+    without one."""
+    m, _ = simulate("asv", seed=5, duration=10.0)
+    recs, tables = faulty(kind, lw.tlog_records(with_gnss_every(m, 1.0)))
+    m, mp = short_mission(tmp_path, **tables)
+    rc, so, se, out, _ = live_over_udp(recs, mp, tmp_path)
+    rows = assert_clean_end(rc, so, se, out)
+    got = received(out)
+    assert_no_silent_jump(rows, got)
+    left = rows[-1]["left_out"]
+    assert set(left) - {LATE} <= {"fixes: after the last input message"}
+    n_late, top = 0, -1                 # attitudes behind the newest, by 5 s at most
+    for _, msg, _ in got:
+        if msg.get_type() == "ATTITUDE":
+            back = top - msg.time_boot_ms
+            n_late += 0 < back <= 5000
+            top = msg.time_boot_ms if back > 5000 else max(top, msg.time_boot_ms)
+    assert left.get(LATE, 0) == n_late and (n_late > 0) == (kind == "late")
+    restarts = [x for x in rows if "event" in x and "restart" in x["event"]]
+    n_fix = sum(msg.get_type() == "GPS_RAW_INT" for _, msg, _ in got)
+    if kind == "late":
+        assert not restarts and rows[-1]["segments"] == 1
+        assert rows[-1]["fixes"] >= n_fix - 1
+        return
+    assert len(restarts) == 1 and rows[-1]["segments"] == 2
+    assert ("link lost" if kind == "link" else "vehicle reboot") in restarts[0]["event"]
+    assert (out / "segment-1" / "trajectory.csv").is_file()
+    assert {x["segment"] for x in rows if "parameters" in x} == {1, 2}
+    assert rows[-1]["fixes"] >= n_fix - 2
+
+
 def test_bench_stream_feeds_the_runner_and_reports_its_figures():
     """The bench's stream of a simulated vehicle goes through LiveRunner: one update per
     fix, and the report says each figure (timings are printed, never asserted)."""
     from aqfg.live import bench as lb
     figs = lb.live_times(duration=60.0, period=8.0, edge=20.0)
     assert figs["fixes"] == len(np.arange(0.0, 60.0 + 1e-9, 8.0))
-    assert len(figs["fix"]) == figs["fixes"] and figs["messages"] > 60 * 50
-    rows = dict(lb.report_rows(figs))
-    assert len(rows) == 4 and all(v.endswith(("ms", "MB")) for v in rows.values())
+    assert len(figs["fix"]) == len(figs["after"]) == len(figs["fix_t"]) == figs["fixes"]
+    assert figs["messages"] > 60 * 50
+    rows = lb.report_rows(figs)
+    assert len(rows) == 7 and all(v.endswith(("ms", "MB", "ms)")) for _, v, _ in rows)
+    assert [r[2].split(" ")[0] in ("met", "NOT") for r in rows] == [True] * 2 + [False] * 4 + [True]
+
+
+def test_at_pace_a_fix_waits_for_the_work_after_the_previous_one():
+    """At real time, fixes at 0, 1, 2 s, each 0.01 s to its report: 1.5 s of work after
+    the first delays the second by 0.51 s, and the third not at all."""
+    from aqfg.live.bench import at_pace
+    np.testing.assert_allclose(at_pace([0.0, 1.0, 2.0], [0.01] * 3, [1.5, 0.0, 0.0]),
+                               [0.01, 0.52, 0.01])
 
 
 def test_example_tlog_is_the_simulated_boat_it_says(tmp_path):

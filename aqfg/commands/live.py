@@ -153,7 +153,7 @@ def run(args) -> int:
 
     def on_fix(rep):
         files.fix(rep, runner.asm.origin)
-        if sender is not None:
+        if sender is not None and not rep.revised:     # one GPS_INPUT per fix
             sender.fix(rep, runner.asm.origin)
         status.show(runner, rep)
 
@@ -211,10 +211,12 @@ def _summary(runner, segments, written, out: Path, stopped: bool) -> int:
               file=sys.stderr)
         return EXIT_DATA
     print(parameter_table(segments[-1].result))
-    ups = [u for s in segments for u in s.result.timings.get("update", [])]
+    fx, after = runner.fix_s, [a for a in runner.after_s if a > 5e-3]
     print(f"live: {runner.n_fix} fixes in {len(segments)} segment(s); per message "
-          f"median {1e6 * float(np.median(h)) if h else float('nan'):.0f} us, per fix "
-          f"update p99 {1e3 * float(np.percentile(ups, 99)) if ups else float('nan'):.2f} ms")
+          f"median {1e6 * float(np.median(h)) if h else float('nan'):.0f} us, per fix to "
+          f"its report p99 {1e3 * float(np.percentile(fx, 99)) if fx else float('nan'):.2f} "
+          f"ms; {len(after)} with a re-initialisation after their report (over 5 ms)"
+          + (f", the longest {max(after):.2f} s" if after else ""))
     shown = sorted({str(p.relative_to(out)).split("/")[0] for p in written})
     print(f"wrote {', '.join(shown)} to {out}")
     return 0

@@ -415,7 +415,7 @@ class Measurements:
 
     @classmethod
     def of(cls, mission: Mission, settings: FGSettings, t_start: float = -np.inf,
-           t_end: float = np.inf) -> Measurements:
+           t_end: float = np.inf, attitudes: bool = True) -> Measurements:
         sn = settings.sensors
         z2 = np.zeros((0, 2))
         g = mission.gnss
@@ -443,7 +443,7 @@ class Measurements:
             dt_, dz = np.zeros(0), np.zeros(0)
 
         def att(t):
-            return attitude_at(mission, t) if len(t) else np.zeros((0, 3, 3))
+            return attitude_at(mission, t) if len(t) and attitudes else np.zeros((0, 3, 3))
         return cls(gt, gz, gs, att(gt), ut, uz, us, att(ut), station, dt_, dz)
 
 

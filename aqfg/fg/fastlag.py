@@ -211,7 +211,9 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
     def set_mission(self, mission) -> None:
         """The fix table of ``mission`` (again when a live mission grows)."""
         from aqfg.fg.common import Measurements
-        m = Measurements.of(mission, self.s)
+        # the tables only: no attitude at every fix (gnss_R, usbl_R left empty), which
+        # would make each update of a growing live mission slower than the last
+        m = Measurements.of(mission, self.s, attitudes=False)
         self.tab_g = (m.gnss_t, m.gnss_z, m.gnss_sigma)
         self.tab_u = (m.usbl_t, m.usbl_z, m.usbl_sigma)
         self.tab_d = (m.depth_t, m.depth_z)

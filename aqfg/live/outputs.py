@@ -14,10 +14,12 @@ the stream's clock: unix), ``n``, ``e``, ``d`` (m, NED from the origin), ``vn``,
 null where the engine gives none), ``innovation`` (m, horizontal distance of the fix from
 the state predicted there; null at the first), ``held`` (the parameters are held at their
 start values), ``update_s`` (s, wall time of the update), ``parameters`` (name ->
-``{"value", "sigma"}``, units of docs/mission-format.md), ``events``. Event line (a
-restart): ``event``, ``t_stamp``, ``segment``; the last line: ``event`` ("end of the
-stream" or "stopped (Ctrl-C)"), ``fixes``, ``segments``, ``left_out`` (reason -> count).
-Values that are not numbers are written ``null``.
+``{"value", "sigma"}``, units of docs/mission-format.md), ``events``. A fix whose
+re-initialisation (run after its line was written) changed the estimate has a second
+line, the same fields and ``revised: true`` (``update_s``: the re-initialisation's wall
+time). Event line (a restart): ``event``, ``t_stamp``, ``segment``; the last line:
+``event`` ("end of the stream" or "stopped (Ctrl-C)"), ``fixes``, ``segments``,
+``left_out`` (reason -> count). Values that are not numbers are written ``null``.
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ def fix_line(rep: FixReport, origin: tuple[float, float] | None) -> dict[str, An
              parameters={n: {"value": v, "sigma": rep.sigma.get(n, math.nan)}
                          for n, v in rep.values.items()},
              events=rep.events)
+    if rep.revised:
+        d["revised"] = True
     return jsonable(d)
 
 
@@ -72,6 +76,8 @@ class LiveFiles:
 
     def fix(self, rep: FixReport, origin: tuple[float, float] | None) -> None:
         self._line(self.jsonl, json.dumps(fix_line(rep, origin), allow_nan=False) + "\n")
+        if rep.revised:
+            return                          # causal.csv: the state as first reported
         tr = Track(np.array([rep.t]), rep.state[None, :3], rep.state[None, 3:])
         text = track_csv(tr, origin)
         if self.csv_origin is False:

@@ -4,7 +4,11 @@
 grows the mission, and each fix whose inputs have arrived (an attitude and a motor message
 after it) is one update of :class:`~aqfg.fg.online.FixedLagSmoother` (``start`` at the
 first, then ``update(t_fix, mission=grown)``), the same updates that ``FixedLagSmoother.run``
-makes on the recorded mission. A reboot or a lost link (a :class:`~aqfg.live.assemble.Restart`)
+makes on the recorded mission. Each fix is reported (``on_fix``) as soon as the window has
+taken it; what the smoother does next at that fix (a batch re-initialisation where one is
+due: a solve of every fix so far, up to about a second; :meth:`FixedLagSmoother.recover`)
+runs after the report, before the next message is taken, and is reported again
+(``revised``) where it changed the estimate. A reboot or a lost link (a :class:`~aqfg.live.assemble.Restart`)
 ends the mission there: its result is kept as a finished segment and a new smoother starts
 on the mission that begins with that message.
 """
@@ -33,7 +37,8 @@ class FixReport:
     """One update: fix time (mission s, and on the stream's clock), the causal state at
     the fix (NED m, m/s) and its horizontal 1-sigma (m; NaN where the engine gives none),
     the parameters and their 1-sigma, whether they are held, the update's wall time (s)
-    and the events it raised."""
+    and the events it raised. ``revised``: the same fix again, after the work that
+    followed its first report (a re-initialisation; ``seconds``: that work's wall time)."""
     segment: int
     t: float
     stamp: float
@@ -45,6 +50,7 @@ class FixReport:
     seconds: float
     innovation: float
     events: list = field(default_factory=list)
+    revised: bool = False
 
 
 @dataclass
@@ -73,9 +79,13 @@ class LiveRunner:
         self.on_event = on_event or (lambda e: None)
         self.prepare = prepare or (lambda m: m)
         self.segments: list[Segment] = []
-        # wall time (s) per message taken (the last HANDLE_KEPT), per fix processed
+        # wall time (s) per message taken (the last HANDLE_KEPT); per fix processed: to
+        # its report (wall, and this thread's CPU time), and of the work after it
+        # (re-initialisations; 0 at a start)
         self.handle_s: deque[float] = deque(maxlen=HANDLE_KEPT)
         self.fix_s: list[float] = []
+        self.fix_cpu_s: list[float] = []
+        self.after_s: list[float] = []
         self.n_messages = 0
         self.dropped_total: dict[str, int] = {}
         self.n_fix = 0
@@ -126,21 +136,37 @@ class LiveRunner:
             self._update(t)
 
     def _update(self, t: float) -> None:
-        t_a = time.perf_counter()
+        t_a, c_a = time.perf_counter(), time.thread_time()
         if self.fl is None:
             self.asm.depth_choice()
         mission = self.prepare(self.asm.mission(t))
+        start = self.fl is None
         if self.fl is None:
             self.fl = self.make_smoother()
             info = self.fl.start(mission)
         else:
-            info = self.fl.update(t, mission=mission)
+            info = self.fl.update(t, mission=mission, recover=False)
         self.t_done = t
         self.n_fix += 1
         self._report(t, info)
         self.fix_s.append(time.perf_counter() - t_a)
+        self.fix_cpu_s.append(time.thread_time() - c_a)
+        self.after_s.append(0.0 if start else self._recover(t, info))
 
-    def _report(self, t: float, info) -> None:
+    def _recover(self, t: float, info) -> float:
+        """The smoother's work after the report of the fix at ``t`` (FixedLagSmoother.recover),
+        reported again where it changed anything; its wall time (s)."""
+        fl = self.fl
+        assert fl is not None
+        t_a = time.perf_counter()
+        before = (len(fl.events), fl.held)
+        after = fl.recover(t, info)
+        dt = time.perf_counter() - t_a
+        if after is not info or (len(fl.events), fl.held) != before:
+            self._report(t, after, revised=dt)      # restarted, released, or an event
+        return dt
+
+    def _report(self, t: float, info, revised: float | None = None) -> None:
         fl = self.fl
         assert fl is not None
         i = fl.anchor_idx[-1]
@@ -153,8 +179,9 @@ class LiveRunner:
             innov = float(np.linalg.norm(np.asarray(fl.pred_x[-1])[:2] - g.ne[-1]))
         t0 = self.asm.t_zero_ns or 0
         rep = FixReport(self.segment, t, t0 * 1e-9 + t, x, position_sigma(fl), dict(info.values),
-                        dict(info.sigma), bool(fl.held), float(info.seconds), innov,
-                        [dict(e) for e in new])
+                        dict(info.sigma), bool(fl.held),
+                        float(info.seconds if revised is None else revised), innov,
+                        [dict(e) for e in new], revised is not None)
         self.on_fix(rep)
 
     # ----------------------------------------------------------------- segments

@@ -263,10 +263,13 @@ class FixedLagSmoother:
         """Current full parameter vector (inside the physical bounds)."""
         return self.backend.params()
 
-    def update(self, t_fix: float | None = None, mission: Mission | None = None) -> UpdateInfo:
+    def update(self, t_fix: float | None = None, mission: Mission | None = None,
+               recover: bool = True) -> UpdateInfo:
         """Process inputs and measurements up to the next fix (or up to ``t_fix``, which must
         be a fix time) and update the window. ``mission``: a newer copy of the mission with
-        more samples (live use)."""
+        more samples (live use). ``recover=False``: the window's update only; the caller
+        calls :meth:`recover` next, before anything else changes the smoother (live use:
+        the fix is reported in between)."""
         if mission is not None:
             self.set_mission(mission)
         if t_fix is None:
@@ -283,6 +286,12 @@ class FixedLagSmoother:
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         all_t = np.concatenate([[t_last], grid, [t_fix]])
         info = self._advance(t_fix, t_last, all_t[1:], all_t)
+        return self.recover(t_fix, info) if recover else info
+
+    def recover(self, t_fix: float, info: UpdateInfo) -> UpdateInfo:
+        """What follows the window's update at ``t_fix`` (``info``): a batch
+        re-initialisation or re-seed where one is due (:func:`recovery.after_update`), then
+        the causal track's kinematic floor. The update's info, or the restarted one's."""
         info = recovery.after_update(self, t_fix, info)
         self._kinematic_step(t_fix)
         return info
