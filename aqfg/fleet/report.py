@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from aqfg.distributions import holm
 from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult
 from aqfg.result import (
@@ -56,14 +57,7 @@ def differs_from_fleet(values: np.ndarray, covs: np.ndarray, alpha: float = 0.05
         z = diff / np.sqrt(np.diag(S))
         out.append({"chi2": chi2, "dof": d, "p_value": float(stats.chi2.sf(chi2, d)),
                     "mean_of_others": m.tolist(), "z": z.tolist()})
-    p = np.array([o["p_value"] for o in out])
-    order = np.argsort(p)
-    holm = np.empty(V)
-    run = 0.0
-    for r, i in enumerate(order):
-        run = max(run, min(1.0, (V - r) * p[i]))
-        holm[i] = run
-    for o, ph in zip(out, holm):
+    for o, ph in zip(out, holm(np.array([o["p_value"] for o in out]))):
         o["p_holm"] = float(ph)
         o["differs"] = bool(ph < alpha)
     return out
