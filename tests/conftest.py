@@ -30,6 +30,27 @@ def data_path(name: str) -> Path:
     return p
 
 
+def mission_toml(name: str, vehicle: str, station_down: float,
+                 origin: tuple[float, float] | None = None) -> str:
+    """``mission.toml`` of a small two-thruster test vehicle (both pushing forward, 0.25 m
+    aft, 0.12 m either side) with a USBL station ``station_down`` m below the ground
+    origin, and an ``[origin]`` (lat, lon degrees) if given."""
+    text = f"""format = "aqfg-mission/1"
+name = "{name}"
+vehicle = "{vehicle}"
+
+[thrusters]
+direction = [[1, 0, 0], [1, 0, 0]]
+position = [[-0.25, 0.12, 0], [-0.25, -0.12, 0]]
+
+[usbl]
+station = [0.0, 0.0, {station_down!r}]
+"""
+    if origin is not None:
+        text += f"\n[origin]\nlat = {origin[0]!r}\nlon = {origin[1]!r}\n"
+    return text
+
+
 @pytest.fixture(scope="session")
 def wind_mission_dir(tmp_path_factory) -> Path:
     """A 240-s simulated ASV mission (seed 4) with hidden wind drag (0.06, 0.04), saved

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import mission_toml
 
 from aqfg.data.geodesy import WGS84_A, WGS84_E2, latlon_to_ne, ne_to_latlon
 from aqfg.data.io import (MissionFormatError, check_mission, has_truth, load_mission, load_truth,
@@ -20,17 +21,7 @@ pytestmark = pytest.mark.filterwarnings("ignore::aqfg.data.io.plausibility.Missi
 
 # ------------------------------------------------------------------ a small mission as text
 
-TOML = """format = "aqfg-mission/1"
-name = "small"
-vehicle = "asv"
-
-[thrusters]
-direction = [[1, 0, 0], [1, 0, 0]]
-position = [[-0.25, 0.12, 0], [-0.25, -0.12, 0]]
-
-[usbl]
-station = [0.0, 0.0, 1.5]
-"""
+TOML = mission_toml("small", "asv", 1.5)
 FILES = {
     "imu.csv": "t,qw,qx,qy,qz\n0.0,1,0,0,0\n0.1,1,0,0,0\n0.2,0.9998,0,0,0.0199987\n",
     "motors.csv": "t,u1,u2\n0.0,0.5,0.5\n0.2,-0.25,1\n",
