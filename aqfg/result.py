@@ -6,8 +6,9 @@ which estimator produced it.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
 import numpy as np
 
@@ -189,6 +190,40 @@ class EffectStep:
     fleet: FleetEffect | None = None
 
 
+T = TypeVar("T")
+
+
+def _as_stored(v: object) -> object:
+    return v
+
+
+class InfoView(Generic[T]):
+    """A typed attribute of :class:`Result` kept in its ``info`` under the attribute's
+    name: read as ``kind(info[name])``, None where absent; assigning stores the value
+    there."""
+
+    def __init__(self, kind: Callable[[Any], T], doc: str) -> None:
+        self.kind, self.__doc__, self.key = kind, doc, ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.key = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> InfoView[T]: ...
+
+    @overload
+    def __get__(self, obj: Result, owner: type | None = None) -> T | None: ...
+
+    def __get__(self, obj: Result | None, owner: type | None = None) -> InfoView[T] | T | None:
+        if obj is None:
+            return self
+        v = obj.info.get(self.key)
+        return None if v is None else self.kind(v)
+
+    def __set__(self, obj: Result, v: T | None) -> None:
+        obj.info[self.key] = v
+
+
 @dataclass
 class Result:
     """What every estimator returns.
@@ -260,45 +295,13 @@ class Result:
     def histories(self, v: list[ParamHistory]) -> None:
         self.info["histories"] = list(v)
 
-    def _info_get(self, key: str, kind: type):
-        v = self.info.get(key)
-        return None if v is None else kind(v)
-
-    @property
-    def converged(self) -> bool | None:
-        """Whether the optimiser met its convergence test (None: not reported)."""
-        return self._info_get("converged", bool)
-
-    @converged.setter
-    def converged(self, v: bool | None) -> None:
-        self.info["converged"] = v
-
-    @property
-    def iterations(self) -> int | None:
-        """Optimiser iterations (None: not reported)."""
-        return self._info_get("iterations", int)
-
-    @iterations.setter
-    def iterations(self, v: int | None) -> None:
-        self.info["iterations"] = v
-
-    @property
-    def kernel(self) -> str | None:
-        """Which kernel integrated the model: "cpp" or "numpy" (None: not reported)."""
-        return self._info_get("kernel", str)
-
-    @kernel.setter
-    def kernel(self, v: str | None) -> None:
-        self.info["kernel"] = v
-
-    @property
-    def settings(self) -> object | None:
-        """The estimator's settings object (e.g. ``aqfg.fg.common.FGSettings``)."""
-        return self.info.get("settings")
-
-    @settings.setter
-    def settings(self, v: object | None) -> None:
-        self.info["settings"] = v
+    converged = InfoView(bool, "Whether the optimiser met its convergence test (None: not "
+                               "reported).")
+    iterations = InfoView(int, "Optimiser iterations (None: not reported).")
+    kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
+                           'reported).')
+    settings = InfoView(_as_stored, "The estimator's settings object (e.g. "
+                                    "``aqfg.fg.common.FGSettings``).")
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(self.values[n]), "sigma": float(self.sigma.get(n, np.nan))}
