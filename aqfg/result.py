@@ -235,7 +235,8 @@ class Result:
     were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
     test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
     ``effect_step``; ``heading_check`` is each mission's fitted heading against its
-    accelerometer's (:func:`aqfg.identifiability.settle`).
+    accelerometer's and ``identifiability_warnings`` what the data were found not to
+    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -255,6 +256,7 @@ class Result:
     sigma_structure: SigmaStructure | None = None
     effect_step: EffectStep | None = None
     heading_check: dict[str, HeadingCheck] | None = None
+    identifiability_warnings: tuple[str, ...] = ()
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

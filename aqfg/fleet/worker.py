@@ -104,7 +104,7 @@ def finish_op(specs: list[MissionSpec], result):
     error over its missions (:func:`aqfg.fg.dead_reckoning.refine`), its missions' tracks
     smoothed under the noise their evidence chooses (:func:`smooth_tracks`) and what its data
     cannot determine marked so (:func:`aqfg.identifiability.settle`; its warnings in
-    ``info["identifiability_warnings"]``), as ``aqfg fit`` does once for the fit it returns;
+    ``identifiability_warnings``), as ``aqfg fit`` does once for the fit it returns;
     the missions are read on the worker."""
     from aqfg.fg import dead_reckoning
     from aqfg.identifiability import settle
@@ -113,7 +113,7 @@ def finish_op(specs: list[MissionSpec], result):
     result = smooth_tracks(specs, missions, result)
     # what the data cannot determine, as aqfg fit says it (the accelerometer check needs
     # the missions, which are here)
-    result.info["identifiability_warnings"] = settle(result, missions)
+    result.identifiability_warnings = tuple(settle(result, missions))
     return result
 
 
