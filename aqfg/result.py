@@ -68,6 +68,18 @@ class Estimate:
 
 
 @dataclass(frozen=True)
+class Covariance:
+    """A batch fit's joint covariance of the first mission's parameter nodes (model
+    units): per node group (``"fixed"``, ``"variable"``, ``"sensor"``), a (k, k) matrix
+    over that group's estimated parameters in the order of ``Result.estimated``."""
+    blocks: dict[str, np.ndarray]
+
+    def block(self, group: str) -> np.ndarray | None:
+        """The group's matrix (None where the fit has none)."""
+        return self.blocks.get(group)
+
+
+@dataclass(frozen=True)
 class BlockJackknife:
     """The block jackknife of a short batch fit (:mod:`aqfg.fg.jackknife`): how many time
     blocks were left out one at a time, their length (s), the jackknife's sigma of each
@@ -231,7 +243,8 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
-    The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
+    The factor graph's batch leaves its parameters' ``covariance``; its steps leave typed
+    records: ``gnss_noise`` (the GNSS noise the fixes
     were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
     test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
     ``effect_step``; ``heading_check`` is each mission's fitted heading against its
@@ -257,6 +270,7 @@ class Result:
     effect_step: EffectStep | None = None
     heading_check: dict[str, HeadingCheck] | None = None
     identifiability_warnings: tuple[str, ...] = ()
+    covariance: Covariance | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -15,7 +15,7 @@ from scipy import stats
 
 from aqfg.distributions import holm
 from aqfg.export import write_result
-from aqfg.fleet.solve import FleetResult
+from aqfg.fleet.solve import FleetResult, fixed_covariance
 from aqfg.result import (
     PARAMETERS_FORMAT,
     EffectStep,
@@ -70,7 +70,7 @@ def fleet_table(fr: FleetResult) -> dict:
     vs = list(fr.results)
     names = fixed_names(fr.results[vs[0]])
     X = np.array([[fr.results[v].values[n] for n in names] for v in vs]).reshape(len(vs), -1)
-    C = np.array([np.array(fr.results[v].info["covariance"].get("fixed", np.zeros((0, 0))))
+    C = np.array([fixed_covariance(fr.results[v])
                   for v in vs]).reshape(len(vs), len(names), len(names))
     tests = differs_from_fleet(X, C)
     dirs = {v.name: [m.name for m in v.missions] for v in fr.manifest.vehicles}
