@@ -243,13 +243,16 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
-    The factor graph's batch leaves its parameters' ``covariance``; its steps leave typed
-    records: ``gnss_noise`` (the GNSS noise the fixes
-    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
-    test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
-    ``effect_step``; ``heading_check`` is each mission's fitted heading against its
-    accelerometer's and ``identifiability_warnings`` what the data were found not to
-    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
+    The factor graph's batch leaves its parameters' ``covariance`` and, for a joint fit,
+    ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
+    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`). Its
+    steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
+    :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
+    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``,
+    ``other_minimum`` and ``effect_step``; ``heading_check`` is each mission's fitted
+    heading against its accelerometer's and ``identifiability_warnings`` what the data
+    were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
+    worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -271,6 +274,7 @@ class Result:
     heading_check: dict[str, HeadingCheck] | None = None
     identifiability_warnings: tuple[str, ...] = ()
     covariance: Covariance | None = None
+    observability_per_mission: dict[str, dict[str, str]] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -472,7 +472,7 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],
                                          layout.estimated)
     if per:
-        res.info["observability_per_mission"] = per
+        res.observability_per_mission = per
 
 
 def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:
