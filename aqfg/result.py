@@ -245,7 +245,9 @@ class Result:
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
     The factor graph's batch leaves its parameters' ``covariance`` and, for a joint fit,
     ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
-    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`). Its
+    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), and
+    whether its data were ``too_short_for_sandwich`` (fewer sandwich blocks than
+    parameters + 2, :mod:`aqfg.fg.graph`). Its
     steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
     :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``,
@@ -275,6 +277,7 @@ class Result:
     identifiability_warnings: tuple[str, ...] = ()
     covariance: Covariance | None = None
     observability_per_mission: dict[str, dict[str, str]] | None = None
+    too_short_for_sandwich: bool = False
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

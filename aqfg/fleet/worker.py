@@ -139,7 +139,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     except ValueError:
         return result                          # not the graph the joint fit solved
     X, th = fs.from_values(values)
-    result.info["too_short_for_sandwich"] = too_short_for_sandwich(bg, st)
+    result.too_short_for_sandwich = too_short_for_sandwich(bg, st)
     # the test also where the fixes are explained, for the fleet's effect step
     # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
     result = structural_sigma(result, missions, fs, fs.evaluate(X, th), st,
