@@ -80,6 +80,14 @@ class Covariance:
 
 
 @dataclass(frozen=True)
+class OnlineEngine:
+    """The engine that ran an online fit's window (``"numpy"`` or ``"gtsam"``) and, where
+    it is GTSAM's, what the numpy engine does not take (``note``)."""
+    name: str
+    note: str = ""
+
+
+@dataclass(frozen=True)
 class BlockJackknife:
     """The block jackknife of a short batch fit (:mod:`aqfg.fg.jackknife`): how many time
     blocks were left out one at a time, their length (s), the jackknife's sigma of each
@@ -247,7 +255,8 @@ class Result:
     ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
     own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), and
     whether its data were ``too_short_for_sandwich`` (fewer sandwich blocks than
-    parameters + 2, :mod:`aqfg.fg.graph`). Its
+    parameters + 2, :mod:`aqfg.fg.graph`); its online smoother, the ``engine`` that ran its
+    window. Its
     steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
     :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``,
@@ -278,6 +287,7 @@ class Result:
     covariance: Covariance | None = None
     observability_per_mission: dict[str, dict[str, str]] | None = None
     too_short_for_sandwich: bool = False
+    engine: OnlineEngine | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

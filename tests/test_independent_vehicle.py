@@ -738,7 +738,7 @@ def test_online_survives_a_diverged_prediction_in_the_numpy_engine():
     (IndexError at the next relinearisation)."""
     m = with_gnss_every(crop(load_mission(data_path("otter-example")), 150.0, 900.0), 8.0)
     res = fit_fg([m], mode="online")
-    assert res.info.get("engine") == "numpy"
+    assert res.engine.name == "numpy"
     assert np.all(np.isfinite(res.missions[0].track.pos))
 
 
