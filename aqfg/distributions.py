@@ -5,7 +5,7 @@ of a command's start).
 
 Each function takes scalars or arrays (broadcast) and returns floats or arrays as
 :mod:`scipy.special` does; arguments are those of :mod:`scipy.stats` (``x`` or ``q`` first,
-then the degrees of freedom)."""
+then the degrees of freedom). :func:`holm` adjusts a family of p-values."""
 from __future__ import annotations
 
 import numpy as np
@@ -54,3 +54,18 @@ def t_sf(x, df):
 def t_ppf(q, df):
     """Student's t(``df``) quantile at lower-tail probability ``q`` (-inf at 0)."""
     return np.where(np.asarray(q) == 0.0, -np.inf, special.stdtrit(df, q))
+
+
+def holm(p) -> np.ndarray:
+    """Holm-Bonferroni adjusted p-values (step-down, monotone) of the 1-D array ``p``."""
+    p = np.asarray(p, float)
+    m = len(p)
+    if m == 0:
+        return p
+    o = np.argsort(p)
+    adj = np.empty(m)
+    run = 0.0
+    for k, i in enumerate(o):
+        run = max(run, min(1.0, (m - k) * p[i]))
+        adj[i] = run
+    return adj

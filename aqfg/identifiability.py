@@ -156,9 +156,9 @@ def _mark(result, i: int, name: str, reason: str) -> None:
 
 def _mission_excitation(result, new: list[str]) -> None:
     """A joint fit's per-mission parameters that a mission's own inputs cannot determine
-    (``info["observability_per_mission"]``, :func:`aqfg.fg.observability.mission_verdicts`),
+    (``Result.observability_per_mission``, :func:`aqfg.fg.observability.mission_verdicts`),
     each said in a warning naming the mission."""
-    per = result.info.get("observability_per_mission") or {}
+    per = result.observability_per_mission or {}
     for i, mr in enumerate(result.missions):
         by_reason: dict[str, list[str]] = {}
         for name, reason in (per.get(mr.name) or {}).items():

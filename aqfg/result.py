@@ -6,8 +6,9 @@ which estimator produced it.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
 import numpy as np
 
@@ -64,6 +65,26 @@ class Estimate:
     """One parameter's estimate and its 1-sigma (NaN when not computed)."""
     value: float
     sigma: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """A batch fit's joint covariance of the first mission's parameter nodes (model
+    units): per node group (``"fixed"``, ``"variable"``, ``"sensor"``), a (k, k) matrix
+    over that group's estimated parameters in the order of ``Result.estimated``."""
+    blocks: dict[str, np.ndarray]
+
+    def block(self, group: str) -> np.ndarray | None:
+        """The group's matrix (None where the fit has none)."""
+        return self.blocks.get(group)
+
+
+@dataclass(frozen=True)
+class OnlineEngine:
+    """The engine that ran an online fit's window (``"numpy"`` or ``"gtsam"``) and, where
+    it is GTSAM's, what the numpy engine does not take (``note``)."""
+    name: str
+    note: str = ""
 
 
 @dataclass(frozen=True)
@@ -189,6 +210,40 @@ class EffectStep:
     fleet: FleetEffect | None = None
 
 
+T = TypeVar("T")
+
+
+def _as_stored(v: object) -> object:
+    return v
+
+
+class InfoView(Generic[T]):
+    """A typed attribute of :class:`Result` kept in its ``info`` under the attribute's
+    name: read as ``kind(info[name])``, None where absent; assigning stores the value
+    there."""
+
+    def __init__(self, kind: Callable[[Any], T], doc: str) -> None:
+        self.kind, self.__doc__, self.key = kind, doc, ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.key = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> InfoView[T]: ...
+
+    @overload
+    def __get__(self, obj: Result, owner: type | None = None) -> T | None: ...
+
+    def __get__(self, obj: Result | None, owner: type | None = None) -> InfoView[T] | T | None:
+        if obj is None:
+            return self
+        v = obj.info.get(self.key)
+        return None if v is None else self.kind(v)
+
+    def __set__(self, obj: Result, v: T | None) -> None:
+        obj.info[self.key] = v
+
+
 @dataclass
 class Result:
     """What every estimator returns.
@@ -196,11 +251,19 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
-    The factor graph's steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes
-    were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural
-    test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum`` and
-    ``effect_step``; ``heading_check`` is each mission's fitted heading against its
-    accelerometer's (:func:`aqfg.identifiability.settle`).
+    The factor graph's batch leaves its parameters' ``covariance`` and, for a joint fit,
+    ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
+    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), and
+    whether its data were ``too_short_for_sandwich`` (fewer sandwich blocks than
+    parameters + 2, :mod:`aqfg.fg.graph`); its online smoother, the ``engine`` that ran its
+    window. Its
+    steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
+    :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
+    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``,
+    ``other_minimum`` and ``effect_step``; ``heading_check`` is each mission's fitted
+    heading against its accelerometer's and ``identifiability_warnings`` what the data
+    were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
+    worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -220,6 +283,11 @@ class Result:
     sigma_structure: SigmaStructure | None = None
     effect_step: EffectStep | None = None
     heading_check: dict[str, HeadingCheck] | None = None
+    identifiability_warnings: tuple[str, ...] = ()
+    covariance: Covariance | None = None
+    observability_per_mission: dict[str, dict[str, str]] | None = None
+    too_short_for_sandwich: bool = False
+    engine: OnlineEngine | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -260,45 +328,13 @@ class Result:
     def histories(self, v: list[ParamHistory]) -> None:
         self.info["histories"] = list(v)
 
-    def _info_get(self, key: str, kind: type):
-        v = self.info.get(key)
-        return None if v is None else kind(v)
-
-    @property
-    def converged(self) -> bool | None:
-        """Whether the optimiser met its convergence test (None: not reported)."""
-        return self._info_get("converged", bool)
-
-    @converged.setter
-    def converged(self, v: bool | None) -> None:
-        self.info["converged"] = v
-
-    @property
-    def iterations(self) -> int | None:
-        """Optimiser iterations (None: not reported)."""
-        return self._info_get("iterations", int)
-
-    @iterations.setter
-    def iterations(self, v: int | None) -> None:
-        self.info["iterations"] = v
-
-    @property
-    def kernel(self) -> str | None:
-        """Which kernel integrated the model: "cpp" or "numpy" (None: not reported)."""
-        return self._info_get("kernel", str)
-
-    @kernel.setter
-    def kernel(self, v: str | None) -> None:
-        self.info["kernel"] = v
-
-    @property
-    def settings(self) -> object | None:
-        """The estimator's settings object (e.g. ``aqfg.fg.common.FGSettings``)."""
-        return self.info.get("settings")
-
-    @settings.setter
-    def settings(self, v: object | None) -> None:
-        self.info["settings"] = v
+    converged = InfoView(bool, "Whether the optimiser met its convergence test (None: not "
+                               "reported).")
+    iterations = InfoView(int, "Optimiser iterations (None: not reported).")
+    kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
+                           'reported).')
+    settings = InfoView(_as_stored, "The estimator's settings object (e.g. "
+                                    "``aqfg.fg.common.FGSettings``).")
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(self.values[n]), "sigma": float(self.sigma.get(n, np.nan))}

@@ -25,9 +25,10 @@ except ImportError:  # run from a checkout without PYTHONPATH
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from aqfg import _kernel as K  # noqa: E402
+from aqfg.data.importers.frames import euler_to_quat  # noqa: E402
 from aqfg.model import reference as ref  # noqa: E402
-from aqfg.model.vehicle import LAG_LOOKBACK, euler_to_quat, quat_to_rot  # noqa: E402
 from aqfg.model.params import N_DYN, vector  # noqa: E402
+from aqfg.model.vehicle import LAG_LOOKBACK, quat_to_rot  # noqa: E402
 
 RATE = 50.0  # Hz
 

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from aqfg.data.importers.frames import euler_to_quat
 from aqfg.data.mission import Depth, Gnss, Imu, Mission, Motors, Usbl
-from aqfg.model.vehicle import Model, euler_to_quat
 from aqfg.model.params import vector
 from aqfg.model.retrace import rollout
+from aqfg.model.vehicle import Model
 
 
 def synth_mission(vehicle: str = "asv", duration: float = 60.0, seed: int = 0,

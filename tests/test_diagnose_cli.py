@@ -3,24 +3,15 @@ import json
 import re
 
 import numpy as np
-import pytest
 
 from aqfg.cli import main
 from aqfg.data.io import save_mission
 from aqfg.sim.simulator import simulate
 
 
-@pytest.fixture(scope="module")
-def mission_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp("m") / "wind"
-    m, truth = simulate("asv", seed=4, duration=240.0, effects={"wind_drag": [0.06, 0.04]})
-    save_mission(m, d, truth=truth)
-    return d
-
-
-def test_diagnose_writes_json_report_and_summary(mission_dir, tmp_path, capsys):
+def test_diagnose_writes_json_report_and_summary(wind_mission_dir, tmp_path, capsys):
     out = tmp_path / "diag"
-    assert main(["diagnose", str(mission_dir), "--out", str(out)]) == 0
+    assert main(["diagnose", str(wind_mission_dir), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     data = json.loads((out / "diagnosis.json").read_text())
     # the format doc's keys
@@ -48,12 +39,12 @@ def test_diagnose_writes_json_report_and_summary(mission_dir, tmp_path, capsys):
     assert not re.search(r'(src|href)="(?!data:)', html)          # self-contained
     assert "wind_drag" in html
     # refuses to overwrite without --force
-    assert main(["diagnose", str(mission_dir), "--out", str(out)]) == 2
+    assert main(["diagnose", str(wind_mission_dir), "--out", str(out)]) == 2
 
 
-def test_diagnose_with_effect_compares_before_after(mission_dir, tmp_path, capsys):
+def test_diagnose_with_effect_compares_before_after(wind_mission_dir, tmp_path, capsys):
     out = tmp_path / "diag2"
-    assert main(["diagnose", str(mission_dir), "--effect", "wind_drag", "--out", str(out),
+    assert main(["diagnose", str(wind_mission_dir), "--effect", "wind_drag", "--out", str(out),
                  "--no-plots"]) == 0
     data = json.loads((out / "diagnosis.json").read_text())
     assert data["model_effects"] == ["wind_drag"] and data["added"] == ["wind_drag"]
@@ -67,15 +58,15 @@ def test_diagnose_with_effect_compares_before_after(mission_dir, tmp_path, capsy
     assert "data:image/png" not in (out / "report.html").read_text()
 
 
-def test_diagnose_bad_input(mission_dir, tmp_path, capsys):
-    assert main(["diagnose", str(mission_dir), "--effect", "no_such_effect",
+def test_diagnose_bad_input(wind_mission_dir, tmp_path, capsys):
+    assert main(["diagnose", str(wind_mission_dir), "--effect", "no_such_effect",
                  "--out", str(tmp_path / "x")]) == 2
     assert "no_such_effect" in capsys.readouterr().err
     assert main(["diagnose", str(tmp_path / "missing_dir"), "--out", str(tmp_path / "y")]) == 3
-    assert main(["diagnose", str(mission_dir), "--effect", "usbl_range_scale",
+    assert main(["diagnose", str(wind_mission_dir), "--effect", "usbl_range_scale",
                  "--out", str(tmp_path / "z")]) == 2
     assert "not applicable" in capsys.readouterr().err
-    assert main(["diagnose", str(mission_dir), "--min-gain", "1.5",
+    assert main(["diagnose", str(wind_mission_dir), "--min-gain", "1.5",
                  "--out", str(tmp_path / "g")]) == 2
     err = capsys.readouterr().err
     assert "--min-gain" in err and "1.5" in err

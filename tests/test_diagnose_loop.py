@@ -128,17 +128,9 @@ def test_fit_with_the_learned_model_retraces_closer_to_the_truth(weakprop, tmp_p
     assert "reverse_thrust.ratio" in params and "thrust_asymmetry.ratio" in params
 
 
-@pytest.fixture(scope="module")
-def wind_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp("w") / "wind"
-    m, truth = simulate("asv", seed=4, duration=240.0, effects={"wind_drag": [0.06, 0.04]})
-    save_mission(m, d, truth=truth)
-    return d
-
-
-def test_auto_command_story_files_and_reuse(wind_dir, tmp_path, capsys):
+def test_auto_command_story_files_and_reuse(wind_mission_dir, tmp_path, capsys):
     out = tmp_path / "auto"
-    assert main(["diagnose", str(wind_dir), "--auto", "--out", str(out), "--no-plots",
+    assert main(["diagnose", str(wind_mission_dir), "--auto", "--out", str(out), "--no-plots",
                  "--jobs", "1"]) == 0
     printed = capsys.readouterr().out
     lines = printed.strip().splitlines()
@@ -150,25 +142,25 @@ def test_auto_command_story_files_and_reuse(wind_dir, tmp_path, capsys):
     est = mf.parameters["wind_drag.a_n"]
     assert abs(est["value"] - 0.06) < 3 * est["sigma"] + 0.005
     # nothing is overwritten without --force
-    assert main(["diagnose", str(wind_dir), "--auto", "--out", str(out)]) == 2
+    assert main(["diagnose", str(wind_mission_dir), "--auto", "--out", str(out)]) == 2
     assert "model.json" in capsys.readouterr().err
     # the learned model online: wind estimated per mission, the vehicle held
     on = tmp_path / "online"
-    assert main(["fit", str(wind_dir), "--model", str(out / "model.json"), "--mode", "online",
+    assert main(["fit", str(wind_mission_dir), "--model", str(out / "model.json"), "--mode", "online",
                  "--out", str(on), "--no-plots"]) == 0
     assert "wind_drag.a_n" in json.loads((on / "parameters.json").read_text())["parameters"]
     # a model of another vehicle type is refused with a clear message
     js = json.loads((out / "model.json").read_text())
     js["vehicle"] = "auv"
     (tmp_path / "auv.json").write_text(json.dumps(js))
-    assert main(["fit", str(wind_dir), "--model", str(tmp_path / "auv.json"),
+    assert main(["fit", str(wind_mission_dir), "--model", str(tmp_path / "auv.json"),
                  "--out", str(tmp_path / "x")]) == EXIT_DATA
     assert "a model of an auv" in capsys.readouterr().err
 
 
-def test_single_step_with_effect_writes_the_model(wind_dir, tmp_path):
+def test_single_step_with_effect_writes_the_model(wind_mission_dir, tmp_path):
     out = tmp_path / "one"
-    assert main(["diagnose", str(wind_dir), "--effect", "wind_drag", "--out", str(out),
+    assert main(["diagnose", str(wind_mission_dir), "--effect", "wind_drag", "--out", str(out),
                  "--no-plots", "--jobs", "1"]) == 0
     mf = read_model(out / "model.json")
     assert mf.effects == ("wind_drag",) and "k" in mf.parameters

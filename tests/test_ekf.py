@@ -12,7 +12,8 @@ from aqfg.ekf.optim import Entry, Objective, Window, bounds, gradient_descent, m
 from aqfg.ekf.window import (ACCEPTED, NOOP, REJECTED, HAVE_CPP_EKF, run_window,
                              usbl_to_position, window_ref)
 from aqfg.data.mission import without_gnss
-from aqfg.model.vehicle import Model, euler_to_quat
+from aqfg.data.importers.frames import euler_to_quat
+from aqfg.model.vehicle import Model
 from aqfg.export import save_result
 from aqfg.model.retrace import rollout
 from ekf_synth import synth_mission

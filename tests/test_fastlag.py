@@ -243,7 +243,7 @@ def test_numpy_engine_agrees_with_gtsam_engine_and_truth(usbl, seed):
                                                     online_heading_walk=0.0)).run(m)
             for e in ("numpy", "gtsam")}
     a, b = runs["numpy"], runs["gtsam"]
-    assert a.info["engine"] == "numpy" and b.info["engine"] == "gtsam"
+    assert a.engine.name == "numpy" and b.engine.name == "gtsam"
     for n in VAR:
         assert abs(a.values[n] - b.values[n]) < 3 * a.sigma[n], (n, a.values[n], b.values[n])
         assert abs(a.values[n] - truth.params[n]) < 3 * a.sigma[n], (n, a.values[n])
@@ -268,7 +268,7 @@ def test_numpy_engine_takes_depth_readings():
     r = FixedLagSmoother(init=init, window=15.0,
                          settings=FGSettings(online_current_walk=0.0,
                                              online_heading_walk=0.0)).run(m)
-    assert r.info["engine"] == "numpy"
+    assert r.engine.name == "numpy"
     fa = r.missions[0].filtered
     down = np.interp(fa.t, truth.t, truth.pos[:, 2])
     assert np.sqrt(np.mean((fa.pos[:, 2] - down) ** 2)) < 0.2
@@ -282,7 +282,7 @@ def test_wrong_model_completes_and_unsupported_configurations_fall_back():
     m, _, _ = _mission(1, False)
     # the paper's default constants (another vehicle's), held: a wrong model
     r = FixedLagSmoother(estimate=VAR, window=24.0).run(m)
-    assert r.info["engine"] == "numpy"
+    assert r.engine.name == "numpy"
     assert np.all(np.isfinite(r.missions[0].track.pos)) and np.all(np.isfinite(r.history.values))
     assert r.info["process_noise_scale"] > 1.0           # the fixes pull the track
     # a lever arm is a measurement effect: the GTSAM engine runs it

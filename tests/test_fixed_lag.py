@@ -74,7 +74,7 @@ def test_fixed_lag_end_agrees_with_batch(vehicle, usbl, seed):
     fw = FixedLagSmoother(init=init, window=24.0).run(m)
     for n in VAR:
         assert abs(fw.values[n] - tr.params[n]) < 3 * fw.sigma[n], (n, fw.values[n])
-    if fw.info["engine"] == "numpy":
+    if fw.engine.name == "numpy":
         assert fw.sigma["s_x"] > 1.2 * fl.sigma["s_x"]
     assert fl.info["kernel"] == "cpp" and np.isfinite(fl.info["warmup_end"])
     assert len(fl.timings["update"]) == fl.info["n_updates"] == len(np.unique(m.fix_times()))
@@ -216,7 +216,7 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     fixed = fixed_truth(tr)
     st = FGSettings(online_engine=engine)
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
-    assert clean.info["engine"] == engine
+    assert clean.engine.name == engine
     assert clean.info["rejected_usbl"] == []
     u = m.usbl
     rng = u.range.copy()
@@ -281,7 +281,7 @@ def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch, e
         return gate(self, t_fix, dt, x_pred, *a, **k)
     monkeypatch.setattr(UsblGate, "check", off_prediction)
     res = fit_fg([m], mode="online", init=fixed, settings=st)
-    assert res.info["engine"] == engine
+    assert res.engine.name == engine
     assert seen and seen[0], "the shifted prediction should have been gated"
     assert res.info["rejected_usbl"] == []
     a, b = res.missions[0].track, clean.missions[0].track

@@ -69,7 +69,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     assert res.sigma["s_x"] > res.info["sigma_model"]["s_x"]
     assert any("does not explain the fixes" in w for w in res.info["warnings"])
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
-    assert not res.info["too_short_for_sandwich"] and res.block_jackknife is None
+    assert not res.too_short_for_sandwich and res.block_jackknife is None
 
 
 def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
@@ -310,7 +310,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     m, truth = mission("otter-heldout-52-300s", 0.0)
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
     basins = res.info["basins"]
-    assert res.info["too_short_for_sandwich"] and all("log_evidence" in b for b in basins)
+    assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
     cost = res.info["cost"]
     cheaper = [b for b in basins if b["cost"] < cost - 1.0]
     assert cheaper and all(b["rank"] > cost + 2.0 for b in cheaper), basins
@@ -738,7 +738,7 @@ def test_online_survives_a_diverged_prediction_in_the_numpy_engine():
     (IndexError at the next relinearisation)."""
     m = with_gnss_every(crop(load_mission(data_path("otter-example")), 150.0, 900.0), 8.0)
     res = fit_fg([m], mode="online")
-    assert res.info.get("engine") == "numpy"
+    assert res.engine.name == "numpy"
     assert np.all(np.isfinite(res.missions[0].track.pos))
 
 

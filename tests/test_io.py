@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import mission_toml
 
 from aqfg.data.geodesy import WGS84_A, WGS84_E2, latlon_to_ne, ne_to_latlon
 from aqfg.data.io import (MissionFormatError, check_mission, has_truth, load_mission, load_truth,
@@ -20,17 +21,7 @@ pytestmark = pytest.mark.filterwarnings("ignore::aqfg.data.io.plausibility.Missi
 
 # ------------------------------------------------------------------ a small mission as text
 
-TOML = """format = "aqfg-mission/1"
-name = "small"
-vehicle = "asv"
-
-[thrusters]
-direction = [[1, 0, 0], [1, 0, 0]]
-position = [[-0.25, 0.12, 0], [-0.25, -0.12, 0]]
-
-[usbl]
-station = [0.0, 0.0, 1.5]
-"""
+TOML = mission_toml("small", "asv", 1.5)
 FILES = {
     "imu.csv": "t,qw,qx,qy,qz\n0.0,1,0,0,0\n0.1,1,0,0,0\n0.2,0.9998,0,0,0.0199987\n",
     "motors.csv": "t,u1,u2\n0.0,0.5,0.5\n0.2,-0.25,1\n",
@@ -282,17 +273,6 @@ def test_missing_required_column(tmp_path):
     assert "expected columns t, qw, qx, qy, qz" in str(e)
 
 
-def test_non_numeric_cell(tmp_path):
-    e = err(write_small(tmp_path / "m", gnss_csv="t,north,east\n0,1,2\n1,1.5,abc\n"))
-    assert (Path(e.file).name, e.row, e.column) == ("gnss.csv", 3, "east")
-    assert "non-numeric cell 'abc'; expected a number" in str(e)
-
-
-def test_empty_cell_is_non_numeric(tmp_path):
-    e = err(write_small(tmp_path / "m", motors_csv="t,u1,u2\n0,0.5,\n"))
-    assert (e.row, e.column) == (2, "u2") and "non-numeric cell ''" in str(e)
-
-
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
 def test_nan_or_inf_in_required_column(tmp_path, value):
     e = err(write_small(tmp_path / "m", imu_csv=f"t,qw,qx,qy,qz\n0,1,0,0,0\n1,1,0,{value},0\n"))
@@ -305,12 +285,6 @@ def test_inf_in_optional_column_rejected_nan_allowed(tmp_path):
     assert np.isnan(m.gnss.sigma[0])
     e = err(write_small(tmp_path / "b", gnss_csv="t,north,east,sigma\n0,1,2,1\n1,1,2,inf\n"))
     assert (e.row, e.column) == (3, "sigma")
-
-
-def test_decreasing_t(tmp_path):
-    e = err(write_small(tmp_path / "m", usbl_csv="t,range,bearing\n0,3,1\n2,3,1\n1.5,3,1\n"))
-    assert (Path(e.file).name, e.row, e.column) == ("usbl.csv", 4, "t")
-    assert "t decreases (2.0 -> 1.5); expected rows in non-decreasing time" in str(e)
 
 
 def test_equal_times_allowed(tmp_path):
@@ -343,12 +317,6 @@ def test_hull_is_read_written_back_and_checked(tmp_path):
                               "expected a finite number")):
         e = err(write_small(tmp_path / "bad", TOML + "\n[hull]\n" + body))
         assert Path(e.file).name == "mission.toml" and e.column == col and words in str(e)
-
-
-def test_latlon_without_origin(tmp_path):
-    e = err(write_small(tmp_path / "m", gnss_csv="t,lat,lon\n0,46.5,6.5\n"))
-    assert (Path(e.file).name, e.row, e.column) == ("gnss.csv", 1, "lat")
-    assert "no [origin]" in str(e)
 
 
 @pytest.mark.parametrize("line", ['format = "aqfg-mission/2"', ""])
@@ -402,55 +370,38 @@ def test_invalid_toml(tmp_path):
     assert Path(e.file).name == "mission.toml" and "not valid TOML" in str(e)
 
 
-def test_ragged_row(tmp_path):
-    e = err(write_small(tmp_path / "m", imu_csv="t,qw,qx,qy,qz\n0,1,0,0,0\n1,1,0,0\n"))
-    assert (Path(e.file).name, e.row) == ("imu.csv", 3)
-    assert "row has 4 values, header has 5" in str(e)
+# One bad CSV stream each: (file, its text, the row and column the error names, its words).
+BAD_CSV = {
+    "non_numeric_cell": ("gnss.csv", "t,north,east\n0,1,2\n1,1.5,abc\n", 3, "east",
+                         "non-numeric cell 'abc'; expected a number"),
+    "empty_cell_is_non_numeric": ("motors.csv", "t,u1,u2\n0,0.5,\n", 2, "u2",
+                                  "non-numeric cell ''"),
+    "decreasing_t": ("usbl.csv", "t,range,bearing\n0,3,1\n2,3,1\n1.5,3,1\n", 4, "t",
+                     "t decreases (2.0 -> 1.5); expected rows in non-decreasing time"),
+    "latlon_without_origin": ("gnss.csv", "t,lat,lon\n0,46.5,6.5\n", 1, "lat", "no [origin]"),
+    "ragged_row": ("imu.csv", "t,qw,qx,qy,qz\n0,1,0,0,0\n1,1,0,0\n", 3, None,
+                   "row has 4 values, header has 5"),
+    "blank_row_inside": ("depth.csv", "t,depth\n0,1\n\n2,1\n", 3, None, "blank row"),
+    "required_stream_without_rows": ("imu.csv", "t,qw,qx,qy,qz\n", 2, None, "no data rows"),
+    "empty_file_without_header": ("gnss.csv", "", 1, None, "header row"),
+    "duplicate_column": ("depth.csv", "t,depth,t\n0,1,0\n", 1, "t", "duplicate column"),
+    "partial_optional_group": ("imu.csv", "t,qw,qx,qy,qz,ax,ay\n0,1,0,0,0,0,0\n", 1, "az",
+                               "come together"),
+    "both_ned_and_latlon_gnss_is_ambiguous": ("gnss.csv", "t,north,east,lat,lon\n0,1,2,46,6\n",
+                                              1, "lat", "ambiguous"),
+    "non_unit_quaternion": ("imu.csv", "t,qw,qx,qy,qz\n0,1,0,0,0\n1,0,0,0,0\n", 3, "qw",
+                            "expected a unit quaternion"),
+    "non_positive_sigma": ("gnss.csv", "t,north,east,sigma\n0,1,2,0\n", 2, "sigma", "positive"),
+    "negative_usbl_range": ("usbl.csv", "t,range,bearing\n0,-3,1\n", 2, "range", "below 0.0"),
+}
 
 
-def test_blank_row_inside(tmp_path):
-    e = err(write_small(tmp_path / "m", depth_csv="t,depth\n0,1\n\n2,1\n"))
-    assert (Path(e.file).name, e.row) == ("depth.csv", 3) and "blank row" in str(e)
-
-
-def test_required_stream_without_rows(tmp_path):
-    e = err(write_small(tmp_path / "m", imu_csv="t,qw,qx,qy,qz\n"))
-    assert (Path(e.file).name, e.row) == ("imu.csv", 2) and "no data rows" in str(e)
-
-
-def test_empty_file_without_header(tmp_path):
-    e = err(write_small(tmp_path / "m", gnss_csv=""))
-    assert (Path(e.file).name, e.row) == ("gnss.csv", 1) and "header row" in str(e)
-
-
-def test_duplicate_column(tmp_path):
-    e = err(write_small(tmp_path / "m", depth_csv="t,depth,t\n0,1,0\n"))
-    assert (e.row, e.column) == (1, "t") and "duplicate column" in str(e)
-
-
-def test_partial_optional_group(tmp_path):
-    e = err(write_small(tmp_path / "m", imu_csv="t,qw,qx,qy,qz,ax,ay\n0,1,0,0,0,0,0\n"))
-    assert (e.row, e.column) == (1, "az") and "come together" in str(e)
-
-
-def test_both_ned_and_latlon_gnss_is_ambiguous(tmp_path):
-    e = err(write_small(tmp_path / "m", gnss_csv="t,north,east,lat,lon\n0,1,2,46,6\n"))
-    assert e.column == "lat" and "ambiguous" in str(e)
-
-
-def test_non_unit_quaternion(tmp_path):
-    e = err(write_small(tmp_path / "m", imu_csv="t,qw,qx,qy,qz\n0,1,0,0,0\n1,0,0,0,0\n"))
-    assert (e.row, e.column) == (3, "qw") and "expected a unit quaternion" in str(e)
-
-
-def test_non_positive_sigma(tmp_path):
-    e = err(write_small(tmp_path / "m", gnss_csv="t,north,east,sigma\n0,1,2,0\n"))
-    assert (e.row, e.column) == (2, "sigma") and "positive" in str(e)
-
-
-def test_negative_usbl_range(tmp_path):
-    e = err(write_small(tmp_path / "m", usbl_csv="t,range,bearing\n0,-3,1\n"))
-    assert (e.row, e.column) == (2, "range")
+@pytest.mark.parametrize("case", BAD_CSV)
+def test_bad_csv_names_file_row_and_column(tmp_path, case):
+    name, text, row, column, words = BAD_CSV[case]
+    e = err(write_small(tmp_path / "m", **{name.replace(".", "_"): text}))
+    assert (Path(e.file).name, e.row, e.column) == (name, row, column)
+    assert words in str(e)
 
 
 # ------------------------------------------------------------------------------ writing

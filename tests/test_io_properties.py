@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import mission_toml
 from hypothesis import assume, event, given
 from hypothesis import strategies as st
 
@@ -24,21 +25,7 @@ from aqfg.data.mission import Depth, Gnss, Imu, Mission, Motors, Usbl
 
 # ----------------------------------------------------------------- a small valid mission
 
-TOML = """format = "aqfg-mission/1"
-name = "prop"
-vehicle = "auv"
-
-[thrusters]
-direction = [[1, 0, 0], [1, 0, 0]]
-position = [[-0.25, 0.12, 0], [-0.25, -0.12, 0]]
-
-[usbl]
-station = [0.0, 0.0, 1.0]
-
-[origin]
-lat = 46.5
-lon = 6.5
-"""
+TOML = mission_toml("prop", "auv", 1.0, origin=(46.5, 6.5))
 
 
 def _files() -> dict[str, str]:

@@ -90,7 +90,7 @@ def test_batch_single_asv_mission(asv8):
     assert res.timings["batch"][0] > 0 and len(res.timings["iteration"]) >= 1
     assert mr.inertial.t[0] == pytest.approx(m.gnss.t[0])
     # covariance from the Bayes tree: symmetric positive definite, sigma = sqrt(diag)
-    C = np.array(res.info["covariance"]["fixed"])
+    C = res.covariance.blocks["fixed"]
     assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0)
     assert np.sqrt(C[0, 0]) == pytest.approx(res.sigma["k"])
 

@@ -112,7 +112,7 @@ def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test
     m, truth = (with_gnss_every(load_mission(data_path("otter-heldout-73-170s")), 4.0),
                 load_truth(data_path("otter-heldout-73-170s")))
     res = fit_fg([m], settings=AS_GIVEN.with_(block_jackknife=False))
-    assert res.info["too_short_for_sandwich"]
+    assert res.too_short_for_sandwich
     st = res.sigma_structure
     assert st is not None
     P = truth.params

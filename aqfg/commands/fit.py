@@ -330,9 +330,10 @@ def _print_summary(result) -> None:
     if t.get("update"):
         import numpy as np
         print(f"online: {len(t['update'])} updates, median {1e3 * np.median(t['update']):.2f} ms")
-        if result.info.get("engine") == "gtsam" and result.info.get("engine_note"):
+        eng = result.engine
+        if eng is not None and eng.name == "gtsam" and eng.note:
             # what the GTSAM engine leaves out (the walks of the current and heading offset)
-            print(f"online: GTSAM engine (the numpy engine does not take: {result.info['engine_note']})")
+            print(f"online: GTSAM engine (the numpy engine does not take: {eng.note})")
     seen: dict[str, list[float]] = {}
     for e in result.info.get("events") or []:
         if e.get("event") != "parameters released":

@@ -48,7 +48,7 @@ def run(args) -> int:
     if step:
         print(f"warning: {step}", file=sys.stderr)
     for v, r in fr.results.items():
-        for w in r.info.get("identifiability_warnings") or ():
+        for w in r.identifiability_warnings:
             print(f"warning: {v}: {w}", file=sys.stderr)
     for v, e in table["vehicles"].items():
         if e.get("plausible") is False:

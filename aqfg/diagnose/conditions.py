@@ -31,6 +31,7 @@ import numpy as np
 from scipy import stats
 
 from aqfg.data.mission import Mission
+from aqfg.distributions import holm
 from aqfg.model.vehicle import attitude_at, yaw_of
 from aqfg.result import Track
 
@@ -174,21 +175,6 @@ def circular_linear(theta: np.ndarray, y: np.ndarray) -> tuple[float, float, flo
     ne = min(effective_n(ry_res, c), effective_n(ry_res, s))
     p = float(stats.chi2.sf(ne * R2, 2))
     return float(np.sqrt(R2)), p, ne, float(np.mod(np.arctan2(coef[2], coef[1]), 2 * np.pi))
-
-
-def holm(p: np.ndarray) -> np.ndarray:
-    """Holm-Bonferroni adjusted p-values (step-down, monotone)."""
-    p = np.asarray(p, float)
-    m = len(p)
-    if m == 0:
-        return p
-    o = np.argsort(p)
-    adj = np.empty(m)
-    run = 0.0
-    for k, i in enumerate(o):
-        run = max(run, min(1.0, (m - k) * p[i]))
-        adj[i] = run
-    return adj
 
 
 @dataclass

@@ -56,14 +56,20 @@ def fig_map(diag, i: int = 0):
     fx = fixes_of(_fit_mission(diag, i))
     ax.scatter(fx.ne[:, 1], fx.ne[:, 0], s=18, facecolors="none", edgecolors="tab:blue",
                label="fit fixes", zorder=4)
+    _finish_map(ax, m, "fixes and the model-only track between them")
+    return fig
+
+
+def _finish_map(ax, m, title: str) -> None:
+    """The mission's map axes finished: its USBL station (if any), east/north labels (m),
+    equal scale, ``title`` after the mission's name, the legend."""
     if m.usbl_station is not None:
         ax.plot(m.usbl_station[1], m.usbl_station[0], "k^", ms=9, label="USBL station")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(f"{m.name}: fixes and the model-only track between them")
+    ax.set_title(f"{m.name}: {title}")
     ax.legend(fontsize=8, loc="best")
-    return fig
 
 
 def _fit_mission(diag, i):
@@ -450,11 +456,16 @@ def render(diag, plots: bool = True) -> str:
     return "\n".join(H)
 
 
+def _write_html(text: str, path) -> Path:
+    """Write the page ``text`` to ``path`` (UTF-8); returns the path."""
+    p = Path(path)
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
 def write_report(diag, path, plots: bool = True) -> Path:
     """Write :func:`render` to ``path``."""
-    p = Path(path)
-    p.write_text(render(diag, plots=plots), encoding="utf-8")
-    return p
+    return _write_html(render(diag, plots=plots), path)
 
 
 # ---------------------------------------------------------------- the loop (--auto)
@@ -512,13 +523,7 @@ def fig_map_sequence(seq, i: int = 0):
     if h is not None:
         u = h.used
         ax.scatter(h.fix_ne[u, 1], h.fix_ne[u, 0], s=5, c="k", label="held-out fixes", zorder=3)
-    if m.usbl_station is not None:
-        ax.plot(m.usbl_station[1], m.usbl_station[0], "k^", ms=9, label="USBL station")
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(f"{m.name}: dead reckoning between fit fixes, bare vs final model")
-    ax.legend(fontsize=8, loc="best")
+    _finish_map(ax, m, "dead reckoning between fit fixes, bare vs final model")
     return fig
 
 
@@ -589,6 +594,4 @@ def render_sequence(seq, plots: bool = True) -> str:
 
 def write_sequence_report(seq, path, plots: bool = True) -> Path:
     """Write :func:`render_sequence` to ``path``."""
-    p = Path(path)
-    p.write_text(render_sequence(seq, plots=plots), encoding="utf-8")
-    return p
+    return _write_html(render_sequence(seq, plots=plots), path)

@@ -447,7 +447,7 @@ def effect_covariance(res, names) -> np.ndarray:
     NaN where they sit in different nodes or were not estimated)."""
     model = res.model
     groups = {model.spec(n).group for n in names}
-    cov = res.info.get("covariance", {})
+    cov = res.covariance.blocks if res.covariance is not None else {}
     nan = np.full((len(names), len(names)), np.nan)
     if len(groups) != 1 or not all(n in res.estimated for n in names):
         return nan

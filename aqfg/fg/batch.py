@@ -202,7 +202,7 @@ class BatchSmoother:
         # structural sigma (the only misfit check left there, aqfg.fg.structural_sigma.structural_sigma)
         self.short_solution = ((fs, out.fast) if sol.short and fs is not None
                                and out.fast is not None else None)
-        res.info["too_short_for_sandwich"] = bool(sol.short)
+        res.too_short_for_sandwich = bool(sol.short)
         if s.adapt_track and self.fast_solution is not None:
             self._track_job = (fs, out, bg.layout, bg.parts, bg.nodes, cov)
         if not self.defer_track:
@@ -472,7 +472,7 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],
                                          layout.estimated)
     if per:
-        res.info["observability_per_mission"] = per
+        res.observability_per_mission = per
 
 
 def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 from aqfg.fg import factors as fc
 from aqfg.fg.common import FGSettings, piecewise_inertial, residuals
 from aqfg.fg.graph import MissionPart, ParamNode
-from aqfg.result import MissionResult, ParamHistory, Residuals, Result, Track
+from aqfg.result import Covariance, MissionResult, ParamHistory, Residuals, Result, Track
 
 
 def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[MissionPart],
@@ -72,9 +72,9 @@ def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[Missi
             sigma_d[n] = float(sg)
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values_d,
                   sigma=sigma_d, missions=mres, history=hist,
-                  info={"per_mission": per_mission,
-                        "covariance": {g: cov[k].tolist() for g, k, mi in node_list
-                                       if mi in (None, 0)}},
+                  info={"per_mission": per_mission},
+                  covariance=Covariance({g: np.array(cov[k], dtype=float)
+                                         for g, k, mi in node_list if mi in (None, 0)}),
                   effects=tuple(e.name for e in model0.effects), model=model0)
 
 

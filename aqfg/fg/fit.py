@@ -101,7 +101,7 @@ def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,
     else:
         res = _finish(res, bs, missions, model, effects)
     logged = 0 if auto else len(res.info.get("warnings", []))
-    if st.block_jackknife and len(missions) == 1 and res.info.get("too_short_for_sandwich"):
+    if st.block_jackknife and len(missions) == 1 and res.too_short_for_sandwich:
         res = _block_jackknife(res, missions[0], model, effects, init, st)
     for w in res.info.get("warnings", [])[logged:]:
         log.warning("fg: %s", w)

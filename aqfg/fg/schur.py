@@ -42,7 +42,7 @@ from aqfg.fg.graph_lm import active_bounds, diagonal_floor
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
-from aqfg.result import Result
+from aqfg.result import Covariance, Result
 
 Request = tuple[str, dict]
 
@@ -265,11 +265,11 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
     for r in results:
         per_mission.update(r.info.get("per_mission", {}))
         plaus.update(r.info.get("plausibility", {}))
-    cov = dict(r0.info.get("covariance", {}))
+    cov = dict(r0.covariance.blocks) if r0.covariance is not None else {}
     if names_f:
-        cov["fixed"] = sol.cov_f.tolist()
+        cov["fixed"] = np.array(sol.cov_f, dtype=float)
     info: dict[str, Any] = {
-        "per_mission": per_mission, "covariance": cov, "iterations": sol.iterations,
+        "per_mission": per_mission, "iterations": sol.iterations,
         "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
         "sigma_model": sigma_model,
@@ -277,7 +277,8 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
         "plausibility": plaus, "plausible": all(r.info.get("plausible", True) for r in results)}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,
-                  info=info, timings=dict(timings or {}), effects=r0.effects, model=None)
+                  info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
+                  covariance=Covariance(cov))
 
 
 def drive(gen: Generator[list[Request], list[dict], Solution],

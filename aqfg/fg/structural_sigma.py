@@ -46,7 +46,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     # there (a 170-s crop of an Otter mission put the current 0.46 m/s off with sigma 0.03,
     # where the effects the test suggested would move it 0.3: docs/independent-vehicle.md)
     misfit = max(infl.values(), default=0.0) > STRUCTURAL_MISFIT or \
-        bool(res.info.get("too_short_for_sandwich"))
+        res.too_short_for_sandwich
     if (not settings.structural_sigma or settings.walk_sigma or res.model is None
             or not (misfit or test_always)):
         return res

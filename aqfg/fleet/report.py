@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from aqfg.distributions import holm
 from aqfg.export import write_result
-from aqfg.fleet.solve import FleetResult
+from aqfg.fleet.solve import FleetResult, fixed_covariance
 from aqfg.result import (
     PARAMETERS_FORMAT,
     EffectStep,
@@ -56,14 +57,7 @@ def differs_from_fleet(values: np.ndarray, covs: np.ndarray, alpha: float = 0.05
         z = diff / np.sqrt(np.diag(S))
         out.append({"chi2": chi2, "dof": d, "p_value": float(stats.chi2.sf(chi2, d)),
                     "mean_of_others": m.tolist(), "z": z.tolist()})
-    p = np.array([o["p_value"] for o in out])
-    order = np.argsort(p)
-    holm = np.empty(V)
-    run = 0.0
-    for r, i in enumerate(order):
-        run = max(run, min(1.0, (V - r) * p[i]))
-        holm[i] = run
-    for o, ph in zip(out, holm):
+    for o, ph in zip(out, holm(np.array([o["p_value"] for o in out]))):
         o["p_holm"] = float(ph)
         o["differs"] = bool(ph < alpha)
     return out
@@ -76,7 +70,7 @@ def fleet_table(fr: FleetResult) -> dict:
     vs = list(fr.results)
     names = fixed_names(fr.results[vs[0]])
     X = np.array([[fr.results[v].values[n] for n in names] for v in vs]).reshape(len(vs), -1)
-    C = np.array([np.array(fr.results[v].info["covariance"].get("fixed", np.zeros((0, 0))))
+    C = np.array([fixed_covariance(fr.results[v])
                   for v in vs]).reshape(len(vs), len(names), len(names))
     tests = differs_from_fleet(X, C)
     dirs = {v.name: [m.name for m in v.missions] for v in fr.manifest.vehicles}

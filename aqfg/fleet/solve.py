@@ -417,6 +417,11 @@ def vehicle_arrays(fr: FleetResult) -> tuple[list[str], tuple[str, ...], np.ndar
     names = tuple(n for n in fr.results[vs[0]].estimated
                   if n not in next(iter(fr.results[vs[0]].info["per_mission"].values()), {}))
     X = np.array([[fr.results[v].values[n] for n in names] for v in vs])
-    C = np.array([np.array(fr.results[v].info["covariance"].get("fixed", np.zeros((0, 0))))
-                  for v in vs])
+    C = np.array([fixed_covariance(fr.results[v]) for v in vs])
     return vs, names, X, C
+
+
+def fixed_covariance(r: Result) -> np.ndarray:
+    """The covariance of a vehicle's fit's fixed parameters (0 x 0 where it has none)."""
+    c = r.covariance.block("fixed") if r.covariance is not None else None
+    return np.zeros((0, 0)) if c is None else c

@@ -104,7 +104,7 @@ def finish_op(specs: list[MissionSpec], result):
     error over its missions (:func:`aqfg.fg.dead_reckoning.refine`), its missions' tracks
     smoothed under the noise their evidence chooses (:func:`smooth_tracks`) and what its data
     cannot determine marked so (:func:`aqfg.identifiability.settle`; its warnings in
-    ``info["identifiability_warnings"]``), as ``aqfg fit`` does once for the fit it returns;
+    ``identifiability_warnings``), as ``aqfg fit`` does once for the fit it returns;
     the missions are read on the worker."""
     from aqfg.fg import dead_reckoning
     from aqfg.identifiability import settle
@@ -113,7 +113,7 @@ def finish_op(specs: list[MissionSpec], result):
     result = smooth_tracks(specs, missions, result)
     # what the data cannot determine, as aqfg fit says it (the accelerometer check needs
     # the missions, which are here)
-    result.info["identifiability_warnings"] = settle(result, missions)
+    result.identifiability_warnings = tuple(settle(result, missions))
     return result
 
 
@@ -139,7 +139,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     except ValueError:
         return result                          # not the graph the joint fit solved
     X, th = fs.from_values(values)
-    result.info["too_short_for_sandwich"] = too_short_for_sandwich(bg, st)
+    result.too_short_for_sandwich = too_short_for_sandwich(bg, st)
     # the test also where the fixes are explained, for the fleet's effect step
     # (aqfg.fleet.solve.fleet_effect), as aqfg fit's batch
     result = structural_sigma(result, missions, fs, fs.evaluate(X, th), st,

@@ -61,15 +61,6 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     return R
 
 
-def euler_to_quat(roll, pitch, yaw) -> np.ndarray:
-    """Quaternions (n, 4) w, x, y, z from ZYX Euler angles (rad)."""
-    cr, sr = np.cos(np.asarray(roll) / 2), np.sin(np.asarray(roll) / 2)
-    cp, sp = np.cos(np.asarray(pitch) / 2), np.sin(np.asarray(pitch) / 2)
-    cy, sy = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)
-    return np.stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy], axis=-1)
-
-
 def yaw_of(R: np.ndarray) -> np.ndarray:
     """ZYX yaw (rad) of rotation matrices (..., 3, 3)."""
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])

@@ -14,10 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aqfg.data.importers.frames import euler_to_quat
 from aqfg.data.mission import Depth, Gnss, Imu, Truth, Usbl
 from aqfg.model.frames import heading, wrap_angle
 from aqfg.model.measurements import DELAY_TERMS
-from aqfg.model.vehicle import Model, euler_to_quat, quat_to_rot
+from aqfg.model.vehicle import Model, quat_to_rot
 
 GRAVITY = 9.81                    # m/s^2
 IMU_RATE = 50.0                   # Hz

@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from aqfg.data.importers.frames import euler_to_quat
 from aqfg.data.mission import Mission, Motors, Truth
 from aqfg.model import reference as ref
 from aqfg.model.effects import BUILTIN
@@ -34,7 +35,7 @@ from aqfg.model.frames import heading
 from aqfg.model.params import BASE_NAMES, INDEX, NAMES, SPEC, as_dict, vector
 from aqfg.model.reference import Geometry, Steps, thrust_gains
 from aqfg.model.rotation import rot_z
-from aqfg.model.vehicle import Model, demand, euler_to_quat, quat_to_rot
+from aqfg.model.vehicle import Model, demand, quat_to_rot
 from aqfg.sim.plan import depth_profile, depth_reference, waypoint_pattern
 from aqfg.sim.sensors import Run, depth_stream, gnss_stream, imu_stream, truth_track, usbl_stream
 from aqfg.sim.vehicle import VEHICLES, Controller, Wobble

@@ -30,7 +30,7 @@ import numpy as np
 
 import _pvs  # noqa: E402,F401  (the simulator on sys.path)
 from aqfg.model.frames import wrap_angle as wrap  # noqa: E402
-from aqfg.model.vehicle import euler_to_quat  # noqa: E402
+from aqfg.data.importers.frames import euler_to_quat  # noqa: E402
 from python_vehicle_simulator.lib.gnc import Rzyx, Smtrx, attitudeEuler, crossFlowDrag, m2c, sat  # noqa: E402
 from python_vehicle_simulator.vehicles.otter import otter  # noqa: E402
 

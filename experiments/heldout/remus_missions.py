@@ -29,7 +29,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 import _pvs  # noqa: E402,F401  (the simulator on sys.path)
 from aqfg.model.frames import wrap_angle as wrap  # noqa: E402
-from aqfg.model.vehicle import euler_to_quat  # noqa: E402
+from aqfg.data.importers.frames import euler_to_quat  # noqa: E402
 from python_vehicle_simulator.lib.gnc import Rzyx, attitudeEuler, ssa  # noqa: E402
 from python_vehicle_simulator.vehicles.remus100 import remus100  # noqa: E402
 

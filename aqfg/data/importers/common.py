@@ -191,22 +191,35 @@ def check_stamps(source: str, s: Series, start_ns: int, max_gap: float) -> None:
                              + "".join(f" ({k}: {v})" for k, v in s.dropped.items() if v),
                              topic=s.topic)
     d = np.diff(t)
-    back = np.flatnonzero(d < 0)
-    if len(back):
-        i = int(back[0]) + 1
+    fault = first_stamp_fault(d, max_gap * 1e9)
+    if fault is None:
+        return
+    kind, i = fault
+    if kind == "back":
         raise LogFormatError(source, f"stamps out of order: {t[i] * 1e-9:.6f} s comes after "
                                      f"{t[i - 1] * 1e-9:.6f} s ({d[i - 1] * 1e-9:+.6f} s); "
                                      "expected non-decreasing stamps (a clock reset, or messages "
                                      "merged from several sources?)",
                              **at(source, s.topic, t[i], start_ns))
-    jump = np.flatnonzero(d > max_gap * 1e9)
+    raise LogFormatError(source, f"clock jump: {d[i - 1] * 1e-9:.3f} s without a message "
+                                 f"(from {t[i - 1] * 1e-9:.6f} s); more than [time] max_gap "
+                                 f"= {max_gap:g} s. If the stream really paused, raise "
+                                 "max_gap in the map file's [time] table",
+                         **at(source, s.topic, t[i], start_ns))
+
+
+def first_stamp_fault(d: np.ndarray, max_gap: float) -> tuple[str, int] | None:
+    """The first fault in a series' steps between stamps ``d`` (``np.diff`` of the stamps):
+    ``("back", i)`` where a stamp is earlier than the one before it, else ``("jump", i)``
+    where a step exceeds ``max_gap`` (in ``d``'s unit); ``i`` indexes the later stamp. None
+    when the stamps are in order without a jump."""
+    back = np.flatnonzero(d < 0)
+    if len(back):
+        return "back", int(back[0]) + 1
+    jump = np.flatnonzero(d > max_gap)
     if len(jump):
-        i = int(jump[0]) + 1
-        raise LogFormatError(source, f"clock jump: {d[i - 1] * 1e-9:.3f} s without a message "
-                                     f"(from {t[i - 1] * 1e-9:.6f} s); more than [time] max_gap "
-                                     f"= {max_gap:g} s. If the stream really paused, raise "
-                                     "max_gap in the map file's [time] table",
-                             **at(source, s.topic, t[i], start_ns))
+        return "jump", int(jump[0]) + 1
+    return None
 
 
 def _check_overlap(source: str, series: dict[str, Series], start_ns: int) -> None:

@@ -26,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from aqfg.data.importers.common import ImportResult, LogFormatError, Series, assemble, pwm_to_command
+from aqfg.data.importers.common import (
+    ImportResult,
+    LogFormatError,
+    Series,
+    assemble,
+    first_stamp_fault,
+    pwm_to_command,
+)
 from aqfg.data.importers.frames import euler_to_quat
 from aqfg.data.importers.mapfile import TIME_UNITS, CsvSpec, ImportMap
 from aqfg.data.io import MissionFormatError, MissionWarning
@@ -144,20 +151,19 @@ def _check_time(src: str, spec: CsvSpec, imap: ImportMap, t: np.ndarray, rows: n
     if not len(t):
         raise MissionFormatError(src, "no row has a time", column=col)
     d = np.diff(t) * TIME_UNITS[spec.time_unit]
-    back = np.flatnonzero(d < 0)
-    if len(back):
-        i = int(back[0]) + 1
+    fault = first_stamp_fault(d, imap.max_gap)
+    if fault is None:
+        return
+    kind, i = fault
+    if kind == "back":
         raise MissionFormatError(src, f"time {t[i]:.10g} comes after {t[i - 1]:.10g} (row "
                                       f"{rows[i - 1]}); expected non-decreasing times",
                                  row=int(rows[i]), column=col)
-    jump = np.flatnonzero(d > imap.max_gap)
-    if len(jump):
-        i = int(jump[0]) + 1
-        raise MissionFormatError(src, f"clock jump: {d[i - 1]:.3f} s since row {rows[i - 1]}; "
-                                      f"more than [time] max_gap = {imap.max_gap:g} s (is "
-                                      f"time_unit = {spec.time_unit!r} right? If the log really "
-                                      "paused, raise max_gap in the map's [time] table)",
-                                 row=int(rows[i]), column=col)
+    raise MissionFormatError(src, f"clock jump: {d[i - 1]:.3f} s since row {rows[i - 1]}; "
+                                  f"more than [time] max_gap = {imap.max_gap:g} s (is "
+                                  f"time_unit = {spec.time_unit!r} right? If the log really "
+                                  "paused, raise max_gap in the map's [time] table)",
+                             row=int(rows[i]), column=col)
 
 
 def _imu(spec: CsvSpec, cols: dict[str, np.ndarray], t_ns: np.ndarray) -> Series:

@@ -44,7 +44,8 @@ def flu_to_frd(v: ArrayLike) -> np.ndarray:
 
 
 def euler_to_quat(roll, pitch, yaw) -> np.ndarray:
-    """(n, 4) quaternions from ZYX Euler angles (rad): R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    """(n, 4) quaternions w, x, y, z from ZYX Euler angles (rad): R = Rz(yaw) Ry(pitch)
+    Rx(roll)."""
     cr, sr = np.cos(np.asarray(roll) / 2), np.sin(np.asarray(roll) / 2)
     cp, sp = np.cos(np.asarray(pitch) / 2), np.sin(np.asarray(pitch) / 2)
     cy, sy = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)

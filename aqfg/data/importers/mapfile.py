@@ -14,6 +14,7 @@ import math
 import os
 import tempfile
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -238,15 +239,27 @@ def _entry(f: str, stream: str, v: Any) -> TopicSpec:
     return TopicSpec(topic, inst, fields)
 
 
-def _topics(m: ImportMap, t: Any, f: str) -> None:
+def _is_table(t: Any, f: str, name: str) -> bool:
+    """Whether the map file has the table ``[name]`` (``t``, None where absent); a value
+    that is not a table is refused."""
     if t is None:
-        return
+        return False
     if not isinstance(t, dict):
-        raise MissionFormatError(f, f"got {t!r}; expected a [topics] table", column="topics")
+        raise MissionFormatError(f, f"got {t!r}; expected a [{name}] table", column=name)
+    return True
+
+
+def _known(f: str, table: str, k: str, keys: Sequence[str], what: str = "key; expected") -> None:
+    """Refuses the key ``k`` of the map's ``[table]`` unless it is one of ``keys``."""
+    if k not in keys:
+        raise MissionFormatError(f, f"unknown {what} {', '.join(keys)}", column=f"[{table}] {k}")
+
+
+def _topics(m: ImportMap, t: Any, f: str) -> None:
+    if not _is_table(t, f, "topics"):
+        return
     for k, v in t.items():
-        if k not in STREAMS:
-            raise MissionFormatError(f, f"unknown stream; expected one of {', '.join(STREAMS)}",
-                                     column=f"[topics] {k}")
+        _known(f, "topics", k, STREAMS, "stream; expected one of")
         m.topics[k] = _entry(f, k, v)
     if "usbl" in m.topics and m.usbl_station is None:
         raise MissionFormatError(f, "a usbl topic needs [usbl] station = [north, east, down] "
@@ -271,15 +284,11 @@ def _per_thruster(f: str, key: str, v: Any, n: int | None) -> np.ndarray:
 
 
 def _motors(m: ImportMap, t: Any, f: str) -> None:
-    if t is None:
+    if not _is_table(t, f, "motors"):
         return
-    if not isinstance(t, dict):
-        raise MissionFormatError(f, f"got {t!r}; expected a [motors] table", column="motors")
     known = ("channels", "reversed", "pwm_min", "pwm_trim", "pwm_max")
     for k in t:
-        if k not in known:
-            raise MissionFormatError(f, f"unknown key; expected {', '.join(known)}",
-                                     column=f"[motors] {k}")
+        _known(f, "motors", k, known)
     n = m.n_thrusters
     if "channels" in t:
         c = t["channels"]
@@ -339,14 +348,10 @@ def _trim_columns(m: ImportMap, f: str, v: Any, n: int | None) -> np.ndarray:
 
 def _csv(m: ImportMap, t: Any, f: str) -> None:
     """[csv]: column names by role, units, thrust columns (see :class:`CsvSpec`)."""
-    if t is None:
+    if not _is_table(t, f, "csv"):
         return
-    if not isinstance(t, dict):
-        raise MissionFormatError(f, f"got {t!r}; expected a [csv] table", column="csv")
     for k, v in t.items():
-        if k not in CSV_KEYS:
-            raise MissionFormatError(f, f"unknown key; expected {', '.join(CSV_KEYS)}",
-                                     column=f"[csv] {k}")
+        _known(f, "csv", k, CSV_KEYS)
         if k in CSV_COLUMNS and (not isinstance(v, str) or not v):
             raise MissionFormatError(f, f"got {v!r}; expected a column name", column=f"[csv] {k}")
     need = ["time", "yaw", "thrust"]
@@ -392,10 +397,8 @@ def _csv(m: ImportMap, t: Any, f: str) -> None:
 
 
 def _time(m: ImportMap, t: Any, f: str) -> None:
-    if t is None:
+    if not _is_table(t, f, "time"):
         return
-    if not isinstance(t, dict):
-        raise MissionFormatError(f, f"got {t!r}; expected a [time] table", column="time")
     for k, v in t.items():
         col = f"[time] {k}"
         if k == "stamp":

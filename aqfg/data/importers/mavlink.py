@@ -177,7 +177,7 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
     names = {s.topic for s in chosen.values()} | {"PARAM_VALUE"}
     if depth is not None and depth.topic.startswith("SCALED_PRESSURE"):
         depth.fields["offset"] = None      # the first reading: set once the rows are read
-    rows = _tlog_rows(log, names)
+    rows = _read_rows(log, names)
     params = {str(m.param_id).rstrip("\x00"): float(m.param_value) for m in rows["PARAM_VALUE"]}
     imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}
@@ -198,8 +198,9 @@ def _read_tlog(source: Path, imap: ImportMap) -> ImportResult:
                     utc_offset=0.0, notes=notes, fixes_required=False)
 
 
-def _tlog_rows(log, names: set[str]) -> dict[str, list[Any]]:
-    """The log's messages of the types ``names``, by type (the log closed after)."""
+def _read_rows(log, names: set[str]) -> dict[str, list[Any]]:
+    """The messages of the types ``names`` in a telemetry or DataFlash log, by type (the
+    log closed after)."""
     rows: dict[str, list[Any]] = {n: [] for n in names}
     try:
         while True:
@@ -309,13 +310,7 @@ def _read_dataflash(source: Path, imap: ImportMap) -> ImportResult:
     names = {s.topic for s in chosen.values()} | {"PARM"}
     if "gnss" in chosen:
         names.add("GPA")
-    rows: dict[str, list[Any]] = {n: [] for n in names}
-    while True:
-        msg = log.recv_match(type=names)
-        if msg is None:
-            break
-        if msg.get_type() in rows:
-            rows[msg.get_type()].append(msg)
+    rows = _read_rows(log, names)
     params = {str(m.Name): float(m.Value) for m in rows["PARM"]}
     imap, notes = servo_map(imap, params)
     series: dict[str, Series] = {}

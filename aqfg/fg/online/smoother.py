@@ -11,7 +11,7 @@ gate (:mod:`~aqfg.fg.online.gate`), the process-noise adaptation
 hold / release / re-initialise policy (:mod:`~aqfg.fg.online.policy`) and its batch
 re-initialisations and replays (:mod:`~aqfg.fg.online.recovery`), and the kinematic floor
 of the causal track while the parameters are held (:mod:`aqfg.fg.kinematic`).
-``engine`` / ``engine_note`` (and ``Result.info``) say which engine ran and why.
+``engine`` / ``engine_note`` (and ``Result.engine``) say which engine ran and why.
 
 Step-by-step use (live data)::
 
@@ -59,7 +59,7 @@ from aqfg.fg.online.tracks import p_segments, retrace
 from aqfg.fg.online.views import StepSource
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, Track
+from aqfg.result import MissionResult, OnlineEngine, ParamHistory, Result, Track
 
 log = logging.getLogger(__name__)
 VEHICLE = ("k", "k_x", "k_yz")
@@ -480,7 +480,8 @@ class FixedLagSmoother:
                       values=dict(zip(self.model.all_names, map(float, p))), sigma=sigma,
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
                       history=hist, info=self._info(),
-                      effects=tuple(e.name for e in self.model.effects), model=self.model)
+                      effects=tuple(e.name for e in self.model.effects), model=self.model,
+                      engine=OnlineEngine(self.engine, self.engine_note))
 
     def _info(self) -> dict:
         """``Result.info`` of an online run."""
@@ -496,6 +497,4 @@ class FixedLagSmoother:
                 "sigma_inflation": dict(self.report.inflation),
                 "reinit_batches": list(self.policy.reinit_batches),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
-                "engine": self.engine,
-                "engine_note": self.engine_note,
                 "settings": self.settings}
