@@ -37,7 +37,7 @@ from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.dr_current import refine_current
-from aqfg.fg.predictions import Predictions, forward_jacobian, segments, to_v, to_x
+from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments, to_v, to_x
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.retrace import inertial_track
@@ -120,15 +120,21 @@ def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r
 def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     """The constants (:func:`refine_constants`), then each mission's current
     (:func:`aqfg.fg.dr_current.refine_current`) a dead reckoning of ``horizon`` s drifts
-    with, by prediction error; ``result`` updated in place and returned."""
-    return refine_current(refine_constants(result, missions, horizon), missions, horizon)
+    with, by prediction error; ``result`` updated in place and returned. Both predict from
+    the same segments: the constants change no parameter the fixes' positions read."""
+    segs = (segments(result.model, missions, result, horizon)
+            if horizon > 0 and result.model is not None else None)
+    return refine_current(refine_constants(result, missions, horizon, segs), missions,
+                          horizon, segs)
 
 
-def refine_constants(result: Result, missions: list[Mission], horizon: float) -> Result:
+def refine_constants(result: Result, missions: list[Mission], horizon: float,
+                     segs: list[Segment] | None = None) -> Result:
     """Re-estimate the estimated fixed parameters of a batch ``result`` by ``horizon``-s
     prediction error (module docstring); ``result`` is updated in place and returned, with
     ``info["dead_reckoning"]`` saying what was done and why (``horizon`` <= 0: the result as
-    it is, with no such entry)."""
+    it is, with no such entry). ``segs``: ``result``'s prediction segments
+    (:func:`aqfg.fg.predictions.segments`), built where None."""
     if horizon <= 0:
         return result
     t_start = time.perf_counter()
@@ -139,7 +145,8 @@ def refine_constants(result: Result, missions: list[Mission], horizon: float) ->
     if model is None or not names:
         info["reason"] = "no thrust/drag constant estimated"
         return result
-    segs = segments(model, missions, result, horizon)
+    if segs is None:
+        segs = segments(model, missions, result, horizon)
     blocks = {(s.mission, int(s.t0 // horizon)) for s in segs}
     if len(blocks) < len(names) + MIN_BLOCKS:
         info["reason"] = f"too little data: {len(blocks)} blocks of {horizon:.0f} s"

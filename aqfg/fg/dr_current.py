@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.fg.predictions import Predictions, forward_jacobian, segments
+from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
@@ -79,10 +79,12 @@ class CurrentRefit:
         return out
 
 
-def refine_current(result: Result, missions: list[Mission], horizon: float) -> Result:
+def refine_current(result: Result, missions: list[Mission], horizon: float,
+                   segs: list[Segment] | None = None) -> Result:
     """Each mission's current by ``horizon``-s prediction error where it predicts
     left-out blocks better (module docstring); ``result`` updated in place and returned,
-    the records in ``info["dead_reckoning"]["current"]``."""
+    the records in ``info["dead_reckoning"]["current"]``. ``segs``: ``result``'s
+    prediction segments (:func:`aqfg.fg.predictions.segments`), built where None."""
     model = result.model
     dr = result.info.get("dead_reckoning")
     if (horizon <= 0 or model is None or dr is None
@@ -90,11 +92,11 @@ def refine_current(result: Result, missions: list[Mission], horizon: float) -> R
         return result
     idx = np.array([model.index(n) for n in CURRENT])
     records = []
-    segs_all = segments(model, missions, result, horizon)
+    segs_all = segs if segs is not None else segments(model, missions, result, horizon)
     for i, (m, mr) in enumerate(zip(missions, result.missions)):
         before = (float(mr.p[idx[0]]), float(mr.p[idx[1]]))
-        segs = [dataclasses.replace(s, mission=0) for s in segs_all if s.mission == i]
-        keys = np.array([int(s.t0 // horizon) for s in segs])
+        own = [dataclasses.replace(s, mission=0) for s in segs_all if s.mission == i]
+        keys = np.array([int(s.t0 // horizon) for s in own])
         blocks = np.unique(keys)
         piecewise = result.history is not None       # a walk: every mission's is piecewise
         if piecewise or len(blocks) < MIN_BLOCKS:
@@ -102,11 +104,11 @@ def refine_current(result: Result, missions: list[Mission], horizon: float) -> R
                 "piecewise current" if piecewise else
                 f"too little data: {len(blocks)} block(s) of {horizon:.0f} s")))
             continue
-        pred = Predictions(model, segs, [mr.p.copy()], idx, np.zeros(2, bool))
+        pred = Predictions(model, own, [mr.p.copy()], idx, np.zeros(2, bool))
         x_sm = np.array(before)
         r0 = pred.residuals(x_sm)
         c_h = HUBER_C * max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
-        rows = np.repeat(np.concatenate([np.full(len(s.rows), k) for s, k in zip(segs, keys)]), 2)
+        rows = np.repeat(np.concatenate([np.full(len(s.rows), k) for s, k in zip(own, keys)]), 2)
 
         x_all, r, J = _irls(pred, x_sm, r0, c_h)
         # leave-one-block-out: one Gauss-Newton step from the full fit without the block,

@@ -86,15 +86,20 @@ def _smoother_residuals(t: np.ndarray, z: np.ndarray, q: float, r2: float
     H = np.zeros((2, 4)); H[0, 0] = H[1, 1] = 1.0
     x = np.array([z[0, 0], z[0, 1], 0.0, 0.0]); P = np.diag([r2, r2, 100.0, 100.0])
     Fs = [np.eye(4)]
+    R, I4, Ht = r2 * np.eye(2), np.eye(4), H.T
+    steps: dict[float, tuple[np.ndarray, np.ndarray]] = {}   # by interval: fixes are regular
     for i in range(n):
         if i:
-            F, Q = transition(float(t[i] - t[i - 1]), q)
+            dt = float(t[i] - t[i - 1])
+            if dt not in steps:
+                steps[dt] = transition(dt, q)
+            F, Q = steps[dt]
             Fs.append(F)
             x = F @ x; P = F @ P @ F.T + Q
         xp[i], Pp[i] = x, P
-        S = H @ P @ H.T + r2 * np.eye(2)
-        K = P @ H.T @ np.linalg.inv(S)
-        x = x + K @ (z[i] - H @ x); P = (np.eye(4) - K @ H) @ P
+        S = H @ P @ Ht + R
+        K = P @ Ht @ np.linalg.inv(S)
+        x = x + K @ (z[i] - H @ x); P = (I4 - K @ H) @ P
         xf[i], Pf[i] = x, P
     xs, Ps = xf.copy(), Pf.copy()
     for i in range(n - 2, -1, -1):
