@@ -23,6 +23,7 @@ from aqfg.fg import factors as fc
 from aqfg.model import retrace
 from aqfg.model.effects import UserEffect
 from aqfg.data.mission import with_gnss_every, without_gnss
+from aqfg.fg.dr_current import smoother_vector
 from aqfg.fg.fit import BatchSmoother, FGSettings, fit_fg
 from aqfg.sim.simulator import simulate
 
@@ -48,8 +49,11 @@ def check_fit(res, missions, truths, spread: bool):
             assert abs(v - tr.params[n]) < 3 * s, (m.name, n, v, s, tr.params[n])
     ref = fit_fg(missions, estimate=("theta_e", "s_x", "s_y"),
                  init={n: truths[0].params[n] for n in FIXED})
-    a = [inertial_rmse(res.model, m, tr, mr.p) for m, tr, mr in zip(missions, truths, res.missions)]
-    b = [inertial_rmse(ref.model, m, tr, mr.p) for m, tr, mr in zip(missions, truths, ref.missions)]
+    # the re-traces with each fit's own estimates (the smoother's current, not the one
+    # refined for dead reckoning, which on a vehicle that is the model ties with it out of
+    # sample and moves a 15-min re-trace by 1-2 m either way: aqfg.fg.dr_current)
+    a = [inertial_rmse(res.model, m, tr, smoother_vector(res, i)) for i, (m, tr) in enumerate(zip(missions, truths))]
+    b = [inertial_rmse(ref.model, m, tr, smoother_vector(ref, i)) for i, (m, tr) in enumerate(zip(missions, truths))]
     pooled = np.sqrt(np.sum(np.square(a)) / np.sum(np.square(b)))
     assert pooled <= 1.15, (a, b)
     if spread:
