@@ -66,7 +66,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     res = fit_fg([m])
     check_batch(res, truth)
     # the model is wrong here: the honest sigma is above the Hessian's, and it says so
-    assert res.sigma["s_x"] > res.info["sigma_model"]["s_x"]
+    assert res.sigma["s_x"] > res.sigma_model["s_x"]
     assert any("does not explain the fixes" in w for w in res.info["warnings"])
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
     assert not res.too_short_for_sandwich and res.block_jackknife is None

@@ -157,8 +157,9 @@ def _heading_gap(a: dict, b: dict) -> float:
     return max(gaps, default=0.0)
 
 
-def batch_warnings(info: dict, n_it: int) -> list[str]:
-    """What a user must be told about a batch fit, in words."""
+def batch_warnings(res: Result, n_it: int) -> list[str]:
+    """What a user must be told about the batch fit ``res``, in words."""
+    info = res.info
     out = []
     if info.get("hit_iteration_limit"):
         out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
@@ -187,7 +188,7 @@ def batch_warnings(info: dict, n_it: int) -> list[str]:
     for n, v in info.get("observability", {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")
-    infl = info.get("sigma_inflation", {})
+    infl = res.sigma_inflation
     big = {n: f for n, f in infl.items() if f > MISFIT_INFLATION}
     if big:
         worst = max(big, key=lambda n: big[n])

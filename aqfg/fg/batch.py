@@ -461,14 +461,14 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     """The model's sigmas, the honest ones' inflation over them and each parameter's
     observability verdict into ``res.info``."""
     layout, parts = bg.layout, bg.parts
-    res.info["sigma_model"] = {n: float(v) for n, v in
-                               sigma_by_name(layout, bg.nodes, cov_model).items()}
-    res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
+    res.sigma_model = {n: float(v) for n, v in
+                       sigma_by_name(layout, bg.nodes, cov_model).items()}
+    res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
     prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
     res.info["observability"] = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
-        res.info["sigma_model"], prior_sigma)
+        res.sigma_model, prior_sigma)
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],
                                          layout.estimated)
     if per:
@@ -511,7 +511,7 @@ def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Pl
     res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
     res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
-    res.info["warnings"] = batch_warnings(res.info, out.iterations)
+    res.info["warnings"] = batch_warnings(res, out.iterations)
     if n_out:
         res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
                                     "down-weighted as outliers (listed in info['outliers'])")
