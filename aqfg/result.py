@@ -255,16 +255,19 @@ class Result:
     ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
     own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), whether
     its data were ``too_short_for_sandwich`` (fewer sandwich blocks than parameters + 2,
-    :mod:`aqfg.fg.graph`) and each estimated parameter's ``sigma_model`` (the 1-sigma its
+    :mod:`aqfg.fg.graph`), each estimated parameter's ``sigma_model`` (the 1-sigma its
     noise model alone gives, model units) and ``sigma_inflation`` (the honest sigma over
-    it, :func:`aqfg.fg.covariance.sigma_inflation`); its online smoother, the ``engine``
-    that ran its window and the ``sigma_inflation`` of its last re-initialisation. Its
-    steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
-    :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
-    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
-    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
-    accelerometer's and ``identifiability_warnings`` what the data were found not to
-    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
+    it, :func:`aqfg.fg.covariance.sigma_inflation`) and the fixes it down-weighted as
+    ``outliers`` (``{mission: {stream: [{"t": s, "sigmas": whitened residual}]}}``, more
+    than 5 sigma from the fit, :func:`aqfg.fg.common.outliers`); its online smoother, the
+    ``engine`` that ran its window and the ``sigma_inflation`` of its last
+    re-initialisation. Its steps leave typed records: ``gnss_noise`` (the GNSS noise the
+    fixes were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the
+    structural test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``,
+    ``block_jackknife``, ``other_minimum`` and ``effect_step``; ``heading_check`` is each
+    mission's fitted heading against its accelerometer's and ``identifiability_warnings``
+    what the data were found not to determine (:func:`aqfg.identifiability.settle`, where
+    a fleet's worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -291,6 +294,7 @@ class Result:
     engine: OnlineEngine | None = None
     sigma_model: dict[str, float] = field(default_factory=dict)
     sigma_inflation: dict[str, float] = field(default_factory=dict)
+    outliers: dict[str, dict[str, list[dict]]] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -509,12 +509,12 @@ def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Pl
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
     res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
-    res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
-    n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
+    res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
+    n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
     res.info["warnings"] = batch_warnings(res, out.iterations)
     if n_out:
         res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
-                                    "down-weighted as outliers (listed in info['outliers'])")
+                                    "down-weighted as outliers (listed in Result.outliers)")
 
 
 def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -> None:
