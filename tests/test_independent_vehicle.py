@@ -193,7 +193,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     assert res.values["theta_e"] == one.values["theta_e"]              # the same fit ...
     assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
     assert res.info["sigma_unimodal"]["theta_e"] == one.sigma["theta_e"]
-    assert len(res.info["heading_profile"]["theta_e"]) == N_GRID       # the whole circle
+    assert len(res.heading_profile.theta_e) == N_GRID       # the whole circle
     assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
     for n in ("s_x", "s_y"):
         assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]

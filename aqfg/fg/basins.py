@@ -17,7 +17,7 @@ from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph import BuiltGraph
 from aqfg.fg.graph_lm import LMOutcome
 from aqfg.fg.profile import heading_profile, worth_walking
-from aqfg.result import Result
+from aqfg.result import HeadingEvidence, Result
 
 
 def basin_summary(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
@@ -90,7 +90,7 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
                       s: FGSettings) -> None:
     """:attr:`FGSettings.heading_profile`: the heading offset's profile over the circle
     (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
-    ``info["heading_profile"]``; each sigma of the first mission's parameters widened to
+    ``res.heading_profile``; each sigma of the first mission's parameters widened to
     the profile's spread about the fit where that is larger (the former sigmas in
     ``info["sigma_before_profile"]``)."""
     lay = bg.layout
@@ -104,7 +104,6 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
             for i in range(lay.dim("fixed"))]
     X0, th0 = fs.from_values(values)
     prof = heading_profile(fs, X0, th0, js[0], s, held)
-    res.info["heading_profile"] = prof.as_dict()
     before = {}
     for g, k, mi in node_list:
         if mi not in (None, 0):
@@ -117,7 +116,9 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
                 before[n] = res.sigma[n]
                 res.sigma[n] = sd
     res.info["sigma_before_profile"] = before
-    res.info["heading_profile"]["sigma_theta_e"] = float(res.sigma["theta_e"])
+    res.heading_profile = HeadingEvidence(tuple(float(t) for t in prof.theta),
+                                          tuple(float(v) for v in prof.log_evidence),
+                                          float(res.sigma["theta_e"]))
     # one basin's sigma stays the unimodal one (the online smoother's priors and its
     # restart tolerance; the spread is added to what it reports until its next batch)
     res.info["sigma_unimodal"] = {**before, **res.info.get("sigma_unimodal", {})}
@@ -180,10 +181,10 @@ def batch_warnings(res: Result, n_it: int) -> list[str]:
                    f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
                    "chosen basin)")
     before = info.get("sigma_before_profile", {}).get("theta_e")
-    prof = info.get("heading_profile", {})
-    if before is not None and prof.get("sigma_theta_e", 0.0) > 2.0 * before:
+    prof = res.heading_profile
+    if before is not None and prof is not None and prof.sigma_theta_e > 2.0 * before:
         out.append(f"these fixes hardly determine the heading offset: its evidence over the "
-                   f"whole circle gives sigma {np.degrees(prof['sigma_theta_e']):.0f} deg "
+                   f"whole circle gives sigma {np.degrees(prof.sigma_theta_e):.0f} deg "
                    f"({np.degrees(before):.1f} deg within the chosen basin)")
     for n, v in info.get("observability", {}).items():
         if v["verdict"] == observability.NOT:
