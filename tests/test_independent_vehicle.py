@@ -309,7 +309,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     of the crop's mean offset, and the lower-cost basin is listed with the higher rank."""
     m, truth = mission("otter-heldout-52-300s", 0.0)
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
-    basins = res.info["basins"]
+    basins = res.basins
     assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
     cost = res.info["cost"]
     cheaper = [b for b in basins if b["cost"] < cost - 1.0]
@@ -326,7 +326,7 @@ def test_a_degenerate_start_is_detected_and_left():
     solves from the closed-form heading basins and returns the plausible one."""
     m, truth = mission("otter-dev-calm-a", 8.0)
     res = BatchSmoother(init={"theta_e": -0.85, "k": 1.45, "k_x": 19.0, "k_yz": 9e-4}).run([m])
-    basins = res.info["basins"]
+    basins = res.basins
     assert not basins[0]["plausible"] and basins[0]["start"] == "user start"
     assert basins[0]["checks"][m.name]["slip_deg"] > 45
     assert any(b["plausible"] for b in basins[1:])
@@ -862,9 +862,9 @@ def test_a_short_batch_searches_the_heading_all_round(name, t0):
                       effects=other.effects,
                       settings=FGSettings(adapt_batch=True)).run([between(m, t0, t0 + 24.0)])
     err = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
-    assert any(b["start"].startswith("turned heading start") for b in r.info["basins"])
+    assert any(b["start"].startswith("turned heading start") for b in r.basins)
     assert err < np.radians(20.0) and err < 3.0 * r.sigma["theta_e"], (np.degrees(err),
-                                                                      r.info["basins"])
+                                                                      r.basins)
 
 
 @pytest.mark.slow
@@ -1205,10 +1205,10 @@ def test_data_too_short_for_the_closed_form_are_searched_over_the_heading():
     m, truth = mission("otter-heldout-208-30s", 8.0)
     res = fit_fg([between(m, -np.inf, 8.0)], estimate=("theta_e", "s_x", "s_y"),
                  init=CONSTANTS_201, effects=("linear_drag",))
-    starts = [b["start"] for b in res.info["basins"]]
+    starts = [b["start"] for b in res.basins]
     assert starts[0] == "null heading start (no closed form)"
     assert sum("(no closed form)" in s for s in starts) == 4
-    near = [b for b in res.info["basins"]
+    near = [b for b in res.basins
             if abs(wrap(b["values"]["theta_e"] - truth.params["theta_e"])) < 20 * DEG]
     assert near, starts
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))

@@ -1,11 +1,11 @@
 """The heading basins of a batch fit: their summaries, the ambiguity between them and
 what the fit must say in words.
 
-Each LM solve from another start is summarised by :func:`_basin` into
-``Result.info["basins"]``; basins within :func:`ambiguity_margin` of the best and more than
+Each LM solve from another start is summarised by :func:`basin_summary` into
+``Result.basins``; basins within :func:`ambiguity_margin` of the best and more than
 ``AMBIGUOUS_GAP`` from it in heading make the fit ambiguous, and their spread widens the
 sigmas (:func:`ambiguity_variance`); on data too short for the sandwich the heading profile
-widens them (:func:`widen_by_profile`). :func:`_warnings` words it all for the user.
+widens them (:func:`widen_by_profile`). :func:`batch_warnings` words it all for the user.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from aqfg.result import HeadingEvidence, Result
 
 
 def basin_summary(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
-    """Summary of one solve for ``Result.info["basins"]``."""
+    """Summary of one solve for ``Result.basins``."""
     th: dict[str, float] = {}
     if "variable" in bg.layout.names and "theta_e" in bg.layout.names["variable"]:
         i = bg.layout.names["variable"].index("theta_e")
@@ -68,7 +68,7 @@ def ambiguity_margin(best_cost: float) -> float:
 
 
 def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
-    """Basin ``b`` (``info["basins"]`` entry) explains the fixes as well as the best cost
+    """Basin ``b`` (a ``Result.basins`` entry) explains the fixes as well as the best cost
     (:func:`ambiguity_margin`) and is another heading basin than ``other`` (more than
     ``AMBIGUOUS_GAP`` apart)."""
     return (basin_rank(b) - best_cost < ambiguity_margin(best_cost)
@@ -131,7 +131,7 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
 
 
 def basin_rank(b: dict) -> float:
-    """A basin's (``info["basins"]`` entry) cost for comparing it with the chosen one: its
+    """A basin's (a ``Result.basins`` entry) cost for comparing it with the chosen one: its
     ``rank`` where the basins were ranked by evidence, else its cost."""
     return float(b.get("rank", b["cost"]))
 

@@ -215,7 +215,7 @@ class BatchSmoother:
         """The first solve ``sol`` against those from the other starts worth trying
         (:meth:`_alternatives`, ``also_start``): the chosen one (a plausible solution before
         an implausible one, then the lower cost or the larger evidence), its plausibility
-        verdicts and every basin's summary (``info["basins"]``)."""
+        verdicts and every basin's summary (``Result.basins``)."""
         s, fs, out = self.settings, sol.fs, sol.out
         # where the evidence chooses the noise, basins are ranked by their evidence, each
         # under the noise its own misfit asks for (noise.basin_evidence): the peak height
@@ -476,9 +476,9 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
 
 
 def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:
-    """The basins and those as good as the chosen one (cost ``err``) into ``res.info``;
-    the sigmas widened by their spread where there are any."""
-    res.info["basins"] = basins
+    """The basins (``res.basins``) and those as good as the chosen one (cost ``err``) into
+    ``res.info``; the sigmas widened by their spread where there are any."""
+    res.basins = basins
     ok = [b for b in basins if b["plausible"]]
     best = min((basin_rank(b) for b in ok), default=None)
     res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err

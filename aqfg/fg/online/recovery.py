@@ -382,7 +382,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
         if slip > plausibility.SUSPECT_SLIP and not undetermined else None
     ref_v, ref_s = (alt["values"], alt.get("sigma_unimodal", alt["sigma"])) if alt \
         else (bres.values, uni)
-    own_b = next((b for b in bres.info.get("basins", ()) if b["start"] == "given start"),
+    own_b = next((b for b in bres.basins if b["start"] == "given start"),
                  None)
     own_ref = bool(own is not None and own_b is not None and own_b["plausible"]
                    and not alt and as_good_a_basin(
