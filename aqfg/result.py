@@ -271,16 +271,18 @@ class Result:
     it, :func:`aqfg.fg.covariance.sigma_inflation`), the fixes it down-weighted as
     ``outliers`` (``{mission: {stream: [{"t": s, "sigmas": whitened residual}]}}``, more
     than 5 sigma from the fit, :func:`aqfg.fg.common.outliers`), each start's solve
-    summarised in ``basins`` (:func:`aqfg.fg.basins.basin_summary`) and, on data too short
-    for the sandwich, the ``heading_profile`` (:func:`aqfg.fg.basins.widen_by_profile`);
-    its online smoother, the ``engine`` that ran its window and the ``sigma_inflation`` of
-    its last re-initialisation. Its steps leave typed records: ``gnss_noise`` (the GNSS
-    noise the fixes were weighted by, :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the
-    structural test's ranking, :mod:`aqfg.fg.structure`), ``sigma_structure``,
-    ``block_jackknife``, ``other_minimum`` and ``effect_step``; ``heading_check`` is each
-    mission's fitted heading against its accelerometer's and ``identifiability_warnings``
-    what the data were found not to determine (:func:`aqfg.identifiability.settle`, where
-    a fleet's worker applied it).
+    summarised in ``basins`` (:func:`aqfg.fg.basins.basin_summary`), those of another
+    heading that fit as well as the chosen one in ``ambiguous``
+    (:func:`aqfg.fg.basins.as_good_a_basin`; their spread is in the sigmas) and, on data
+    too short for the sandwich, the ``heading_profile``
+    (:func:`aqfg.fg.basins.widen_by_profile`); its online smoother, the ``engine`` that
+    ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
+    leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
+    :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
+    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
+    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
+    accelerometer's and ``identifiability_warnings`` what the data were found not to
+    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -310,6 +312,7 @@ class Result:
     outliers: dict[str, dict[str, list[dict]]] | None = None
     heading_profile: HeadingEvidence | None = None
     basins: list[dict] = field(default_factory=list)
+    ambiguous: list[dict] = field(default_factory=list)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -164,7 +164,7 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
     from aqfg.data.mission import between
     res = fit_fg([between(m, -np.inf, 20.0)], estimate=("theta_e", "s_x", "s_y"),
                  init=CONSTANTS_94)
-    assert len(res.info["ambiguous"]) >= 2
+    assert len(res.ambiguous) >= 2
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e > 3 * res.info["sigma_unimodal"]["theta_e"]        # one basin's sigma
     assert e <= 3 * res.sigma["theta_e"]

@@ -77,7 +77,7 @@ def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
 
 def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: float
                        ) -> dict[str, float]:
-    """Variance to add to each parameter's sigma when other basins (``info["ambiguous"]``
+    """Variance to add to each parameter's sigma when other basins (``Result.ambiguous``
     entries) explain the fixes as well as the chosen solution (``chosen`` values, cost
     ``cost``): the second moment about the chosen value of the mixture of the solutions,
     weighted by their likelihood ratios ``exp(cost - cost_b)`` (the chosen one weight 1);
@@ -170,13 +170,13 @@ def batch_warnings(res: Result, n_it: int) -> list[str]:
             for r in chk.get("reasons", []):
                 out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "
                            "(the model may lack the vehicle's physics: run `aqfg diagnose`)")
-    for b in info.get("ambiguous", []):
+    for b in res.ambiguous:
         th = ", ".join(f"{n} {np.degrees(v):.1f} deg" for n, v in b["theta_e"].items())
         ev = (f", {b['rank']:.1f} with its evidence's noise"
               if abs(basin_rank(b) - float(b["cost"])) > 0.05 else "")
         out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
                    f"{b['cost']:.1f}{ev}): the heading offset is ambiguous")
-    if info.get("ambiguous") and "theta_e" in info.get("sigma_unimodal", {}):
+    if res.ambiguous and "theta_e" in info.get("sigma_unimodal", {}):
         out.append("the sigmas cover the basins that fit as well (theta_e's "
                    f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
                    "chosen basin)")

@@ -476,19 +476,19 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
 
 
 def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:
-    """The basins (``res.basins``) and those as good as the chosen one (cost ``err``) into
-    ``res.info``; the sigmas widened by their spread where there are any."""
+    """The basins (``res.basins``) and those as good as the chosen one (cost ``err``,
+    ``res.ambiguous``); the sigmas widened by their spread where there are any."""
     res.basins = basins
     ok = [b for b in basins if b["plausible"]]
     best = min((basin_rank(b) for b in ok), default=None)
-    res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
-                             and as_good_a_basin(b, best, basins[0])]
-    if not res.info["ambiguous"]:
+    res.ambiguous = [b for b in ok if best is not None and b["cost"] != err
+                     and as_good_a_basin(b, best, basins[0])]
+    if not res.ambiguous:
         return
     # the sigma of a multimodal fit: the chosen basin's, widened by the spread of
     # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
     # 130 deg off: docs/independent-vehicle.md)
-    extra = ambiguity_variance(res.values, res.info["ambiguous"], float(err))
+    extra = ambiguity_variance(res.values, res.ambiguous, float(err))
     res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
     res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
                       for n, v in res.info["sigma_unimodal"].items()})
@@ -497,7 +497,7 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
         if th is not None and n_missions > 1:
             d2 = basin_spread({"theta_e": th["value"]},
                               [({"theta_e": b["theta_e"][name]}, basin_rank(b))
-                               for b in res.info["ambiguous"] if name in b["theta_e"]],
+                               for b in res.ambiguous if name in b["theta_e"]],
                               float(err))["theta_e"]
             th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
 
