@@ -262,10 +262,12 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
-    The factor graph's batch leaves its parameters' ``covariance`` and, for a joint fit,
-    ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
-    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), whether
-    its data were ``too_short_for_sandwich`` (fewer sandwich blocks than parameters + 2,
+    The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
+    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
+    ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
+    {parameter: reason}}``: what a mission's own inputs cannot determine,
+    :func:`aqfg.fg.observability.mission_verdicts`), whether its data were
+    ``too_short_for_sandwich`` (fewer sandwich blocks than parameters + 2,
     :mod:`aqfg.fg.graph`), each estimated parameter's ``sigma_model`` (the 1-sigma its
     noise model alone gives, model units) and ``sigma_inflation`` (the honest sigma over
     it, :func:`aqfg.fg.covariance.sigma_inflation`), the fixes it down-weighted as
@@ -313,6 +315,7 @@ class Result:
     heading_profile: HeadingEvidence | None = None
     basins: list[dict] = field(default_factory=list)
     ambiguous: list[dict] = field(default_factory=list)
+    plausible: bool | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -54,7 +54,7 @@ def check_batch(res, truth, theta_true=None):
         e = res.values[n] - P.get(n, 0.0)
         assert abs(e) < 0.05, f"{n} off by {e:.3f} m/s"
         assert abs(e) <= 3 * res.sigma[n], f"{n} error {e:.3f} above 3 sigma {res.sigma[n]:.3f}"
-    assert res.info["plausible"]
+    assert res.plausible
 
 
 @pytest.mark.slow
@@ -332,7 +332,7 @@ def test_a_degenerate_start_is_detected_and_left():
     assert any(b["plausible"] for b in basins[1:])
     # (the user's values also centre the weak priors, k_x ~ 19 +- 3 here, so only the
     # heading is held to the usual tolerance)
-    assert res.info["plausible"]
+    assert res.plausible
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG
 
 
@@ -699,14 +699,14 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     m = with_gnss_every(crop(full, 0.0, 450.0), 8.0)
     given = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
     res = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
-    assert "held_sway" in given.info and given.info["plausible"]
+    assert "held_sway" in given.info and given.plausible
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.info["warnings"])
     assert given.structural_test is not None
     assert given.structural_test.called_for[0]["effect"] == "linear_drag"
     assert res.effect_step is not None and res.effect_step.adopted
     assert res.effects == ("linear_drag",)
-    assert res.info["plausible"] and "k_yz" in res.estimated
+    assert res.plausible and "k_yz" in res.estimated
     for r in (given, res):
         e = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
         assert e < 3 * DEG and e <= 3 * r.sigma["theta_e"], (e / DEG, r.sigma["theta_e"] / DEG)
@@ -1284,6 +1284,6 @@ def test_the_sway_prior_fits_the_sliding_crops_without_a_rescue():
         truth = load_truth(data_path(name))
         m = with_gnss_every(crop(load_mission(data_path(name)), t0, t1), every)
         r = fit_fg([m], settings=FGSettings(auto_effect=False))
-        assert r.info["plausible"] and "held_sway" not in r.info
+        assert r.plausible and "held_sway" not in r.info
         assert "alternative_held_sway" not in r.info and "k_yz" in r.estimated
         assert abs(wrap(r.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG, name

@@ -165,7 +165,7 @@ def batch_warnings(res: Result, n_it: int) -> list[str]:
     if info.get("hit_iteration_limit"):
         out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
                    "the estimate may not be a minimum (raise max_iterations or check the data)")
-    if not info.get("plausible", True):
+    if res.plausible is False:
         for name, chk in info.get("plausibility", {}).items():
             for r in chk.get("reasons", []):
                 out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "

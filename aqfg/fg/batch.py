@@ -327,7 +327,7 @@ class BatchSmoother:
         sm.log_warnings = False
         sm.defer_track = True
         res = sm.run(missions)
-        if not res.info.get("plausible"):
+        if not res.plausible:
             return None
         self._track_job = sm._track_job
         # its numpy system too, for the structural sigma (aqfg.fg.structural_sigma.structural_sigma): a
@@ -505,7 +505,7 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
 def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
                   s: FGSettings) -> None:
     """Plausibility, the iteration limit, the outliers and the warnings into ``res.info``."""
-    res.info["plausible"] = all(v.plausible for v in verdicts)
+    res.plausible = all(v.plausible for v in verdicts)
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
     res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations

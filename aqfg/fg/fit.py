@@ -414,7 +414,7 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
     rec["cost_after"] = float(new.info.get("cost", np.nan))
     moved, far = moves(base, variable_estimates(new))
     rec["moved"] = {label(m, n): d for (m, n), d in moved.items()}
-    if not new.info.get("plausible", True):
+    if new.plausible is False:
         why = "its fit is not plausible"
     elif not rec["cost_after"] < cost0:
         why = f"it does not lower the cost ({cost0:.1f} -> {rec['cost_after']:.1f})"

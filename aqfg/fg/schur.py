@@ -272,11 +272,12 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
         "per_mission": per_mission, "iterations": sol.iterations,
         "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
-        "plausibility": plaus, "plausible": all(r.info.get("plausible", True) for r in results)}
+        "plausibility": plaus}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
                   covariance=Covariance(cov), sigma_model=sigma_model,
+                  plausible=all(r.plausible is not False for r in results),
                   sigma_inflation=sigma_inflation(sigma, sigma_model))
 
 

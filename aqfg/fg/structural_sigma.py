@@ -113,7 +113,7 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
     if new is None:
         return checked(RefitCheck(ss.effect, failed=why or "no solution"))
     cost = float(new.info.get("cost", np.nan))
-    if not new.info.get("plausible", True):
+    if new.plausible is False:
         return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
     if not cost < float(res.info.get("cost", np.nan)):
         return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))
