@@ -88,6 +88,17 @@ class OnlineEngine:
 
 
 @dataclass(frozen=True)
+class HeadingEvidence:
+    """The heading offset's profile over the circle of a batch fit on data too short for
+    the sandwich (:mod:`aqfg.fg.profile`): theta_e at each grid point (rad, wrapped; index
+    0 the fit's), the log evidence with it held there, and the sigma of theta_e (rad) the
+    fit reports once widened to the profile's spread."""
+    theta_e: tuple[float, ...]
+    log_evidence: tuple[float, ...]
+    sigma_theta_e: float
+
+
+@dataclass(frozen=True)
 class BlockJackknife:
     """The block jackknife of a short batch fit (:mod:`aqfg.fg.jackknife`): how many time
     blocks were left out one at a time, their length (s), the jackknife's sigma of each
@@ -251,19 +262,29 @@ class Result:
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
-    The factor graph's batch leaves its parameters' ``covariance`` and, for a joint fit,
-    ``observability_per_mission`` (``{mission: {parameter: reason}}``: what a mission's
-    own inputs cannot determine, :func:`aqfg.fg.observability.mission_verdicts`), and
-    whether its data were ``too_short_for_sandwich`` (fewer sandwich blocks than
-    parameters + 2, :mod:`aqfg.fg.graph`); its online smoother, the ``engine`` that ran its
-    window. Its
-    steps leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
+    The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
+    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
+    ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
+    {parameter: reason}}``: what a mission's own inputs cannot determine,
+    :func:`aqfg.fg.observability.mission_verdicts`), whether its data were
+    ``too_short_for_sandwich`` (fewer sandwich blocks than parameters + 2,
+    :mod:`aqfg.fg.graph`), each estimated parameter's ``sigma_model`` (the 1-sigma its
+    noise model alone gives, model units) and ``sigma_inflation`` (the honest sigma over
+    it, :func:`aqfg.fg.covariance.sigma_inflation`), the fixes it down-weighted as
+    ``outliers`` (``{mission: {stream: [{"t": s, "sigmas": whitened residual}]}}``, more
+    than 5 sigma from the fit, :func:`aqfg.fg.common.outliers`), each start's solve
+    summarised in ``basins`` (:func:`aqfg.fg.basins.basin_summary`), those of another
+    heading that fit as well as the chosen one in ``ambiguous``
+    (:func:`aqfg.fg.basins.as_good_a_basin`; their spread is in the sigmas) and, on data
+    too short for the sandwich, the ``heading_profile``
+    (:func:`aqfg.fg.basins.widen_by_profile`); its online smoother, the ``engine`` that
+    ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
+    leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
-    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``,
-    ``other_minimum`` and ``effect_step``; ``heading_check`` is each mission's fitted
-    heading against its accelerometer's and ``identifiability_warnings`` what the data
-    were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
-    worker applied it).
+    :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
+    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
+    accelerometer's and ``identifiability_warnings`` what the data were found not to
+    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -288,6 +309,13 @@ class Result:
     observability_per_mission: dict[str, dict[str, str]] | None = None
     too_short_for_sandwich: bool = False
     engine: OnlineEngine | None = None
+    sigma_model: dict[str, float] = field(default_factory=dict)
+    sigma_inflation: dict[str, float] = field(default_factory=dict)
+    outliers: dict[str, dict[str, list[dict]]] | None = None
+    heading_profile: HeadingEvidence | None = None
+    basins: list[dict] = field(default_factory=list)
+    ambiguous: list[dict] = field(default_factory=list)
+    plausible: bool | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -37,7 +37,7 @@ def one(args) -> str:
         th = tr.params["theta_e"] + tr.params.get("heading_drift.rate", 0.0) * 0.5 * (a + b)
         e = iv.wrap_deg(r.values["theta_e"] - th)
         flag = ("held" if "held_sway" in r.info else "named" if "alternative_held_sway" in r.info
-                else "IMPL" if not r.info["plausible"] else "")
+                else "IMPL" if not r.plausible else "")
         ec = np.hypot(*(r.values[n] - tr.params.get(n, 0.0) for n in ("s_x", "s_y")))
         zc = max(abs(r.values[n] - tr.params.get(n, 0.0)) / r.sigma[n] for n in ("s_x", "s_y"))
         out += (f" | batch {e:6.1f} z={abs(e) / np.degrees(r.sigma['theta_e']):4.1f}"

@@ -177,7 +177,7 @@ def test_same_fit_as_gtsam_path(missions):
     for n in a.estimated:
         assert a.values[n] == pytest.approx(b.values[n], rel=1e-7, abs=1e-9), n
         assert a.sigma[n] == pytest.approx(b.sigma[n], rel=1e-6), n
-        assert a.info["sigma_model"][n] == pytest.approx(b.info["sigma_model"][n], rel=1e-6), n
+        assert a.sigma_model[n] == pytest.approx(b.sigma_model[n], rel=1e-6), n
 
 
 def test_measurement_effects_keep_the_gtsam_path(missions):

@@ -29,7 +29,7 @@ def test_one_bad_gnss_fix_is_down_weighted_and_reported(asv, clean_fit):
     res = fit_fg([m])
     for n in ("theta_e", "k", "k_x", "s_x", "s_y"):
         assert abs(res.values[n] - clean_fit.values[n]) < 2 * clean_fit.sigma[n], n
-    flagged = res.info["outliers"][m.name]["gnss"]
+    flagged = res.outliers[m.name]["gnss"]
     assert any(abs(o["t"] - m.gnss.t[i]) < 1e-6 for o in flagged)
     assert any("outliers" in w for w in res.info["warnings"])
 

@@ -147,7 +147,7 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
     """Within tol x the batch's model sigma (stricter than its sandwich-inflated sigma),
     fixed parameters and every mission's own; the same sigmas (model and inflated, within
     ``sig_rel``; the structural shift, linearised at the two solutions, within 2 %)."""
-    sm = batch.info.get("sigma_model", batch.sigma)
+    sm = batch.sigma_model or batch.sigma
     st_f, st_b = fr_res.sigma_structure, batch.sigma_structure
     assert (st_f is None) == (st_b is None)
     assert st_f is None or st_b is None or st_f.effect == st_b.effect
@@ -160,7 +160,7 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
             assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=0.02), n
             continue
         assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=sig_rel), n
-        assert fr_res.info["sigma_model"][n] == pytest.approx(sm[n], rel=sig_rel), n
+        assert fr_res.sigma_model[n] == pytest.approx(sm[n], rel=sig_rel), n
     for m, pm in batch.info["per_mission"].items():
         for n, e in pm.items():
             got = fr_res.info["per_mission"][m][n]

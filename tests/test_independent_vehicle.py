@@ -54,7 +54,7 @@ def check_batch(res, truth, theta_true=None):
         e = res.values[n] - P.get(n, 0.0)
         assert abs(e) < 0.05, f"{n} off by {e:.3f} m/s"
         assert abs(e) <= 3 * res.sigma[n], f"{n} error {e:.3f} above 3 sigma {res.sigma[n]:.3f}"
-    assert res.info["plausible"]
+    assert res.plausible
 
 
 @pytest.mark.slow
@@ -66,7 +66,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     res = fit_fg([m])
     check_batch(res, truth)
     # the model is wrong here: the honest sigma is above the Hessian's, and it says so
-    assert res.sigma["s_x"] > res.info["sigma_model"]["s_x"]
+    assert res.sigma["s_x"] > res.sigma_model["s_x"]
     assert any("does not explain the fixes" in w for w in res.info["warnings"])
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
     assert not res.too_short_for_sandwich and res.block_jackknife is None
@@ -164,7 +164,7 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
     from aqfg.data.mission import between
     res = fit_fg([between(m, -np.inf, 20.0)], estimate=("theta_e", "s_x", "s_y"),
                  init=CONSTANTS_94)
-    assert len(res.info["ambiguous"]) >= 2
+    assert len(res.ambiguous) >= 2
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e > 3 * res.info["sigma_unimodal"]["theta_e"]        # one basin's sigma
     assert e <= 3 * res.sigma["theta_e"]
@@ -193,7 +193,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     assert res.values["theta_e"] == one.values["theta_e"]              # the same fit ...
     assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
     assert res.info["sigma_unimodal"]["theta_e"] == one.sigma["theta_e"]
-    assert len(res.info["heading_profile"]["theta_e"]) == N_GRID       # the whole circle
+    assert len(res.heading_profile.theta_e) == N_GRID       # the whole circle
     assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
     for n in ("s_x", "s_y"):
         assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]
@@ -309,7 +309,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     of the crop's mean offset, and the lower-cost basin is listed with the higher rank."""
     m, truth = mission("otter-heldout-52-300s", 0.0)
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
-    basins = res.info["basins"]
+    basins = res.basins
     assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
     cost = res.info["cost"]
     cheaper = [b for b in basins if b["cost"] < cost - 1.0]
@@ -326,13 +326,13 @@ def test_a_degenerate_start_is_detected_and_left():
     solves from the closed-form heading basins and returns the plausible one."""
     m, truth = mission("otter-dev-calm-a", 8.0)
     res = BatchSmoother(init={"theta_e": -0.85, "k": 1.45, "k_x": 19.0, "k_yz": 9e-4}).run([m])
-    basins = res.info["basins"]
+    basins = res.basins
     assert not basins[0]["plausible"] and basins[0]["start"] == "user start"
     assert basins[0]["checks"][m.name]["slip_deg"] > 45
     assert any(b["plausible"] for b in basins[1:])
     # (the user's values also centre the weak priors, k_x ~ 19 +- 3 here, so only the
     # heading is held to the usual tolerance)
-    assert res.info["plausible"]
+    assert res.plausible
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG
 
 
@@ -699,14 +699,14 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     m = with_gnss_every(crop(full, 0.0, 450.0), 8.0)
     given = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
     res = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
-    assert "held_sway" in given.info and given.info["plausible"]
+    assert "held_sway" in given.info and given.plausible
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.info["warnings"])
     assert given.structural_test is not None
     assert given.structural_test.called_for[0]["effect"] == "linear_drag"
     assert res.effect_step is not None and res.effect_step.adopted
     assert res.effects == ("linear_drag",)
-    assert res.info["plausible"] and "k_yz" in res.estimated
+    assert res.plausible and "k_yz" in res.estimated
     for r in (given, res):
         e = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
         assert e < 3 * DEG and e <= 3 * r.sigma["theta_e"], (e / DEG, r.sigma["theta_e"] / DEG)
@@ -862,9 +862,9 @@ def test_a_short_batch_searches_the_heading_all_round(name, t0):
                       effects=other.effects,
                       settings=FGSettings(adapt_batch=True)).run([between(m, t0, t0 + 24.0)])
     err = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
-    assert any(b["start"].startswith("turned heading start") for b in r.info["basins"])
+    assert any(b["start"].startswith("turned heading start") for b in r.basins)
     assert err < np.radians(20.0) and err < 3.0 * r.sigma["theta_e"], (np.degrees(err),
-                                                                      r.info["basins"])
+                                                                      r.basins)
 
 
 @pytest.mark.slow
@@ -1205,10 +1205,10 @@ def test_data_too_short_for_the_closed_form_are_searched_over_the_heading():
     m, truth = mission("otter-heldout-208-30s", 8.0)
     res = fit_fg([between(m, -np.inf, 8.0)], estimate=("theta_e", "s_x", "s_y"),
                  init=CONSTANTS_201, effects=("linear_drag",))
-    starts = [b["start"] for b in res.info["basins"]]
+    starts = [b["start"] for b in res.basins]
     assert starts[0] == "null heading start (no closed form)"
     assert sum("(no closed form)" in s for s in starts) == 4
-    near = [b for b in res.info["basins"]
+    near = [b for b in res.basins
             if abs(wrap(b["values"]["theta_e"] - truth.params["theta_e"])) < 20 * DEG]
     assert near, starts
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
@@ -1284,6 +1284,6 @@ def test_the_sway_prior_fits_the_sliding_crops_without_a_rescue():
         truth = load_truth(data_path(name))
         m = with_gnss_every(crop(load_mission(data_path(name)), t0, t1), every)
         r = fit_fg([m], settings=FGSettings(auto_effect=False))
-        assert r.info["plausible"] and "held_sway" not in r.info
+        assert r.plausible and "held_sway" not in r.info
         assert "alternative_held_sway" not in r.info and "k_yz" in r.estimated
         assert abs(wrap(r.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG, name

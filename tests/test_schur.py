@@ -31,11 +31,11 @@ def batch(missions):
 def _assert_equal(a, b, tol=0.05):
     """Every parameter (fixed, and each mission's own) within tol x the batch's model sigma
     and the same sigmas (model, and sandwich-inflated)."""
-    sm = b.info.get("sigma_model", b.sigma)
+    sm = b.sigma_model or b.sigma
     for n in b.estimated:
         assert abs(a.values[n] - b.values[n]) < tol * sm[n], (n, a.values[n], b.values[n])
         assert a.sigma[n] == pytest.approx(b.sigma[n], rel=0.02), n      # sandwich-inflated
-        assert a.info["sigma_model"][n] == pytest.approx(sm[n], rel=0.02), n
+        assert a.sigma_model[n] == pytest.approx(sm[n], rel=0.02), n
     for m, pm in b.info["per_mission"].items():
         for n, e in pm.items():
             got = a.info["per_mission"][m][n]

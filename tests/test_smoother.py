@@ -162,8 +162,8 @@ def test_multi_mission_batch_shares_the_fixed_node():
     single = fit_fg([ms[0]])
     # pooling: the shared node's information grows with the missions (the model-based
     # sigma; the reported one may be raised by the sandwich, never lowered)
-    assert res.info["sigma_model"]["k_x"] < 0.75 * single.info["sigma_model"]["k_x"]
-    assert all(res.sigma[n] >= res.info["sigma_model"][n] * (1 - 1e-9) for n in SIX)
+    assert res.sigma_model["k_x"] < 0.75 * single.sigma_model["k_x"]
+    assert all(res.sigma[n] >= res.sigma_model[n] * (1 - 1e-9) for n in SIX)
 
 
 def test_result_does_not_depend_much_on_knot_spacing(asv8):

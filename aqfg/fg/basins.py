@@ -1,11 +1,11 @@
 """The heading basins of a batch fit: their summaries, the ambiguity between them and
 what the fit must say in words.
 
-Each LM solve from another start is summarised by :func:`_basin` into
-``Result.info["basins"]``; basins within :func:`ambiguity_margin` of the best and more than
+Each LM solve from another start is summarised by :func:`basin_summary` into
+``Result.basins``; basins within :func:`ambiguity_margin` of the best and more than
 ``AMBIGUOUS_GAP`` from it in heading make the fit ambiguous, and their spread widens the
 sigmas (:func:`ambiguity_variance`); on data too short for the sandwich the heading profile
-widens them (:func:`widen_by_profile`). :func:`_warnings` words it all for the user.
+widens them (:func:`widen_by_profile`). :func:`batch_warnings` words it all for the user.
 """
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph import BuiltGraph
 from aqfg.fg.graph_lm import LMOutcome
 from aqfg.fg.profile import heading_profile, worth_walking
-from aqfg.result import Result
+from aqfg.result import HeadingEvidence, Result
 
 
 def basin_summary(bg: BuiltGraph, out: LMOutcome, verdicts, label: str) -> dict:
-    """Summary of one solve for ``Result.info["basins"]``."""
+    """Summary of one solve for ``Result.basins``."""
     th: dict[str, float] = {}
     if "variable" in bg.layout.names and "theta_e" in bg.layout.names["variable"]:
         i = bg.layout.names["variable"].index("theta_e")
@@ -68,7 +68,7 @@ def ambiguity_margin(best_cost: float) -> float:
 
 
 def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
-    """Basin ``b`` (``info["basins"]`` entry) explains the fixes as well as the best cost
+    """Basin ``b`` (a ``Result.basins`` entry) explains the fixes as well as the best cost
     (:func:`ambiguity_margin`) and is another heading basin than ``other`` (more than
     ``AMBIGUOUS_GAP`` apart)."""
     return (basin_rank(b) - best_cost < ambiguity_margin(best_cost)
@@ -77,7 +77,7 @@ def as_good_a_basin(b: dict, best_cost: float, other: dict) -> bool:
 
 def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: float
                        ) -> dict[str, float]:
-    """Variance to add to each parameter's sigma when other basins (``info["ambiguous"]``
+    """Variance to add to each parameter's sigma when other basins (``Result.ambiguous``
     entries) explain the fixes as well as the chosen solution (``chosen`` values, cost
     ``cost``): the second moment about the chosen value of the mixture of the solutions,
     weighted by their likelihood ratios ``exp(cost - cost_b)`` (the chosen one weight 1);
@@ -90,7 +90,7 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
                       s: FGSettings) -> None:
     """:attr:`FGSettings.heading_profile`: the heading offset's profile over the circle
     (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
-    ``info["heading_profile"]``; each sigma of the first mission's parameters widened to
+    ``res.heading_profile``; each sigma of the first mission's parameters widened to
     the profile's spread about the fit where that is larger (the former sigmas in
     ``info["sigma_before_profile"]``)."""
     lay = bg.layout
@@ -104,7 +104,6 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
             for i in range(lay.dim("fixed"))]
     X0, th0 = fs.from_values(values)
     prof = heading_profile(fs, X0, th0, js[0], s, held)
-    res.info["heading_profile"] = prof.as_dict()
     before = {}
     for g, k, mi in node_list:
         if mi not in (None, 0):
@@ -117,7 +116,9 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
                 before[n] = res.sigma[n]
                 res.sigma[n] = sd
     res.info["sigma_before_profile"] = before
-    res.info["heading_profile"]["sigma_theta_e"] = float(res.sigma["theta_e"])
+    res.heading_profile = HeadingEvidence(tuple(float(t) for t in prof.theta),
+                                          tuple(float(v) for v in prof.log_evidence),
+                                          float(res.sigma["theta_e"]))
     # one basin's sigma stays the unimodal one (the online smoother's priors and its
     # restart tolerance; the spread is added to what it reports until its next batch)
     res.info["sigma_unimodal"] = {**before, **res.info.get("sigma_unimodal", {})}
@@ -130,7 +131,7 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
 
 
 def basin_rank(b: dict) -> float:
-    """A basin's (``info["basins"]`` entry) cost for comparing it with the chosen one: its
+    """A basin's (a ``Result.basins`` entry) cost for comparing it with the chosen one: its
     ``rank`` where the basins were ranked by evidence, else its cost."""
     return float(b.get("rank", b["cost"]))
 
@@ -157,37 +158,38 @@ def _heading_gap(a: dict, b: dict) -> float:
     return max(gaps, default=0.0)
 
 
-def batch_warnings(info: dict, n_it: int) -> list[str]:
-    """What a user must be told about a batch fit, in words."""
+def batch_warnings(res: Result, n_it: int) -> list[str]:
+    """What a user must be told about the batch fit ``res``, in words."""
+    info = res.info
     out = []
     if info.get("hit_iteration_limit"):
         out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
                    "the estimate may not be a minimum (raise max_iterations or check the data)")
-    if not info.get("plausible", True):
+    if res.plausible is False:
         for name, chk in info.get("plausibility", {}).items():
             for r in chk.get("reasons", []):
                 out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "
                            "(the model may lack the vehicle's physics: run `aqfg diagnose`)")
-    for b in info.get("ambiguous", []):
+    for b in res.ambiguous:
         th = ", ".join(f"{n} {np.degrees(v):.1f} deg" for n, v in b["theta_e"].items())
         ev = (f", {b['rank']:.1f} with its evidence's noise"
               if abs(basin_rank(b) - float(b["cost"])) > 0.05 else "")
         out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
                    f"{b['cost']:.1f}{ev}): the heading offset is ambiguous")
-    if info.get("ambiguous") and "theta_e" in info.get("sigma_unimodal", {}):
+    if res.ambiguous and "theta_e" in info.get("sigma_unimodal", {}):
         out.append("the sigmas cover the basins that fit as well (theta_e's "
                    f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
                    "chosen basin)")
     before = info.get("sigma_before_profile", {}).get("theta_e")
-    prof = info.get("heading_profile", {})
-    if before is not None and prof.get("sigma_theta_e", 0.0) > 2.0 * before:
+    prof = res.heading_profile
+    if before is not None and prof is not None and prof.sigma_theta_e > 2.0 * before:
         out.append(f"these fixes hardly determine the heading offset: its evidence over the "
-                   f"whole circle gives sigma {np.degrees(prof['sigma_theta_e']):.0f} deg "
+                   f"whole circle gives sigma {np.degrees(prof.sigma_theta_e):.0f} deg "
                    f"({np.degrees(before):.1f} deg within the chosen basin)")
     for n, v in info.get("observability", {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")
-    infl = info.get("sigma_inflation", {})
+    infl = res.sigma_inflation
     big = {n: f for n, f in infl.items() if f > MISFIT_INFLATION}
     if big:
         worst = max(big, key=lambda n: big[n])

@@ -215,7 +215,7 @@ class BatchSmoother:
         """The first solve ``sol`` against those from the other starts worth trying
         (:meth:`_alternatives`, ``also_start``): the chosen one (a plausible solution before
         an implausible one, then the lower cost or the larger evidence), its plausibility
-        verdicts and every basin's summary (``info["basins"]``)."""
+        verdicts and every basin's summary (``Result.basins``)."""
         s, fs, out = self.settings, sol.fs, sol.out
         # where the evidence chooses the noise, basins are ranked by their evidence, each
         # under the noise its own misfit asks for (noise.basin_evidence): the peak height
@@ -327,7 +327,7 @@ class BatchSmoother:
         sm.log_warnings = False
         sm.defer_track = True
         res = sm.run(missions)
-        if not res.info.get("plausible"):
+        if not res.plausible:
             return None
         self._track_job = sm._track_job
         # its numpy system too, for the structural sigma (aqfg.fg.structural_sigma.structural_sigma): a
@@ -461,14 +461,14 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     """The model's sigmas, the honest ones' inflation over them and each parameter's
     observability verdict into ``res.info``."""
     layout, parts = bg.layout, bg.parts
-    res.info["sigma_model"] = {n: float(v) for n, v in
-                               sigma_by_name(layout, bg.nodes, cov_model).items()}
-    res.info["sigma_inflation"] = sigma_inflation(res.sigma, res.info["sigma_model"])
+    res.sigma_model = {n: float(v) for n, v in
+                       sigma_by_name(layout, bg.nodes, cov_model).items()}
+    res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
     prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
     res.info["observability"] = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
-        res.info["sigma_model"], prior_sigma)
+        res.sigma_model, prior_sigma)
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],
                                          layout.estimated)
     if per:
@@ -476,19 +476,19 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
 
 
 def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int) -> None:
-    """The basins and those as good as the chosen one (cost ``err``) into ``res.info``;
-    the sigmas widened by their spread where there are any."""
-    res.info["basins"] = basins
+    """The basins (``res.basins``) and those as good as the chosen one (cost ``err``,
+    ``res.ambiguous``); the sigmas widened by their spread where there are any."""
+    res.basins = basins
     ok = [b for b in basins if b["plausible"]]
     best = min((basin_rank(b) for b in ok), default=None)
-    res.info["ambiguous"] = [b for b in ok if best is not None and b["cost"] != err
-                             and as_good_a_basin(b, best, basins[0])]
-    if not res.info["ambiguous"]:
+    res.ambiguous = [b for b in ok if best is not None and b["cost"] != err
+                     and as_good_a_basin(b, best, basins[0])]
+    if not res.ambiguous:
         return
     # the sigma of a multimodal fit: the chosen basin's, widened by the spread of
     # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
     # 130 deg off: docs/independent-vehicle.md)
-    extra = ambiguity_variance(res.values, res.info["ambiguous"], float(err))
+    extra = ambiguity_variance(res.values, res.ambiguous, float(err))
     res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
     res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
                       for n, v in res.info["sigma_unimodal"].items()})
@@ -497,7 +497,7 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
         if th is not None and n_missions > 1:
             d2 = basin_spread({"theta_e": th["value"]},
                               [({"theta_e": b["theta_e"][name]}, basin_rank(b))
-                               for b in res.info["ambiguous"] if name in b["theta_e"]],
+                               for b in res.ambiguous if name in b["theta_e"]],
                               float(err))["theta_e"]
             th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
 
@@ -505,16 +505,16 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
 def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
                   s: FGSettings) -> None:
     """Plausibility, the iteration limit, the outliers and the warnings into ``res.info``."""
-    res.info["plausible"] = all(v.plausible for v in verdicts)
+    res.plausible = all(v.plausible for v in verdicts)
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
     res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
-    res.info["outliers"] = {mr.name: outliers(mr.residuals) for mr in res.missions}
-    n_out = sum(len(v) for o in res.info["outliers"].values() for v in o.values())
-    res.info["warnings"] = batch_warnings(res.info, out.iterations)
+    res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
+    n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
+    res.info["warnings"] = batch_warnings(res, out.iterations)
     if n_out:
         res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
-                                    "down-weighted as outliers (listed in info['outliers'])")
+                                    "down-weighted as outliers (listed in Result.outliers)")
 
 
 def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -> None:

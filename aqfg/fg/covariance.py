@@ -155,5 +155,5 @@ def t_tail_factor(dof: int | None, n_sigma: float = 3.0) -> float:
 
 def sigma_inflation(sigma: dict[str, float], sigma_model: dict[str, float]) -> dict[str, float]:
     """Per parameter, the reported (honest) sigma over the model's (Hessian) one; 1 where
-    the model has none (``info["sigma_inflation"]`` of a batch result)."""
+    the model has none (``Result.sigma_inflation`` of a batch result)."""
     return {n: float(v / max(sigma_model.get(n, v), 1e-300)) for n, v in sigma.items()}

@@ -216,8 +216,8 @@ def _apply(result: Result, missions: list[Mission], model: Model, names: list[st
     for n, v, sg, sm in zip(names, v_new, sig_new, sig_mod):
         result.values[n] = float(v)
         result.sigma[n] = float(sg)
-        result.info.setdefault("sigma_model", {})[n] = float(sm)
-        result.info.setdefault("sigma_inflation", {})[n] = float(sg / max(sm, 1e-300))
+        result.sigma_model[n] = float(sm)
+        result.sigma_inflation[n] = float(sg / max(sm, 1e-300))
     for i, mr in enumerate(result.missions):
         mr.p = p_missions[i].copy()
         mr.p[idx] = v_new

@@ -333,7 +333,7 @@ def _added_warning(res: Result, step: EffectStep, moved: dict[tuple[str, str], f
         parts.append(f"theta_e moved by {np.degrees(max(th)):.2g} deg")
     if cur:
         parts.append(f"the current by {max(cur):.2g} m/s")
-    infl = max(res.info.get("sigma_inflation", {}).values(), default=float("nan"))
+    infl = max(res.sigma_inflation.values(), default=float("nan"))
     why_this = (f"which explains the fixes best of those tried (the model as given does not "
                 f"explain them, sigma inflated {infl:.1f}x, and no effect reached the "
                 f"structural test's level: {name}'s robust p = {step.p_value_robust:.2g}"
@@ -355,7 +355,7 @@ def _ranked_if_unexplained(res: Result, bs: BatchSmoother, missions: list[Missio
     fixes (a sigma inflated more than ``MISFIT_INFLATION`` times by the sandwich) on its
     nominal-noise solution; else none. The ranking :func:`structural_sigma` recorded
     (``structural_test``), or the test's where it recorded none."""
-    infl = max(res.info.get("sigma_inflation", {}).values(), default=0.0)
+    infl = max(res.sigma_inflation.values(), default=0.0)
     if infl <= MISFIT_INFLATION or bs.fast_solution is None or res.model is None:
         return []
     ranked = res.structural_test.ranked if res.structural_test is not None else None
@@ -414,7 +414,7 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
     rec["cost_after"] = float(new.info.get("cost", np.nan))
     moved, far = moves(base, variable_estimates(new))
     rec["moved"] = {label(m, n): d for (m, n), d in moved.items()}
-    if not new.info.get("plausible", True):
+    if new.plausible is False:
         why = "its fit is not plausible"
     elif not rec["cost_after"] < cost0:
         why = f"it does not lower the cost ({cost0:.1f} -> {rec['cost_after']:.1f})"

@@ -65,10 +65,6 @@ class HeadingProfile:
         d = np.angle(np.exp(1j * (self.theta - self.theta[0])))
         return float(np.sum(self.weights() * d ** 2))
 
-    def as_dict(self) -> dict:
-        return {"theta_e": [float(t) for t in self.theta],
-                "log_evidence": [float(v) for v in self.log_evidence]}
-
 
 def heading_profile(fs: FastSystem, X: np.ndarray, th: np.ndarray, j: int, settings,
                     held: Sequence[int] = (), n: int = N_GRID) -> HeadingProfile:

@@ -254,7 +254,7 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
     r0 = results[0]
     values, sigma = dict(r0.values), dict(r0.sigma)
     names_f = layout.names.get("fixed", ())
-    sigma_model = dict(r0.info.get("sigma_model", {}))
+    sigma_model = dict(r0.sigma_model)
     cm = sol.cov_model_f if sol.cov_model_f is not None else sol.cov_f
     for i, n in enumerate(names_f):
         values[n] = float(sol.f[i])
@@ -272,13 +272,13 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
         "per_mission": per_mission, "iterations": sol.iterations,
         "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
-        "sigma_model": sigma_model,
-        "sigma_inflation": sigma_inflation(sigma, sigma_model),
-        "plausibility": plaus, "plausible": all(r.info.get("plausible", True) for r in results)}
+        "plausibility": plaus}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
-                  covariance=Covariance(cov))
+                  covariance=Covariance(cov), sigma_model=sigma_model,
+                  plausible=all(r.plausible is not False for r in results),
+                  sigma_inflation=sigma_inflation(sigma, sigma_model))
 
 
 def drive(gen: Generator[list[Request], list[dict], Solution],

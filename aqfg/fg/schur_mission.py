@@ -244,13 +244,13 @@ class MissionProblem:
             cov_sw[FIXED] = sandwich["cov_f"]
         cov = honest_covariance(cov_model, cov_sw, sandwich["dof"] if sandwich else None)
         res = self.smoother.make_result(self.layout, values, self.bg.parts, self.bg.nodes, cov)
-        res.info["sigma_model"] = {n: float(np.sqrt(max(C[i, i], 0.0)))
-                                   for g, k, _ in self.bg.nodes if g != "fixed"
-                                   for C in [cov_model[k]]
-                                   for i, n in enumerate(self.layout.names[g])}
+        res.sigma_model = {n: float(np.sqrt(max(C[i, i], 0.0)))
+                           for g, k, _ in self.bg.nodes if g != "fixed"
+                           for C in [cov_model[k]]
+                           for i, n in enumerate(self.layout.names[g])}
         verdicts = self.smoother.check_plausibility(self.bg, values)
         res.info["plausibility"] = {self.name: verdicts[0].as_dict()}
-        res.info["plausible"] = all(v.plausible for v in verdicts)
+        res.plausible = all(v.plausible for v in verdicts)
         return res
 
 

@@ -41,7 +41,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     :attr:`FGSettings.auto_effect`), its result in ``structural_test`` (the sigma
     is widened only where they are not); the test's ranking is recorded there whether or
     not it suggests an effect (``suggested``)."""
-    infl = res.info.get("sigma_inflation", {})
+    infl = res.sigma_inflation
     # data too short for the sandwich cannot show a misfit by it: the test decides alone
     # there (a 170-s crop of an Otter mission put the current 0.46 m/s off with sigma 0.03,
     # where the effects the test suggested would move it 0.3: docs/independent-vehicle.md)
@@ -113,7 +113,7 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
     if new is None:
         return checked(RefitCheck(ss.effect, failed=why or "no solution"))
     cost = float(new.info.get("cost", np.nan))
-    if not new.info.get("plausible", True):
+    if new.plausible is False:
         return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
     if not cost < float(res.info.get("cost", np.nan)):
         return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))

@@ -52,7 +52,7 @@ def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> s
     why = []
     for v, r in before.items():
         n = after[v]
-        if not n.info.get("plausible", True):
+        if n.plausible is False:
             why.append(f"vehicle {v}'s fit is not plausible")
             continue
         _, far = moves(guard_estimates(r, effect), variable_estimates(n))

@@ -85,7 +85,7 @@ def fleet_table(fr: FleetResult) -> dict:
             "test": {k: t[k] for k in ("chi2", "dof", "p_value", "p_holm", "differs")},
             "missions": dict(zip(dirs[v], r.info["per_mission"].values())),
             "iterations": r.info.get("iterations"), "converged": r.info.get("converged"),
-            "plausible": r.info.get("plausible"),
+            "plausible": r.plausible,
             "cost": r.info.get("cost")}
         if fr.diagnosis.get(v):
             table[v]["diagnosis"] = fr.diagnosis[v]

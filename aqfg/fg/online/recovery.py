@@ -303,7 +303,7 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
         _batch_not_used(fl, t_fix, {"event": "batch re-initialisation failed",
                                     "error": _first_line(exc)})
         return None
-    if not bres.info.get("plausible", True):
+    if bres.plausible is False:
         # a batch of a short stretch with the constants free can land on a vehicle no
         # hull is (thrust 500x, currents at their bounds on a 40-s crop of an Otter
         # mission); replayed with such values held, every prediction diverged
@@ -382,7 +382,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
         if slip > plausibility.SUSPECT_SLIP and not undetermined else None
     ref_v, ref_s = (alt["values"], alt.get("sigma_unimodal", alt["sigma"])) if alt \
         else (bres.values, uni)
-    own_b = next((b for b in bres.info.get("basins", ()) if b["start"] == "given start"),
+    own_b = next((b for b in bres.basins if b["start"] == "given start"),
                  None)
     own_ref = bool(own is not None and own_b is not None and own_b["plausible"]
                    and not alt and as_good_a_basin(
@@ -436,7 +436,7 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
             res = _batch(fl, (*fl.layout.estimated, *free)).run([view])
         except (ValueError, np.linalg.LinAlgError, *GTSAM_ERRORS):
             res = None
-        if res is not None and res.info.get("plausible", True):
+        if res is not None and res.plausible is not False:
             break
         res = None
     if res is None:

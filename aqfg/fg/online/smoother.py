@@ -481,7 +481,8 @@ class FixedLagSmoother:
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
                       history=hist, info=self._info(),
                       effects=tuple(e.name for e in self.model.effects), model=self.model,
-                      engine=OnlineEngine(self.engine, self.engine_note))
+                      engine=OnlineEngine(self.engine, self.engine_note),
+                      sigma_inflation=dict(self.report.inflation))
 
     def _info(self) -> dict:
         """``Result.info`` of an online run."""
@@ -494,7 +495,6 @@ class FixedLagSmoother:
                 "warnings": list(self.warnings),
                 "process_noise_scale": float(self.noise.q_scale),
                 "rejected_usbl": sorted(t for t, out in self.gate.rejected.items() if out),
-                "sigma_inflation": dict(self.report.inflation),
                 "reinit_batches": list(self.policy.reinit_batches),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
                 "settings": self.settings}
