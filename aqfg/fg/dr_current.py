@@ -94,12 +94,13 @@ def refine_current(result: Result, missions: list[Mission], horizon: float,
     idx = np.array([model.index(n) for n in CURRENT])
     records = []
     segs_all = segs if segs is not None else segments(model, missions, result, horizon)
+    piecewise = result.history is not None       # a walk: every mission's is piecewise
+    per = result.per_mission                     # the other missions' reported sigma
     for i, (m, mr) in enumerate(zip(missions, result.missions)):
         before = (float(mr.p[idx[0]]), float(mr.p[idx[1]]))
         own = [dataclasses.replace(s, mission=0) for s in segs_all if s.mission == i]
         keys = np.array([int(s.t0 // horizon) for s in own])
         blocks = np.unique(keys)
-        piecewise = result.history is not None       # a walk: every mission's is piecewise
         if piecewise or len(blocks) < MIN_BLOCKS:
             records.append(CurrentRefit(m.name, len(blocks), before, reason=(
                 "piecewise current" if piecewise else
@@ -131,9 +132,9 @@ def refine_current(result: Result, missions: list[Mission], horizon: float,
         X = np.array(x_loo)
         n = len(X)
         sig_jk = np.sqrt((n - 1) / n * np.sum((X - X.mean(axis=0)) ** 2, axis=0))
-        sig_sm = np.array([result.sigma.get(c, np.nan) for c in CURRENT]) if i == 0 else \
-            np.array([(result.info.get("per_mission") or {}).get(m.name, {}).get(c, {})
-                      .get("sigma", np.nan) for c in CURRENT])
+        own_est = per.get(m.name, {})
+        sig_sm = np.array([result.sigma.get(c, np.nan) if i == 0 else
+                           own_est[c].sigma if c in own_est else np.nan for c in CURRENT])
         sig = np.fmax(sig_jk, sig_sm)
         applied = cost_cv < cost_sm
         records.append(CurrentRefit(
@@ -177,12 +178,17 @@ def _apply(result: Result, mission: Mission, i: int, idx: np.ndarray, x: np.ndar
         mr.inertial = inertial_track(result.model, mission, mr.p)
 
 
-def smoother_vector(result: Result, i: int) -> np.ndarray:
-    """Mission ``i``'s parameter vector with the smoother's current where a refined one
-    replaced it for dead reckoning."""
+def smoother_vector(result: Result, i: int, constants: bool = True) -> np.ndarray:
+    """Mission ``i``'s parameter vector as the smoother estimated it: its constants (not
+    with ``constants`` False) and current where those refined for dead reckoning replaced
+    them (:mod:`aqfg.fg.dead_reckoning`, :func:`refine_current`)."""
     p = result.missions[i].p.copy()
     dr = result.info.get("dead_reckoning") or {}
+    if result.model is None:
+        return p
+    for n, v in (dr.get("before", {}) if constants and dr.get("applied") else {}).items():
+        p[result.model.index(n)] = v
     for c in dr.get("current") or ():
-        if c.applied and c.mission == result.missions[i].name and result.model is not None:
+        if c.applied and c.mission == result.missions[i].name:
             p[[result.model.index(n) for n in CURRENT]] = c.before
     return p

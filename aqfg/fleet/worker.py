@@ -160,13 +160,9 @@ def smooth_tracks(specs: list[MissionSpec], missions: list, result):
     st = specs[0].settings
     if not st.adapt_track or result.model is None:
         return result
-    dr = result.info.get("dead_reckoning") or {}
-    before = dr.get("before", {}) if dr.get("applied") else {}
     q = {}
     for i, (spec, m, mr) in enumerate(zip(specs, missions, result.missions)):
         p = smoother_vector(result, i)
-        for n, v in before.items():
-            p[result.model.index(n)] = v
         mr.track, mr.residuals, q[mr.name] = smooth_track(m, p, effects=spec.effects,
                                                          settings=st)
     result.info["track_noise_scale"] = q
