@@ -181,6 +181,89 @@ def test_udp_stream_gives_the_online_fit_of_its_recording(tmp_path, capsys):
     assert len(fix_rows(lines(out))) >= len(m.gnss.t) - 3
 
 
+SERVO = {"SERVO1_MIN": 1100.0, "SERVO1_TRIM": 1500.0, "SERVO1_MAX": 1900.0,
+         "SERVO1_REVERSED": 0.0, "SERVO3_MIN": 1100.0, "SERVO3_TRIM": 1500.0,
+         "SERVO3_MAX": 1900.0, "SERVO3_REVERSED": 0.0}
+
+
+def _vehicle(path, port, params, asked, done):
+    """A vehicle on UDP: sends a tlog's frames to aqfg's ``port`` in real time from its own
+    socket and answers each PARAM_REQUEST_READ it gets back with its ``params`` value
+    (PARAM_VALUE; a name it lacks goes unanswered), recording the names in ``asked``;
+    then interrupts this process (Ctrl-C ends aqfg live)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    try:
+        frames = tlog_frames(path)
+        mav, parser = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(0.005)
+            if not udp_sender.wait_bound(port, 10.0):
+                return
+
+            def answer():
+                try:
+                    data, addr = s.recvfrom(4096)
+                except TimeoutError:
+                    return
+                for req in parser.parse_buffer(data) or []:
+                    name = req.param_id.rstrip("\x00")
+                    asked.append((name, req.target_system, req.target_component))
+                    if name in params:
+                        s.sendto(mav.param_value_encode(name.encode(), params[name], 9,
+                                                        len(params), 0).pack(mav), addr)
+            t0, u0 = time.perf_counter(), frames[0][0]
+            for usec, frame in frames:
+                while time.perf_counter() < t0 + (usec - u0) * 1e-6:
+                    answer()
+                s.sendto(frame, ("127.0.0.1", port))
+            end = time.perf_counter() + 1.5
+            while time.perf_counter() < end:
+                answer()
+            done.set()
+    finally:
+        os.kill(os.getpid(), signal.SIGINT)
+
+
+@pytest.mark.parametrize("params", ["answered", "unanswered"])
+def test_a_live_vehicle_is_asked_for_the_pwm_range_the_map_leaves_out(tmp_path, capsys, params):
+    """A map without a PWM range on a live link: the run asks the vehicle for
+    SERVOn_MIN/TRIM/MAX/REVERSED of the mapped outputs (PARAM_REQUEST_READ to the system
+    and component of its attitude messages), converts the motor messages once they arrive
+    and gives the online fit of its recording; a vehicle that does not answer is asked a
+    bounded number of times, then one event says what is missing and how the map gives it."""
+    from aqfg.live.params import TRIES
+    m, _ = simulate("asv", seed=4, duration=8.0)
+    m = with_gnss_every(m, 1.0)
+    mp = tmp_path / "map.toml"
+    mp.write_text(lw.map_toml(m, motors="channels = [1, 3]"))
+    path = lw.write_tlog(tmp_path / "a.tlog", lw.tlog_records(m))
+    port, done, asked = _free_port(), threading.Event(), []
+    th = threading.Thread(target=_vehicle, daemon=True, args=(
+        path, port, SERVO if params == "answered" else {}, asked, done))
+    th.start()
+    out = tmp_path / "L"
+    rc = main(["live", f"udpin:127.0.0.1:{port}", "--map", str(mp), "--out", str(out)])
+    th.join(5)
+    assert done.is_set()
+    assert {(n, sys_, comp) for n, sys_, comp in asked} <= {(n, 1, 1) for n in SERVO}
+    events = [x["event"] for x in lines(out) if "event" in x]
+    if params == "answered":
+        assert rc == 0 and {n for n, _, _ in asked} == set(SERVO)
+        assert any(e.startswith("the vehicle sent SERVO1_MIN") for e in events), events
+        assert_same_answer(out, offline(out / "stream.tlog", mp, tmp_path))
+        assert len(fix_rows(lines(out))) >= len(m.gnss.t) - 3
+    else:
+        assert rc != 0 and len(asked) == TRIES * len(SERVO)
+        gave_up = [e for e in events if e.startswith("the vehicle did not send")]
+        assert len(gave_up) == 1 and "pwm_min" in gave_up[0]
+        n_servo = sum(1 for _, msg in lw.tlog_records(m) if msg.get_type() == "SERVO_OUTPUT_RAW")
+        left = lines(out)[-1]["left_out"]
+        assert left["SERVO_OUTPUT_RAW: no PWM range (the vehicle's SERVOn_MIN/TRIM/MAX, or "
+                    "[motors] pwm_min/pwm_trim/pwm_max in the map)"] == n_servo
+        assert "Traceback" not in capsys.readouterr().err
+
+
 def test_send_to_gives_the_positions_and_parameters_of_live_jsonl(tlog, tmp_path):
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
     path, mp, _ = tlog

@@ -159,11 +159,15 @@ def run(args) -> int:
 
     def on_event(ev):
         files.event(ev)
-        log.warning("%s", ev["event"])
+        (log.info if ev.get("note") else log.warning)("%s", ev["event"])
     runner = LiveRunner(imap, src.name, make, on_fix=on_fix, on_event=on_event, prepare=prepare,
                         dataflash=bool(getattr(src, "dataflash", False)))
+    asker = None
+    if link:
+        from aqfg.live.params import ParamRequests
+        asker = ParamRequests(src.request_params)
     with Stop() as stop:
-        stopped = _stream(src, runner, status, stop)
+        stopped = _stream(src, runner, status, stop, asker)
         segments = runner.finish()
         status.end()
         files.event({"event": "stopped (Ctrl-C)" if stopped else "end of the stream",
@@ -180,14 +184,21 @@ def run(args) -> int:
     return _summary(runner, segments, written, out, stopped)
 
 
-def _stream(src, runner, status: Status, stop: Stop) -> bool:
-    """Feed the source's messages to the runner until it ends (False) or Ctrl-C (True)."""
+def _stream(src, runner, status: Status, stop: Stop, asker=None) -> bool:
+    """Feed the source's messages to the runner until it ends (False) or Ctrl-C (True);
+    ``asker`` (a live link's :class:`~aqfg.live.params.ParamRequests`) asks the vehicle for
+    the parameters the map leaves to it."""
     try:
         for item in src:
             if item is not None:
                 runner.feed(*item)
             else:
                 status.show(runner, force=True)
+            if asker is not None:
+                said = asker.poll(runner.asm, time.monotonic())
+                if said:
+                    runner.on_event({"event": said, "segment": runner.segment,
+                                     "note": not asker.missing})
             if stop.asked:
                 return True
     finally:

@@ -54,6 +54,8 @@ from aqfg.live.buffers import Column
 
 REBOOT_BACK = 5.0          # s: the vehicle's own clock this far back is a reboot
 EARLY_LIMIT = 2000         # messages kept before the vehicle's system is known
+HELD_PWM = ("no PWM range (the vehicle's SERVOn_MIN/TRIM/MAX, or [motors] pwm_min/pwm_trim/"
+            "pwm_max in the map)")
 # the message field that carries the sender's own time, and its units per second
 OWN_TIME = {"ATTITUDE": ("time_boot_ms", 1e3), "ATTITUDE_QUATERNION": ("time_boot_ms", 1e3),
             "GLOBAL_POSITION_INT": ("time_boot_ms", 1e3), "SCALED_PRESSURE": ("time_boot_ms", 1e3),
@@ -114,6 +116,7 @@ class StreamAssembler:
         self.params: dict[str, float] = dict(params or {})
         self.imap, self.notes = servo_map(imap, self.params)
         self.sysid = sysid if sysid is not None else self.specs["imu"].instance
+        self.compid: int | None = None           # the component that sends the attitude
         self.gps_wait: tuple[Any, int] | None = None     # a DataFlash fix until its GPA
         self.gpa: dict[tuple[int, int], Any] = {}
         self.utc_offset: float | None = None
@@ -166,6 +169,7 @@ class StreamAssembler:
                     self.drop("before the first attitude message", "")
                 return None
             self.sysid = msg.get_srcSystem()
+            self.compid = msg.get_srcComponent()
             early, self.early = self.early, []
             for m, s in early:
                 self.add(m, s)
@@ -260,12 +264,27 @@ class StreamAssembler:
                 for m, s in held:
                     self._record("motors", m, s)
 
+    def params_wanted(self) -> list[str]:
+        """The vehicle's parameters the map leaves to it and that have not arrived: each
+        thruster output's ``SERVOn_MIN/TRIM/MAX`` (and ``_REVERSED`` unless the map says the
+        reversal), while no PWM range is known; none for a DataFlash log."""
+        n = self.base_map.n_thrusters
+        if self.dataflash or self.imap.pwm is not None or n is None:
+            return []
+        keys = ("MIN", "TRIM", "MAX") + (("REVERSED",) if self.base_map.reversed is None else ())
+        chans = self.base_map.channels or list(range(1, n + 1))
+        return [f"SERVO{c}_{k}" for c in chans for k in keys
+                if f"SERVO{c}_{k}" not in self.params]
+
     def _record(self, stream: str, msg, stamp_ns: int) -> None:
         """Convert one message with the importer's function and append it."""
         kind = stream.split(":")[0]
         spec = self.specs[stream]
         if kind == "motors" and self.imap.pwm is None:
             self.held_pwm.append((msg, stamp_ns))       # until SERVOn_* arrive
+            if len(self.held_pwm) > EARLY_LIMIT:
+                self.held_pwm.pop(0)
+                self.drop(HELD_PWM, spec.topic)
             return
         notes: list[str] = []
         try:
@@ -419,5 +438,11 @@ class StreamAssembler:
         return Gnss(t[a:b], cg["ne"].view(b)[a:], sigma, cg["latlon"].view(b)[a:])
 
     def counts(self) -> dict[str, int]:
-        return dict(self.dropped)
+        """Messages left out so far, by reason; motor messages still held for their PWM
+        range among them (they are converted if it arrives)."""
+        out = dict(self.dropped)
+        if self.held_pwm:
+            key = f"{self.held_pwm[0][0].get_type()}: {HELD_PWM}"
+            out[key] = out.get(key, 0) + len(self.held_pwm)
+        return out
 

@@ -154,6 +154,11 @@ class LinkSource:
         """Send a message on the connection (its own link back to the vehicle)."""
         self.conn.mav.send(msg)
 
+    def request_params(self, names: list[str], system: int, component: int) -> None:
+        """``PARAM_REQUEST_READ`` of each named parameter, to the vehicle's component."""
+        for name in names:
+            self.conn.mav.param_request_read_send(system, component, name.encode(), -1)
+
     def close(self) -> None:
         if self.rec is not None:
             self.rec.close()

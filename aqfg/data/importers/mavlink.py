@@ -118,16 +118,16 @@ def servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, lis
     except KeyError:
         return imap, []
     if not (np.all(lo < mid) and np.all(mid < hi)):
-        return imap, [f"the log's SERVOn_MIN/TRIM/MAX of outputs {chans} are not increasing; "
+        return imap, [f"the autopilot's SERVOn_MIN/TRIM/MAX of outputs {chans} are not increasing; "
                       "not used"]
     out = copy.copy(imap)
     out.pwm = PwmRange(lo, mid, hi)
-    notes = [f"PWM range of outputs {chans} from the log's SERVOn_MIN/TRIM/MAX: "
+    notes = [f"PWM range of outputs {chans} from the autopilot's SERVOn_MIN/TRIM/MAX: "
              + ", ".join(f"{a:g}/{b:g}/{c:g}" for a, b, c in zip(lo, mid, hi)) + " us"]
     rev = [bool(params.get(f"SERVO{c}_REVERSED", 0)) for c in chans]
     if imap.reversed is None and any(rev):
         out.reversed = rev
-        notes.append(f"reversed thrusters from the log's SERVOn_REVERSED: {rev}")
+        notes.append(f"reversed thrusters from the autopilot's SERVOn_REVERSED: {rev}")
     return out, notes
 
 
