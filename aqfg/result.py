@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 import numpy as np
 
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
+    from aqfg.fg.dr_records import DeadReckoning
     from aqfg.fg.gnss_noise import GnssNoise
     from aqfg.fg.structure import StructuralShift
     from aqfg.identifiability import HeadingCheck
@@ -282,9 +283,11 @@ class Result:
     leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
     :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
-    and ``effect_step``; ``heading_check`` is each mission's fitted heading against its
-    accelerometer's and ``identifiability_warnings`` what the data were found not to
-    determine (:func:`aqfg.identifiability.settle`, where a fleet's worker applied it).
+    and ``effect_step``, and ``dead_reckoning`` (the constants and currents refined for
+    dead reckoning, :mod:`aqfg.fg.dead_reckoning`); ``heading_check`` is each mission's
+    fitted heading against its accelerometer's and ``identifiability_warnings`` what the
+    data were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
+    worker applied it).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -316,6 +319,7 @@ class Result:
     basins: list[dict] = field(default_factory=list)
     ambiguous: list[dict] = field(default_factory=list)
     plausible: bool | None = None
+    dead_reckoning: DeadReckoning | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -442,8 +446,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     per = result.info.get("per_mission")
     if per and len(result.missions) > 1:
         doc["per_mission"] = per
-    dr = result.info.get("dead_reckoning")
-    if dr and (dr.get("segments") or dr.get("current")):
+    dr = result.dead_reckoning
+    if dr is not None and (dr.segments or dr.current):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
     if result.gnss_noise is not None:
         # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
@@ -496,29 +500,27 @@ def sigma_structure_document(st: SigmaStructure) -> dict:
     return out
 
 
-def dead_reckoning_document(dr: dict) -> dict:
+def dead_reckoning_document(dr: DeadReckoning) -> dict:
     """The ``dead_reckoning`` entry of ``parameters.json``: whether the thrust/drag
     constants were refined by prediction error (:mod:`aqfg.fg.dead_reckoning`), the
     smoother's own values, and the prediction errors before and after (or why they were
     not tried); each mission's current for dead reckoning (:mod:`aqfg.fg.dr_current`)."""
-    sig_fg = dr.get("sigma_before", {})
-    out: dict = {"horizon_s": dr["horizon_s"], "applied": bool(dr["applied"])}
-    if dr.get("segments"):            # the constants' refinement ran
+    out: dict = {"horizon_s": dr.horizon_s, "applied": bool(dr.applied)}
+    if dr.segments:                   # the constants' refinement ran
         out.update({
-            "smoother": {n: {"value": v, "sigma": _finite_or_none(sig_fg.get(n))}
-                         for n, v in dr.get("before", {}).items()},
-            "prediction_error_m": {"median_before": dr.get("median_abs_before_m"),
-                                   "median_after": dr.get("median_abs_after_m")},
-            "wald": _finite_or_none(dr.get("wald")), "wald_threshold": dr.get("wald_threshold")})
-    if not dr["applied"]:
-        if dr.get("segments"):
-            out["refined"] = {n: {"value": v,
-                                  "sigma": _finite_or_none(dr.get("sigma_after", {}).get(n))}
-                              for n, v in dr.get("after", {}).items()}
-        out["reason"] = dr.get("reason")
-    if dr.get("current"):
+            "smoother": {n: {"value": v, "sigma": _finite_or_none(dr.sigma_before.get(n))}
+                         for n, v in dr.before.items()},
+            "prediction_error_m": {"median_before": dr.median_abs_before_m,
+                                   "median_after": dr.median_abs_after_m},
+            "wald": _finite_or_none(dr.wald), "wald_threshold": dr.wald_threshold})
+    if not dr.applied:
+        if dr.segments:
+            out["refined"] = {n: {"value": v, "sigma": _finite_or_none(dr.sigma_after.get(n))}
+                              for n, v in dr.after.items()}
+        out["reason"] = dr.reason
+    if dr.current:
         # each mission's current by prediction error (aqfg.fg.dr_current)
-        out["current"] = {c.mission: c.document() for c in dr["current"]}
+        out["current"] = {c.mission: c.document() for c in dr.current}
     return out
 
 

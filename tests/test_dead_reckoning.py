@@ -30,13 +30,13 @@ def calm_b():
 
 def test_on_the_otter_the_refined_constants_dead_reckon_better(calm_b):
     m, truth, smoother, r = calm_b
-    dr = r.info["dead_reckoning"]
-    assert dr["applied"], dr
-    assert dr["wald"] > dr["wald_threshold"]
+    dr = r.dead_reckoning
+    assert dr.applied, dr
+    assert dr.wald > dr.wald_threshold
     # the smoother's own constants are what the refinement started from
     for n in CONSTANTS:
-        assert dr["before"][n] == pytest.approx(smoother.values[n])
-        assert r.values[n] == pytest.approx(dr["after"][n])
+        assert dr.before[n] == pytest.approx(smoother.values[n])
+        assert r.values[n] == pytest.approx(dr.after[n])
         assert np.isfinite(r.sigma[n]) and r.sigma[n] > 0
     p_smoother = smoother.missions[0].p
     p_refined = r.missions[0].p
@@ -82,20 +82,20 @@ def test_a_vehicle_that_is_the_model_keeps_the_smoothers_constants():
     m, truth = simulate("asv", seed=1, duration=600.0, gnss_period=8.0, usbl=True)
     smoother = BatchSmoother().run([m])
     r = fit_fg([m])
-    dr = r.info["dead_reckoning"]
-    assert not dr["applied"], dr
-    assert dr["wald"] <= dr["wald_threshold"]
+    dr = r.dead_reckoning
+    assert not dr.applied, dr
+    assert dr.wald <= dr.wald_threshold
     for n in CONSTANTS:
         assert r.values[n] == smoother.values[n]
         # the prediction-error estimate is consistent where the model is right: within 3
         # of its sigma of the truth
-        assert abs(dr["after"][n] - truth.params[n]) < 3.0 * dr["sigma_after"][n], n
+        assert abs(dr.after[n] - truth.params[n]) < 3.0 * dr.sigma_after[n], n
 
 
 def test_horizon_zero_keeps_the_smoothers_fit(calm_b):
     m, _, smoother, _ = calm_b
     r = fit_fg([m], settings=FGSettings(dr_horizon=0.0, auto_effect=False))
-    assert "dead_reckoning" not in r.info
+    assert r.dead_reckoning is None
     for n in CONSTANTS:
         assert r.values[n] == smoother.values[n]
 
@@ -105,8 +105,8 @@ def test_too_little_data_is_left_alone(calm_b):
     short = between(m, m.t0, m.t0 + 200.0)      # 3 blocks of 60 s: fewer than 3 + 3
     smoother = BatchSmoother().run([short])
     r = fit_fg([short])
-    dr = r.info["dead_reckoning"]
-    assert not dr["applied"] and "too little data" in dr["reason"]
+    dr = r.dead_reckoning
+    assert not dr.applied and "too little data" in dr.reason
     for n in CONSTANTS:
         assert r.values[n] == smoother.values[n]
 

@@ -6,6 +6,7 @@ every decision is reported."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -34,13 +35,13 @@ def _with_current(result, s):
     r.missions[0].p = r.missions[0].p.copy()
     r.missions[0].p[idx] = s
     r.values.update(dict(zip(CURRENT, s)))
-    r.info["dead_reckoning"].pop("current", None)
+    r.dead_reckoning = dataclasses.replace(r.dead_reckoning, current=())
     return r
 
 
 def test_a_vehicle_that_is_the_model_keeps_the_smoothers_current(asv):
     m, _, r = asv
-    c = r.info["dead_reckoning"]["current"][0]
+    c = r.dead_reckoning.current[0]
     assert c.mission == m.name and c.blocks >= 2 and not c.applied
     assert c.cost_after >= c.cost_before
     for n, v in zip(CURRENT, c.before):
@@ -55,13 +56,14 @@ def test_a_wrong_current_is_replaced_and_the_retrace_improves(asv, capsys):
     bad = _with_current(r, wrong)
     before = inertial_rmse(bad.model, m, bad.missions[0].p, truth)
     out = refine_current(bad, [m], 60.0)
-    c = out.info["dead_reckoning"]["current"][0]
+    idx = [out.model.index(n) for n in CURRENT]
+    assert np.array_equal(bad.missions[0].p[idx], wrong) and bad.dead_reckoning.current == ()
+    c = out.dead_reckoning.current[0]
     assert c.applied and c.cost_after < c.cost_before, c
     assert c.before == pytest.approx(wrong)
     assert np.allclose(c.after, TRUE_CURRENT, atol=0.03), c.after
     for n, v, s in zip(CURRENT, wrong, c.sigma):
         assert out.values[n] == v and s > 0      # the reported current: the smoother's
-    idx = [out.model.index(n) for n in CURRENT]
     assert np.array_equal(out.missions[0].p[idx], c.after)
     # the model-only re-trace is redone with the current reported, and is closer
     after = inertial_rmse(out.model, m, out.missions[0].p, truth)
@@ -82,7 +84,7 @@ def test_too_little_data_keeps_the_smoothers_current(asv):
     m, _, _ = asv
     short = between(m, m.t0, m.t0 + 50.0)           # predictions within one block of 60 s
     r = fit_fg([short])
-    c = r.info["dead_reckoning"]["current"][0]
+    c = r.dead_reckoning.current[0]
     assert not c.applied and "too little data" in c.reason
     assert (r.values["s_x"], r.values["s_y"]) == c.before
     assert "reason" in parameters_document(r)["dead_reckoning"]["current"][short.name]

@@ -217,8 +217,8 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         # hundredths of a sigma, and the sigmas evaluated there by up to 0.5 % (k_yz,
         # poorly determined: sigma 5))
         _assert_joint(fr.results[v.name], ref, sig_rel=1e-2)
-        d, e = fr.results[v.name].info["dead_reckoning"], ref.info["dead_reckoning"]
-        assert d["applied"] == e["applied"] and d["blocks"] == e["blocks"], (d, e)
+        d, e = fr.results[v.name].dead_reckoning, ref.dead_reckoning
+        assert d.applied == e.applied and d.blocks == e.blocks, (d, e)
         # the tracks under the noise each mission's evidence chooses, as fit_fg's
         assert fr.results[v.name].info["track_noise_scale"] == ref.info["track_noise_scale"]
         for a, b in zip(fr.results[v.name].missions, ref.missions):
@@ -233,7 +233,7 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         par = json.loads((out / v / "parameters.json").read_text())
         assert par["format"] == "aqfg-parameters/1" and par["provenance"]["mode"] == "fleet"
         assert par["parameters"]["k"]["value"] == pytest.approx(fr.results[v].values["k"])
-        assert par["dead_reckoning"]["applied"] == fr.results[v].info["dead_reckoning"]["applied"]
+        assert par["dead_reckoning"]["applied"] == fr.results[v].dead_reckoning.applied
         assert par["auto_effect"]["adopted"] and par["auto_effect"]["effect"] == "linear_drag"
         assert "linear_drag.c_x" in par["parameters"]
         # the model-as-given estimates in aqfg fit's shape (a joint fit's: per_mission)

@@ -304,16 +304,16 @@ def _print_summary(result) -> None:
     """What the fit did beyond the parameter table: the dead-reckoning refinement, a
     widened process noise, the timings and the online events."""
     from aqfg.commands.common import advise
-    dr = result.info.get("dead_reckoning") or {}
-    if dr.get("applied"):
-        print(f"thrust/drag constants refined for dead reckoning over {dr['horizon_s']:.0f} s "
-              f"(median prediction error {dr['median_abs_before_m']:.2f} -> "
-              f"{dr['median_abs_after_m']:.2f} m); the smoother's: "
-              + ", ".join(f"{n} {v:.4g}" for n, v in dr["before"].items()))
-    for c in dr.get("current") or ():
+    dr = result.dead_reckoning
+    if dr is not None and dr.applied:
+        print(f"thrust/drag constants refined for dead reckoning over {dr.horizon_s:.0f} s "
+              f"(median prediction error {dr.median_abs_before_m:.2f} -> "
+              f"{dr.median_abs_after_m:.2f} m); the smoother's: "
+              + ", ".join(f"{n} {v:.4g}" for n, v in dr.before.items()))
+    for c in dr.current if dr is not None else ():
         if c.applied:
             print(f"{c.mission}: the model-only re-trace drifts with the current refined for dead "
-                  f"reckoning over {dr['horizon_s']:.0f} s, ({c.after[0]:.3f}, {c.after[1]:.3f}) m/s "
+                  f"reckoning over {dr.horizon_s:.0f} s, ({c.after[0]:.3f}, {c.after[1]:.3f}) m/s "
                   f"N/E: the smoother's ({c.before[0]:.3f}, {c.before[1]:.3f}) predicted the "
                   "left-out time blocks worse")
     tq = {n: q for n, q in (result.info.get("track_noise_scale") or {}).items() if q > 1.0}

@@ -27,6 +27,7 @@ stays. :func:`refine` then re-estimates each mission's current the same way
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -37,6 +38,7 @@ from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.dr_current import refine_current
+from aqfg.fg.dr_records import DeadReckoning
 from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments, to_v, to_x
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
@@ -120,7 +122,7 @@ def _information(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray, r
 def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
     """The constants (:func:`refine_constants`), then each mission's current
     (:func:`aqfg.fg.dr_current.refine_current`) a dead reckoning of ``horizon`` s drifts
-    with, by prediction error; ``result`` updated in place and returned. Both predict from
+    with, by prediction error: a new result (``result`` is not changed). Both predict from
     the same segments: the constants change no parameter the fixes' positions read."""
     segs = (segments(result.model, missions, result, horizon)
             if horizon > 0 and result.model is not None else None)
@@ -130,27 +132,31 @@ def refine(result: Result, missions: list[Mission], horizon: float) -> Result:
 
 def refine_constants(result: Result, missions: list[Mission], horizon: float,
                      segs: list[Segment] | None = None) -> Result:
-    """Re-estimate the estimated fixed parameters of a batch ``result`` by ``horizon``-s
-    prediction error (module docstring); ``result`` is updated in place and returned, with
-    ``info["dead_reckoning"]`` saying what was done and why (``horizon`` <= 0: the result as
-    it is, with no such entry). ``segs``: ``result``'s prediction segments
-    (:func:`aqfg.fg.predictions.segments`), built where None."""
+    """``result`` (a batch fit) with its estimated fixed parameters re-estimated by
+    ``horizon``-s prediction error (module docstring) where they predict significantly
+    better, and a :class:`~aqfg.fg.dr_records.DeadReckoning` record saying what was done
+    and why (``horizon`` <= 0: ``result`` itself, with none). ``result`` is not changed.
+    ``segs``: ``result``'s prediction segments (:func:`aqfg.fg.predictions.segments`),
+    built where None."""
     if horizon <= 0:
         return result
     t_start = time.perf_counter()
     model = result.model
     names = [n for n in result.estimated if model is not None and model.spec(n).group == "fixed"]
-    info: dict = {"horizon_s": float(horizon), "names": names, "applied": False}
-    result.info["dead_reckoning"] = info
+    rec = DeadReckoning(float(horizon), tuple(names))
+
+    def done(rec: DeadReckoning, timed: bool = False) -> Result:
+        timings = ({**result.timings, "dead_reckoning": [time.perf_counter() - t_start]}
+                   if timed else result.timings)
+        return dataclasses.replace(result, dead_reckoning=rec, timings=timings)
     if model is None or not names:
-        info["reason"] = "no thrust/drag constant estimated"
-        return result
+        return done(dataclasses.replace(rec, reason="no thrust/drag constant estimated"))
     if segs is None:
         segs = segments(model, missions, result, horizon)
     blocks = {(s.mission, int(s.t0 // horizon)) for s in segs}
     if len(blocks) < len(names) + MIN_BLOCKS:
-        info["reason"] = f"too little data: {len(blocks)} blocks of {horizon:.0f} s"
-        return result
+        return done(dataclasses.replace(
+            rec, reason=f"too little data: {len(blocks)} blocks of {horizon:.0f} s"))
     idx = np.array([model.index(n) for n in names])
     logs = np.array([n in FIXED_BASE for n in names])
     specs = [model.spec(n) for n in names]
@@ -174,54 +180,56 @@ def refine_constants(result: Result, missions: list[Mission], horizon: float,
     try:
         Ai = np.linalg.inv(A)
     except np.linalg.LinAlgError:
-        info["reason"] = "prediction error does not determine the constants"
-        return result
+        return done(dataclasses.replace(
+            rec, reason="prediction error does not determine the constants"))
     cov, cov_model, dof, wald = _wald(Ai, B, w, r, x - x_fg, len(keys))
     thr = float(dist.chi2_ppf(1.0 - WALD_ALPHA, len(x)))
     v_new = to_v(x, logs)
     D = np.where(logs, v_new, 1.0)
     sig_new = np.sqrt(np.maximum(np.diag(cov), 0.0)) * D
     sig_mod = np.sqrt(np.maximum(np.diag(cov_model), 0.0)) * D
-    info.update({"segments": len(segs), "blocks": len(keys), "dof": int(dof),
-                 "wald": wald, "wald_threshold": thr,
-                 "before": {n: float(result.values[n]) for n in names},
-                 "sigma_before": {n: float(result.sigma.get(n, np.nan)) for n in names},
-                 "after": {n: float(v) for n, v in zip(names, v_new)},
-                 "sigma_after": {n: float(s) for n, s in zip(names, sig_new)},
-                 **_error_summary(e0, pred.errors(x))})
+    rec = dataclasses.replace(
+        rec, segments=len(segs), blocks=len(keys), dof=int(dof), wald=wald,
+        wald_threshold=thr, before={n: float(result.values[n]) for n in names},
+        sigma_before={n: float(result.sigma.get(n, np.nan)) for n in names},
+        after={n: float(v) for n, v in zip(names, v_new)},
+        sigma_after={n: float(s) for n, s in zip(names, sig_new)})
+    rec = _with_errors(rec, e0, pred.errors(x))
     if not (wald > thr and np.all(np.isfinite(sig_new))):
-        result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
-        info["reason"] = ("the smoother's constants predict as well (Wald "
-                          f"{wald:.1f} <= {thr:.1f})" if wald <= thr else
-                          "refined sigma not finite")
-        return result
-    info["applied"] = True
-    result.timings["dead_reckoning"] = [time.perf_counter() - t_start]
-    _apply(result, missions, model, names, idx, p_missions, v_new, sig_new, sig_mod)
-    return result
+        return done(dataclasses.replace(rec, reason=(
+            f"the smoother's constants predict as well (Wald {wald:.1f} <= {thr:.1f})"
+            if wald <= thr else "refined sigma not finite")), timed=True)
+    out = done(dataclasses.replace(rec, applied=True), timed=True)
+    return _apply(out, missions, model, names, idx, p_missions, v_new, sig_new, sig_mod)
 
 
-def _error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
-    """RMS and median absolute horizontal prediction errors (m) before and after."""
-    return {"rms_before_m": _rms(before), "rms_after_m": _rms(after),
-            "median_abs_before_m": float(np.median(np.abs(before))),
-            "median_abs_after_m": float(np.median(np.abs(after)))}
+def _with_errors(rec: DeadReckoning, before: np.ndarray, after: np.ndarray) -> DeadReckoning:
+    """``rec`` with the RMS and median absolute horizontal prediction errors (m) before
+    and after."""
+    return dataclasses.replace(rec, rms_before_m=_rms(before), rms_after_m=_rms(after),
+                               median_abs_before_m=float(np.median(np.abs(before))),
+                               median_abs_after_m=float(np.median(np.abs(after))))
 
 
 def _apply(result: Result, missions: list[Mission], model: Model, names: list[str], idx: np.ndarray,
            p_missions: list[np.ndarray], v_new: np.ndarray, sig_new: np.ndarray,
-           sig_mod: np.ndarray) -> None:
-    """The refined constants ``names`` (at ``idx`` of each mission's parameter vector
-    ``p_missions``) and their sigmas into ``result``, the inertial re-traces redone."""
+           sig_mod: np.ndarray) -> Result:
+    """``result`` with the refined constants ``names`` (at ``idx`` of each mission's
+    parameter vector ``p_missions``) and their sigmas, the inertial re-traces redone."""
+    values, sigma = dict(result.values), dict(result.sigma)
+    sigma_model, sigma_inflation = dict(result.sigma_model), dict(result.sigma_inflation)
     for n, v, sg, sm in zip(names, v_new, sig_new, sig_mod):
-        result.values[n] = float(v)
-        result.sigma[n] = float(sg)
-        result.sigma_model[n] = float(sm)
-        result.sigma_inflation[n] = float(sg / max(sm, 1e-300))
+        values[n] = float(v)
+        sigma[n] = float(sg)
+        sigma_model[n] = float(sm)
+        sigma_inflation[n] = float(sg / max(sm, 1e-300))
+    recs = []
     for i, mr in enumerate(result.missions):
-        mr.p = p_missions[i].copy()
-        mr.p[idx] = v_new
-        mr.inertial = inertial_track(model, missions[i], mr.p)
+        p = p_missions[i].copy()
+        p[idx] = v_new
+        recs.append(dataclasses.replace(mr, p=p, inertial=inertial_track(model, missions[i], p)))
+    return dataclasses.replace(result, values=values, sigma=sigma, sigma_model=sigma_model,
+                               sigma_inflation=sigma_inflation, missions=recs)
 
 
 def _wald(Ai: np.ndarray, B: np.ndarray, w: np.ndarray, r: np.ndarray, d: np.ndarray,

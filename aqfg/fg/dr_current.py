@@ -34,63 +34,34 @@ loss over several missions.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 
 import numpy as np
 
 from aqfg.data.mission import Mission
+from aqfg.fg.dr_records import CURRENT, CurrentRefit
 from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
-CURRENT = ("s_x", "s_y")
 HUBER_C = 1.5          # Huber threshold, in robust scales of the smoother's prediction errors
 MIN_BLOCKS = 2         # fewer time blocks: the smoother's current stays
 MAX_STEPS = 4          # Gauss-Newton steps of the fit at most
 STEP_TOL = 1e-4        # m/s, a step this small ends the fit
 
 
-@dataclass(frozen=True)
-class CurrentRefit:
-    """One mission's current for dead reckoning: the smoother's (``before``) and the
-    prediction-error estimate (``after``, m/s, NED north/east) with its sigma, the blocks'
-    out-of-sample Huber costs under each, and whether it replaced the smoother's (or why
-    not)."""
-    mission: str
-    blocks: int
-    before: tuple[float, float]
-    after: tuple[float, float] = (float("nan"), float("nan"))
-    sigma: tuple[float, float] = (float("nan"), float("nan"))
-    cost_before: float = float("nan")
-    cost_after: float = float("nan")
-    applied: bool = False
-    reason: str = ""
-
-    def document(self) -> dict:
-        """The record in ``parameters.json`` (``dead_reckoning.current.<mission>``)."""
-        out: dict = {"blocks": self.blocks, "applied": self.applied,
-                     "smoother": dict(zip(CURRENT, self.before))}
-        if np.all(np.isfinite(self.after)):
-            out["refined"] = {n: {"value": v, "sigma": s if np.isfinite(s) else None}
-                              for n, v, s in zip(CURRENT, self.after, self.sigma)}
-            out["heldout_cost"] = {"smoother": self.cost_before, "refined": self.cost_after}
-        if self.reason:
-            out["reason"] = self.reason
-        return out
-
-
 def refine_current(result: Result, missions: list[Mission], horizon: float,
                    segs: list[Segment] | None = None) -> Result:
-    """Each mission's current by ``horizon``-s prediction error where it predicts
-    left-out blocks better (module docstring); ``result`` updated in place and returned,
-    the records in ``info["dead_reckoning"]["current"]``. ``segs``: ``result``'s
+    """``result`` with each mission's current by ``horizon``-s prediction error where it
+    predicts left-out blocks better (module docstring), the records in
+    ``dead_reckoning.current`` (``result`` itself is not changed). ``segs``: ``result``'s
     prediction segments (:func:`aqfg.fg.predictions.segments`), built where None."""
     model = result.model
-    dr = result.info.get("dead_reckoning")
+    dr = result.dead_reckoning
     if (horizon <= 0 or model is None or dr is None
             or not all(n in result.estimated for n in CURRENT)):
         return result
+    result = dataclasses.replace(result, missions=list(result.missions))
     idx = np.array([model.index(n) for n in CURRENT])
     records = []
     segs_all = segs if segs is not None else segments(model, missions, result, horizon)
@@ -144,8 +115,8 @@ def refine_current(result: Result, missions: list[Mission], horizon: float,
             "left-out blocks as well"))
         if applied:
             _apply(result, m, i, idx, x_all)
-    dr["current"] = records
-    return result
+    return dataclasses.replace(result, dead_reckoning=dataclasses.replace(
+        dr, current=tuple(records)))
 
 
 def _irls(pred: Predictions, x: np.ndarray, r: np.ndarray, c_h: float
@@ -169,13 +140,14 @@ def _irls(pred: Predictions, x: np.ndarray, r: np.ndarray, c_h: float
 
 
 def _apply(result: Result, mission: Mission, i: int, idx: np.ndarray, x: np.ndarray) -> None:
-    """Mission ``i``'s dead-reckoning current ``x`` into its parameter vector, its re-trace
-    redone (the reported current stays the smoother's)."""
+    """Mission ``i``'s dead-reckoning current ``x`` into a copy of its record (parameter
+    vector, re-trace redone) in ``result.missions`` (the reported current stays the
+    smoother's)."""
     mr = result.missions[i]
-    mr.p = mr.p.copy()
-    mr.p[idx] = x
-    if result.model is not None:
-        mr.inertial = inertial_track(result.model, mission, mr.p)
+    p = mr.p.copy()
+    p[idx] = x
+    inertial = mr.inertial if result.model is None else inertial_track(result.model, mission, p)
+    result.missions[i] = dataclasses.replace(mr, p=p, inertial=inertial)
 
 
 def smoother_vector(result: Result, i: int, constants: bool = True) -> np.ndarray:
@@ -183,12 +155,12 @@ def smoother_vector(result: Result, i: int, constants: bool = True) -> np.ndarra
     with ``constants`` False) and current where those refined for dead reckoning replaced
     them (:mod:`aqfg.fg.dead_reckoning`, :func:`refine_current`)."""
     p = result.missions[i].p.copy()
-    dr = result.info.get("dead_reckoning") or {}
-    if result.model is None:
+    dr = result.dead_reckoning
+    if result.model is None or dr is None:
         return p
-    for n, v in (dr.get("before", {}) if constants and dr.get("applied") else {}).items():
+    for n, v in (dr.before if constants and dr.applied else {}).items():
         p[result.model.index(n)] = v
-    for c in dr.get("current") or ():
+    for c in dr.current:
         if c.applied and c.mission == result.missions[i].name:
             p[[result.model.index(n) for n in CURRENT]] = c.before
     return p

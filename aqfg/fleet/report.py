@@ -127,8 +127,8 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
                                    "unit": _unit(res, n)}
                                for n, e in entry["parameters"].items()},
                 "provenance": prov}
-            dr = res.info.get("dead_reckoning")
-            if dr and dr.get("segments"):
+            dr = res.dead_reckoning
+            if dr is not None and dr.segments:
                 doc["dead_reckoning"] = dead_reckoning_document(dr)
             if res.effect_step is not None:
                 doc["auto_effect"] = effect_document(res.effect_step)
