@@ -430,3 +430,29 @@ def test_a_model_with_a_fix_time_offset_is_refused():
     m = synth_mission("asv", duration=20.0)[0]
     with pytest.raises(ValueError, match="does not model fix time offsets .gnss_delay."):
         UpdateErrorEstimator(None, m, effects=("gnss_delay",))
+
+
+def test_a_derivative_step_where_the_filter_diverges_is_not_used():
+    """The uncertainty's finite differences skip a step whose filter terms are not finite
+    (a stiff filter can diverge a step from the estimate) and use the next; with none
+    finite the parameter has no derivative (column zero) rather than NaN everywhere."""
+    from types import SimpleNamespace
+
+    from aqfg.ekf.uncertainty import _column, _jacobians
+
+    def terms(th):
+        bad = th[0] > 1.0                     # diverges above the estimate 1.0
+        r = np.array([[np.nan if bad else 2.0 * th[0] + th[1]]])
+        return SimpleNamespace(status=np.array([ACCEPTED]), rows=r, nu_w=np.zeros((1, 3)))
+    obj = SimpleNamespace(node_terms=terms)
+    theta = np.array([1.0, 0.5])
+    t0 = terms(theta)
+    t, step = _column(obj, theta, 0, 1e-3, None, None, t0)
+    assert step < 0 and np.isfinite(t.rows).all()
+    Jr, _, none = _jacobians(obj, theta, np.ones(2), None, None, t0)
+    assert Jr[0, 0] == pytest.approx([2.0, 1.0]) and not none.any()
+    obj = SimpleNamespace(node_terms=lambda th: SimpleNamespace(
+        status=np.array([ACCEPTED]), rows=np.array([[np.nan if th[0] != 1.0 else 0.0]]),
+        nu_w=np.zeros((1, 3))))
+    Jr, _, none = _jacobians(obj, theta, np.ones(2), None, None, obj.node_terms(theta))
+    assert none[0] and np.isfinite(Jr).all()

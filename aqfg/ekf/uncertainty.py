@@ -91,14 +91,17 @@ def _dims(kind: np.ndarray) -> np.ndarray:
 
 def _column(obj: Objective, theta: np.ndarray, i: int, h: float, lo, hi, t0: NodeTerms
             ) -> tuple[NodeTerms, float] | None:
-    """Terms at ``theta + step e_i`` for the first step that keeps every gate decision."""
+    """Terms at ``theta + step e_i`` for the first step that keeps every gate decision and
+    gives finite terms (a filter at the edge of its integration's stability can diverge
+    a step away from the estimate)."""
     for step in (h, -h, 0.1 * h, -0.1 * h):
         th = theta.copy()
         th[i] += step
         if (lo is not None and th[i] < lo[i]) or (hi is not None and th[i] > hi[i]):
             continue
         t = obj.node_terms(th)
-        if np.array_equal(t.status, t0.status):
+        if (np.array_equal(t.status, t0.status) and np.all(np.isfinite(t.rows))
+                and np.all(np.isfinite(t.nu_w))):
             return t, step
     return None
 
@@ -155,7 +158,7 @@ def _jacobians(obj: Objective, theta: np.ndarray, scales: np.ndarray,
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Forward-difference derivatives, per unit of each parameter's scale, of the metric's
     rows (n, d, p) and of the whitened innovations (n, 3, p) at ``theta`` (terms ``t0``);
-    and which parameters flip a gated fix's decision (no derivative, their columns zero)."""
+    and which parameters have no usable derivative (their columns zero: :func:`_column`)."""
     p = len(theta)
     n, d = t0.rows.shape
     Jr = np.zeros((n, d, p))
@@ -212,8 +215,8 @@ def _verdicts(theta: np.ndarray, specs: list, scales: np.ndarray, sigma: np.ndar
         m = magnitude(spec, theta[i])
         if flipped[i]:
             verdict.append("not determined")
-            note.append("a gated fix changes its accept/reject decision at the estimate: "
-                        "no derivative")
+            note.append("no derivative at the estimate: a gated fix changes its "
+                        "accept/reject decision there, or the filter diverges a step away")
         elif at_lo or at_hi:
             bound = lo if at_lo else hi
             assert bound is not None
