@@ -278,7 +278,9 @@ class Result:
     heading that fit as well as the chosen one in ``ambiguous``
     (:func:`aqfg.fg.basins.as_good_a_basin`; their spread is in the sigmas) and, on data
     too short for the sandwich, the ``heading_profile``
-    (:func:`aqfg.fg.basins.widen_by_profile`); its online smoother, the ``engine`` that
+    (:func:`aqfg.fg.basins.widen_by_profile`; the sigmas it widened, as they were, in
+    ``sigma_before_profile``) and, where the reported sigmas cover more than the chosen
+    basin, each such sigma within that basin in ``sigma_unimodal``; its online smoother, the ``engine`` that
     ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
     leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
@@ -320,6 +322,8 @@ class Result:
     ambiguous: list[dict] = field(default_factory=list)
     plausible: bool | None = None
     dead_reckoning: DeadReckoning | None = None
+    sigma_unimodal: dict[str, float] = field(default_factory=dict)
+    sigma_before_profile: dict[str, float] = field(default_factory=dict)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

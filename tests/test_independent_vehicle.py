@@ -166,7 +166,7 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
                  init=CONSTANTS_94)
     assert len(res.ambiguous) >= 2
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
-    assert e > 3 * res.info["sigma_unimodal"]["theta_e"]        # one basin's sigma
+    assert e > 3 * res.sigma_unimodal["theta_e"]        # one basin's sigma
     assert e <= 3 * res.sigma["theta_e"]
     assert any("the sigmas cover the basins" in w for w in res.info["warnings"])
 
@@ -192,7 +192,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     assert e > np.radians(90.0) and e > 3 * one.sigma["theta_e"]      # the defect
     assert res.values["theta_e"] == one.values["theta_e"]              # the same fit ...
     assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
-    assert res.info["sigma_unimodal"]["theta_e"] == one.sigma["theta_e"]
+    assert res.sigma_unimodal["theta_e"] == one.sigma["theta_e"]
     assert len(res.heading_profile.theta_e) == N_GRID       # the whole circle
     assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
     for n in ("s_x", "s_y"):

@@ -92,7 +92,7 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
     (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
     ``res.heading_profile``; each sigma of the first mission's parameters widened to
     the profile's spread about the fit where that is larger (the former sigmas in
-    ``info["sigma_before_profile"]``)."""
+    ``res.sigma_before_profile``)."""
     lay = bg.layout
     if "theta_e" not in lay.estimated:
         return
@@ -115,15 +115,13 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
             if n in res.sigma and sd > res.sigma[n]:
                 before[n] = res.sigma[n]
                 res.sigma[n] = sd
-    res.info["sigma_before_profile"] = before
+    res.sigma_before_profile = before
     res.heading_profile = HeadingEvidence(tuple(float(t) for t in prof.theta),
                                           tuple(float(v) for v in prof.log_evidence),
                                           float(res.sigma["theta_e"]))
     # one basin's sigma stays the unimodal one (the online smoother's priors and its
     # restart tolerance; the spread is added to what it reports until its next batch)
-    res.info["sigma_unimodal"] = {**before, **res.info.get("sigma_unimodal", {})}
-    if not res.info["sigma_unimodal"]:
-        del res.info["sigma_unimodal"]
+    res.sigma_unimodal = {**before, **res.sigma_unimodal}
     for e in res.info.get("per_mission", {}).values():
         for n in before:
             if isinstance(e.get(n), dict) and "sigma" in e[n]:
@@ -176,11 +174,11 @@ def batch_warnings(res: Result, n_it: int) -> list[str]:
               if abs(basin_rank(b) - float(b["cost"])) > 0.05 else "")
         out.append(f"another heading basin fits almost as well (theta_e {th}, cost "
                    f"{b['cost']:.1f}{ev}): the heading offset is ambiguous")
-    if res.ambiguous and "theta_e" in info.get("sigma_unimodal", {}):
+    if res.ambiguous and "theta_e" in res.sigma_unimodal:
         out.append("the sigmas cover the basins that fit as well (theta_e's "
-                   f"{np.degrees(info['sigma_unimodal']['theta_e']):.1f} deg within the "
+                   f"{np.degrees(res.sigma_unimodal['theta_e']):.1f} deg within the "
                    "chosen basin)")
-    before = info.get("sigma_before_profile", {}).get("theta_e")
+    before = res.sigma_before_profile.get("theta_e")
     prof = res.heading_profile
     if before is not None and prof is not None and prof.sigma_theta_e > 2.0 * before:
         out.append(f"these fixes hardly determine the heading offset: its evidence over the "

@@ -489,9 +489,9 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
     # the basins that fit as well (a sigma of one basin claimed 17 deg at a heading
     # 130 deg off: docs/independent-vehicle.md)
     extra = ambiguity_variance(res.values, res.ambiguous, float(err))
-    res.info["sigma_unimodal"] = {n: res.sigma[n] for n in extra if n in res.sigma}
+    res.sigma_unimodal = {n: res.sigma[n] for n in extra if n in res.sigma}
     res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
-                      for n, v in res.info["sigma_unimodal"].items()})
+                      for n, v in res.sigma_unimodal.items()})
     for name, pm in res.info["per_mission"].items():
         th = pm.get("theta_e")
         if th is not None and n_missions > 1:
@@ -528,7 +528,7 @@ def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -
             abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
         res.info["alternative_held_sway"] = {
             "values": dict(held.values), "sigma": dict(held.sigma),
-            "sigma_unimodal": {**held.sigma, **held.info.get("sigma_unimodal", {})},
+            "sigma_unimodal": {**held.sigma, **held.sigma_unimodal},
             "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
         res.info["warnings"].append(
             f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "

@@ -340,9 +340,9 @@ def _take_batch_noise_and_sigma(fl: FixedLagSmoother, bres) -> dict[str, float]:
     q_meas = bres.info.get("process_noise_measured")
     q_floor = float(q_meas if q_meas is not None else bres.info.get("process_noise_scale", 1.0))
     rep = fl.report
-    uni = {**bres.sigma, **bres.info.get("sigma_unimodal", {})}
+    uni = {**bres.sigma, **bres.sigma_unimodal}
     rep.ambiguity = {n: max(float(bres.sigma[n]) ** 2 - float(v) ** 2, 0.0)
-                     for n, v in bres.info.get("sigma_unimodal", {}).items()}
+                     for n, v in bres.sigma_unimodal.items()}
     rep.inflation = {}
     for n in (() if fl.policy.held else fl.layout.estimated):   # held: no marginal
         raw, ref = rep.raw.get(n, np.nan), uni.get(n, np.nan)
