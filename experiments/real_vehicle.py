@@ -179,10 +179,13 @@ def batch_scores(method: str, m: Mission, sparse: dict, dense: dict) -> dict:
     row["wall_batch"] = w8 + w1
     row["constants1"] = r1.vehicle_constants()
     if method == "fg":
-        # what aqfg fit writes: a heading offset the data do not determine has no sigma
-        from aqfg.result import parameters_document
-        doc = parameters_document(r8)["parameters"]["theta_e"]
-        row["theta_note"] = doc.get("sigma_note", "") if doc["sigma"] is None else ""
+        # what aqfg fit writes (identifiability.settle): a heading offset the data do not
+        # determine has no sigma, and a reason
+        from aqfg.identifiability import settle
+        said = copy.deepcopy(r8)
+        settle(said, [m8])
+        row["theta_note"] = ("" if np.isfinite(said.sigma["theta_e"])
+                             else said.info["sigma_notes"].get("theta_e", "not determined"))
         ri, wi = fit(method, [with_gnss_every(rotated(m, INJECT), 8.0)], **sparse)
         row["inject"] = float(np.degrees(wrap(ri.values["theta_e"] - r8.values["theta_e"] + INJECT)))
         row["wall_batch"] += wi
