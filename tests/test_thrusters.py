@@ -87,3 +87,30 @@ def test_heading_offset_is_not_a_reversal_but_all_reversed_is(sim):
     assert thruster_findings(turned) == []
     both = flipped(flipped(sim, 0), 1)
     assert None in [f.thruster for f in thruster_findings(both)]
+
+
+def test_a_vehicle_drifting_astern_between_legs_is_not_reversed(sim):
+    """A short driven leg, then a long idle drift astern (wind on an idle boat: no thrust,
+    heading held, 0.25 m/s backwards): over time the vehicle went backwards more than
+    forwards, but while its thrusters pushed it went forwards; the check takes that frame
+    and stays silent. A negated thruster is still found."""
+    from aqfg.data.mission import Gnss, Imu, Motors
+    m = sim
+    split = m.t0 + 60.0
+    yaw_at = float(np.interp(split, m.imu.t, np.unwrap(yaw(m.imu.q))))
+    q_hold = np.array([np.cos(yaw_at / 2), 0.0, 0.0, np.sin(yaw_at / 2)])
+    q = np.where((m.imu.t > split)[:, None], q_hold, m.imu.q)
+    u = np.where((m.motors.t > split)[:, None], 0.0, m.motors.u)
+    g = m.gnss
+    p0 = np.array([np.interp(split, g.t, g.ne[:, a]) for a in range(2)])
+    astern = -0.25 * np.array([np.cos(yaw_at), np.sin(yaw_at)])
+    rng = np.random.default_rng(0)
+    late = g.t > split
+    ne = g.ne.copy()
+    ne[late] = p0 + np.outer(g.t[late] - split, astern) + rng.normal(0, 0.3, (late.sum(), 2))
+    out = copy.copy(m)
+    out.imu = Imu(m.imu.t, q)
+    out.motors = Motors(m.motors.t, u)
+    out.gnss = Gnss(g.t, ne, g.sigma)
+    assert thruster_findings(out) == []
+    assert thruster_findings(flipped(out, 0))      # still found (here by the summed demand)

@@ -8,9 +8,12 @@ velocity, rotated into the body frame with the logged heading, and the mean thru
 ``d_i = u_i|u_i|`` of each thruster are formed, and between consecutive intervals the
 acceleration. The logged heading may be off by an unknown angle (an IMU's yaw is not
 referenced to north: theta_e), so the body frame is then turned to put the mission's mean
-velocity forward: the vehicle is taken to travel forward on the whole. For each thruster
-``i`` with a horizontal axis ``a_i`` two partial
-correlations are taken, the other thrusters' demands held (linear least squares):
+velocity while driven forward (each interval weighted by its time and the size of its summed
+demand, whatever its sign: a slow boat drifts astern in the wind between legs, and a frame
+set by time alone turned such a log 180 deg): the vehicle is taken to travel forward on the
+whole when its thrusters push it. For each thruster ``i`` with a horizontal axis ``a_i``
+two partial correlations are taken, the other thrusters' demands held (linear least
+squares):
 
 - ``d_i`` with the speed along ``a_i`` (the speed follows the thrust);
 - ``d_i`` with the acceleration along ``a_i``, the drag ``v|v|`` along ``a_i`` held too
@@ -23,8 +26,11 @@ chance (Student's t on the effective number of samples of two autocorrelated ser
 Bretherton et al. 1999, J. Climate 12, eq. 31: ``1/n_eff = 1/n + (2/n) sum_k (1 - k/n)
 rho_x(k) rho_y(k)``, lags up to n/5); the two are combined by Stouffer's method (their
 normal scores summed over sqrt 2). A combined probability below :data:`ALPHA`, shared
-(Bonferroni) among the tests of one mission, is a finding. Pure functions of a
-:class:`~aqfg.data.mission.Mission`.
+(Bonferroni) among the tests of one mission, is a finding where each of the two is also
+below :data:`AGREE` on its own: a reversed thruster pushes against both the speed and the
+acceleration, while a controller holding the vehicle against the wind, raising the thrust
+as the vehicle is pushed back, can make the acceleration alone correlate negatively. Pure
+functions of a :class:`~aqfg.data.mission.Mission`.
 """
 from __future__ import annotations
 
@@ -36,6 +42,7 @@ from aqfg import distributions as dist
 from aqfg.data.mission import Mission
 
 ALPHA = 1e-3               # false-alarm probability of one mission's check (all tests)
+AGREE = 0.05               # each of the two correlations must be this negative on its own
 
 
 @dataclass(frozen=True)
@@ -192,15 +199,18 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
     a, b, v, acc = body_motion(m, correlation_time(m))
     if len(a) < 5:
         return []
-    # the logged heading's offset is unknown (theta_e): turn the frame so the mean motion,
-    # weighted by the time of each interval, points forward
-    mean = (v * (b - a)[:, None]).sum(axis=0)
-    v, acc = _turn(v, mean), _turn(acc, mean)
+    # the logged heading's offset is unknown (theta_e): turn the frame so the mean motion
+    # while the thrusters push points forward (each interval weighted by its time and its
+    # summed demand's size, whatever its sign: a slow vehicle drifts astern in the wind
+    # between legs)
     dem = _mean_demand(m, a, b)
+    dirs = np.asarray(m.thruster_dir, dtype=float)
+    push = np.abs(dem @ dirs[:, 0]) * (b - a)
+    mean = (v * (push if push.sum() > 0 else b - a)[:, None]).sum(axis=0)
+    v, acc = _turn(v, mean), _turn(acc, mean)
     mid = 0.5 * (a + b)
     dem_acc = _mean_demand(m, mid[:-1], mid[1:])          # between the velocities' middles
     v_acc = 0.5 * (v[1:] + v[:-1])
-    dirs = np.asarray(m.thruster_dir, dtype=float)
     axes: list[tuple[int | None, np.ndarray, np.ndarray, np.ndarray]] = []
     for i, ax in enumerate(dirs):
         h = ax[:2]
@@ -221,7 +231,7 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
         r_acc, _, p2 = negative_correlation(_residual(d_acc, held), _residual(acc @ h, held))
         z = (dist.norm_ppf(np.clip(p1, 1e-300, 1.0)) + dist.norm_ppf(np.clip(p2, 1e-300, 1.0)))
         p = float(dist.norm_cdf(z / np.sqrt(2.0)))
-        if p < level and r < 0 and r_acc < 0:
+        if p < level and max(p1, p2) < AGREE:
             axis = (1.0, 0.0, 0.0) if k is None else tuple(float(c) for c in dirs[k])
             out.append(ThrusterFinding(k, axis, r, r_acc, len(d), n_eff, p))  # type: ignore[arg-type]
     return out
