@@ -186,9 +186,9 @@ SERVO = {"SERVO1_MIN": 1100.0, "SERVO1_TRIM": 1500.0, "SERVO1_MAX": 1900.0,
          "SERVO3_MAX": 1900.0, "SERVO3_REVERSED": 0.0}
 
 
-def _vehicle(path, port, params, asked, done):
-    """A vehicle on UDP: sends a tlog's frames to aqfg's ``port`` in real time from its own
-    socket and answers each PARAM_REQUEST_READ it gets back with its ``params`` value
+def _vehicle(path, port, params, asked, done, speed=1.0):
+    """A vehicle on UDP: sends a tlog's frames to aqfg's ``port`` at ``speed`` x real time
+    from its own socket and answers each PARAM_REQUEST_READ it gets back with its ``params`` value
     (PARAM_VALUE; a name it lacks goes unanswered), recording the names in ``asked``;
     then interrupts this process (Ctrl-C ends aqfg live)."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -214,7 +214,7 @@ def _vehicle(path, port, params, asked, done):
                                                         len(params), 0).pack(mav), addr)
             t0, u0 = time.perf_counter(), frames[0][0]
             for usec, frame in frames:
-                while time.perf_counter() < t0 + (usec - u0) * 1e-6:
+                while time.perf_counter() < t0 + (usec - u0) * 1e-6 / speed:
                     answer()
                 s.sendto(frame, ("127.0.0.1", port))
             end = time.perf_counter() + 1.5
@@ -239,8 +239,10 @@ def test_a_live_vehicle_is_asked_for_the_pwm_range_the_map_leaves_out(tmp_path, 
     mp.write_text(lw.map_toml(m, motors="channels = [1, 3]"))
     path = lw.write_tlog(tmp_path / "a.tlog", lw.tlog_records(m))
     port, done, asked = _free_port(), threading.Event(), []
+    # (unanswered: the stream outlasts the five rounds of requests a second apart)
     th = threading.Thread(target=_vehicle, daemon=True, args=(
-        path, port, SERVO if params == "answered" else {}, asked, done))
+        path, port, SERVO if params == "answered" else {}, asked, done,
+        2.0 if params == "answered" else 1.0))
     th.start()
     out = tmp_path / "L"
     rc = main(["live", f"udpin:127.0.0.1:{port}", "--map", str(mp), "--out", str(out)])
