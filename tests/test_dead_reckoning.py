@@ -118,3 +118,20 @@ def test_fit_says_it_refined(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "refined for dead reckoning over 60 s" in text
 
+
+
+def test_refine_returns_a_new_result_and_leaves_its_input_alone(calm_b):
+    """dead_reckoning.refine gives the refined constants in a new Result; the smoother's
+    result it was given keeps its values, sigmas, parameter vectors and re-traces."""
+    import copy
+
+    from aqfg.fg import dead_reckoning
+    m, _, smoother, _ = calm_b
+    before = copy.deepcopy(smoother)
+    out = dead_reckoning.refine(smoother, [m], 60.0)
+    assert out is not smoother and out.dead_reckoning.applied
+    assert smoother.dead_reckoning is None
+    assert smoother.values == before.values and smoother.sigma == before.sigma
+    for a, b in zip(smoother.missions, before.missions):
+        assert np.array_equal(a.p, b.p) and np.array_equal(a.inertial.pos, b.inertial.pos)
+    assert any(out.values[n] != smoother.values[n] for n in CONSTANTS)
