@@ -24,7 +24,16 @@ from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
 from aqfg.fleet.manifest import Manifest
-from aqfg.fleet.worker import MissionSpec, diagnose_op, finish_op, memory, missions_op, release, structural_op
+from aqfg.fleet.worker import (
+    MissionSpec,
+    diagnose_op,
+    finish_op,
+    memory,
+    missions_op,
+    release,
+    release_fit,
+    structural_op,
+)
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
@@ -146,16 +155,36 @@ def _workers_ignore_sigint():
 
 def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,
          timeout) -> FleetResult:
+    # the missions the workers read are kept for this fit (aqfg.fleet.worker.load) and
+    # dropped after it, whatever its end
+    fit = uuid.uuid4().hex[:12]
+    try:
+        return _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every,
+                          diagnose, show, timeout, fit)
+    finally:
+        try:
+            client.run(release_fit, fit)
+        except Exception:  # noqa: BLE001 - a worker gone takes its missions with it
+            pass
+
+
+def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, diagnose,
+               show, timeout, fit: str) -> FleetResult:
     t0 = time.perf_counter()
     # stats: {by_op: {op: [missions served, compute seconds, reply bytes]}, ...}
     stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
                              "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
+    # (vehicle, mission index) -> the worker that holds it: where it was read, for every
+    # solve and per-vehicle step of the fit
+    where: dict[tuple, str] = {}
     specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
                                   gnss_every, show, timeout, stats,
-                                  refit=not auto_effect_applies(settings, estimate))
+                                  refit=not auto_effect_applies(settings, estimate),
+                                  fit=fit, where=where)
     if auto_effect_applies(settings, estimate):
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
-                                      show, timeout, stats, specs, results)
+                                      show, timeout, stats, specs, results, fit=fit,
+                                      where=where)
     if settings.dr_horizon > 0 or settings.adapt_track:
         # the constants to dead-reckon with, per vehicle over its missions, and the
         # missions' tracks under the noise their evidence chooses, as aqfg fit does
@@ -163,14 +192,14 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
         results = _per_vehicle(client, finish_op, specs, results, timeout,
-                               "the dead-reckoning constants or tracks")
+                               "the dead-reckoning constants or tracks", where)
         stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     stats["memory"] = _memory(client)
     stats["workers"] = len(_workers(client))
     diag = {}
     if diagnose:
         show(0.99, f"diagnosing {manifest.n_missions} missions")
-        diag = _diagnose(client, specs, timeout)
+        diag = _diagnose(client, specs, timeout, where)
     stats["seconds"] = time.perf_counter() - t0
     show(1.0, f"done: {len(results)} vehicles, {manifest.n_missions} missions, "
               f"{stats['rounds']} rounds, {stats['seconds']:.1f} s")
@@ -179,14 +208,15 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
 
 def _chunks(client, pending: dict, specs: dict, where: dict) -> dict[str, list]:
     """A round's requests by worker, ``worker -> [(vehicle, spec, op, args)]``: each mission
-    on the worker that holds it, or on the least loaded live one (``where`` updated)."""
+    on the worker that holds it (``where``, by vehicle and mission index), or on the least
+    loaded live one (``where`` updated)."""
     alive = _alive_workers(client)
     chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
     for v, reqs in pending.items():
         for spec, (op, args) in zip(specs[v], reqs):
-            w = where.get(spec.key)
+            w = where.get(spec.key[1:])
             if w not in alive:
-                w = where[spec.key] = _least_loaded(alive, where)
+                w = where[spec.key[1:]] = _least_loaded(alive, where)
             chunks.setdefault(w, []).append((v, spec, op, args))
     return chunks
 
@@ -234,7 +264,7 @@ def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once:
         out = []
         for spec in specs[v]:
             r = replies[spec.key]
-            where[spec.key] = r.pop("worker")
+            where[spec.key[1:]] = r.pop("worker")
             if r.pop("built"):
                 stats["rebuilt"] += spec.key in built_once
                 built_once.add(spec.key)
@@ -256,15 +286,18 @@ def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once:
 
 
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
-                 timeout, stats: dict, refit: bool = False) -> tuple[dict, dict[str, Result]]:
+                 timeout, stats: dict, refit: bool = False, fit: str = "",
+                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
     :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its structural sigma
     (one task each; the dead-reckoning constants and tracks come once, after the effect
     step, in :func:`_fit`). ``(specs, results)``, by vehicle; ``stats`` accumulates the
-    run's figures."""
+    run's figures, ``where`` (vehicle, mission index) -> worker. ``fit``: the fit_fleet call
+    whose missions the workers keep."""
     run = uuid.uuid4().hex[:12]
+    where = {} if where is None else where
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
-                                  effects, estimate, init, gnss_every, refit)
+                                  effects, estimate, init, gnss_every, refit, fit)
                       for i, m in enumerate(v.missions)] for v in manifest.vehicles}
     iters = {v: 0 for v in specs}
 
@@ -275,7 +308,6 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     gens = {v: joint_lm(len(ms), settings, counter(v)) for v, ms in specs.items()}
     pending = {v: next(g) for v, g in gens.items()}
     sols: dict[str, Solution] = {}
-    where: dict[tuple, str] = {}               # mission key -> worker address
     built_once: set = set()
     while pending:
         stats["rounds"] += 1
@@ -300,15 +332,15 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
         # test the fleet's effect step reads: one task per vehicle
         t_st = time.perf_counter()
         results = _per_vehicle(client, structural_op, specs, results, timeout,
-                               "the structural sigma")
+                               "the structural sigma", where)
         stats["structural_seconds"] = (stats.get("structural_seconds", 0.0)
                                        + time.perf_counter() - t_st)
     return specs, results
 
 
 def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, timeout,
-                 stats: dict, specs: dict, results: dict[str, Result]
-                 ) -> tuple[dict, dict[str, Result]]:
+                 stats: dict, specs: dict, results: dict[str, Result], fit: str = "",
+                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
     """:attr:`FGSettings.auto_effect` for a fleet: where the vehicles' structural tests
     call for an effect of the vehicle's dynamics, every vehicle is fitted again with the
     one most of them call for (:func:`aqfg.fleet.effect.choose`); one model serves the
@@ -323,7 +355,8 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     show(0.99, f"the fits call for {pick['effect']}: every vehicle again with it")
     try:
         specs2, new = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
-                                   None, init, gnss_every, show, timeout, stats, refit=True)
+                                   None, init, gnss_every, show, timeout, stats, refit=True,
+                                   fit=fit, where=where)
     except FleetError as e:
         fe.record(results, pick, None, f"its fit failed ({e})")
         return specs, results
@@ -332,14 +365,16 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     return (specs, results) if why else (specs2, new)
 
 
-def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str
-                 ) -> dict[str, Result]:
-    """``op(specs[v], results[v])`` for every vehicle, one task each on the workers; a
-    failure or a timeout raises :class:`FleetError` naming the vehicle and ``what``."""
+def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str,
+                 where: dict | None = None) -> dict[str, Result]:
+    """``op(specs[v], results[v])`` for every vehicle, one task each on the workers (on the
+    one that holds most of its missions, ``where``, while it lives); a failure or a timeout
+    raises :class:`FleetError` naming the vehicle and ``what``."""
     from distributed import as_completed
     out = dict(results)
     futs = {client.submit(op, specs[v], results[v], pure=False, retries=2,
-                          key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}"): v
+                          key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}",
+                          workers=_home(specs[v], where), allow_other_workers=True): v
             for i, v in enumerate(results)}
     try:
         for fut in as_completed(list(futs), timeout=timeout):
@@ -354,8 +389,16 @@ def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, w
     return out
 
 
-def _diagnose(client, specs, timeout) -> dict:
-    futs = {(v, s.name): client.submit(diagnose_op, s, pure=False, retries=2)
+def _home(specs: list[MissionSpec], where: dict | None) -> list[str] | None:
+    """The worker that holds most of a vehicle's missions (``[address]``), None where
+    none is known."""
+    held = [where[s.key[1:]] for s in specs if where and s.key[1:] in where]
+    return [max(sorted(set(held)), key=held.count)] if held else None
+
+
+def _diagnose(client, specs, timeout, where: dict | None = None) -> dict:
+    futs = {(v, s.name): client.submit(diagnose_op, s, pure=False, retries=2,
+                                       workers=_home([s], where), allow_other_workers=True)
             for v, ms in specs.items() for s in ms}
     out: dict = {}
     for (v, name), fut in futs.items():

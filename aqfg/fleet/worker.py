@@ -1,5 +1,10 @@
 """What runs on a Dask worker: a mission's session, built from its path on first use and
-kept in the worker process between rounds (keyed by run, vehicle and mission)."""
+kept in the worker process between rounds (keyed by run, vehicle and mission), and the
+missions it has read, kept for the rest of the fit (keyed by fit, path and GNSS thinning):
+the joint solve, the structural sigma, the effect step's second solve, the dead-reckoning
+constants, the tracks and the diagnosis then read each mission once per worker, and the
+kernel steps and closed-form starts remembered for a mission object
+(:mod:`aqfg.memo`) serve the later graphs of the same mission."""
 from __future__ import annotations
 
 import time
@@ -11,6 +16,7 @@ from aqfg.fg.common import FGSettings
 from aqfg.fg.schur import MissionProblem, MissionSession
 
 _SESSIONS: dict[tuple, MissionSession] = {}
+_MISSIONS: dict[tuple, object] = {}         # (fit, path, gnss_every) -> Mission
 
 
 @dataclass(frozen=True)
@@ -32,6 +38,7 @@ class MissionSpec:
     # (aqfg.fg.fit.refit_structure): the fits returned, not the model-as-given fit of an
     # effect step, as aqfg fit's batch
     refit: bool = False
+    fit: str = ""                # the fit_fleet call: the missions read are kept for it
 
     @property
     def key(self) -> tuple:
@@ -39,6 +46,15 @@ class MissionSpec:
 
 
 def load(spec: MissionSpec):
+    """The mission of ``spec`` as this worker read it for the fit (read on first use)."""
+    key = (spec.fit, spec.path, spec.gnss_every)
+    m = _MISSIONS.get(key)
+    if m is None:
+        m = _MISSIONS[key] = _read(spec)
+    return m
+
+
+def _read(spec: MissionSpec):
     from aqfg.data.io import load_mission
     from aqfg.data.mission import with_gnss_every
     try:
@@ -192,6 +208,19 @@ def release(run: str) -> int:
     for k in keys:
         del _SESSIONS[k]
     return len(keys)
+
+
+def release_fit(fit: str) -> int:
+    """Drop the missions this worker read for the fit ``fit``; how many there were."""
+    keys = [k for k in _MISSIONS if k[0] == fit]
+    for k in keys:
+        del _MISSIONS[k]
+    return len(keys)
+
+
+def n_missions_read(fit: str | None = None) -> int:
+    """How many missions this worker keeps (of every fit; of ``fit`` only if given)."""
+    return sum(1 for k in _MISSIONS if fit is None or k[0] == fit)
 
 
 def memory() -> dict:
