@@ -29,10 +29,13 @@ from aqfg.fleet.worker import (
     diagnose_op,
     finish_op,
     memory,
+    mission_of,
     missions_op,
+    refine_op,
     release,
     release_fit,
     structural_op,
+    track_op,
 )
 from aqfg.result import Result
 
@@ -191,8 +194,7 @@ def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, 
         # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): once, for the fits returned
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
-        results = _per_vehicle(client, finish_op, specs, results, timeout,
-                               "the dead-reckoning constants or tracks", where)
+        results = _finish(client, specs, results, timeout, where)
         stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     stats["memory"] = _memory(client)
     stats["workers"] = len(_workers(client))
@@ -332,7 +334,8 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
         # test the fleet's effect step reads: one task per vehicle
         t_st = time.perf_counter()
         results = _per_vehicle(client, structural_op, specs, results, timeout,
-                               "the structural sigma", where)
+                               "the structural sigma", where,
+                               lambda v, home: (results[v], _sent(client, specs[v], where, home)))
         stats["structural_seconds"] = (stats.get("structural_seconds", 0.0)
                                        + time.perf_counter() - t_st)
     return specs, results
@@ -365,17 +368,57 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     return (specs, results) if why else (specs2, new)
 
 
+def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dict
+            ) -> dict[str, Result]:
+    """Every vehicle's final fit, as ``aqfg fit`` finishes its own: the dead-reckoning
+    constants (:func:`refine_op`, on the worker that holds most of its missions) while each
+    mission's track is smoothed where the mission is (:func:`track_op`, from the joint
+    fit's parameters), then :func:`finish_op` with those tracks; Dask moves the replies
+    between the workers."""
+    def args(v: str, home: list[str] | None) -> tuple:
+        spec0 = specs[v][0]
+        refined = client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
+                                key=f"aqfg-{spec0.run}-refine-{v}", workers=home,
+                                allow_other_workers=True)
+        tracks = None
+        if spec0.settings.adapt_track:
+            tracks = [client.submit(track_op, s, mr.p, pure=False, retries=2,
+                                    key=f"aqfg-{s.run}-track-{v}-{s.index}",
+                                    workers=_home([s], where), allow_other_workers=True)
+                      for s, mr in zip(specs[v], results[v].missions)]
+        return refined, tracks
+    return _per_vehicle(client, finish_op, specs, results, timeout,
+                        "the dead-reckoning constants or tracks", where, args)
+
+
+def _sent(client, specs: list[MissionSpec], where: dict, home: list[str] | None) -> list:
+    """A vehicle's missions held by other workers than ``home``, as futures of
+    :func:`mission_of` there (None for those ``home`` holds or no worker does)."""
+    out: list = []
+    for s in specs:
+        w = where.get(s.key[1:])
+        out.append(None if w is None or [w] == home else
+                   client.submit(mission_of, s, pure=False, retries=2, workers=[w],
+                                 allow_other_workers=True,
+                                 key=f"aqfg-{s.run}-mission-{s.vehicle}-{s.index}"))
+    return out
+
+
 def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str,
-                 where: dict | None = None) -> dict[str, Result]:
-    """``op(specs[v], results[v])`` for every vehicle, one task each on the workers (on the
-    one that holds most of its missions, ``where``, while it lives); a failure or a timeout
-    raises :class:`FleetError` naming the vehicle and ``what``."""
+                 where: dict | None = None, args=None) -> dict[str, Result]:
+    """``op(specs[v], *args(v, home))`` (default ``op(specs[v], results[v])``) for every
+    vehicle, one task each on the workers (``home``: the one that holds most of its
+    missions, ``where``, while it lives; futures among the arguments are resolved by Dask
+    where the task runs); a failure or a timeout raises :class:`FleetError` naming the
+    vehicle and ``what``."""
     from distributed import as_completed
     out = dict(results)
-    futs = {client.submit(op, specs[v], results[v], pure=False, retries=2,
-                          key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}",
-                          workers=_home(specs[v], where), allow_other_workers=True): v
-            for i, v in enumerate(results)}
+    futs = {}
+    for i, v in enumerate(results):
+        home = _home(specs[v], where)
+        futs[client.submit(op, specs[v], *(args(v, home) if args else (results[v],)),
+                           pure=False, retries=2, key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}",
+                           workers=home, allow_other_workers=True)] = v
     try:
         for fut in as_completed(list(futs), timeout=timeout):
             v = futs[fut]
