@@ -370,6 +370,20 @@ def test_cli_fleet_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
     assert mis["provenance"]["effects"] == ["linear_drag"]
 
 
+def test_a_local_cluster_runs_the_callers_work_while_its_workers_start_the_solver():
+    """``fleet_client``'s ``while_starting`` runs once, before the block; the block gets
+    every worker asked for, each with the solver already imported (Dask's preload)."""
+    from aqfg.fleet.cluster import fleet_client
+    calls = []
+    with fleet_client(2, while_starting=lambda: calls.append(1)) as c:
+        assert calls == [1]
+        assert len(c.scheduler_info()["workers"]) == 2
+        # (asked by a string, not a function of this module: unpickling one would import
+        # this module, and the solver with it)
+        loaded = c.run(eval, "'aqfg.fleet.worker' in __import__('sys').modules")
+        assert list(loaded.values()) == [True, True]
+
+
 def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):
     """A worker the scheduler dropped under load is restarted by its nanny: a round that
     finds none waits for one to (re)join instead of failing at once."""

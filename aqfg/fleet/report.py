@@ -176,8 +176,16 @@ def _unit(res: Result, name: str) -> str | None:
         return None
 
 
-def _png(fig) -> str:
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), as the report draws with it."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
+    return plt
+
+
+def _png(fig) -> str:
+    plt = pyplot()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
@@ -187,9 +195,7 @@ def _png(fig) -> str:
 def fleet_html(fr: FleetResult, table: dict) -> str:
     """The report: the spread of each fixed parameter across vehicles (value +- 2 sigma,
     the fleet mean), the table, each vehicle's test, and the missions' verdicts."""
-    import matplotlib
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     names = table["parameters"]
     vs = list(table["vehicles"])
     esc = html.escape

@@ -9,12 +9,9 @@ goes on (see :class:`aqfg.fg.schur.MissionSession`).
 """
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 import uuid
 from collections.abc import Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +20,7 @@ import numpy as np
 from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
+from aqfg.fleet.cluster import FleetError, fleet_client
 from aqfg.fleet.manifest import Manifest
 from aqfg.fleet.worker import (
     MissionSpec,
@@ -40,11 +38,7 @@ from aqfg.fleet.worker import (
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
-CLOSE_TIMEOUT = 20.0    # s the client and a local cluster are given to close
-
-
-class FleetError(ValueError):
-    """A fleet run that cannot go on; the message names the vehicle and mission."""
+__all__ = ["FleetError", "FleetResult", "fit_fleet"]
 
 
 @dataclass
@@ -75,85 +69,14 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
     """
     from aqfg.fg.common import progress_fn
     show = progress_fn(progress)
-    made = client is None          # a client (and cluster) made here is closed here
-    own = None
-    scratch = None
-    try:
-        if made:
-            # the workers' spill and lock files in a folder of this run, removed after it
-            # (Dask's default, $TMPDIR/dask-scratch-space, keeps them)
-            scratch = None if scheduler else tempfile.mkdtemp(prefix="aqfg-dask-")
-            client, own = _client(workers, scheduler, scratch)
-        return _fit(client, manifest, settings or FGSettings(), tuple(effects),
-                    None if estimate is None else tuple(estimate), dict(init or {}),
-                    float(gnss_every), diagnose, show, timeout)
-    finally:
-        try:
-            if own is not None:
-                _close_workers(own)
-            if made and client is not None:
-                client.close(timeout=CLOSE_TIMEOUT)
-            if own is not None:
-                own.close(timeout=CLOSE_TIMEOUT)
-        finally:
-            if scratch is not None:
-                shutil.rmtree(scratch, ignore_errors=True)
-
-
-def _client(workers: int, scheduler: str | None, scratch: str | None = None):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise FleetError("the fleet needs Dask: pip install 'aqfg[fleet]' "
-                         "(dask[distributed])") from None
-    import logging
-    if scheduler:
-        try:
-            return Client(scheduler, timeout="20s"), None
-        except (OSError, TimeoutError) as e:
-            raise FleetError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
-    if workers < 1:
-        raise FleetError(f"--workers must be at least 1, got {workers}")
-    import dask
-    # the scheduler's files in the scratch folder too
-    with dask.config.set({"temporary-directory": scratch}), _workers_ignore_sigint():
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.CRITICAL,
-                               local_directory=scratch)
-    try:
-        return Client(cluster), cluster
-    except BaseException:
-        cluster.close(timeout=CLOSE_TIMEOUT)
-        raise
-
-
-def _close_workers(cluster) -> None:
-    """Close a local cluster's workers (at most :data:`CLOSE_TIMEOUT` s) while their
-    scheduler still answers them: closed with it, a worker's heartbeat can meet a closed
-    connection and log its traceback."""
-    cluster.scale(0)
-    end = time.monotonic() + CLOSE_TIMEOUT
-    while cluster.workers and time.monotonic() < end:
-        time.sleep(0.05)
-
-
-@contextmanager
-def _workers_ignore_sigint():
-    """SIGINT ignored while the block starts the worker processes, which keep ignoring
-    it (an ignored signal stays so across exec): a Ctrl-C at the terminal, sent to the
-    whole process group, then reaches this process alone, which closes the cluster,
-    instead of every worker printing its own KeyboardInterrupt. A Ctrl-C while the
-    cluster starts (a few seconds) is not seen."""
-    import signal
-    import threading
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
+    if client is None:          # a client (and cluster) made here is closed here
+        with fleet_client(workers, scheduler) as made:
+            return fit_fleet(manifest, made, settings=settings, effects=effects,
+                             estimate=estimate, init=init, gnss_every=gnss_every,
+                             diagnose=diagnose, progress=progress, timeout=timeout)
+    return _fit(client, manifest, settings or FGSettings(), tuple(effects),
+                None if estimate is None else tuple(estimate), dict(init or {}),
+                float(gnss_every), diagnose, show, timeout)
 
 
 def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,
