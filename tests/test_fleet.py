@@ -168,6 +168,37 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
             assert got["sigma"] == pytest.approx(e["sigma"], rel=sig_rel), (m, n)
 
 
+def test_a_worker_reads_a_mission_once_per_fit_and_uses_one_sent_to_it(tmp_path):
+    """A worker keeps the missions it read for the fit (the same object for every step of
+    it, whatever the solve), not for another fit, until the fit releases them; a mission
+    sent from another worker is used instead of reading its files."""
+    import dataclasses
+
+    from aqfg.fleet import worker
+    path = str(_sim_vehicle(tmp_path, (61,), 1.0, duration=60.0)[0])
+    spec = worker.MissionSpec("run-a", "v", 0, "sim-61", path, True, FGSettings(), fit="fit-a")
+    m = worker.load(spec)
+    assert worker.load(dataclasses.replace(spec, run="run-b", refit=True)) is m
+    other = worker.load(dataclasses.replace(spec, fit="fit-b"))
+    assert other is not m and other.name == m.name
+    assert worker.n_missions_read("fit-a") == worker.n_missions_read("fit-b") == 1
+    assert worker.release_fit("fit-a") == 1 and worker.n_missions_read("fit-a") == 0
+    assert worker.load(dataclasses.replace(spec, fit="fit-b")) is other
+    worker.release_fit("fit-b")
+    # sent from the worker that holds it: its files need not be readable here
+    gone = dataclasses.replace(spec, path=str(tmp_path / "elsewhere"), fit="fit-c")
+
+    class Fit:
+        model = None
+    fit = Fit()
+    assert worker._vehicle([gone], fit, [m])[0] is m
+    assert fit.model is not None               # the model it was fitted with, set on it
+    assert worker.load(gone) is m
+    worker.release_fit("fit-c")
+    with pytest.raises(ValueError, match="no such mission directory"):
+        worker.load(gone)                      # released: read again, and not there
+
+
 def test_effect_document_writes_a_missing_fleet_cost_as_aqfg_fit_does():
     """A fleet cost that was not computed (no refit) is written as the shared fields are:
     null with a null_reason, not a bare null."""
@@ -193,6 +224,9 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
                                                  "sim-asv": ["sim-21", "sim-22"]})
     man = load_manifest(p)
     fr = fit_fleet(man, cluster, gnss_every=8.0, timeout=300)
+    # the missions the workers kept for the fit are dropped with it
+    from aqfg.fleet import worker
+    assert sum(cluster.run(worker.n_missions_read).values()) == 0
     # the fleet's effect step: the Otter's fits call for the linear drag, and one model
     # serves the fleet, so both vehicles are fitted with it; the step records the model-
     # as-given estimates
@@ -334,6 +368,20 @@ def test_cli_fleet_writes_outputs_and_refuses_to_overwrite(tmp_path, capsys):
     assert veh["provenance"]["effects"] == ["linear_drag"] and "linear_drag.c_x" in veh["parameters"]
     mis = json.loads((out2 / "asv-a" / "sim-41" / "parameters.json").read_text())
     assert mis["provenance"]["effects"] == ["linear_drag"]
+
+
+def test_a_local_cluster_runs_the_callers_work_while_its_workers_start_the_solver():
+    """``fleet_client``'s ``while_starting`` runs once, before the block; the block gets
+    every worker asked for, each with the solver already imported (Dask's preload)."""
+    from aqfg.fleet.cluster import fleet_client
+    calls = []
+    with fleet_client(2, while_starting=lambda: calls.append(1)) as c:
+        assert calls == [1]
+        assert len(c.scheduler_info()["workers"]) == 2
+        # (asked by a string, not a function of this module: unpickling one would import
+        # this module, and the solver with it)
+        loaded = c.run(eval, "'aqfg.fleet.worker' in __import__('sys').modules")
+        assert list(loaded.values()) == [True, True]
 
 
 def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):

@@ -13,10 +13,15 @@ import sys
 from pathlib import Path
 
 
+def _load_solver() -> None:
+    """The solver and the report's modules, loaded while the local workers start."""
+    from aqfg.fleet import report, solve  # noqa: F401
+    report.pyplot()
+
+
 def run(args) -> int:
+    from aqfg.fleet.cluster import fleet_client
     from aqfg.fleet.manifest import load_manifest
-    from aqfg.fleet.report import fixed_names, save_fleet
-    from aqfg.fleet.solve import fit_fleet
     from aqfg.model.effects import resolve
     manifest = load_manifest(args.manifest)
     out = Path(args.out)
@@ -26,14 +31,16 @@ def run(args) -> int:
     where = f"scheduler {args.scheduler}" if args.scheduler else f"{args.workers} local workers"
     print(f"aqfg fleet: {len(manifest.vehicles)} vehicle(s), {manifest.n_missions} mission(s) "
           f"on {where}", file=sys.stderr)
-    from aqfg.commands.common import Progress
-    from aqfg.fg.common import FGSettings
-    fr = fit_fleet(manifest, workers=args.workers, scheduler=args.scheduler, effects=effects,
-                   gnss_every=args.gnss_every, diagnose=args.diagnose,
-                   progress=Progress("fleet"),     # a bar on a terminal only
-                   settings=FGSettings(auto_effect=not args.no_auto_effect))
+    with fleet_client(args.workers, args.scheduler, while_starting=_load_solver) as client:
+        from aqfg.commands.common import Progress
+        from aqfg.fg.common import FGSettings
+        from aqfg.fleet.solve import fit_fleet
+        fr = fit_fleet(manifest, client, effects=effects, gnss_every=args.gnss_every,
+                       diagnose=args.diagnose,
+                       progress=Progress("fleet"),     # a bar on a terminal only
+                       settings=FGSettings(auto_effect=not args.no_auto_effect))
+    from aqfg.fleet.report import fixed_names, fleet_table, save_fleet
     save_fleet(fr, out, overwrite=args.force)
-    from aqfg.fleet.report import fleet_table
     table = fleet_table(fr)
     names = fixed_names(next(iter(fr.results.values())))
     print(f"{'vehicle':<20}" + "".join(f"{n:>22}" for n in names) + f"{'differs':>9}")

@@ -11,9 +11,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
-from aqfg.distributions import holm
+from aqfg.distributions import chi2_sf, holm
 from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult, fixed_covariance
 from aqfg.result import (
@@ -55,7 +54,7 @@ def differs_from_fleet(values: np.ndarray, covs: np.ndarray, alpha: float = 0.05
         S = covs[v] + Cm
         chi2 = float(diff @ np.linalg.solve(S, diff))
         z = diff / np.sqrt(np.diag(S))
-        out.append({"chi2": chi2, "dof": d, "p_value": float(stats.chi2.sf(chi2, d)),
+        out.append({"chi2": chi2, "dof": d, "p_value": float(chi2_sf(chi2, d)),
                     "mean_of_others": m.tolist(), "z": z.tolist()})
     for o, ph in zip(out, holm(np.array([o["p_value"] for o in out]))):
         o["p_holm"] = float(ph)
@@ -176,8 +175,16 @@ def _unit(res: Result, name: str) -> str | None:
         return None
 
 
-def _png(fig) -> str:
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), as the report draws with it."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
+    return plt
+
+
+def _png(fig) -> str:
+    plt = pyplot()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
@@ -187,9 +194,7 @@ def _png(fig) -> str:
 def fleet_html(fr: FleetResult, table: dict) -> str:
     """The report: the spread of each fixed parameter across vehicles (value +- 2 sigma,
     the fleet mean), the table, each vehicle's test, and the missions' verdicts."""
-    import matplotlib
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     names = table["parameters"]
     vs = list(table["vehicles"])
     esc = html.escape

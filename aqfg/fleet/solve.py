@@ -9,12 +9,9 @@ goes on (see :class:`aqfg.fg.schur.MissionSession`).
 """
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 import uuid
 from collections.abc import Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,16 +20,25 @@ import numpy as np
 from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
+from aqfg.fleet.cluster import FleetError, fleet_client
 from aqfg.fleet.manifest import Manifest
-from aqfg.fleet.worker import MissionSpec, diagnose_op, finish_op, memory, missions_op, release, structural_op
+from aqfg.fleet.worker import (
+    MissionSpec,
+    diagnose_op,
+    finish_op,
+    memory,
+    mission_of,
+    missions_op,
+    refine_op,
+    release,
+    release_fit,
+    structural_op,
+    track_op,
+)
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
-CLOSE_TIMEOUT = 20.0    # s the client and a local cluster are given to close
-
-
-class FleetError(ValueError):
-    """A fleet run that cannot go on; the message names the vehicle and mission."""
+__all__ = ["FleetError", "FleetResult", "fit_fleet"]
 
 
 @dataclass
@@ -63,114 +69,62 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
     """
     from aqfg.fg.common import progress_fn
     show = progress_fn(progress)
-    made = client is None          # a client (and cluster) made here is closed here
-    own = None
-    scratch = None
-    try:
-        if made:
-            # the workers' spill and lock files in a folder of this run, removed after it
-            # (Dask's default, $TMPDIR/dask-scratch-space, keeps them)
-            scratch = None if scheduler else tempfile.mkdtemp(prefix="aqfg-dask-")
-            client, own = _client(workers, scheduler, scratch)
-        return _fit(client, manifest, settings or FGSettings(), tuple(effects),
-                    None if estimate is None else tuple(estimate), dict(init or {}),
-                    float(gnss_every), diagnose, show, timeout)
-    finally:
-        try:
-            if own is not None:
-                _close_workers(own)
-            if made and client is not None:
-                client.close(timeout=CLOSE_TIMEOUT)
-            if own is not None:
-                own.close(timeout=CLOSE_TIMEOUT)
-        finally:
-            if scratch is not None:
-                shutil.rmtree(scratch, ignore_errors=True)
-
-
-def _client(workers: int, scheduler: str | None, scratch: str | None = None):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise FleetError("the fleet needs Dask: pip install 'aqfg[fleet]' "
-                         "(dask[distributed])") from None
-    import logging
-    if scheduler:
-        try:
-            return Client(scheduler, timeout="20s"), None
-        except (OSError, TimeoutError) as e:
-            raise FleetError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
-    if workers < 1:
-        raise FleetError(f"--workers must be at least 1, got {workers}")
-    import dask
-    # the scheduler's files in the scratch folder too
-    with dask.config.set({"temporary-directory": scratch}), _workers_ignore_sigint():
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.CRITICAL,
-                               local_directory=scratch)
-    try:
-        return Client(cluster), cluster
-    except BaseException:
-        cluster.close(timeout=CLOSE_TIMEOUT)
-        raise
-
-
-def _close_workers(cluster) -> None:
-    """Close a local cluster's workers (at most :data:`CLOSE_TIMEOUT` s) while their
-    scheduler still answers them: closed with it, a worker's heartbeat can meet a closed
-    connection and log its traceback."""
-    cluster.scale(0)
-    end = time.monotonic() + CLOSE_TIMEOUT
-    while cluster.workers and time.monotonic() < end:
-        time.sleep(0.05)
-
-
-@contextmanager
-def _workers_ignore_sigint():
-    """SIGINT ignored while the block starts the worker processes, which keep ignoring
-    it (an ignored signal stays so across exec): a Ctrl-C at the terminal, sent to the
-    whole process group, then reaches this process alone, which closes the cluster,
-    instead of every worker printing its own KeyboardInterrupt. A Ctrl-C while the
-    cluster starts (a few seconds) is not seen."""
-    import signal
-    import threading
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
+    if client is None:          # a client (and cluster) made here is closed here
+        with fleet_client(workers, scheduler) as made:
+            return fit_fleet(manifest, made, settings=settings, effects=effects,
+                             estimate=estimate, init=init, gnss_every=gnss_every,
+                             diagnose=diagnose, progress=progress, timeout=timeout)
+    return _fit(client, manifest, settings or FGSettings(), tuple(effects),
+                None if estimate is None else tuple(estimate), dict(init or {}),
+                float(gnss_every), diagnose, show, timeout)
 
 
 def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagnose, show,
          timeout) -> FleetResult:
+    # the missions the workers read are kept for this fit (aqfg.fleet.worker.load) and
+    # dropped after it, whatever its end
+    fit = uuid.uuid4().hex[:12]
+    try:
+        return _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every,
+                          diagnose, show, timeout, fit)
+    finally:
+        try:
+            client.run(release_fit, fit)
+        except Exception:  # noqa: BLE001 - a worker gone takes its missions with it
+            pass
+
+
+def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, diagnose,
+               show, timeout, fit: str) -> FleetResult:
     t0 = time.perf_counter()
     # stats: {by_op: {op: [missions served, compute seconds, reply bytes]}, ...}
     stats: dict[str, Any] = {"rounds": 0, "tasks": 0, "rebuilt": 0, "task_seconds": 0.0,
                              "reply_bytes": 0, "request_bytes": 0, "round_seconds": []}
+    # (vehicle, mission index) -> the worker that holds it: where it was read, for every
+    # solve and per-vehicle step of the fit
+    where: dict[tuple, str] = {}
     specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
                                   gnss_every, show, timeout, stats,
-                                  refit=not auto_effect_applies(settings, estimate))
+                                  refit=not auto_effect_applies(settings, estimate),
+                                  fit=fit, where=where)
     if auto_effect_applies(settings, estimate):
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
-                                      show, timeout, stats, specs, results)
+                                      show, timeout, stats, specs, results, fit=fit,
+                                      where=where)
     if settings.dr_horizon > 0 or settings.adapt_track:
         # the constants to dead-reckon with, per vehicle over its missions, and the
         # missions' tracks under the noise their evidence chooses, as aqfg fit does
         # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): once, for the fits returned
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
-        results = _per_vehicle(client, finish_op, specs, results, timeout,
-                               "the dead-reckoning constants or tracks")
+        results = _finish(client, specs, results, timeout, where)
         stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     stats["memory"] = _memory(client)
     stats["workers"] = len(_workers(client))
     diag = {}
     if diagnose:
         show(0.99, f"diagnosing {manifest.n_missions} missions")
-        diag = _diagnose(client, specs, timeout)
+        diag = _diagnose(client, specs, timeout, where)
     stats["seconds"] = time.perf_counter() - t0
     show(1.0, f"done: {len(results)} vehicles, {manifest.n_missions} missions, "
               f"{stats['rounds']} rounds, {stats['seconds']:.1f} s")
@@ -179,14 +133,15 @@ def _fit(client, manifest, settings, effects, estimate, init, gnss_every, diagno
 
 def _chunks(client, pending: dict, specs: dict, where: dict) -> dict[str, list]:
     """A round's requests by worker, ``worker -> [(vehicle, spec, op, args)]``: each mission
-    on the worker that holds it, or on the least loaded live one (``where`` updated)."""
+    on the worker that holds it (``where``, by vehicle and mission index), or on the least
+    loaded live one (``where`` updated)."""
     alive = _alive_workers(client)
     chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
     for v, reqs in pending.items():
         for spec, (op, args) in zip(specs[v], reqs):
-            w = where.get(spec.key)
+            w = where.get(spec.key[1:])
             if w not in alive:
-                w = where[spec.key] = _least_loaded(alive, where)
+                w = where[spec.key[1:]] = _least_loaded(alive, where)
             chunks.setdefault(w, []).append((v, spec, op, args))
     return chunks
 
@@ -234,7 +189,7 @@ def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once:
         out = []
         for spec in specs[v]:
             r = replies[spec.key]
-            where[spec.key] = r.pop("worker")
+            where[spec.key[1:]] = r.pop("worker")
             if r.pop("built"):
                 stats["rebuilt"] += spec.key in built_once
                 built_once.add(spec.key)
@@ -256,15 +211,18 @@ def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once:
 
 
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
-                 timeout, stats: dict, refit: bool = False) -> tuple[dict, dict[str, Result]]:
+                 timeout, stats: dict, refit: bool = False, fit: str = "",
+                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
     :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its structural sigma
     (one task each; the dead-reckoning constants and tracks come once, after the effect
     step, in :func:`_fit`). ``(specs, results)``, by vehicle; ``stats`` accumulates the
-    run's figures."""
+    run's figures, ``where`` (vehicle, mission index) -> worker. ``fit``: the fit_fleet call
+    whose missions the workers keep."""
     run = uuid.uuid4().hex[:12]
+    where = {} if where is None else where
     specs = {v.name: [MissionSpec(run, v.name, i, m.name, str(m.path), i == 0, settings,
-                                  effects, estimate, init, gnss_every, refit)
+                                  effects, estimate, init, gnss_every, refit, fit)
                       for i, m in enumerate(v.missions)] for v in manifest.vehicles}
     iters = {v: 0 for v in specs}
 
@@ -275,7 +233,6 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     gens = {v: joint_lm(len(ms), settings, counter(v)) for v, ms in specs.items()}
     pending = {v: next(g) for v, g in gens.items()}
     sols: dict[str, Solution] = {}
-    where: dict[tuple, str] = {}               # mission key -> worker address
     built_once: set = set()
     while pending:
         stats["rounds"] += 1
@@ -300,15 +257,16 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
         # test the fleet's effect step reads: one task per vehicle
         t_st = time.perf_counter()
         results = _per_vehicle(client, structural_op, specs, results, timeout,
-                               "the structural sigma")
+                               "the structural sigma", where,
+                               lambda v, home: (results[v], _sent(client, specs[v], where, home)))
         stats["structural_seconds"] = (stats.get("structural_seconds", 0.0)
                                        + time.perf_counter() - t_st)
     return specs, results
 
 
 def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, timeout,
-                 stats: dict, specs: dict, results: dict[str, Result]
-                 ) -> tuple[dict, dict[str, Result]]:
+                 stats: dict, specs: dict, results: dict[str, Result], fit: str = "",
+                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
     """:attr:`FGSettings.auto_effect` for a fleet: where the vehicles' structural tests
     call for an effect of the vehicle's dynamics, every vehicle is fitted again with the
     one most of them call for (:func:`aqfg.fleet.effect.choose`); one model serves the
@@ -323,7 +281,8 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     show(0.99, f"the fits call for {pick['effect']}: every vehicle again with it")
     try:
         specs2, new = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
-                                   None, init, gnss_every, show, timeout, stats, refit=True)
+                                   None, init, gnss_every, show, timeout, stats, refit=True,
+                                   fit=fit, where=where)
     except FleetError as e:
         fe.record(results, pick, None, f"its fit failed ({e})")
         return specs, results
@@ -332,15 +291,57 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
     return (specs, results) if why else (specs2, new)
 
 
-def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str
-                 ) -> dict[str, Result]:
-    """``op(specs[v], results[v])`` for every vehicle, one task each on the workers; a
-    failure or a timeout raises :class:`FleetError` naming the vehicle and ``what``."""
+def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dict
+            ) -> dict[str, Result]:
+    """Every vehicle's final fit, as ``aqfg fit`` finishes its own: the dead-reckoning
+    constants (:func:`refine_op`, on the worker that holds most of its missions) while each
+    mission's track is smoothed where the mission is (:func:`track_op`, from the joint
+    fit's parameters), then :func:`finish_op` with those tracks; Dask moves the replies
+    between the workers."""
+    def args(v: str, home: list[str] | None) -> tuple:
+        spec0 = specs[v][0]
+        refined = client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
+                                key=f"aqfg-{spec0.run}-refine-{v}", workers=home,
+                                allow_other_workers=True)
+        tracks = None
+        if spec0.settings.adapt_track:
+            tracks = [client.submit(track_op, s, mr.p, pure=False, retries=2,
+                                    key=f"aqfg-{s.run}-track-{v}-{s.index}",
+                                    workers=_home([s], where), allow_other_workers=True)
+                      for s, mr in zip(specs[v], results[v].missions)]
+        return refined, tracks
+    return _per_vehicle(client, finish_op, specs, results, timeout,
+                        "the dead-reckoning constants or tracks", where, args)
+
+
+def _sent(client, specs: list[MissionSpec], where: dict, home: list[str] | None) -> list:
+    """A vehicle's missions held by other workers than ``home``, as futures of
+    :func:`mission_of` there (None for those ``home`` holds or no worker does)."""
+    out: list = []
+    for s in specs:
+        w = where.get(s.key[1:])
+        out.append(None if w is None or [w] == home else
+                   client.submit(mission_of, s, pure=False, retries=2, workers=[w],
+                                 allow_other_workers=True,
+                                 key=f"aqfg-{s.run}-mission-{s.vehicle}-{s.index}"))
+    return out
+
+
+def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, what: str,
+                 where: dict | None = None, args=None) -> dict[str, Result]:
+    """``op(specs[v], *args(v, home))`` (default ``op(specs[v], results[v])``) for every
+    vehicle, one task each on the workers (``home``: the one that holds most of its
+    missions, ``where``, while it lives; futures among the arguments are resolved by Dask
+    where the task runs); a failure or a timeout raises :class:`FleetError` naming the
+    vehicle and ``what``."""
     from distributed import as_completed
     out = dict(results)
-    futs = {client.submit(op, specs[v], results[v], pure=False, retries=2,
-                          key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}"): v
-            for i, v in enumerate(results)}
+    futs = {}
+    for i, v in enumerate(results):
+        home = _home(specs[v], where)
+        futs[client.submit(op, specs[v], *(args(v, home) if args else (results[v],)),
+                           pure=False, retries=2, key=f"aqfg-{specs[v][0].run}-{op.__name__}-{i}",
+                           workers=home, allow_other_workers=True)] = v
     try:
         for fut in as_completed(list(futs), timeout=timeout):
             v = futs[fut]
@@ -354,8 +355,16 @@ def _per_vehicle(client, op, specs: dict, results: dict[str, Result], timeout, w
     return out
 
 
-def _diagnose(client, specs, timeout) -> dict:
-    futs = {(v, s.name): client.submit(diagnose_op, s, pure=False, retries=2)
+def _home(specs: list[MissionSpec], where: dict | None) -> list[str] | None:
+    """The worker that holds most of a vehicle's missions (``[address]``), None where
+    none is known."""
+    held = [where[s.key[1:]] for s in specs if where and s.key[1:] in where]
+    return [max(sorted(set(held)), key=held.count)] if held else None
+
+
+def _diagnose(client, specs, timeout, where: dict | None = None) -> dict:
+    futs = {(v, s.name): client.submit(diagnose_op, s, pure=False, retries=2,
+                                       workers=_home([s], where), allow_other_workers=True)
             for v, ms in specs.items() for s in ms}
     out: dict = {}
     for (v, name), fut in futs.items():

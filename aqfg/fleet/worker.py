@@ -1,5 +1,10 @@
 """What runs on a Dask worker: a mission's session, built from its path on first use and
-kept in the worker process between rounds (keyed by run, vehicle and mission)."""
+kept in the worker process between rounds (keyed by run, vehicle and mission), and the
+missions it has read, kept for the rest of the fit (keyed by fit, path and GNSS thinning):
+the joint solve, the structural sigma, the effect step's second solve, the dead-reckoning
+constants, the tracks and the diagnosis then read each mission once per worker, and the
+kernel steps and closed-form starts remembered for a mission object
+(:mod:`aqfg.memo`) serve the later graphs of the same mission."""
 from __future__ import annotations
 
 import time
@@ -11,6 +16,7 @@ from aqfg.fg.common import FGSettings
 from aqfg.fg.schur import MissionProblem, MissionSession
 
 _SESSIONS: dict[tuple, MissionSession] = {}
+_MISSIONS: dict[tuple, object] = {}         # (fit, path, gnss_every) -> Mission
 
 
 @dataclass(frozen=True)
@@ -32,6 +38,7 @@ class MissionSpec:
     # (aqfg.fg.fit.refit_structure): the fits returned, not the model-as-given fit of an
     # effect step, as aqfg fit's batch
     refit: bool = False
+    fit: str = ""                # the fit_fleet call: the missions read are kept for it
 
     @property
     def key(self) -> tuple:
@@ -39,6 +46,15 @@ class MissionSpec:
 
 
 def load(spec: MissionSpec):
+    """The mission of ``spec`` as this worker read it for the fit (read on first use)."""
+    key = (spec.fit, spec.path, spec.gnss_every)
+    m = _MISSIONS.get(key)
+    if m is None:
+        m = _MISSIONS[key] = _read(spec)
+    return m
+
+
+def _read(spec: MissionSpec):
     from aqfg.data.io import load_mission
     from aqfg.data.mission import with_gnss_every
     try:
@@ -84,33 +100,53 @@ def missions_op(items: list) -> list[dict]:
     return out
 
 
-def _vehicle(specs: list[MissionSpec], result) -> list:
-    """A vehicle's missions, read on the worker, and its joint fit ``result`` given the
-    model it was fitted with (in place)."""
+def mission_of(spec: MissionSpec):
+    """The mission of ``spec`` from the worker that holds it (sent to another worker by
+    Dask, a copy in memory instead of a second reading of its files)."""
+    return load(spec)
+
+
+def _vehicle(specs: list[MissionSpec], result, sent: list | None = None) -> list:
+    """A vehicle's missions (those ``sent`` from other workers, None where not, kept
+    here for the fit; the others read here) and its joint fit ``result`` given the model it
+    was fitted with (in place)."""
     from aqfg.fg.common import mission_model
+    for spec, m in zip(specs, sent or ()):
+        if m is not None:
+            _MISSIONS.setdefault((spec.fit, spec.path, spec.gnss_every), m)
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
     return missions
 
 
-def structural_op(specs: list[MissionSpec], result):
+def structural_op(specs: list[MissionSpec], result, sent: list | None = None):
     """A vehicle's joint fit with the model it was fitted with and the structural part of
-    its sigma (:func:`structural`); the missions are read on the worker."""
-    return structural(specs, _vehicle(specs, result), result)
+    its sigma (:func:`structural`); the missions ``sent`` from the workers that hold them,
+    the others read here."""
+    return structural(specs, _vehicle(specs, result, sent), result)
 
 
-def finish_op(specs: list[MissionSpec], result):
-    """A vehicle's final joint fit with its thrust/drag constants re-estimated by prediction
-    error over its missions (:func:`aqfg.fg.dead_reckoning.refine`), its missions' tracks
-    smoothed under the noise their evidence chooses (:func:`smooth_tracks`) and what its data
-    cannot determine marked so (:func:`aqfg.identifiability.settle`; its warnings in
-    ``identifiability_warnings``), as ``aqfg fit`` does once for the fit it returns;
-    the missions are read on the worker."""
+def refine_op(specs: list[MissionSpec], result):
+    """A vehicle's joint fit with its thrust/drag constants re-estimated by prediction
+    error over its missions (:func:`aqfg.fg.dead_reckoning.refine`, from the joint fit's
+    states), as ``aqfg fit`` does once for the fit it returns."""
     from aqfg.fg import dead_reckoning
+    return dead_reckoning.refine(result, _vehicle(specs, result),
+                                 specs[0].settings.dr_horizon)
+
+
+def finish_op(specs: list[MissionSpec], result, tracks: list | None = None):
+    """A vehicle's final joint fit (:func:`refine_op`'s): its missions' tracks replaced by
+    ``tracks`` (:func:`track_op`'s, one per mission; None: as they are) and what its data
+    cannot determine marked so (:func:`aqfg.identifiability.settle`, which reads those
+    tracks; its warnings in ``identifiability_warnings``), as ``aqfg fit`` does."""
     from aqfg.identifiability import settle
     missions = _vehicle(specs, result)
-    result = dead_reckoning.refine(result, missions, specs[0].settings.dr_horizon)
-    result = smooth_tracks(specs, missions, result)
+    if tracks is not None:
+        q = {}
+        for mr, (track, residuals, scale) in zip(result.missions, tracks):
+            mr.track, mr.residuals, q[mr.name] = track, residuals, scale
+        result.info["track_noise_scale"] = q
     # what the data cannot determine, as aqfg fit says it (the accelerometer check needs
     # the missions, which are here)
     result.identifiability_warnings = tuple(settle(result, missions))
@@ -150,23 +186,14 @@ def structural(specs: list[MissionSpec], missions: list, result):
     return result
 
 
-def smooth_tracks(specs: list[MissionSpec], missions: list, result):
-    """Each mission's track (and residuals) of a vehicle's joint fit smoothed again with the
-    parameters held under the process noise its evidence chooses, as ``aqfg fit``'s batch
-    does (:attr:`aqfg.fg.common.FGSettings.adapt_track`): with the smoother's constants,
-    not those (nor the current) refined for dead reckoning."""
+def track_op(spec: MissionSpec, p: np.ndarray) -> tuple:
+    """The mission's track and residuals smoothed again with its parameters held at ``p``
+    (the joint fit's full vector for it: the smoother's constants and current, not those
+    refined for dead reckoning) under the process noise its evidence chooses, and that
+    noise's factor, as ``aqfg fit``'s batch does
+    (:attr:`aqfg.fg.common.FGSettings.adapt_track`)."""
     from aqfg.fg.batch import smooth_track
-    from aqfg.fg.dr_current import smoother_vector
-    st = specs[0].settings
-    if not st.adapt_track or result.model is None:
-        return result
-    q = {}
-    for i, (spec, m, mr) in enumerate(zip(specs, missions, result.missions)):
-        p = smoother_vector(result, i)
-        mr.track, mr.residuals, q[mr.name] = smooth_track(m, p, effects=spec.effects,
-                                                         settings=st)
-    result.info["track_noise_scale"] = q
-    return result
+    return smooth_track(load(spec), p, effects=spec.effects, settings=spec.settings)
 
 
 def diagnose_op(spec: MissionSpec) -> dict:
@@ -192,6 +219,19 @@ def release(run: str) -> int:
     for k in keys:
         del _SESSIONS[k]
     return len(keys)
+
+
+def release_fit(fit: str) -> int:
+    """Drop the missions this worker read for the fit ``fit``; how many there were."""
+    keys = [k for k in _MISSIONS if k[0] == fit]
+    for k in keys:
+        del _MISSIONS[k]
+    return len(keys)
+
+
+def n_missions_read(fit: str | None = None) -> int:
+    """How many missions this worker keeps (of every fit; of ``fit`` only if given)."""
+    return sum(1 for k in _MISSIONS if fit is None or k[0] == fit)
 
 
 def memory() -> dict:
