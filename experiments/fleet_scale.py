@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import resource
 import shutil
 import sys
@@ -128,6 +129,7 @@ def main(argv=None) -> int:
     if args.quick:
         args.vehicles, args.missions, args.duration = 2, 3, 180.0
     started = time.perf_counter()
+    args.load_before = os.getloadavg()[0]
     from aqfg.fleet import write_manifest
     tmp = Path(tempfile.mkdtemp(prefix="aqfg-fleet-"))
     try:
@@ -154,6 +156,7 @@ def main(argv=None) -> int:
                                  {names[0]: [str(Path(p).relative_to(tmp)) for p in by_v[names[0]][:n]]})
             grow.append((n, fleet_run(mp_, 2)["wall"]))
         slope = float(np.polyfit([g[0] for g in grow], [g[1] for g in grow], 1)[0])
+        args.load_after = os.getloadavg()[0]
         body = report(args, names, seq, runs, grow, slope, t_sim)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -206,9 +209,10 @@ def report(args, names, seq, runs, grow, slope, t_sim) -> str:
     return f"""
 {args.vehicles} simulated ASVs x {args.missions} missions x {args.duration / 60:.0f} min
 (GNSS every {args.gnss_period:.0f} s; {n_m} missions), thrust constants
-{', '.join(f'{k:.2f}' for k in K_SCALES[:args.vehicles])} x nominal. **The machine (2 cores)
-was shared with other agents' work during the run**: wall times are upper bounds and vary
-from run to run.
+{', '.join(f'{k:.2f}' for k in K_SCALES[:args.vehicles])} x nominal. The machine's 1-minute
+load average ({os.cpu_count()} cores) before / after the run: {args.load_before:.1f} /
+{args.load_after:.1f}; above the worker count, other work shared the cores and the wall
+times are upper bounds.
 
 {md_table(["run", "wall s", "speed-up vs sequential", "peak MB (per worker)",
            "rounds / tasks (one per worker and round)",
