@@ -26,8 +26,8 @@ from aqfg.fleet.worker import (
     MissionSpec,
     diagnose_op,
     finish_op,
+    load,
     memory,
-    mission_of,
     missions_op,
     refine_op,
     release,
@@ -316,12 +316,12 @@ def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dic
 
 def _sent(client, specs: list[MissionSpec], where: dict, home: list[str] | None) -> list:
     """A vehicle's missions held by other workers than ``home``, as futures of
-    :func:`mission_of` there (None for those ``home`` holds or no worker does)."""
+    :func:`~aqfg.fleet.worker.load` there (None for those ``home`` holds or no worker does)."""
     out: list = []
     for s in specs:
         w = where.get(s.key[1:])
         out.append(None if w is None or [w] == home else
-                   client.submit(mission_of, s, pure=False, retries=2, workers=[w],
+                   client.submit(load, s, pure=False, retries=2, workers=[w],
                                  allow_other_workers=True,
                                  key=f"aqfg-{s.run}-mission-{s.vehicle}-{s.index}"))
     return out
@@ -398,11 +398,11 @@ def _alive_workers(client, wait: float = WORKER_WAIT) -> list[str]:
 def _least_loaded(alive: list[str], where: dict) -> str:
     if not alive:
         raise FleetError("no Dask worker is running")
-    load = {w: 0 for w in alive}
+    held = {w: 0 for w in alive}
     for w in where.values():
-        if w in load:
-            load[w] += 1
-    return min(alive, key=lambda w: (load[w], w))
+        if w in held:
+            held[w] += 1
+    return min(alive, key=lambda w: (held[w], w))
 
 
 def _memory(client) -> dict:

@@ -45,9 +45,15 @@ class MissionSpec:
         return (self.run, self.vehicle, self.index)
 
 
+def _kept(spec: MissionSpec) -> tuple:
+    """The key of ``spec``'s mission among those kept for its fit."""
+    return spec.fit, spec.path, spec.gnss_every
+
+
 def load(spec: MissionSpec):
-    """The mission of ``spec`` as this worker read it for the fit (read on first use)."""
-    key = (spec.fit, spec.path, spec.gnss_every)
+    """The mission of ``spec`` as this worker read it for the fit (read on first use; sent
+    to another worker by Dask, a copy in memory instead of a second reading of its files)."""
+    key = _kept(spec)
     m = _MISSIONS.get(key)
     if m is None:
         m = _MISSIONS[key] = _read(spec)
@@ -100,12 +106,6 @@ def missions_op(items: list) -> list[dict]:
     return out
 
 
-def mission_of(spec: MissionSpec):
-    """The mission of ``spec`` from the worker that holds it (sent to another worker by
-    Dask, a copy in memory instead of a second reading of its files)."""
-    return load(spec)
-
-
 def _vehicle(specs: list[MissionSpec], result, sent: list | None = None) -> list:
     """A vehicle's missions (those ``sent`` from other workers, None where not, kept
     here for the fit; the others read here) and its joint fit ``result`` given the model it
@@ -113,7 +113,7 @@ def _vehicle(specs: list[MissionSpec], result, sent: list | None = None) -> list
     from aqfg.fg.common import mission_model
     for spec, m in zip(specs, sent or ()):
         if m is not None:
-            _MISSIONS.setdefault((spec.fit, spec.path, spec.gnss_every), m)
+            _MISSIONS.setdefault(_kept(spec), m)
     missions = [load(spec) for spec in specs]
     result.model = mission_model(None, missions[0], specs[0].effects)
     return missions
@@ -213,20 +213,22 @@ def n_sessions(vehicle: str | None = None) -> int:
     return sum(1 for k in _SESSIONS if vehicle is None or k[1] == vehicle)
 
 
+def _drop(store: dict, first: str) -> int:
+    """Drop the entries of ``store`` whose key starts with ``first``; how many there were."""
+    keys = [k for k in store if k[0] == first]
+    for k in keys:
+        del store[k]
+    return len(keys)
+
+
 def release(run: str) -> int:
     """Drop the sessions of ``run`` from this worker; how many there were."""
-    keys = [k for k in _SESSIONS if k[0] == run]
-    for k in keys:
-        del _SESSIONS[k]
-    return len(keys)
+    return _drop(_SESSIONS, run)
 
 
 def release_fit(fit: str) -> int:
     """Drop the missions this worker read for the fit ``fit``; how many there were."""
-    keys = [k for k in _MISSIONS if k[0] == fit]
-    for k in keys:
-        del _MISSIONS[k]
-    return len(keys)
+    return _drop(_MISSIONS, fit)
 
 
 def n_missions_read(fit: str | None = None) -> int:
