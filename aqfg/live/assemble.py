@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from aqfg.data.geodesy import latlon_to_ne
-from aqfg.data.importers.common import QUAT_TOL, LogFormatError, check_layout
+from aqfg.data.importers.common import QUAT_TOL, LogFormatError, check_layout, output_channels
 from aqfg.data.importers.mapfile import ImportMap, TopicSpec
 from aqfg.data.importers.mavlink import (
     DF_DEFAULTS,
@@ -268,12 +268,10 @@ class StreamAssembler:
         """The vehicle's parameters the map leaves to it and that have not arrived: each
         thruster output's ``SERVOn_MIN/TRIM/MAX`` (and ``_REVERSED`` unless the map says the
         reversal), while no PWM range is known; none for a DataFlash log."""
-        n = self.base_map.n_thrusters
-        if self.dataflash or self.imap.pwm is not None or n is None:
+        if self.dataflash or self.imap.pwm is not None or self.base_map.n_thrusters is None:
             return []
         keys = ("MIN", "TRIM", "MAX") + (("REVERSED",) if self.base_map.reversed is None else ())
-        chans = self.base_map.channels or list(range(1, n + 1))
-        return [f"SERVO{c}_{k}" for c in chans for k in keys
+        return [f"SERVO{c}_{k}" for c in output_channels(self.base_map) for k in keys
                 if f"SERVO{c}_{k}" not in self.params]
 
     def _record(self, stream: str, msg, stamp_ns: int) -> None:

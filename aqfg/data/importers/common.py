@@ -123,6 +123,12 @@ def at(source: str, topic: str | None, t_ns: int | None, start_ns: int | None = 
 
 # ------------------------------------------------------------------ motor commands
 
+def output_channels(imap: ImportMap) -> list[int]:
+    """The output (1-based) driving each thruster: the map's ``[motors] channels``, else
+    1..N."""
+    return imap.channels or list(range(1, (imap.n_thrusters or 0) + 1))
+
+
 def motor_commands(values: np.ndarray, imap: ImportMap, source: str, topic: str,
                    t_ns: np.ndarray, pwm: bool, what: str = "output") -> np.ndarray:
     """Select the thrusters' outputs from ``values`` (n, C) and normalise them to [-1, 1].
@@ -135,7 +141,7 @@ def motor_commands(values: np.ndarray, imap: ImportMap, source: str, topic: str,
     n_thr = imap.n_thrusters
     assert n_thr is not None
     values = np.asarray(values, dtype=float).reshape(len(t_ns), -1)
-    chans = imap.channels or list(range(1, n_thr + 1))
+    chans = output_channels(imap)
     if max(chans) > values.shape[1]:
         raise LogFormatError(source, f"[motors] channels asks for {what} {max(chans)} but "
                                      f"the message has {values.shape[1]}", **at(source, topic, None))

@@ -34,6 +34,7 @@ from aqfg.data.importers.common import (
     Series,
     assemble,
     motor_commands,
+    output_channels,
     require,
     scalar_streams,
 )
@@ -108,10 +109,9 @@ def _generic(src: str, spec: TopicSpec, stream: str, rows: list[Any]) -> dict[st
 def servo_map(imap: ImportMap, params: dict[str, float]) -> tuple[ImportMap, list[str]]:
     """``imap`` with the PWM range (and, unless mapped, the reversal) of each thruster's
     output from the log's ``SERVOn_MIN/TRIM/MAX/REVERSED``, when the map gives no range."""
-    n = imap.n_thrusters
-    if imap.pwm is not None or n is None:
+    if imap.pwm is not None or imap.n_thrusters is None:
         return imap, []
-    chans = imap.channels or list(range(1, n + 1))
+    chans = output_channels(imap)
     try:
         lo, mid, hi = (np.array([params[f"SERVO{c}_{k}"] for c in chans], dtype=float)
                        for k in ("MIN", "TRIM", "MAX"))
