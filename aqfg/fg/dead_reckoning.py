@@ -39,14 +39,22 @@ from aqfg.data.mission import Mission
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.dr_current import refine_current
 from aqfg.fg.dr_records import DeadReckoning
-from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments, to_v, to_x
+from aqfg.fg.predictions import (
+    HUBER_C,
+    Predictions,
+    Segment,
+    forward_jacobian,
+    robust_scale,
+    segments,
+    to_v,
+    to_x,
+)
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
 
-HUBER_C = 1.5          # Huber threshold, in robust scales of the prediction errors
 WALD_ALPHA = 0.01      # the refined constants replace the smoother's beyond this test level
 MIN_BLOCKS = 3         # fewer time blocks than parameters + this: not refined
 
@@ -85,7 +93,7 @@ def _huber_fit(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, r0
                              diff_step=1e-4, xtol=1e-6, ftol=1e-8, max_nfev=100)
     sol = huber_fit(x0, scale)
     r1 = residuals(sol.x)
-    s1 = max(1.4826 * float(np.median(np.abs(r1))), 1e-3)       # the scale at the fit
+    s1 = robust_scale(r1)                                     # the scale at the fit
     if abs(s1 / scale - 1.0) > 0.2:
         scale = s1
         sol = huber_fit(sol.x, scale)
@@ -173,7 +181,7 @@ def refine_constants(result: Result, missions: list[Mission], horizon: float,
     x0 = np.clip(x_fg, lo + 1e-9, hi - 1e-9)
     r0 = residuals(x0)
     e0 = pred.errors(x0)             # in m, for the report (the states of x0 are cached)
-    scale = max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
+    scale = robust_scale(r0)
     both = np.array([n in ("k", "k_x") for n in names]) & logs
     x, r, scale = _huber_fit(residuals, x0, r0, lo, hi, both, scale, jac)
     A, B, w, keys = _information(residuals, x, r, HUBER_C * scale, segs, blocks, horizon, jac)

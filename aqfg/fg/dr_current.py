@@ -39,12 +39,18 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.fg.dr_records import CURRENT, CurrentRefit
-from aqfg.fg.predictions import Predictions, Segment, forward_jacobian, segments
+from aqfg.fg.predictions import (
+    HUBER_C,
+    Predictions,
+    Segment,
+    forward_jacobian,
+    robust_scale,
+    segments,
+)
 from aqfg.fg.robust import huber_cost, huber_weight
 from aqfg.model.retrace import inertial_track
 from aqfg.result import Result
 
-HUBER_C = 1.5          # Huber threshold, in robust scales of the smoother's prediction errors
 MIN_BLOCKS = 2         # fewer time blocks: the smoother's current stays
 MAX_STEPS = 4          # Gauss-Newton steps of the fit at most
 STEP_TOL = 1e-4        # m/s, a step this small ends the fit
@@ -80,7 +86,7 @@ def refine_current(result: Result, missions: list[Mission], horizon: float,
         pred = Predictions(model, own, [mr.p.copy()], idx, np.zeros(2, bool))
         x_sm = np.array(before)
         r0 = pred.residuals(x_sm)
-        c_h = HUBER_C * max(1.4826 * float(np.median(np.abs(r0))), 1e-3)
+        c_h = HUBER_C * robust_scale(r0)         # at the smoother's current
         rows = np.repeat(np.concatenate([np.full(len(s.rows), k) for s, k in zip(own, keys)]), 2)
 
         x_all, r, J = _irls(pred, x_sm, r0, c_h)

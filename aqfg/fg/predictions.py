@@ -24,6 +24,7 @@ from aqfg.threads import both
 
 STRIDE_DIV = 4.0      # starts at least horizon / STRIDE_DIV s apart
 MIN_LEAD = 1.0        # s, the shortest lead time a residual is divided by
+HUBER_C = 1.5         # the refinements' Huber threshold, in robust scales of the residuals
 
 
 @dataclass
@@ -156,6 +157,12 @@ class Predictions:
              * self.per_lead[:, None])
         return np.where(np.isfinite(J), J, 0.0)
 
+
+
+def robust_scale(r: np.ndarray) -> float:
+    """The residuals' robust scale (m/s): 1.4826 x their median absolute value, at least
+    1e-3 (the normal's sigma for normal residuals)."""
+    return max(1.4826 * float(np.median(np.abs(r))), 1e-3)
 
 
 def to_x(v: np.ndarray, logs: np.ndarray) -> np.ndarray:
