@@ -440,7 +440,7 @@ class StreamAssembler:
         range among them (they are converted if it arrives)."""
         out = dict(self.dropped)
         if self.held_pwm:
-            key = f"{self.held_pwm[0][0].get_type()}: {HELD_PWM}"
+            key = f"{self.specs['motors'].topic}: {HELD_PWM}"      # as drop() keys it
             out[key] = out.get(key, 0) + len(self.held_pwm)
         return out
 
