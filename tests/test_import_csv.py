@@ -171,6 +171,17 @@ def test_map_errors_name_the_key():
              + "[motors]\npwm_min = 1100\npwm_trim = [\"z\", 1500]\npwm_max = 1900\n")
 
 
+def test_the_maps_hull_reaches_the_mission(sim, tmp_path):
+    """A [hull] in the map is the mission's (the diagnosis bounds a lever arm by it)."""
+    text = FORCE_MAP.replace("[csv]", "[hull]\nlength = 1.2\nbeam = 1.0\n\n[csv]")
+    rows, _ = rows_of(sim)
+    r = import_log("csv", write(tmp_path / "run.csv", rows), imap(text))
+    assert r.mission.hull == (1.2, 1.0)
+    assert import_log("csv", tmp_path / "run.csv", imap(FORCE_MAP)).mission.hull is None
+    with pytest.raises(MissionFormatError, match=r"hull"):
+        imap(text.replace("beam = 1.0", "beam = -1.0"))
+
+
 def test_several_files_one_mission_each(sim, tmp_path, capsys):
     rows, _ = rows_of(sim)
     a = write(tmp_path / "run_a.csv", rows)

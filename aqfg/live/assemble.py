@@ -408,7 +408,7 @@ class StreamAssembler:
                        thruster_dir=imap.thruster_dir, imu=imu, motors=motors,
                        thruster_pos=imap.thruster_pos, gnss=gnss, usbl=usbl,
                        usbl_station=imap.usbl_station, depth=depth, origin=self.origin,
-                       gnss_latlon=gnss is not None, extra=extra)
+                       hull=imap.hull, gnss_latlon=gnss is not None, extra=extra)
 
     def _gnss(self, t_fixes: float) -> Gnss | None:
         """The fixes in the inputs' span up to ``t_fixes``, their sigma as the importer and

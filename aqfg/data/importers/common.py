@@ -311,6 +311,7 @@ def assemble(source: str | os.PathLike, imap: ImportMap, series: dict[str, Serie
                       thruster_dir=imap.thruster_dir, imu=imu, motors=motors,
                       thruster_pos=imap.thruster_pos, gnss=gnss, usbl=usbl,
                       usbl_station=imap.usbl_station, depth=depth, origin=origin,
+                      hull=imap.hull,
                       gnss_latlon=gnss is not None and gnss.latlon is not None, extra=extra)
     if motors.u.shape[1] != mission.n_thrusters:
         raise LogFormatError(src, f"{motors.u.shape[1]} motor commands per message but "

@@ -1,8 +1,8 @@
 """The import map file (TOML): what a log cannot say about the vehicle, and where its
 streams are.
 
-Top-level ``vehicle`` (and optional ``name``) and the ``[thrusters]``, ``[usbl]`` and
-``[origin]`` tables have exactly the shape they have in ``mission.toml`` (they are checked
+Top-level ``vehicle`` (and optional ``name``) and the ``[thrusters]``, ``[usbl]``,
+``[origin]`` and ``[hull]`` tables have exactly the shape they have in ``mission.toml`` (they are checked
 by the mission reader's own rules); the importer-only tables are ``[topics]`` (stream ->
 topic or message name), ``[motors]`` (output channels, sign and PWM range), ``[time]``
 (which stamps to use, how far stamps may jump) and ``[csv]`` (the columns of a CSV
@@ -33,7 +33,7 @@ from aqfg.data.mission import FORMAT, VEHICLES
 
 STREAMS = ("imu", "gnss", "motors", "usbl", "depth")
 MISSION_KEYS = ("vehicle", "name")
-MISSION_TABLES = ("thrusters", "usbl", "origin")
+MISSION_TABLES = ("thrusters", "usbl", "origin", "hull")
 IMPORT_TABLES = ("topics", "motors", "time", "csv")
 TOPIC_KEYS = {                       # keys a [topics] entry may hold when it is a table
     "imu": ("topic", "instance"),
@@ -96,6 +96,7 @@ class ImportMap:
     thruster_pos: np.ndarray | None = None      # (N, 3) m, body FRD
     usbl_station: np.ndarray | None = None      # (3,) NED, m
     origin: tuple[float, float] | None = None   # (lat, lon) deg
+    hull: tuple[float, float] | None = None     # (length, beam) m
     topics: dict[str, TopicSpec] = field(default_factory=dict)
     channels: list[int] | None = None           # 1-based output per thruster
     reversed: list[bool] | None = None          # negate the command of each thruster
@@ -147,7 +148,7 @@ def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
         if k not in MISSION_KEYS + MISSION_TABLES + IMPORT_TABLES:
             raise MissionFormatError(
                 f, "unknown key; a map file holds vehicle, name, [thrusters], [usbl], "
-                   "[origin], [topics], [motors], [time] and [csv]", column=k)
+                   "[origin], [hull], [topics], [motors], [time] and [csv]", column=k)
     m = ImportMap(path=f)
     m.vehicle = raw.get("vehicle")
     if m.vehicle is not None and m.vehicle not in VEHICLES:
@@ -165,7 +166,7 @@ def parse_map(raw: dict[str, Any], f: str = "map") -> ImportMap:
 
 
 def _mission_tables(m: ImportMap, raw: dict[str, Any], f: str) -> None:
-    """[thrusters], [usbl], [origin]: parsed by the mission reader itself (so the shape is
+    """[thrusters], [usbl], [origin], [hull]: parsed by the mission reader itself (so the shape is
     exactly mission.toml's), from a minimal mission written to a scratch directory."""
     org = raw.get("origin")
     if isinstance(org, dict):            # a typo here would silently drop the origin
@@ -196,7 +197,7 @@ def _mission_tables(m: ImportMap, raw: dict[str, Any], f: str) -> None:
             raise MissionFormatError(f, e.problem, column=e.column) from None
     if "thrusters" in raw:
         m.thruster_dir, m.thruster_pos = parsed.thruster_dir, parsed.thruster_pos
-    m.usbl_station, m.origin = parsed.usbl_station, parsed.origin
+    m.usbl_station, m.origin, m.hull = parsed.usbl_station, parsed.origin, parsed.hull
     m.extra = {k: v for k, v in parsed.extra.items() if k in MISSION_TABLES}
 
 
