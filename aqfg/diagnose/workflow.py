@@ -92,6 +92,7 @@ from aqfg.diagnose.consistency import ConsistencyTest
 from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
 from aqfg.diagnose.linearise import linear_system
 from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
+from aqfg.fg import gnss_noise
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
 from aqfg.fg.score import (
     Projected,
@@ -355,7 +356,10 @@ class Diagnosis:
             flag = "*" if c.status == "missing" else " "
             L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
                      f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>34}  {est}; {c.status_text(best)}")
-        L.append(f"(noise floor of the held-out fixes {self.base.noise_floor:.2f} m; gain: "
+        gn = self.settings.get("gnss_noise")
+        src = (f"GNSS noise measured on the fixes: {gn['sigma']:.2f} m, correlation time "
+               f"{gn['tau']:.1f} s" if gn else "the fixes' stated sigma")
+        L.append(f"(noise floor of the held-out fixes {self.base.noise_floor:.2f} m, {src}; gain: "
                  "fall of the dead-reckoning error beyond it, at least "
                  f"{100 * self.settings.get('min_gain', MIN_GAIN):.0f}% for a missing effect)")
         L.append("(* the missing effect: score, refit (LR, BIC, direction) and held-out fixes "
@@ -503,7 +507,11 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     jobs = default_jobs() if jobs is None else max(1, int(jobs))
     timings: dict = {}
     t0 = time.perf_counter()
-    splits = [split_fixes(m, gnss_every) for m in missions]
+    # the held-out fixes' own error: the receiver's, measured as `aqfg fit` does where the
+    # fixes are dense (a stated sigma far above it would hide any dead-reckoning error)
+    noise = gnss_noise.resolve(missions, settings.gnss_noise, settings.online_kinematic_q,
+                               settings.sensors.gnss_sigma)
+    splits = [split_fixes(m, gnss_every, noise) for m in missions]
     ev_kw: dict[str, Any] = {"settings": settings, "horizon": horizon, "window": window}
     names = tuple(e.name for e in effects)
 
@@ -620,7 +628,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
             "max_refit": max_refit, "max_rivals": max_rivals, "n_blocks": n_blocks,
             "n_boot": n_boot, "memory": memory,
             "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
-            "jobs": jobs}
+            "jobs": jobs, "gnss_noise": None if noise is None else noise.document()}
     return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
                      series, before, names if base_eval is None else (), sett, timings,
                      next_scr)

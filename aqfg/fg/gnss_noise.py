@@ -194,16 +194,25 @@ def weighted(mission: Mission, noise: GnssNoise | None, default_sigma: float,
     return out
 
 
+def resolve(missions: list[Mission], noise, q: float, default_sigma: float
+            ) -> GnssNoise | None:
+    """The GNSS noise ``noise`` names (:attr:`FGSettings.gnss_noise`): a :class:`GnssNoise`
+    as it is, ``"measure"``: :func:`measure` on these missions' fixes (constant-velocity
+    PSD ``q``), None: none (the fixes' stated sigma)."""
+    if isinstance(noise, str):
+        if noise != "measure":
+            raise ValueError(f"gnss_noise must be a GnssNoise, 'measure' or None, got {noise!r}")
+        return measure(missions, q, default_sigma)
+    return noise
+
+
 def apply(missions: list[Mission], noise, q: float, default_sigma: float, track: bool = True
           ) -> tuple[list[Mission], GnssNoise | None]:
     """The missions with their fixes weighted by ``noise`` (:attr:`FGSettings.gnss_noise`):
     a :class:`GnssNoise`, ``"measure"`` (:func:`measure` on these missions' fixes, with
     the constant-velocity PSD ``q``) or None (the fixes' stated sigma, as they are);
     ``track`` as :func:`weighted`."""
-    if isinstance(noise, str):
-        if noise != "measure":
-            raise ValueError(f"gnss_noise must be a GnssNoise, 'measure' or None, got {noise!r}")
-        noise = measure(missions, q, default_sigma)
+    noise = resolve(missions, noise, q, default_sigma)
     if noise is None:
         return list(missions), None
     return [weighted(m, noise, default_sigma, track) for m in missions], noise
