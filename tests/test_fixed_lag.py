@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aqfg.data.mission import with_gnss_every, without_gnss
+from aqfg.data.mission import Gnss, with_gnss_every, without_gnss
 from aqfg.fg.fit import BatchSmoother, FGSettings, FixedLagSmoother, fit_fg
 from aqfg.fg.online.policy import Phase
 from aqfg.sim.simulator import simulate
@@ -151,6 +151,26 @@ def test_fit_fg_online_several_missions_and_bad_input():
     assert len(res.info["histories"]) == 2
     with pytest.raises(ValueError, match="window"):
         FixedLagSmoother(window=0.0)
+
+
+def test_the_causal_track_runs_on_past_the_last_fix_with_the_model():
+    """After its last fix the vehicle still knows where it is by dead reckoning: the causal
+    track reaches the end of the data, there the model alone (the corrected track's tail),
+    and it stays near the truth over those 20 s."""
+    m, tr = simulate("asv", seed=9, duration=80.0)
+    m = with_gnss_every(m, 8.0)
+    g = m.gnss
+    keep = g.t <= 60.0
+    m.gnss = Gnss(g.t[keep], g.ne[keep], None if g.sigma is None else g.sigma[keep])
+    res = fit_fg([m], mode="online", window=16.0, init=fixed_truth(tr))
+    mr = res.missions[0]
+    causal, corrected = mr.filtered, mr.track
+    assert causal.t[-1] == pytest.approx(corrected.t[-1]) and causal.t[-1] > 79.0
+    tail = causal.t > g.t[keep][-1] + 1e-6
+    assert tail.sum() >= 19
+    np.testing.assert_allclose(causal.pos[tail], corrected.pos[np.isin(corrected.t, causal.t[tail])])
+    truth = np.column_stack([np.interp(causal.t[tail], tr.t, tr.pos[:, a]) for a in range(2)])
+    assert np.max(np.hypot(*(causal.pos[tail, :2] - truth).T)) < 5.0
 
 
 def test_random_walk_online_follows_heading_drift():

@@ -55,7 +55,7 @@ from aqfg.fg.online.gtsam_engine import GtsamEngine
 from aqfg.fg.online.numpy_engine import NumpyEngine
 from aqfg.fg.online.policy import HoldPolicy, Phase
 from aqfg.fg.online.report import ParamPriors, SigmaReport
-from aqfg.fg.online.tracks import p_segments, retrace
+from aqfg.fg.online.tracks import p_segments, retrace, with_tail
 from aqfg.fg.online.views import StepSource
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.vehicle import Model
@@ -460,7 +460,7 @@ class FixedLagSmoother:
         p = self.params()
         t_end = max(self.mission.t1, self.knots[-1])
         track = self.corrected_track(p, t_end=t_end)
-        filt = self.filtered_track()
+        filt = with_tail(self.filtered_track(), track)
         seg_p = self._p_segments(p)
         seg_starts = np.array(self.seg_starts)
 

@@ -1,11 +1,13 @@
 """The online smoother's tracks: the past trajectory re-traced with the current parameters
 (the paper's past-trajectory correction, §III-D) and the parameters of the random-walk
-segments it uses."""
+segments it uses; the causal track's tail after the last fix."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
 import numpy as np
+
+from aqfg.result import Track
 
 # m/s: a re-traced speed beyond this is the integration diverging, not a vehicle
 DIVERGED_SPEED = 50.0
@@ -82,3 +84,15 @@ def retrace(model, mission, knots: np.ndarray, anchors: list[int], ax: dict[int,
             w = (knots[a + 1:b + 1] - knots[a]) / (knots[b] - knots[a])
             X[a + 1:b + 1] += w[:, None] * err[None, :]
     return X
+
+
+def with_tail(causal: Track, corrected: Track) -> Track:
+    """The causal track run on past its last knot (the last fix) to the end of
+    ``corrected``: after its last fix the vehicle knows only the model's dead reckoning
+    from its state there, which is the corrected track's tail."""
+    k = corrected.t > causal.t[-1] + 1e-9
+    if not np.any(k):
+        return causal
+    return Track(np.concatenate([causal.t, corrected.t[k]]),
+                 np.vstack([causal.pos, corrected.pos[k]]),
+                 np.vstack([causal.vel, corrected.vel[k]]))
