@@ -18,6 +18,12 @@
 * online (``--mode online``), the vehicle constants from a joint batch fit of the OTHER
   runs (``--params-from``), GNSS every 4 and 8 s: RMSE of the causal track (what the
   vehicle knew at each time) and of the corrected track against every fix;
+* diagnosis (``aqfg diagnose RUN --auto``, ``diagnose_sequence``): the effects it adds, each
+  with its estimate and the fall of the held-out dead-reckoning error beyond the fixes'
+  noise, the RMS distance to the held-out fixes (bare -> final) beside their noise floor,
+  and the effects that fit but are implausible (with what they probably absorb) or are
+  significant but negligible; the check: every added effect within its plausible range
+  (the mission's hull for a lever arm) and with a gain of at least ``min_gain``;
 * wall times.
 
 The fixes themselves are the reference: a GNSS error (1-2 m, correlated over seconds) is in
@@ -219,6 +225,31 @@ def online_scores(method: str, m: Mission, init: dict, effects: tuple, sparse: d
     return row
 
 
+def diagnosis_scores(m: Mission) -> dict:
+    """What ``aqfg diagnose RUN --auto`` says of one run (module docstring)."""
+    from aqfg.diagnose.confirm import implausible
+    from aqfg.diagnose.sequence import diagnose_sequence
+    from aqfg.model.effects import resolve
+    t0 = time.perf_counter()
+    try:
+        seq = diagnose_sequence([m])
+    except Exception as e:       # a failure is a result of the run, not the end
+        print(f"{m.name} diagnose failed: {type(e).__name__}: {e}", file=sys.stderr)
+        return {"failed": f"{type(e).__name__}: {e}", "wall_diag": time.perf_counter() - t0}
+    last = seq.diagnoses[-1]
+    est = [", ".join(f"{n.split('.')[-1]} {v['value']:.3g}±{v['sigma']:.2g}"
+                     for n, v in s.estimate.items()) for s in seq.steps]
+    return {"added": [f"{s.effect} ({e}; {-100 * s.gain:+.0f}%)" for s, e in zip(seq.steps, est)],
+            "plausible": [not implausible(resolve(s.effect), s.estimate, [m]) for s in seq.steps],
+            "gains": [float(s.gain) for s in seq.steps],
+            "min_gain": float(last.settings.get("min_gain", float("nan"))),
+            "implausible": [f"{c.effect} ({c.estimate_text()}; {', '.join(c.implausible)}): "
+                            f"{c.absorbs or '?'}" for c in last.labelled("implausible")],
+            "negligible": [c.effect for c in last.labelled("negligible")],
+            "bare": seq.bare.rmse_raw, "final": seq.final.rmse_raw, "floor": seq.bare.noise_floor,
+            "wall_diag": time.perf_counter() - t0}
+
+
 # ---------------------------------------------------------------- table
 def f2(x, f="{:.2f}") -> str:
     return "n/a" if x is None or not np.isfinite(x) else f.format(x)
@@ -262,6 +293,21 @@ def table(runs: dict) -> str:
         a, b = runs[n]["fg"], runs[n]["update-error"]
         lines.append(f"| {n} | " + " | ".join(f"{f2(a[k])} / {f2(b[k])}" for k in
                      ("causal4", "corrected4", "causal8", "corrected8")) + " |")
+    if any("diagnosis" in runs[n] for n in names):
+        lines += ["", "## Diagnosis (aqfg diagnose RUN --auto)", "",
+                  "| run | added (estimate ± sigma; held-out error beyond the noise) | "
+                  "held-out RMS bare -> final m (noise floor) | fits, but implausible: "
+                  "probably absorbing | significant but negligible | time s |",
+                  "|---|---|---|---|---|---|"]
+        for n in names:
+            d = runs[n].get("diagnosis", {})
+            if "failed" in d or not d:
+                lines.append(f"| {n} | failed: {d.get('failed', 'not run')} | | | | |")
+                continue
+            lines.append(f"| {n} | {'; '.join(d['added']) or 'nothing'} | {f2(d['bare'])} -> "
+                         f"{f2(d['final'])} ({f2(d['floor'])}) | "
+                         f"{'; '.join(d['implausible']) or '–'} | "
+                         f"{', '.join(d['negligible']) or '–'} | {d['wall_diag']:.0f} |")
     lines += ["", "## Wall times (s; fg / update-error)", "",
               "| run | batch (8 s, all, +30 deg) | donor fit (other runs) | online 4 s | online 8 s |",
               "|---|---|---|---|---|"]
@@ -304,6 +350,16 @@ def checks(runs: dict) -> str:
         b = np.array([runs[n]["update-error"][key] for n in names])
         out.append(f"- (c) online {key}: fg no worse than update-error on {int(np.sum(a <= b + 1e-9))}"
                    f"/{len(a)} runs; median {np.median(a):.2f} vs {np.median(b):.2f} m")
+    diags = [runs[n]["diagnosis"] for n in names if "diagnosis" in runs[n]]
+    if diags:
+        ok = [d for d in diags if "failed" not in d]
+        added = [(p, g, d["min_gain"]) for d in ok for p, g in zip(d["plausible"], d["gains"])]
+        good = sum(p and g >= mg - 1e-12 for p, g, mg in added)
+        out.append(f"- (4) diagnosis: {len(ok)}/{len(diags)} runs diagnosed; effects named "
+                   f"missing {len(added)} in all, {good} within their plausible range and with "
+                   f"a held-out gain of at least the minimum; "
+                   f"{sum(bool(d['implausible']) for d in ok)} runs with an effect that fits "
+                   "but is implausible (reported as such, never added)")
     return "\n".join(out)
 
 
@@ -334,6 +390,7 @@ def main(argv=None) -> int:
     ap.add_argument("--white", action="store_true",
                     help="factor graph: the fixes at their stated sigma (FGSettings.gnss_noise=None)")
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods (default: both)")
+    ap.add_argument("--no-diagnosis", action="store_true", help="leave out aqfg diagnose --auto")
     args = ap.parse_args(argv)
     started = time.perf_counter()
     src = Path(args.dir)
@@ -367,6 +424,9 @@ def main(argv=None) -> int:
             row.update(online_scores(method, m, init, effects, sparse))
             row["wall_donor"] = wd
             runs[n][method] = row
+        if not args.no_diagnosis:
+            runs[n]["diagnosis"] = diagnosis_scores(m)
+            print(f"{n} diagnosis: {runs[n]['diagnosis']}", file=sys.stderr, flush=True)
             print(f"{n} {method}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items()
                                                 if isinstance(v, float)), file=sys.stderr, flush=True)
     if args.save:
