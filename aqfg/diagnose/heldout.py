@@ -159,6 +159,136 @@ def _propagate_legs(model: Model, fit: Mission, p: np.ndarray, chains: dict, x0:
     return out
 
 
+def _thin_anchors(anchors: np.ndarray, horizon: float | None) -> np.ndarray:
+    """The anchor times (s) thinned to one per ``horizon`` seconds (None: all of them)."""
+    if horizon is None:
+        return anchors
+    keep, last = [], -np.inf
+    for ta in anchors:
+        if ta >= last + horizon - 1e-6:
+            keep.append(ta); last = ta
+    return np.asarray(keep)
+
+
+def _anchor_knots(knots: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """The index of each anchor time among the graph's knot times (both s)."""
+    ka = np.searchsorted(knots, anchors - 1e-6)
+    ka = np.clip(ka, 0, len(knots) - 1)
+    if np.max(np.abs(knots[ka] - anchors)) > 1e-6:
+        raise ValueError("held-out evaluation: the fit's fixes are not all knots of its graph")
+    return ka
+
+
+def _leg_chains(anchors: np.ndarray, t_rows: np.ndarray, a_of: np.ndarray, gap: float,
+                t1: float, leg_sample: float) -> dict[int, tuple[np.ndarray, list[int]]]:
+    """``{anchor index: (its leg's times after the anchor (s), its held-out rows)}``: each
+    leg runs to the next anchor (the last one ``gap`` s, at most to ``t1``), sampled every
+    ``leg_sample`` s and at its held-out fixes."""
+    chains = {}
+    for a in range(len(anchors)):
+        ta = anchors[a]
+        tb = anchors[a + 1] if a + 1 < len(anchors) else min(ta + gap, t1)
+        sel = [j for j in range(len(t_rows)) if a_of[j] == a and t_rows[j] <= tb + 1e-9]
+        if tb <= ta + 1e-6:
+            continue
+        grid = np.arange(ta + leg_sample, tb, leg_sample)
+        tk = np.unique(np.concatenate([grid, t_rows[sel], [tb]]))
+        tk = tk[tk > ta + 1e-9]
+        if len(tk):
+            chains[a] = (tk, sel)
+    return chains
+
+
+@dataclass(frozen=True)
+class _Predictor:
+    """What predicting one held-out fix needs besides its own leg: the model at the fitted
+    parameters ``p``, the USBL station ``st``, the fitted track (for USBL outliers) and,
+    per estimated parameter, its index in the full vector and among the dynamics columns
+    (-1: not a dynamics parameter)."""
+    model: Model
+    p: np.ndarray
+    settings: FGSettings
+    planar: bool
+    st: np.ndarray | None
+    track: Track
+    full_idx: list[int]
+    dyn_pos: np.ndarray
+    outlier_m: float
+
+
+def _measure(pr: _Predictor, sensor: str, x: np.ndarray, R_att: np.ndarray, t: float,
+             z: np.ndarray):
+    """The innovation ``z - h(x)`` (USBL bearing wrapped), the measurement Jacobians
+    ``(Hp, Hth)`` and the fix as a north/east position (m)."""
+    if sensor == "gnss":
+        h, Hp, Hth = pr.model.h_gnss(x, R_att, t, pr.p)
+        return z - h, Hp, Hth, z
+    st = pr.st
+    assert st is not None, "USBL fixes need the station position"
+    h, Hp, Hth = pr.model.h_usbl(x, R_att, t, pr.p, st)
+    nu = z - h
+    nu[1] = float(wrap_angle(nu[1]))
+    fix_ne = np.asarray(st[:2], float) + z[0] * np.array([np.cos(z[1]), np.sin(z[1])])
+    return nu, Hp, Hth, fix_ne
+
+
+def _sensitivity(pr: _Predictor, Hp: np.ndarray, Hth: np.ndarray, Phi: np.ndarray,
+                 Jp: np.ndarray) -> np.ndarray:
+    """``G`` (2, 6 + n_th): the prediction's derivative by the anchor state and the
+    estimated parameters, through the leg's transition ``Phi`` and parameter Jacobian ``Jp``."""
+    n_th = len(pr.full_idx)
+    G = np.zeros((2, 6 + n_th))
+    G[:, :6] = Hp @ Phi            # Hp: d/d[pos, vel] (time offsets read vel)
+    for c in range(n_th):
+        col = Hth[:, pr.full_idx[c]].copy() if pr.full_idx[c] < Hth.shape[1] else np.zeros(2)
+        if pr.dyn_pos[c] >= 0:
+            col += Hp @ Jp[:, pr.dyn_pos[c]]
+        G[:, 6 + c] = col
+    return G
+
+
+def _usbl_distance(pr: _Predictor, x: np.ndarray, R_att: np.ndarray, t: float,
+                   z: np.ndarray, nu: np.ndarray, R: np.ndarray) -> tuple[float, float, bool]:
+    """A USBL innovation as a horizontal distance (m), the fix's noise as a mean squared
+    distance (m^2), and whether the fix is an outlier: further than ``outlier_m`` off the
+    *fitted* track (not the dead-reckoned one), in range or across it."""
+    st = pr.st
+    assert st is not None
+    rh = float(np.hypot(*(x[:2] - np.asarray(st[:2], float))))
+    err = float(np.hypot(nu[0], rh * nu[1]))
+    noise = float(R[0, 0] + rh ** 2 * R[1, 1])
+    xs = interp_states(pr.track, np.array([t]))[0]
+    hs = pr.model.h_usbl(xs, R_att, t, pr.p, st)[0]
+    ds = z - hs
+    ds[1] = float(wrap_angle(ds[1]))
+    outlier = bool(abs(ds[0]) > pr.outlier_m or rh * abs(ds[1]) > pr.outlier_m)
+    return err, noise, outlier
+
+
+def _predict_fix(pr: _Predictor, row: tuple, leg_state: tuple, R_att: np.ndarray,
+                 Sa: np.ndarray, dt: float) -> tuple:
+    """One held-out fix ``row`` (sensor, t, z, R) predicted from the leg's state at its
+    time ``leg_state`` (x, Phi, Jp), ``dt`` s after the anchor whose state + parameter
+    covariance is ``Sa``: (nu, S, nis, err, noise, outlier, fix_ne) as in :class:`HeldOut`."""
+    sensor, tj, z, R = row
+    xj, Phj, Jpj = leg_state
+    nu, Hp, Hth, fix_ne = _measure(pr, sensor, xj, R_att, tj, z)
+    G = _sensitivity(pr, Hp, Hth, Phj, Jpj)
+    Q = pr.settings.process.cov(dt, pr.planar)
+    S = G @ Sa @ G.T + Hp @ Q @ Hp.T + R
+    S = 0.5 * (S + S.T)
+    nis = float(nu @ np.linalg.solve(S, nu))
+    if sensor == "gnss":
+        err, noise, outlier = float(np.linalg.norm(nu)), float(np.trace(R)), False
+    else:
+        err, noise, outlier = _usbl_distance(pr, xj, R_att, tj, z, nu, R)
+    return nu, S, nis, err, noise, outlier, fix_ne
+
+
+_FIELDS = ("sensor", "t", "dt", "anchor", "nu", "S", "nis", "err", "noise", "outlier",
+           "fix_ne")
+
+
 def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: MissionResult,
                         lin: LinearSystem, mission_index: int, estimated: tuple[str, ...],
                         settings: FGSettings, horizon: float | None = None,
@@ -171,31 +301,19 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     dead-reckons over its whole window, passing fit fixes without using them (longer
     prediction gaps; every held-out fix is still predicted exactly once).
     """
-    anchors = np.unique(fit.fix_times())
-    if horizon is not None:
-        keep, last = [], -np.inf
-        for ta in anchors:
-            if ta >= last + horizon - 1e-6:
-                keep.append(ta); last = ta
-        anchors = np.asarray(keep)
+    anchors = _thin_anchors(np.unique(fit.fix_times()), horizon)
     rows = _fix_rows(heldout, settings)
     if len(anchors) < 1 or not rows:
         raise ValueError(f"mission {fit.name!r}: not enough fixes to hold some out "
                          f"({len(anchors)} fit fixes, {len(rows)} held out)")
     assert lin.knots is not None and lin.param_cols is not None, \
         "a LinearSystem from aqfg.diagnose.linearise"
-    knots = lin.knots[mission_index]
-    p = mres.p
     dyn_cols = list(model.dyn_columns())
     est = [n for n in estimated if (mission_index, n) in lin.param_cols]
     pcol = np.array([lin.param_cols[(mission_index, n)] for n in est], int)
     full_idx = [model.index(n) for n in est]
     dyn_pos = np.array([dyn_cols.index(i) if i in dyn_cols else -1 for i in full_idx])
-    # anchor knots
-    ka = np.searchsorted(knots, anchors - 1e-6)
-    ka = np.clip(ka, 0, len(knots) - 1)
-    if np.max(np.abs(knots[ka] - anchors)) > 1e-6:
-        raise ValueError("held-out evaluation: the fit's fixes are not all knots of its graph")
+    ka = _anchor_knots(lin.knots[mission_index], anchors)
     # the last anchor's window: the anchors' usual gap (one anchor: the rest of the mission,
     # e.g. a run shorter than two horizons)
     gap = float(np.median(np.diff(anchors))) if len(anchors) > 1 else float(fit.t1 - anchors[0])
@@ -203,83 +321,34 @@ def heldout_innovations(model: Model, fit: Mission, heldout: Mission, mres: Miss
     # the anchors that have targets, and the joint covariance of each one's state + params
     a_of = np.searchsorted(anchors, t_rows - 1e-9) - 1       # last anchor strictly before
     use = sorted({int(a) for a in a_of if a >= 0})
-    n_th = len(pcol)
     Sig = anchor_covariances(lin, mission_index, ka[use], pcol)
     pos_of = {a: i for i, a in enumerate(use)}
     X_fit = interp_states(mres.track, anchors)
     st = heldout.usbl_station if heldout.usbl_station is not None else fit.usbl_station
-    out: dict[str, list] = {k: [] for k in ("sensor", "t", "dt", "anchor", "nu", "S", "nis",
-                                            "err", "noise", "outlier", "fix_ne")}
-    legs = []
-    chains = {}
-    for a in range(len(anchors)):
-        ta = anchors[a]
-        tb = anchors[a + 1] if a + 1 < len(anchors) else min(ta + gap, fit.t1)
-        sel = [j for j in range(len(rows)) if a_of[j] == a and t_rows[j] <= tb + 1e-9]
-        if tb <= ta + 1e-6:
-            continue
-        grid = np.arange(ta + leg_sample, tb, leg_sample)
-        tk = np.unique(np.concatenate([grid, t_rows[sel], [tb]]))
-        tk = tk[tk > ta + 1e-9]
-        if len(tk):
-            chains[a] = (tk, sel)
-    run = _propagate_legs(model, fit, p, {a: np.concatenate([[anchors[a]], tk])
-                                          for a, (tk, _) in chains.items()},
+    pr = _Predictor(model, mres.p, settings, fit.planar, st, mres.track, full_idx, dyn_pos,
+                    outlier_m)
+    chains = _leg_chains(anchors, t_rows, a_of, gap, fit.t1, leg_sample)
+    run = _propagate_legs(model, fit, mres.p, {a: np.concatenate([[anchors[a]], tk])
+                                               for a, (tk, _) in chains.items()},
                           {a: X_fit[a] for a in chains}, len(dyn_cols))
+    out: dict[str, list] = {k: [] for k in _FIELDS}
+    legs = []
     for a, (tk, sel) in chains.items():
         ta = anchors[a]
         X, Phis, Jps = run[a]
         legs.append(Track(np.concatenate([[anchors[a]], tk]),
                           np.vstack([X_fit[a, :3], X[:, :3]]),
                           np.vstack([X_fit[a, 3:], X[:, 3:]])))
-        states = {float(tk[i]): (X[i], Phis[i], Jps[i]) for i in range(len(tk))}
         if not sel:
             continue
-        Sa = Sig[pos_of[a]]
+        states = {float(tk[i]): (X[i], Phis[i], Jps[i]) for i in range(len(tk))}
         Rt = attitude_at(fit, t_rows[sel])
         for q, j in enumerate(sel):
-            sensor, tj, z, R = rows[j]
-            xj, Phj, Jpj = states[float(tj)] if float(tj) in states else states[min(
+            tj = rows[j][1]
+            leg_state = states[float(tj)] if float(tj) in states else states[min(
                 states, key=lambda s: abs(s - tj))]
-            if sensor == "gnss":
-                h, Hp, Hth = model.h_gnss(xj, Rt[q], tj, p)
-                nu = z - h
-                fix_ne = z
-            else:
-                assert st is not None, "USBL fixes need the station position"
-                h, Hp, Hth = model.h_usbl(xj, Rt[q], tj, p, st)
-                nu = z - h
-                nu[1] = float(wrap_angle(nu[1]))
-                fix_ne = np.asarray(st[:2], float) + z[0] * np.array([np.cos(z[1]), np.sin(z[1])])
-            G = np.zeros((2, 6 + n_th))
-            G[:, :6] = Hp @ Phj            # Hp: d/d[pos, vel] (time offsets read vel)
-            for c in range(n_th):
-                col = Hth[:, full_idx[c]].copy() if full_idx[c] < Hth.shape[1] else np.zeros(2)
-                if dyn_pos[c] >= 0:
-                    col += Hp @ Jpj[:, dyn_pos[c]]
-                G[:, 6 + c] = col
-            Q = settings.process.cov(tj - ta, fit.planar)
-            S = G @ Sa @ G.T + Hp @ Q @ Hp.T + R
-            S = 0.5 * (S + S.T)
-            nis = float(nu @ np.linalg.solve(S, nu))
-            if sensor == "gnss":
-                err = float(np.linalg.norm(nu))
-                noise = float(np.trace(R))
-                outlier = False
-            else:
-                assert st is not None
-                rh = float(np.hypot(*(xj[:2] - np.asarray(st[:2], float))))
-                err = float(np.hypot(nu[0], rh * nu[1]))
-                noise = float(R[0, 0] + rh ** 2 * R[1, 1])
-                # outlier: far off the *fitted* track (not the dead-reckoned one)
-                xs = interp_states(mres.track, np.array([tj]))[0]
-                hs = model.h_usbl(xs, Rt[q], tj, p, st)[0]
-                ds = z - hs
-                ds[1] = float(wrap_angle(ds[1]))
-                outlier = bool(abs(ds[0]) > outlier_m or rh * abs(ds[1]) > outlier_m)
-            for k, v in (("sensor", sensor), ("t", tj), ("dt", tj - ta), ("anchor", a),
-                         ("nu", nu), ("S", S), ("nis", nis), ("err", err), ("noise", noise),
-                         ("outlier", outlier), ("fix_ne", fix_ne)):
+            pred = _predict_fix(pr, rows[j], leg_state, Rt[q], Sig[pos_of[a]], tj - ta)
+            for k, v in zip(_FIELDS, (rows[j][0], tj, tj - ta, a, *pred)):
                 out[k].append(v)
     if not out["t"]:
         raise ValueError(f"mission {fit.name!r}: no held-out fix lies between two fit fixes")
