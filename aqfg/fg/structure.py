@@ -96,48 +96,40 @@ def candidate_effects(missions: Sequence[Mission], model_effects=(), extra=(),
     return out
 
 
-def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
-                     estimated: tuple[str, ...]) -> StructuralShift | None:
-    """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
-    nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
-    candidates are the catalogue's dynamics effects the kernel already differentiates at
-    their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
-    and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
-    Holm-adjusted robust p is below ``ALPHA_SIGMA`` (its ranking is still every candidate's);
-    None where there is nothing to test or no candidate moves a variable parameter."""
-    names = [n for n in estimated if model.spec(n).group == "variable"]
-    cands = [e for e in candidate_effects(missions, model.effects)
-             if not isinstance(e, DemandLagTerm)
-             and all(model.index(n) < N_DYN for n in e.params)]
-    if not names or not cands or fs.P == 0:
-        return None
-    dyn = list(model.dyn_columns())
-    cols = [n for e in cands for n in e.params]
-    with np.errstate(over="ignore", invalid="ignore"):
-        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-        try:
-            fac = fs.factor(D, E, Hsp, Hpp)
-        except np.linalg.LinAlgError:
-            return None
-    d0, W, A0, Ap, rd = fs.d0, fs.W, ev["A0"], ev["Ap"], ev["dyn_r"]
-    Jp = ev["Jp"]
-    # C: the candidates' columns of the whitened dynamics rows (K, 6, c), as Ap's
-    C = -np.matmul(W, Jp[:, :, [dyn.index(model.index(n)) for n in cols]])
-    # Z = H^-1 A^T C (fs.solve gives -H^-1 g)
-    Zs = np.zeros((fs.N, 6, len(cols)))
-    Zp = np.zeros((fs.P, len(cols)))
-    for j in range(len(cols)):
+def _dynamics_candidates(missions: Sequence[Mission], model: Model) -> list:
+    """The catalogue's dynamics effects the kernel differentiates at their null (every
+    parameter a dynamics column; no demand lag), applicable and not in ``model``."""
+    return [e for e in candidate_effects(missions, model.effects)
+            if not isinstance(e, DemandLagTerm)
+            and all(model.index(n) < N_DYN for n in e.params)]
+
+
+def _solve_columns(fs: FastSystem, fac, ev: dict, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Z = H^-1 A^T C`` of the candidates' dynamics columns ``C`` (K, 6, c): its state
+    rows (N, 6, c) and parameter rows (P, c) (``fs.solve`` gives ``-H^-1 g``)."""
+    d0, W, A0, Ap = fs.d0, fs.W, ev["A0"], ev["Ap"]
+    ncol = C.shape[2]
+    Zs = np.zeros((fs.N, 6, ncol))
+    Zp = np.zeros((fs.P, ncol))
+    for j in range(ncol):
         g_s = np.zeros((fs.N, 6))
         g_s[d0] += np.einsum("kji,kj->ki", A0, C[:, :, j])
         g_s[d0 + 1] += np.einsum("kji,kj->ki", W, C[:, :, j])
         g_p = np.einsum("kji,kj->i", Ap, C[:, :, j])
         dX, dth = fs.solve(fac, g_s, g_p)
         Zs[:, :, j], Zp[:, j] = -dX, -dth
-    # projected columns C~ = C - A Z and residuals b~ = -r, row by row, with each row's time
+    return Zs, Zp
+
+
+def _projected(fs: FastSystem, ev: dict, model: Model, cols: list[str], C: np.ndarray,
+               Zs: np.ndarray, Zp: np.ndarray) -> Projected:
+    """The projected columns ``C~ = C - A Z`` and residuals ``b~ = -r``, row by row (the
+    dynamics rows, then each measurement's), with each row's time (s)."""
+    d0, W, A0, Ap = fs.d0, fs.W, ev["A0"], ev["Ap"]
     t_state = np.concatenate([np.asarray(p.knots, float) for p in fs.bg.parts])
     Ct_rows = [C - np.einsum("kab,kbc->kac", A0, Zs[d0]) - np.einsum("kab,kbc->kac", W, Zs[d0 + 1])
                - np.einsum("kap,pc->kac", Ap, Zp)]
-    b_rows = [-rd]
+    b_rows = [-ev["dyn_r"]]
     t_rows = [np.repeat(t_state[d0 + 1], 6)]
     for m, (r, J, w) in zip(fs.meas, ev["meas"]):
         sw = np.sqrt(w)[:, None]
@@ -149,35 +141,71 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     bt = np.concatenate([b.ravel() for b in b_rows])
     rt = np.concatenate(t_rows)
     specs = [model.spec(n) for n in cols]
-    proj = Projected(Ct, bt, tuple(cols), rt, np.array([sp.null for sp in specs]),
+    return Projected(Ct, bt, tuple(cols), rt, np.array([sp.null for sp in specs]),
                      np.array([sp.lower for sp in specs]), np.array([sp.upper for sp in specs]),
                      int(len(bt) - 6 * fs.N - fs.P), float(bt @ bt))
-    tests = score_tests(proj, {e.name: tuple(e.params) for e in cands})
-    # Holm over the robust p-values (NaN: too few time blocks for the sandwich, no test)
+
+
+def _holm_levels(tests: list) -> tuple[list[int], list[int]]:
+    """The tests whose robust p-value is below ``ALPHA``, and below ``ALPHA_SIGMA``, after
+    Holm's correction (NaN: too few time blocks for the sandwich, no test)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         lp = np.log10(np.array([t.p_value_robust for t in tests]))
     adj = holm_log(np.where(np.isnan(lp), 0.0, lp))
     ok = [i for i in range(len(tests)) if adj[i] < ALPHA]
     suggested = [i for i in range(len(tests)) if adj[i] < ALPHA_SIGMA]
+    return ok, suggested
 
-    def shift_of(t) -> dict[str, float]:
-        # the one-step move of each variable parameter, largest over the missions
-        move = -(Zp[:, [cols.index(n) for n in t.params]] @ t.delta)
-        out: dict[str, float] = {}
-        for node in fs.bg.nodes:
-            if node.group != "variable":
-                continue
-            o, _ = fs.node_off[node.key]
-            for j, n in enumerate(fs.layout.names["variable"]):
-                if n in names and math.isfinite(float(move[o + j])):
-                    out[n] = max(out.get(n, 0.0), abs(float(move[o + j])))
-        return out
+
+def _shift_of(fs: FastSystem, Zp: np.ndarray, cols: list[str], names: list[str],
+              t) -> dict[str, float]:
+    """The one-step move of each variable parameter in ``names`` by the test ``t``'s
+    effect, largest over the missions (model units)."""
+    move = -(Zp[:, [cols.index(n) for n in t.params]] @ t.delta)
+    out: dict[str, float] = {}
+    for node in fs.bg.nodes:
+        if node.group != "variable":
+            continue
+        o, _ = fs.node_off[node.key]
+        for j, n in enumerate(fs.layout.names["variable"]):
+            if n in names and math.isfinite(float(move[o + j])):
+                out[n] = max(out.get(n, 0.0), abs(float(move[o + j])))
+    return out
+
+
+def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: Model,
+                     estimated: tuple[str, ...]) -> StructuralShift | None:
+    """:class:`StructuralShift` of a batch fit on the numpy system ``fs`` at its
+    nominal-noise solution (evaluation ``ev``) of ``missions`` with ``model``; the
+    candidates are the catalogue's dynamics effects the kernel already differentiates at
+    their null (its ``J_p`` holds every built-in dynamics column), so no graph is built
+    and the test costs a few banded solves. Its ``suggested`` is False where no candidate's
+    Holm-adjusted robust p is below ``ALPHA_SIGMA`` (its ranking is still every candidate's);
+    None where there is nothing to test or no candidate moves a variable parameter."""
+    names = [n for n in estimated if model.spec(n).group == "variable"]
+    cands = _dynamics_candidates(missions, model)
+    if not names or not cands or fs.P == 0:
+        return None
+    dyn = list(model.dyn_columns())
+    cols = [n for e in cands for n in e.params]
+    with np.errstate(over="ignore", invalid="ignore"):
+        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+        try:
+            fac = fs.factor(D, E, Hsp, Hpp)
+        except np.linalg.LinAlgError:
+            return None
+    # C: the candidates' columns of the whitened dynamics rows (K, 6, c), as Ap's
+    C = -np.matmul(fs.W, ev["Jp"][:, :, [dyn.index(model.index(n)) for n in cols]])
+    Zs, Zp = _solve_columns(fs, fac, ev, C)
+    tests = score_tests(_projected(fs, ev, model, cols, C, Zs, Zp),
+                        {e.name: tuple(e.params) for e in cands})
+    ok, suggested = _holm_levels(tests)
     # of those called for (else suggested), the one the data call for most: the largest
     # score statistic (the diagnosis's ranking; the robust p-values of 20 time blocks
     # saturate near each other); none suggested, the largest statistic of all
     t = max((tests[i] for i in (ok or suggested or range(len(tests)))),
             key=lambda t: t.statistic)
-    shift = shift_of(t)
+    shift = _shift_of(fs, Zp, cols, names, t)
     if not shift:
         return None
     called = {tests[i].effect for i in ok}
@@ -185,6 +213,6 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                            [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
                              "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)},
                              "statistic": float(x.statistic), "called_for": x.effect in called,
-                             "shift": shift_of(x)}
+                             "shift": _shift_of(fs, Zp, cols, names, x)}
                             for x in sorted(tests, key=lambda x: -x.statistic)],
                            proven=bool(ok), suggested=bool(suggested))
