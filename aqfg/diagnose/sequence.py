@@ -33,14 +33,9 @@ import numpy as np
 
 from aqfg.data.mission import Mission
 from aqfg.diagnose.fiteval import FitEval, blas_threads
+from aqfg.diagnose.rendering import json_num, json_ready
 from aqfg.diagnose.wording import heldout_change
-from aqfg.diagnose.workflow import (
-    Diagnosis,
-    candidate_effects,
-    diagnose,
-    json_num,
-    json_ready,
-)
+from aqfg.diagnose.workflow import Diagnosis, candidate_effects, diagnose
 from aqfg.fg.common import check_missions, progress_fn
 from aqfg.model.effects import resolve
 
@@ -284,8 +279,8 @@ def _sequence(missions, model, effects, max_steps, stop_when_consistent, progres
 def save_sequence(seq: DiagnosisSequence, out_dir, overwrite: bool = False,
                   plots: bool = True) -> Path:
     """Write ``diagnosis.json``, ``report.html`` and ``model.json`` into ``out_dir``."""
+    from aqfg.diagnose.rendering import write_diagnosis_json
     from aqfg.diagnose.report import write_sequence_report
-    from aqfg.diagnose.workflow import write_diagnosis_json
     out = write_diagnosis_json(seq.to_json(), Path(out_dir), ("report.html", "model.json"),
                                overwrite)
     seq.model_file().write(out / "model.json", overwrite=True)

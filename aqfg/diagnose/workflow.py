@@ -56,12 +56,10 @@ From a notebook::
 """
 from __future__ import annotations
 
-import json
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, SupportsFloat
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -88,9 +86,15 @@ from aqfg.diagnose.confirm import (
     rivals,
     wald_statistic,
 )
-from aqfg.diagnose.consistency import ConsistencyTest
 from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
 from aqfg.diagnose.linearise import linear_system
+from aqfg.diagnose.rendering import (  # noqa: F401
+    diagnosis_json,
+    diagnosis_summary,
+    json_num,
+    json_ready,
+    write_diagnosis_json,
+)
 from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
 from aqfg.fg import gnss_noise
 from aqfg.fg.common import FGSettings, check_missions, progress_fn
@@ -269,138 +273,11 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The ``diagnosis.json`` of the format doc (extra keys allowed)."""
-        rb = self.base.rmse
-        best = self.best.effect if self.best else None
-        rank = []
-        for c in self.ranking:
-            g = c.gain
-            rh = c.refit if _ho(c) else None
-            rank.append({
-                "effect": c.effect, "status": c.status, "status_text": c.status_text(best),
-                "score": json_num(c.score.statistic),
-                "p_value": json_num(c.score.p_value), "p_adjusted": json_num(c.p_adjusted),
-                "log10_p": json_num(c.score.log10_p),
-                "estimate": {k: {"value": json_num(v["value"]), "sigma": json_num(v["sigma"])}
-                             for k, v in c.estimate().items()},
-                "rmse_before": json_num(rb), "rmse_after": json_num(rh.rmse) if rh is not None else None,
-                "rmse_raw_before": json_num(self.base.rmse_raw),
-                "rmse_raw_after": json_num(rh.rmse_raw) if rh is not None else None,
-                "noise_floor": json_num(self.base.noise_floor),
-                "heldout_gain": json_num(c.gain_frac),
-                "implausible": list(c.implausible),
-                "absorbs": c.absorbs or None,
-                "score_robust": json_num(c.score.statistic_robust),
-                "p_value_robust": json_num(c.score.p_value_robust),
-                "lr": json_num(c.lr), "lr_p_value": json_num(c.lr_p), "delta_bic": json_num(c.dbic),
-                "wald": json_num(c.wald), "wald_p_value": json_num(c.wald_p),
-                "refit_start": c.refit.full.info.get("start") if c.refit else None,
-                "delta_heldout_loglik": json_num(c.dll),
-                "heldout_p_value": json_num(g.p) if g is not None else None,
-                "consistent_after": (bool(c.refit.consistency.passed)
-                                     if c.refit and c.refit.consistency else None),
-                "failed": c.evidence.failed() if c.evidence is not None else None,
-                "p_conditional": json_num(c.p_conditional),
-                "shared_with_missing": json_num(c.shared),
-                "significant": bool(c.significant), "confirmed": bool(c.confirmed),
-                "bootstrap_first": json_num(c.bootstrap_first)})
-        out = {"missing": bool(self.missing), "ranking": rank,
-               "missing_effect": best,
-               "unexplained": bool(self.unexplained), "verdict": self.verdict,
-               "missions": [m.name for m in self.missions],
-               "model_effects": list(self.base.effects),
-               "base": self.base.to_json(),
-               "consistency": self.base.consistency.to_json() if self.base.consistency else None,
-               "conditions": {"text": self.conditions_text,
-                              "tests": [e.to_json() for e in self.conditions]},
-               "confidence": self.confidence(),
-               "settings": self.settings,
-               "timings": self.timings}
-        if self.before is not None:
-            out["before"] = self.before.to_json()
-            out["added"] = list(self.added)
-        return json_ready(out)
+        return diagnosis_json(self)
 
     def summary(self) -> str:
         """The ranked summary printed by ``aqfg diagnose``."""
-        L = [self.verdict]
-        if self.confidence_text():
-            L.append(self.confidence_text())
-        L.append("")
-        cons = self.base.consistency
-        if cons is not None:
-            L.append(f"Held-out fixes vs the model ({'+'.join(self.base.effects) or 'base model'}): "
-                     + cons.summary())
-        L.append(f"Held-out RMS distance to the fixes: {self.base.heldout_text()}; "
-                 + (f"dead-reckoning error beyond the noise {self.base.rmse:.2f} m"
-                    if self.base.rmse > 0 else "within the noise"))
-        L.append(self.conditions_text)
-        if self.before is not None:
-            b, a = self.before, self.base
-            L.append("")
-            L.append(f"Added {', '.join(self.added)}: {heldout_change(b, a)}, consistency "
-                     f"{_ok(b.consistency)} -> {_ok(a.consistency)}, BIC {a.bic - b.bic:+.1f}")
-            for e in a.model.effects:
-                if e.name in self.added:
-                    for n, v in a.values(e.params).items():
-                        L.append(f"    {n} = {v['value']:.4g} +- {v['sigma']:.2g}")
-        L.append("")
-        best = self.best.effect if self.best else None
-        L.append(f"{'rank':>4}  {'effect':<18} {'score':>9} {'p (Holm)':>9} {'dBIC':>8} "
-                 f"{'dLL held':>9} {'held-out RMS before->after (gain)':>34}  estimate; status")
-        for i, c in enumerate(self.ranking, 1):
-            est = ", ".join(f"{n.split('.')[-1]}={v['value']:.3g}+-{v['sigma']:.2g}"
-                            for n, v in c.estimate().items())
-            rh = c.refit if _ho(c) else None
-            dr = (f"{self.base.rmse_raw:.2f} -> {rh.rmse_raw:.2f} m ({gain_cell(c)})"
-                  if rh is not None else "")
-            flag = "*" if c.status == "missing" else " "
-            L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
-                     f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>34}  {est}; {c.status_text(best)}")
-        gn = self.settings.get("gnss_noise")
-        src = (f"GNSS noise measured on the fixes: {gn['sigma']:.2f} m, correlation time "
-               f"{gn['tau']:.1f} s" if gn else "the fixes' stated sigma")
-        L.append(f"(noise floor of the held-out fixes {self.base.noise_floor:.2f} m, {src}; gain: "
-                 "fall of the dead-reckoning error beyond it, at least "
-                 f"{100 * self.settings.get('min_gain', MIN_GAIN):.0f}% for a missing effect)")
-        L.append("(* the missing effect: score, refit (LR, BIC, direction) and held-out fixes "
-                 "agree, its estimate is plausible and its gain matters. dLL held: change of "
-                 "the held-out fixes' predictive log-likelihood. "
-                 "An echo's evidence is gone once the missing effect is in the model; "
-                 "independent evidence remains: add the missing effect and diagnose again, "
-                 "or use --auto.)")
-        return "\n".join(L)
-
-
-def _ho(c: Candidate) -> bool:
-    return c.refit is not None and c.refit.has_heldout
-
-
-def json_num(x: SupportsFloat | None) -> float | None:
-    """``x`` as a JSON number: a float, or None (null) for None, NaN and infinities."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def json_ready(o: Any) -> Any:
-    """``o`` with numpy scalars as Python numbers and non-finite floats as None, nested
-    dicts/lists/tuples included (tuples become lists), ready for ``json.dumps``."""
-    if isinstance(o, dict):
-        return {k: json_ready(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [json_ready(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return json_num(o)
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o
-
-
-def _ok(c: ConsistencyTest | None) -> str:
-    return "n/a" if c is None else ("pass" if c.passed else "FAIL")
+        return diagnosis_summary(self)
 
 
 # ---------------------------------------------------------------- the steps
@@ -729,17 +606,4 @@ def save_diagnosis(diag: Diagnosis, out_dir, overwrite: bool = False, plots: boo
     from aqfg.diagnose.report import write_report
     out = write_diagnosis_json(diag.to_json(), Path(out_dir), ("report.html",), overwrite)
     write_report(diag, out / "report.html", plots=plots)
-    return out
-
-
-def write_diagnosis_json(doc: dict, out, others: tuple[str, ...], overwrite: bool):
-    """``out/diagnosis.json`` from ``doc``, refusing (unless ``overwrite``) where it or one of
-    the ``others`` files written beside it exists; returns ``out``."""
-    targets = [out / "diagnosis.json", *(out / n for n in others)]
-    existing = [str(p) for p in targets if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"refusing to overwrite {', '.join(existing)} (pass --force)")
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "diagnosis.json", "w") as f:
-        json.dump(doc, f, indent=2)
     return out
