@@ -62,7 +62,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from aqfg.data.mission import Mission
 from aqfg.diagnose.compare import sensor_series, split_fixes
@@ -78,15 +77,17 @@ from aqfg.diagnose.confirm import (
     SHARED_MAX,
     Evidence,
     HeldoutGain,
-    direction_agrees,
-    fits_but,
-    heldout_gain,
-    implausible,
-    practical_gain,
     rivals,
-    wald_statistic,
 )
 from aqfg.diagnose.fiteval import FitEval, blas_threads, default_jobs, evaluate
+from aqfg.diagnose.judging import (  # noqa: F401
+    effect_covariance,
+    judge,
+    label_against,
+    label_unconfirmed,
+    sort_ranking,
+    verdict,
+)
 from aqfg.diagnose.linearise import linear_system
 from aqfg.diagnose.rendering import (  # noqa: F401
     diagnosis_json,
@@ -105,10 +106,9 @@ from aqfg.fg.score import (
     holm_log,
     project,
     score_tests,
-    shared_information,
 )
 from aqfg.fg.structure import candidate_effects
-from aqfg.model.effects import Effect, resolve
+from aqfg.model.effects import resolve
 
 __all__ = ["Candidate", "Diagnosis", "FitEval", "Screen", "candidate_effects", "diagnose",
            "evaluate", "save_diagnosis"]
@@ -293,59 +293,155 @@ def screen(missions: list[Mission], fit, cands: list, settings: FGSettings,
     return Screen(fit, proj, tests, holm_log(np.array([t.log10_p for t in tests])))
 
 
-def _judge(c: Candidate, base: FitEval, n_cands: int, alpha: float, window: float,
-           effect: Effect, missions=(), min_gain: float = MIN_GAIN) -> None:
-    """Likelihood ratio, BIC, direction and held-out tests of a refitted candidate, the
-    plausibility of its estimate and its practical gain (:mod:`aqfg.diagnose.confirm`)."""
-    r = c.refit
-    assert r is not None, "judged after its refit"
-    c.lr = max(2.0 * (base.cost - r.cost), 0.0)
-    # Bonferroni over every candidate: valid although the refitted ones were chosen by
-    # their scores
-    c.lr_p = float(min(1.0, n_cands * stats.chi2.sf(c.lr, len(c.params))))
-    c.dbic = r.bic - base.bic
-    delta = np.array([r.full.values[n] - r.model.spec(n).null for n in c.params])
-    c.wald = wald_statistic(delta, effect_covariance(r.full, c.params))
-    c.wald_p = float(min(1.0, n_cands * stats.chi2.sf(c.wald, len(c.params))))
-    c.gain = heldout_gain(base.next_fix, r.next_fix, window)
-    c.gain_frac = practical_gain(base.rmse, r.rmse) if r.has_heldout else float("nan")
-    c.within_noise = bool(r.has_heldout and base.rmse <= 0.0)
-    c.to_noise = bool(r.has_heldout and base.rmse > 0.0 and r.rmse <= 0.0)
-    c.implausible = implausible(effect, r.values(c.params), missions)
-    c.absorbs = effect.absorbs
-    c.evidence = Evidence(score=c.significant, lr=c.lr_p < alpha, bic=c.dbic < 0,
-                          direction=direction_agrees(c.score.gradient, delta),
-                          heldout=bool(np.isfinite(c.gain.dll) and c.gain.dll > 0),
-                          dr_error=bool(np.isfinite(r.rmse_raw) and r.rmse_raw < base.rmse_raw),
-                          wald=bool(np.isfinite(c.wald_p) and c.wald_p < alpha),
-                          plausible=not c.implausible,
-                          practical=bool(np.isfinite(c.gain_frac) and c.gain_frac >= min_gain))
-    c.confirmed = c.evidence.confirmed
-
-
-def effect_covariance(res, names) -> np.ndarray:
-    """Joint covariance of the parameters ``names`` of a batch fit (first mission's nodes;
-    NaN where they sit in different nodes or were not estimated)."""
-    model = res.model
-    groups = {model.spec(n).group for n in names}
-    cov = res.covariance.blocks if res.covariance is not None else {}
-    nan = np.full((len(names), len(names)), np.nan)
-    if len(groups) != 1 or not all(n in res.estimated for n in names):
-        return nan
-    g = groups.pop()
-    if g not in cov:
-        return nan
-    in_g = [n for n in res.estimated if model.spec(n).group == g]
-    idx = [in_g.index(n) for n in names]
-    return np.asarray(cov[g], float)[np.ix_(idx, idx)]
-
-
 def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (), **kw
              ) -> Diagnosis:
     """:func:`diagnose_step` with the BLAS thread pool limited to one thread (see
     :func:`aqfg.diagnose.fiteval.blas_threads`); the arguments are :func:`diagnose_step`'s."""
     with blas_threads(1):
         return diagnose_step(missions, model, effects, **kw)
+
+
+def _held_out_splits(missions: list[Mission], settings: FGSettings, gnss_every: float):
+    """The GNSS noise of the held-out fixes and each mission's split into fit and held-out
+    fixes (GNSS one every ``gnss_every`` s)."""
+    # the held-out fixes' own error: the receiver's, measured as `aqfg fit` does where the
+    # fixes are dense (a stated sigma far above it would hide any dead-reckoning error)
+    noise = gnss_noise.resolve(missions, settings.gnss_noise, settings.online_kinematic_q,
+                               settings.sensors.gnss_sigma)
+    return noise, [split_fixes(m, gnss_every, noise) for m in missions]
+
+
+def _screen_of(missions: list[Mission], base: FitEval, cands: list,
+               base_screen: Screen | None, settings: FGSettings, n_blocks: int) -> Screen:
+    """The score tests of ``cands`` at the base fit: ``base_screen`` where it holds those of
+    that very fit, else computed."""
+    if (base_screen is not None and base_screen.fit is base.full
+            and [t.effect for t in base_screen.tests] == [c.name for c in cands]):
+        return base_screen
+    return screen(missions, base.full, cands, settings, n_blocks)
+
+
+def _fit_settings(settings: FGSettings, jobs: int, noise) -> dict:
+    """The fits' settings as recorded in ``diagnosis.json`` (after the tests' own)."""
+    return {"knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
+            "jobs": jobs, "gnss_noise": None if noise is None else noise.document()}
+
+
+def _base_fits(missions: list[Mission], splits: list, model, effects: tuple,
+               base_eval: FitEval | None, ev_kw: dict, prog) -> tuple[FitEval, FitEval | None]:
+    """The evaluation of the model with ``effects`` (``base_eval`` when given), and without
+    them where some were added (None otherwise)."""
+    names = tuple(e.name for e in effects)
+    prog(0.02, "fitting the model")
+    label = "with " + "+".join(names) if effects else "model"
+    base = base_eval if base_eval is not None else evaluate(missions, splits, model, effects,
+                                                            label, **ev_kw)
+    before = None
+    if effects and base_eval is None:
+        prog(0.1, "fitting the model without the added effects")
+        before = evaluate(missions, splits, model, (), "without " + "+".join(names), **ev_kw)
+    return base, before
+
+
+def _rank(scr: Screen, cands: list, alpha: float, n_boot: int, n_blocks: int
+          ) -> list[Candidate]:
+    """The candidates of the score tests ``scr``, significant below ``alpha`` (Holm), with
+    their block-bootstrap share of first places, best score first."""
+    ranking: list[Candidate] = []
+    if scr.tests:
+        eff_params = {c.name: tuple(c.params) for c in cands}
+        assert scr.proj is not None, "a screen with tests has its projected system"
+        boot = (bootstrap_ranking(scr.proj, eff_params, n_boot=n_boot, n_blocks=n_blocks)
+                if n_boot else {})
+        for t, a in zip(scr.tests, scr.adjusted):
+            ranking.append(Candidate(t.effect, t.params, t, float(a),
+                                     significant=bool(a < alpha),
+                                     bootstrap_first=boot.get(t.effect, float("nan"))))
+        ranking.sort(key=lambda c: (c.score.log10_p, -c.score.statistic))
+    return ranking
+
+
+@dataclass(frozen=True)
+class _Refits:
+    """How one diagnosis step refits a candidate and judges it: the missions and their
+    held-out splits, the model with the step's ``effects``, the base evaluation it starts
+    from, the candidate effects by name, the number of candidates (for Bonferroni) and the
+    tests' settings."""
+    missions: list[Mission]
+    splits: list
+    model: Any
+    effects: tuple
+    base: FitEval
+    cand_of: dict
+    n_cands: int
+    alpha: float
+    window: float
+    min_gain: float
+    jobs: int
+    ev_kw: dict
+
+    def refit(self, c: Candidate) -> None:
+        """Refit with ``c``'s effect added (warm-started from the base) and judge it."""
+        effect = self.cand_of[c.effect]
+        c.refit = evaluate(self.missions, self.splits, self.model, self.effects + (effect,),
+                           f"+{c.effect}", start=self.base, jobs=self.jobs, **self.ev_kw)
+        judge(c, self.base, self.n_cands, self.alpha, self.window, effect, self.missions,
+              self.min_gain)
+
+
+def _first_confirmed(ranking: list[Candidate], rf: _Refits, k: int, prog) -> Candidate | None:
+    """Refit the first ``k`` candidates in score order (forward selection by the score
+    statistic) until one is confirmed; that one, or None."""
+    for i, c in enumerate(ranking[:k]):
+        prog(0.3 + 0.5 * i / k, f"refitting with {c.effect}")
+        rf.refit(c)
+        if c.confirmed:
+            return c
+    return None
+
+
+def _settle_missing(best: Candidate, ranking: list[Candidate], cands: list, rf: _Refits,
+                    settings: FGSettings, n_blocks: int, max_rivals: int, prog
+                    ) -> tuple[Candidate, Screen, dict]:
+    """The others' score tests with ``best`` in the model; the significant candidates
+    never refitted whose evidence it explains away (at most ``max_rivals``, two rounds) are
+    refitted, and one confirmed with a lower BIC replaces it. Returns the missing effect,
+    the score tests with it in the model and those as {effect: (test, Holm-adjusted p)}."""
+    prog(0.85, f"testing the others with {best.effect} added")
+    assert best.refit is not None
+    swaps = 0
+    while True:
+        others = [c for c in cands if c.name != best.effect]
+        assert best.refit is not None
+        next_scr = screen(rf.missions, best.refit.full, others, settings, n_blocks)
+        cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
+        rival = rivals(ranking, best, cond, rf.alpha, max_rivals) if swaps < 2 else []
+        for c in rival:
+            prog(0.87, f"refitting {c.effect}, which {best.effect} explains away")
+            rf.refit(c)
+        better = [c for c in rival if c.confirmed and c.dbic < best.dbic]
+        if not better:
+            return best, next_scr, cond
+        best = min(better, key=lambda c: c.dbic)     # the one the echo stood for
+        swaps += 1
+
+
+def _label(ranking: list[Candidate], best: Candidate | None, scr: Screen, cands: list,
+           rf: _Refits, settings: FGSettings, n_blocks: int, max_rivals: int, prog
+           ) -> tuple[Candidate | None, Screen | None]:
+    """Each candidate's status, and the ranking in its final order; where one was confirmed
+    (``best``), the missing effect settled first (:func:`_settle_missing`). Returns the
+    missing effect (None: none) and the score tests with it in the model."""
+    next_scr = None
+    if best is not None:
+        assert scr.proj is not None
+        best, next_scr, cond = _settle_missing(best, ranking, cands, rf, settings, n_blocks,
+                                               max_rivals, prog)
+        label_against(ranking, best, cond, scr.proj, rf.alpha)
+    else:
+        label_unconfirmed(ranking)
+    sort_ranking(ranking)
+    return best, next_scr
 
 
 def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Sequence = (), *,
@@ -384,22 +480,9 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     jobs = default_jobs() if jobs is None else max(1, int(jobs))
     timings: dict = {}
     t0 = time.perf_counter()
-    # the held-out fixes' own error: the receiver's, measured as `aqfg fit` does where the
-    # fixes are dense (a stated sigma far above it would hide any dead-reckoning error)
-    noise = gnss_noise.resolve(missions, settings.gnss_noise, settings.online_kinematic_q,
-                               settings.sensors.gnss_sigma)
-    splits = [split_fixes(m, gnss_every, noise) for m in missions]
+    noise, splits = _held_out_splits(missions, settings, gnss_every)
     ev_kw: dict[str, Any] = {"settings": settings, "horizon": horizon, "window": window}
-    names = tuple(e.name for e in effects)
-
-    prog(0.02, "fitting the model")
-    label = "with " + "+".join(names) if effects else "model"
-    base = base_eval if base_eval is not None else evaluate(missions, splits, model, effects,
-                                                            label, **ev_kw)
-    before = None
-    if effects and base_eval is None:
-        prog(0.1, "fitting the model without the added effects")
-        before = evaluate(missions, splits, model, (), "without " + "+".join(names), **ev_kw)
+    base, before = _base_fits(missions, splits, model, effects, base_eval, ev_kw, prog)
     timings["base"] = time.perf_counter() - t0
 
     # score tests on the full fit's linearised graph
@@ -407,165 +490,39 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     t1 = time.perf_counter()
     cands = candidate_effects(missions, base.model.effects, extra_candidates, candidates)
     cand_of = {c.name: c for c in cands}
-    if (base_screen is not None and base_screen.fit is base.full
-            and [t.effect for t in base_screen.tests] == [c.name for c in cands]):
-        scr = base_screen
-    else:
-        scr = screen(missions, base.full, cands, settings, n_blocks)
-    ranking: list[Candidate] = []
-    if scr.tests:
-        eff_params = {c.name: tuple(c.params) for c in cands}
-        assert scr.proj is not None, "a screen with tests has its projected system"
-        boot = (bootstrap_ranking(scr.proj, eff_params, n_boot=n_boot, n_blocks=n_blocks)
-                if n_boot else {})
-        for t, a in zip(scr.tests, scr.adjusted):
-            ranking.append(Candidate(t.effect, t.params, t, float(a),
-                                     significant=bool(a < alpha),
-                                     bootstrap_first=boot.get(t.effect, float("nan"))))
-        ranking.sort(key=lambda c: (c.score.log10_p, -c.score.statistic))
+    scr = _screen_of(missions, base, cands, base_screen, settings, n_blocks)
+    ranking = _rank(scr, cands, alpha, n_boot, n_blocks)
     timings["score"] = time.perf_counter() - t1
 
-    # refit the significant candidates in score order (forward selection by the score
-    # statistic), warm-started from the base fits, until one is confirmed
+    # refit the significant candidates in score order, warm-started from the base fits,
+    # until one is confirmed
     t2 = time.perf_counter()
+    rf = _Refits(missions, splits, model, effects, base, cand_of, len(ranking), alpha, window,
+                 min_gain, jobs, ev_kw)
     n_sig = sum(c.significant for c in ranking)
-    k = min(len(ranking), max(n_refit, min(n_sig, max_refit)))
-    best = None
-    for i, c in enumerate(ranking[:k]):
-        prog(0.3 + 0.5 * i / k, f"refitting with {c.effect}")
-        c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
-                           f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
-        _judge(c, base, len(ranking), alpha, window, cand_of[c.effect], missions, min_gain)
-        if c.confirmed:
-            best = c
-            break
+    best = _first_confirmed(ranking, rf, min(len(ranking), max(n_refit, min(n_sig, max_refit))),
+                            prog)
     timings["refit"] = time.perf_counter() - t2
 
     # the missing effect, and what the others are once it is in the model
     t3 = time.perf_counter()
-    next_scr = None
-    if best is not None:
-        prog(0.85, f"testing the others with {best.effect} added")
-        assert best.refit is not None and scr.proj is not None
-        swaps = 0
-        while True:
-            others = [c for c in cands if c.name != best.effect]
-            assert best.refit is not None
-            next_scr = screen(missions, best.refit.full, others, settings, n_blocks)
-            cond = {t.effect: (t, a) for t, a in zip(next_scr.tests, next_scr.adjusted)}
-            rival = rivals(ranking, best, cond, alpha, max_rivals) if swaps < 2 else []
-            for c in rival:
-                prog(0.87, f"refitting {c.effect}, which {best.effect} explains away")
-                c.refit = evaluate(missions, splits, model, effects + (cand_of[c.effect],),
-                                   f"+{c.effect}", start=base, jobs=jobs, **ev_kw)
-                _judge(c, base, len(ranking), alpha, window, cand_of[c.effect], missions,
-                       min_gain)
-            better = [c for c in rival if c.confirmed and c.dbic < best.dbic]
-            if not better:
-                break
-            best = min(better, key=lambda c: c.dbic)     # the one the echo stood for
-            swaps += 1
-        assert best.refit is not None
-        best.status = "missing"
-        for c in ranking:
-            if c is best:
-                continue
-            c.conditional, c.p_conditional = cond.get(c.effect, (None, float("nan")))
-            c.shared = shared_information(scr.proj, best.params, c.params)
-            if fits_but(c):
-                c.status = fits_but(c)
-            elif np.isfinite(c.p_conditional) and c.p_conditional < alpha:
-                c.status = "independent"
-            elif c.significant:
-                c.status = "echo"
-            else:
-                c.status = "not significant"
-    else:
-        for c in ranking:
-            c.status = (fits_but(c) or ("not significant" if not c.significant else
-                                         "rejected" if c.refit is not None else "untested"))
-    order = {"missing": 0, "independent": 1, "implausible": 2, "negligible": 3, "echo": 4,
-             "rejected": 5, "untested": 6, "not significant": 7}
-    ranking.sort(key=lambda c: (order[c.status],
-                                c.p_conditional if c.status == "independent" else 0.0,
-                                c.dbic if c.refit is not None else np.inf,
-                                c.score.log10_p))
+    best, next_scr = _label(ranking, best, scr, cands, rf, settings, n_blocks, max_rivals, prog)
     timings["conditional"] = time.perf_counter() - t3
 
     # where it fails
     prog(0.92, "relating residuals to conditions")
     conds, series = _conditions(missions, base, memory)
-    text = in_words(conds)
-    missing = best is not None
-    verdict, unexplained = _verdict(base, ranking, best, cand_of)
+    verdict_text, unexplained = verdict(base, ranking, best, cand_of)
     timings["total"] = time.perf_counter() - t0
     prog(1.0, "done")
     sett = {"gnss_every": gnss_every, "horizon": horizon, "window": window, "alpha": alpha,
-            "min_gain": min_gain,
-            "max_refit": max_refit, "max_rivals": max_rivals, "n_blocks": n_blocks,
-            "n_boot": n_boot, "memory": memory,
-            "knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
-            "jobs": jobs, "gnss_noise": None if noise is None else noise.document()}
-    return Diagnosis(missions, base, ranking, missing, unexplained, verdict, conds, text,
-                     series, before, names if base_eval is None else (), sett, timings,
-                     next_scr)
-
-
-def _verdict(base: FitEval, ranking: list[Candidate], best: Candidate | None,
-             cand_of: dict) -> tuple[str, bool]:
-    cons = base.consistency
-    if best is not None:
-        r = best.refit
-        g = best.gain
-        assert r is not None and g is not None, "a confirmed effect was refitted"
-        v = (f"Missing: {best.effect} ({cand_of[best.effect].description}): "
-             f"{best.estimate_text()}. Score test p = {best.p_adjusted:.2g} (Holm); refit: "
-             f"likelihood-ratio p = {best.lr_p:.2g}, dBIC = {best.dbic:.1f}; held-out fixes "
-             f"better predicted (log-likelihood {g.dll:+.1f}, paired test p = {g.p:.2g}); "
-             f"{heldout_change(base, r)}.")
-        if cons is not None and cons.passed:
-            v += (" The model was already consistent with the held-out fixes; the effect "
-                  "still predicts them better.")
-        echoes = [c.effect for c in ranking if c.status == "echo"]
-        indep = [c for c in ranking if c.status == "independent"]
-        insep = [c for c in ranking if c is not best and np.isfinite(c.shared)
-                 and c.shared >= SHARED_MAX and (c.significant or c.status == "independent")]
-        if echoes:
-            v += (f" Echoes of {best.effect} (their evidence is gone once it is in the model): "
-                  f"{', '.join(echoes)}.")
-        if indep:
-            v += (f" Independent evidence with {best.effect} in the model: "
-                  + ", ".join(f"{c.effect} (p = {c.p_conditional:.2g})" for c in indep)
-                  + f"; add {best.effect} and diagnose again (or use --auto).")
-        if insep:
-            v += (f" The data cannot tell {best.effect} apart from "
-                  + ", ".join(f"{c.effect} (shared information {c.shared:.2f})" for c in insep)
-                  + ": the choice rests on the refits.")
-        after = r.consistency
-        unexplained = False
-        if after is not None and not after.passed and not indep:
-            unexplained = True
-            v += (" The held-out fixes are still not consistent with it added, and no other "
-                  "candidate keeps independent evidence: something the catalogue does not "
-                  "explain is missing as well.")
-        return v, unexplained
-    rejected = [c for c in ranking if c.status == "rejected"]
-    why = ""
-    fits_but = [c for c in ranking if c.status in ("implausible", "negligible")]
-    if fits_but:
-        why += " " + " ".join(f"{c.effect} ({c.estimate_text()}) {c.status_text()}."
-                              for c in fits_but)
-    if rejected:
-        why += " " + " ".join(f"{c.effect} has a significant score but is {c.status_text()}."
-                              for c in rejected[:3])
-    if cons is not None and not cons.passed:
-        return ("Something is missing that the catalogue does not explain: the held-out "
-                "fixes are not consistent with the model, and no candidate effect is "
-                "confirmed as plausible and of practical use." + why), True
-    what = ("no candidate effect that is plausible and matters" if fits_but else
-            "no candidate effect is confirmed")
-    return (f"Nothing missing: {what}, and the held-out fixes are consistent with the "
-            "model." + why), False
+            "min_gain": min_gain, "max_refit": max_refit, "max_rivals": max_rivals,
+            "n_blocks": n_blocks, "n_boot": n_boot, "memory": memory,
+            **_fit_settings(settings, jobs, noise)}
+    return Diagnosis(missions, base, ranking, best is not None, unexplained, verdict_text,
+                     conds, in_words(conds), series, before,
+                     tuple(e.name for e in effects) if base_eval is None else (), sett,
+                     timings, next_scr)
 
 
 def resolve_description(name: str, cands) -> str:
