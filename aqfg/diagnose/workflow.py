@@ -38,6 +38,8 @@ The steps (each in its own module):
    data tell them apart?). Nothing confirmed and consistent held-out fixes: "nothing
    missing"; inconsistent held-out fixes that no candidate repairs: "something is missing
    that the catalogue does not explain".
+   Each candidate's status and the verdict in words: :mod:`aqfg.diagnose.judging`; the
+   summary and ``diagnosis.json``: :mod:`aqfg.diagnose.rendering`.
 
 ``effects`` are effects the user adds to the model ("add it and watch the error fall"):
 the diagnosis then also fits the model without them and reports the before/after
