@@ -4,7 +4,6 @@ import pytest
 
 from aqfg.diagnose.compare import (fixes_of, predict_measurements, sensor_series, split_fixes)
 from aqfg.diagnose.conditions import condition_signals
-from aqfg.fg.gnss_noise import GnssNoise
 from aqfg.model.vehicle import Model
 from aqfg.model.params import vector
 from aqfg.result import MissionResult, Track
@@ -63,12 +62,12 @@ def test_split_holds_out_fixes_and_fixes_have_covariances(sim):
     assert np.allclose(ev[far, 1], rng[far] * np.radians(1.5), rtol=1e-6)
 
 
-def test_held_out_fixes_take_the_measured_receiver_noise(sim):
-    """The held-out fixes' sigma (their noise floor) is the measured one where given; the
-    fit's fixes keep theirs."""
+def test_held_out_fixes_take_the_sigma_given(sim):
+    """The held-out fixes' sigma (their noise floor) is the one given; the fit's fixes keep
+    theirs."""
     m, _ = sim
     plain = split_fixes(m, 8.0)
-    sp = split_fixes(m, 8.0, GnssNoise(0.07, 5.0))
+    sp = split_fixes(m, 8.0, 0.07)
     assert np.all(sp.heldout.gnss.sigma == 0.07)
     np.testing.assert_array_equal(sp.heldout.gnss.t, plain.heldout.gnss.t)
     assert sp.fit.gnss.sigma is plain.fit.gnss.sigma or np.array_equal(sp.fit.gnss.sigma,

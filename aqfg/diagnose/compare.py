@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from aqfg.data.mission import Gnss, Mission, Usbl
-from aqfg.fg.gnss_noise import GnssNoise, weighted
 from aqfg.model.retrace import rollout, usbl_positions
 from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import MissionResult, Residuals, Track
@@ -207,13 +206,14 @@ class Split:
 
 
 def split_fixes(mission: Mission, gnss_period: float = 8.0,
-                noise: GnssNoise | None = None) -> Split:
+                heldout_sigma: float | None = None) -> Split:
     """Keep one GNSS fix every ``gnss_period`` s and every other USBL fix for the fit; the
     remaining fixes are held out for evaluating dead reckoning.
 
-    GNSS already sparser than ``gnss_period`` is split alternately like the USBL. ``noise``:
-    the receiver's measured error (:func:`aqfg.fg.gnss_noise.measure`), the sigma of each
-    held-out fix (their noise floor and their consistency test); None: their stated sigma.
+    GNSS already sparser than ``gnss_period`` is split alternately like the USBL.
+    ``heldout_sigma`` (m): the 1-sigma of each held-out GNSS fix (their noise floor and
+    their consistency test; :func:`aqfg.fg.gnss_noise.judged_sigma`); None: their stated
+    sigma.
     """
     fit, held = copy.copy(mission), copy.copy(mission)
     if mission.gnss is not None and len(mission.gnss.t):
@@ -229,7 +229,8 @@ def split_fixes(mission: Mission, gnss_period: float = 8.0,
         def sel_gnss(m: np.ndarray) -> Gnss:
             return Gnss(g.t[m], g.ne[m], None if g.sigma is None else g.sigma[m])
         fit.gnss, held.gnss = sel_gnss(keep), sel_gnss(~keep)
-        held = weighted(held, noise, DEFAULT_GNSS_SIGMA)
+        if heldout_sigma is not None:
+            held.gnss = Gnss(held.gnss.t, held.gnss.ne, np.full(len(held.gnss.t), heldout_sigma))
     if mission.usbl is not None and len(mission.usbl.t):
         u = mission.usbl
         keep = np.arange(len(u.t)) % 2 == 0

@@ -107,9 +107,9 @@ def diagnosis_summary(d: Diagnosis) -> str:
         flag = "*" if c.status == "missing" else " "
         L.append(f"{i:>4}{flag} {c.effect:<18} {c.score.statistic:9.1f} {c.p_adjusted:9.2g} "
                  f"{c.dbic:8.1f} {c.dll:9.1f} {dr:>34}  {est}; {c.status_text(best)}")
-    gn = d.settings.get("gnss_noise")
-    src = (f"GNSS noise measured on the fixes: {gn['sigma']:.2f} m, correlation time "
-           f"{gn['tau']:.1f} s" if gn else "the fixes' stated sigma")
+    gs = d.settings.get("heldout_gnss_sigma")
+    src = (f"GNSS fixes steadier than stated: {gs:.2f} m" if gs is not None
+           else "the fixes' stated sigma")
     L.append(f"(noise floor of the held-out fixes {d.base.noise_floor:.2f} m, {src}; gain: "
              "fall of the dead-reckoning error beyond it, at least "
              f"{100 * d.settings.get('min_gain', MIN_GAIN):.0f}% for a missing effect)")

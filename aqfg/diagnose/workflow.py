@@ -304,13 +304,17 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
 
 
 def _held_out_splits(missions: list[Mission], settings: FGSettings, gnss_every: float):
-    """The GNSS noise of the held-out fixes and each mission's split into fit and held-out
-    fixes (GNSS one every ``gnss_every`` s)."""
-    # the held-out fixes' own error: the receiver's, measured as `aqfg fit` does where the
-    # fixes are dense (a stated sigma far above it would hide any dead-reckoning error)
-    noise = gnss_noise.resolve(missions, settings.gnss_noise, settings.online_kinematic_q,
-                               settings.sensors.gnss_sigma)
-    return noise, [split_fixes(m, gnss_every, noise) for m in missions]
+    """The held-out GNSS fixes' 1-sigma (m; None: their stated sigma) and each mission's
+    split into fit and held-out fixes (GNSS one every ``gnss_every`` s). The sigma is
+    ``settings.gnss_noise``'s where that is a :class:`~aqfg.fg.gnss_noise.GnssNoise`, the
+    stated one where it is None, else the stated one unless the fixes' wander shows it too
+    large (:func:`~aqfg.fg.gnss_noise.judged_sigma`: a stated sigma far above it would
+    hide any dead-reckoning error)."""
+    gn = settings.gnss_noise
+    sigma = (None if gn is None else gn.sigma if isinstance(gn, gnss_noise.GnssNoise) else
+             gnss_noise.judged_sigma(missions, settings.online_kinematic_q,
+                                     settings.sensors.gnss_sigma))
+    return sigma, [split_fixes(m, gnss_every, sigma) for m in missions]
 
 
 def _screen_of(missions: list[Mission], base: FitEval, cands: list,
@@ -323,10 +327,10 @@ def _screen_of(missions: list[Mission], base: FitEval, cands: list,
     return screen(missions, base.full, cands, settings, n_blocks)
 
 
-def _fit_settings(settings: FGSettings, jobs: int, noise) -> dict:
+def _fit_settings(settings: FGSettings, jobs: int, heldout_sigma: float | None) -> dict:
     """The fits' settings as recorded in ``diagnosis.json`` (after the tests' own)."""
     return {"knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
-            "jobs": jobs, "gnss_noise": None if noise is None else noise.document()}
+            "jobs": jobs, "heldout_gnss_sigma": heldout_sigma}
 
 
 def _base_fits(missions: list[Mission], splits: list, model, effects: tuple,
