@@ -225,6 +225,15 @@ def online_scores(method: str, m: Mission, init: dict, effects: tuple, sparse: d
     return row
 
 
+def _fall(step) -> str:
+    """A step's held-out error beyond the noise, before -> after, in words."""
+    if not step.rmse_before > 0:
+        return "within the noise before"
+    if not step.rmse_after > 0:
+        return f"{step.rmse_before:.2f} m -> within the noise"
+    return f"{-100 * step.gain:+.0f}%"
+
+
 def diagnosis_scores(m: Mission) -> dict:
     """What ``aqfg diagnose RUN --auto`` says of one run (module docstring)."""
     from aqfg.diagnose.confirm import implausible
@@ -239,7 +248,7 @@ def diagnosis_scores(m: Mission) -> dict:
     last = seq.diagnoses[-1]
     est = [", ".join(f"{n.split('.')[-1]} {v['value']:.3g}±{v['sigma']:.2g}"
                      for n, v in s.estimate.items()) for s in seq.steps]
-    return {"added": [f"{s.effect} ({e}; {-100 * s.gain:+.0f}%)" for s, e in zip(seq.steps, est)],
+    return {"added": [f"{s.effect} ({e}; {_fall(s)})" for s, e in zip(seq.steps, est)],
             "plausible": [not implausible(resolve(s.effect), s.estimate, [m]) for s in seq.steps],
             "gains": [float(s.gain) for s in seq.steps],
             "min_gain": float(last.settings.get("min_gain", float("nan"))),
