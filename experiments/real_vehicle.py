@@ -21,9 +21,10 @@
 * diagnosis (``aqfg diagnose RUN --auto``, ``diagnose_sequence``): the effects it adds, each
   with its estimate and the fall of the held-out dead-reckoning error beyond the fixes'
   noise, the RMS distance to the held-out fixes (bare -> final) beside their noise floor,
-  and the effects that fit but are implausible (with what they probably absorb) or are
-  significant but negligible; the check: every added effect within its plausible range
-  (the mission's hull for a lever arm) and with a gain of at least ``min_gain``;
+  and the effects that fit but are implausible at any step (with what they probably
+  absorb) or are significant but negligible at the last; the check: every added effect
+  within its plausible range (the mission's hull for a lever arm) and with a gain of at
+  least ``min_gain``;
 * wall times.
 
 The fixes themselves are the reference: a GNSS error (1-2 m, correlated over seconds) is in
@@ -252,8 +253,10 @@ def diagnosis_scores(m: Mission) -> dict:
             "plausible": [not implausible(resolve(s.effect), s.estimate, [m]) for s in seq.steps],
             "gains": [float(s.gain) for s in seq.steps],
             "min_gain": float(last.settings.get("min_gain", float("nan"))),
-            "implausible": [f"{c.effect} ({c.estimate_text()}; {', '.join(c.implausible)}): "
-                            f"{c.absorbs or '?'}" for c in last.labelled("implausible")],
+            "implausible": list({c.effect: f"{c.effect} ({c.estimate_text()}; "
+                                           f"{', '.join(c.implausible)}): {c.absorbs or '?'}"
+                                 for d in seq.diagnoses for c in d.labelled("implausible")
+                                 }.values()),
             "negligible": [c.effect for c in last.labelled("negligible")],
             "bare": seq.bare.rmse_raw, "final": seq.final.rmse_raw, "floor": seq.bare.noise_floor,
             "wall_diag": time.perf_counter() - t0}
