@@ -262,6 +262,16 @@ def diagnosis_scores(m: Mission) -> dict:
             "wall_diag": time.perf_counter() - t0}
 
 
+def failed_row(why: str) -> dict:
+    """The scores of a method whose batch fit failed on a run: all NaN, and why."""
+    nan = float("nan")
+    row: dict = {k: nan for k in ("heldout8", "pred8", "retrace8", "retrace1", "pred1", "inject",
+                                  "wall_batch", "wall_donor", "causal4", "corrected4", "causal8",
+                                  "corrected8", "wall_online4", "wall_online8")}
+    row.update(theta=(nan, nan), theta1=(nan, nan), theta_note="", failed=[why])
+    return row
+
+
 # ---------------------------------------------------------------- table
 def f2(x, f="{:.2f}") -> str:
     return "n/a" if x is None or not np.isfinite(x) else f.format(x)
@@ -362,6 +372,10 @@ def checks(runs: dict) -> str:
         b = np.array([runs[n]["update-error"][key] for n in names])
         out.append(f"- (c) online {key}: fg no worse than update-error on {int(np.sum(a <= b + 1e-9))}"
                    f"/{len(a)} runs; median {np.median(a):.2f} vs {np.median(b):.2f} m")
+    fails = [f"{n} {k}: {', '.join(runs[n][k]['failed'])}" for n in names for k in METHODS
+             if runs[n].get(k, {}).get("failed")]
+    if fails:
+        out.append("- failed (scored as n/a, counted against the method): " + "; ".join(fails))
     diags = [runs[n]["diagnosis"] for n in names if "diagnosis" in runs[n]]
     if diags:
         ok = [d for d in diags if "failed" not in d]
@@ -431,8 +445,13 @@ def main(argv=None) -> int:
                 dense = {"settings": FGSettings(gnss_noise=None)} if args.white else {}
             else:
                 sparse = dense = {}
-            row = batch_scores(method, m, sparse, dense)
-            init, effects, wd = donor_values(method, others, dense)
+            try:
+                row = batch_scores(method, m, sparse, dense)
+                init, effects, wd = donor_values(method, others, dense)
+            except Exception as e:   # an estimator's failure is a result of the run, not the end
+                print(f"{n} {method} batch failed: {type(e).__name__}: {e}", file=sys.stderr)
+                runs[n][method] = failed_row(f"batch: {type(e).__name__}")
+                continue
             row.update(online_scores(method, m, init, effects, sparse))
             row["wall_donor"] = wd
             runs[n][method] = row
