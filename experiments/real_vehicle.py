@@ -24,7 +24,8 @@
   and the effects that fit but are implausible at any step (with what they probably
   absorb) or are significant but negligible at the last; the check: every added effect
   within its plausible range (the mission's hull for a lever arm) and with a gain of at
-  least ``min_gain``;
+  least ``min_gain``; and the factor graph's batch scores again with the model that
+  diagnosis learned (``aqfg fit --model``; chosen on the run's own held-out fixes);
 * wall times.
 
 The fixes themselves are the reference: a GNSS error (1-2 m, correlated over seconds) is in
@@ -50,7 +51,9 @@ from aqfg.data import load_mission  # noqa: E402
 from aqfg.data.mission import Imu, Mission, with_gnss_every  # noqa: E402
 from aqfg.fg import gnss_noise  # noqa: E402
 from aqfg.fg.common import FGSettings  # noqa: E402
+from aqfg.model.params import MEASUREMENT_EFFECTS  # noqa: E402
 from aqfg.model.retrace import rollout  # noqa: E402
+from aqfg.model.vehicle import attitude_at  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("fg", "update-error")
@@ -115,10 +118,34 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
 
-def track_error(track, t: np.ndarray, ne: np.ndarray) -> np.ndarray:
-    """Horizontal distance (m) of ``track`` from positions ``ne`` at times ``t`` in its span."""
+def sensor_of(result, i: int = 0):
+    """``(model, p)`` of a result whose model has GNSS sensor effects (a time offset, a lever
+    arm: a fix is then compared with the antenna's position at its stamp as the model puts
+    it, ``Model.h_gnss``), else None (the track's own position, the same number there)."""
+    names = {e.name for e in result.model.effects}
+    if not names & {e.name for e in MEASUREMENT_EFFECTS}:
+        return None
+    return result.model, result.missions[i].p
+
+
+def _fix_positions(sensor, m: Mission, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Where the model puts the GNSS antenna at stamps ``t`` from states ``X`` (n, 6)."""
+    model, p = sensor
+    R = attitude_at(m, t)
+    return np.array([model.h_gnss(X[i], R[i], t[i], p)[0] for i in range(len(t))]).reshape(-1, 2)
+
+
+def track_error(track, t: np.ndarray, ne: np.ndarray, sensor=None, m: Mission | None = None
+                ) -> np.ndarray:
+    """Horizontal distance (m) of ``track`` from positions ``ne`` at times ``t`` in its span
+    (``sensor``, ``m``: the fixes as the model predicts them, :func:`sensor_of`)."""
     k = (t >= track.t[0] - 1e-9) & (t <= track.t[-1] + 1e-9)
-    est = np.column_stack([np.interp(t[k], track.t, track.pos[:, a]) for a in range(2)])
+    if sensor is None or m is None:
+        est = np.column_stack([np.interp(t[k], track.t, track.pos[:, a]) for a in range(2)])
+    else:
+        X = np.column_stack([np.interp(t[k], track.t, track.pos[:, a]) for a in range(3)]
+                            + [np.interp(t[k], track.t, track.vel[:, a]) for a in range(3)])
+        est = _fix_positions(sensor, m, t[k], X)
     return np.hypot(*(est - ne[k]).T)
 
 
@@ -127,6 +154,7 @@ def prediction_rmse(result, m: Mission, horizon: float = HORIZON, every: float =
     alone over ``horizon`` s against every fix in it (NaN: run shorter than the horizon)."""
     mr = result.missions[0]
     tr, model = mr.track, result.model
+    sensor = sensor_of(result)
     t, ne = m.gnss.t, m.gnss.ne
     out = []
     for t0 in np.arange(t[0], t[-1] - horizon + 1e-9, every):
@@ -134,14 +162,16 @@ def prediction_rmse(result, m: Mission, horizon: float = HORIZON, every: float =
                       + [np.interp(t0, tr.t, tr.vel[:, c]) for c in range(3)])
         k = (t > t0 + 1e-9) & (t <= t0 + horizon + 1e-9)
         pr = rollout(model, m, mr.p, x0, t0, t[k])
-        out.append(_rms(np.hypot(*(pr.pos[1:, :2] - ne[k]).T)))
+        est = (pr.pos[1:, :2] if sensor is None else
+               _fix_positions(sensor, m, t[k], np.hstack([pr.pos[1:], pr.vel[1:]])))
+        out.append(_rms(np.hypot(*(est - ne[k]).T)))
     return float(np.median(out)) if out else float("nan")
 
 
-def heldout_rmse(track, m: Mission, given: Mission) -> float:
+def heldout_rmse(track, m: Mission, given: Mission, sensor=None) -> float:
     """RMSE of ``track`` at the fixes of ``m`` that ``given`` does not hold."""
     keep = ~np.isin(m.gnss.t, given.gnss.t)
-    return _rms(track_error(track, m.gnss.t[keep], m.gnss.ne[keep]))
+    return _rms(track_error(track, m.gnss.t[keep], m.gnss.ne[keep], sensor, m))
 
 
 # ---------------------------------------------------------------- fits
@@ -176,11 +206,13 @@ def batch_scores(method: str, m: Mission, sparse: dict, dense: dict) -> dict:
     m8 = with_gnss_every(m, 8.0)
     r8, w8 = fit(method, [m8], **sparse)
     row["theta"] = (r8.values["theta_e"], r8.sigma.get("theta_e", float("nan")))
-    row["heldout8"] = heldout_rmse(r8.missions[0].track, m, m8)
+    row["heldout8"] = heldout_rmse(r8.missions[0].track, m, m8, sensor_of(r8))
     row["pred8"] = prediction_rmse(r8, m)
-    row["retrace8"] = _rms(track_error(r8.missions[0].inertial, m.gnss.t, m.gnss.ne))
+    row["retrace8"] = _rms(track_error(r8.missions[0].inertial, m.gnss.t, m.gnss.ne,
+                                       sensor_of(r8), m))
     r1, w1 = fit(method, [m], **dense)
-    row["retrace1"] = _rms(track_error(r1.missions[0].inertial, m.gnss.t, m.gnss.ne))
+    row["retrace1"] = _rms(track_error(r1.missions[0].inertial, m.gnss.t, m.gnss.ne,
+                                       sensor_of(r1), m))
     row["pred1"] = prediction_rmse(r1, m)
     row["theta1"] = (r1.values["theta_e"], r1.sigma.get("theta_e", float("nan")))
     row["wall_batch"] = w8 + w1
@@ -259,7 +291,21 @@ def diagnosis_scores(m: Mission) -> dict:
                                  }.values()),
             "negligible": [c.effect for c in last.labelled("negligible")],
             "bare": seq.bare.rmse_raw, "final": seq.final.rmse_raw, "floor": seq.bare.noise_floor,
-            "wall_diag": time.perf_counter() - t0}
+            "wall_diag": time.perf_counter() - t0,
+            "model": seq.model_file() if seq.steps else None}
+
+
+def learned_scores(m: Mission, model_file, sparse: dict, dense: dict) -> dict:
+    """The factor graph's batch scores (:func:`batch_scores`) with the model the run's own
+    diagnosis learned (as ``aqfg fit --model model.json``: its effects, its values to
+    start from); the effects were chosen on this run's held-out fixes."""
+    kw = {"effects": tuple(model_file.effects), "init": model_file.init()}
+    try:
+        return batch_scores("fg", m, {**sparse, **kw}, {**dense, **kw})
+    except Exception as e:   # a failure is a result of the run, not the end
+        print(f"{m.name} fit with the diagnosed model failed: {type(e).__name__}: {e}",
+              file=sys.stderr)
+        return failed_row(f"with the diagnosed model: {type(e).__name__}")
 
 
 def failed_row(why: str) -> dict:
@@ -330,6 +376,16 @@ def table(runs: dict) -> str:
                          f"{f2(d['final'])} ({f2(d['floor'])}) | "
                          f"{'; '.join(d['implausible']) or '–'} | "
                          f"{', '.join(d['negligible']) or '–'} | {d['wall_diag']:.0f} |")
+    learned = [n for n in names if "learned" in runs[n]]
+    if learned:
+        lines += ["", "## With the diagnosed model (aqfg fit --model, the run's own diagnosis; "
+                  "m, fg as given -> with the model / update-error)", "",
+                  "| run | 60-s prediction, 8 s | re-trace, 8 s | 60-s prediction, all fixes | "
+                  "re-trace, all fixes |", "|---|---|---|---|---|"]
+        for n in learned:
+            a, b, c = runs[n]["fg"], runs[n]["learned"], runs[n]["update-error"]
+            lines.append(f"| {n} | " + " | ".join(f"{f2(a[k])} -> {f2(b[k])} / {f2(c[k])}" for k in
+                         ("pred8", "retrace8", "pred1", "retrace1")) + " |")
     lines += ["", "## Wall times (s; fg / update-error)", "",
               "| run | batch (8 s, all, +30 deg) | donor fit (other runs) | online 4 s | online 8 s |",
               "|---|---|---|---|---|"]
@@ -367,6 +423,15 @@ def checks(runs: dict) -> str:
         k = np.isfinite(a) & np.isfinite(b)
         out.append(f"- (b) {label}: fg no worse than update-error on {int(np.sum(a[k] <= b[k] + 1e-9))}"
                    f"/{int(k.sum())} runs; median {np.median(a[k]):.2f} vs {np.median(b[k]):.2f} m")
+    if any("learned" in runs[n] for n in names):
+        for key, label in (("pred1", "60-s prediction (all fixes)"),
+                           ("retrace1", "re-trace (all fixes)")):
+            a = np.array([runs[n].get("learned", runs[n]["fg"])[key] for n in names])
+            b = np.array([runs[n]["update-error"][key] for n in names])
+            k = np.isfinite(a) & np.isfinite(b)
+            out.append(f"- (b) {label}, fg with the run's diagnosed model where it has one: no "
+                       f"worse than update-error on {int(np.sum(a[k] <= b[k] + 1e-9))}/{int(k.sum())}"
+                       f" runs; median {np.median(a[k]):.2f} vs {np.median(b[k]):.2f} m")
     for key in ("causal4", "corrected4", "causal8", "corrected8"):
         a = np.array([runs[n]["fg"][key] for n in names])
         b = np.array([runs[n]["update-error"][key] for n in names])
@@ -456,8 +521,14 @@ def main(argv=None) -> int:
             row["wall_donor"] = wd
             runs[n][method] = row
         if not args.no_diagnosis:
-            runs[n]["diagnosis"] = diagnosis_scores(m)
-            print(f"{n} diagnosis: {runs[n]['diagnosis']}", file=sys.stderr, flush=True)
+            d = runs[n]["diagnosis"] = diagnosis_scores(m)
+            print(f"{n} diagnosis: {d}", file=sys.stderr, flush=True)
+            if d.get("model") is not None:
+                noise = runs[n]["noise"]
+                runs[n]["learned"] = learned_scores(
+                    m, d.pop("model"), {"settings": FGSettings(gnss_noise=noise)},
+                    {"settings": FGSettings(gnss_noise=None)} if args.white else {})
+            d.pop("model", None)
             print(f"{n} {method}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items()
                                                 if isinstance(v, float)), file=sys.stderr, flush=True)
     if args.save:
