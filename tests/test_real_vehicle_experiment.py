@@ -27,8 +27,9 @@ def _experiment():
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("runs")
-    for seed in (4, 5):
-        m, _ = simulate("asv", seed=seed, duration=150.0, gnss_period=0.2, gnss_sigma=0.3)
+    for seed in (4, 5):      # run4's propellers push half as hard backwards
+        m, _ = simulate("asv", seed=seed, duration=150.0, gnss_period=0.2, gnss_sigma=0.3,
+                        effects={"reverse_thrust": 0.5} if seed == 4 else None)
         m.name = f"run{seed}"
         save_mission(m, d / m.name)
     return d
@@ -46,6 +47,11 @@ def test_the_table_has_every_section_and_check(runs, tmp_path):
                   "(c) online causal8", "(4) diagnosis: 2/2 runs diagnosed"):
         assert check in text
     assert "failed" not in text.split("## Checks")[1]
+    # the diagnosis names the hidden effect, and the run is scored again with it
+    diag = next(line for line in text.splitlines() if line.startswith("| run4 | reverse_thrust"))
+    assert "ratio" in diag
+    learned = text.split("## With the diagnosed model")[1].split("##")[0]
+    assert "| run4 |" in learned and "| run5 |" not in learned
 
 
 def test_a_run_the_fit_refuses_is_scored_as_failed(runs, tmp_path, monkeypatch):
