@@ -306,3 +306,28 @@ def test_linear_terms_are_the_graphs_linear_factors(missions):
         assert np.array_equal(A, np.hstack(t.whitened_jacobians()))
         assert b == pytest.approx(t.mean / t.sigma, rel=1e-15, abs=0.0)
         assert f.error(at) == pytest.approx(0.5 * np.sum(t.whitened_residual(x) ** 2), rel=1e-12)
+
+
+@pytest.mark.parametrize("lever", [True, False])
+def test_sensor_positions_are_sensor_position_row_by_row(lever):
+    """The vectorised sensor model of the numpy system is the per-fix one: position and
+    Jacobians w.r.t. the state and every parameter, on both streams."""
+    from aqfg.model.measurements import sensor_position, sensor_positions
+    from aqfg.model.params import N_PARAMS, SLICE
+    from aqfg.model.rotation import rot_z
+    rng = np.random.default_rng(5)
+    p = 0.3 * rng.normal(size=N_PARAMS)
+    if not lever:
+        p[SLICE["lever_arm"]] = 0.0
+    X = rng.normal(size=(9, 6))
+    R = np.array([rot_z(a) @ rot_z(b).T for a, b in rng.normal(size=(9, 2))])
+    tm = rng.uniform(0.0, 300.0, 9)
+    for stream in ("gnss", "usbl"):
+        h, Jx, Jp = sensor_positions(X, R, tm, p, stream)
+        for i in range(len(X)):
+            hi, Jxi, Jpi = sensor_position(X[i], R[i], tm[i], p, stream)
+            assert np.allclose(h[i], hi, rtol=1e-14, atol=1e-14)
+            assert np.array_equal(Jx[i], Jxi)
+            assert np.allclose(Jp[i], Jpi, rtol=1e-13, atol=1e-14)
+            assert np.any(Jpi[:, SLICE[f"{stream}_delay"]] != 0.0)
+            assert np.any(Jpi[:, SLICE["heading_drift"]] != 0.0) == lever

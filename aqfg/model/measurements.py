@@ -98,9 +98,10 @@ def sensor_positions(X: np.ndarray, R_raw: np.ndarray, tm: np.ndarray, p: np.nda
         lever = lever + e.offset(p[sl])
         Jp[:, :, sl] += R @ e.offset_jacobian(p[sl])
     Rl = R @ lever
-    dRl = Rl @ E_Z.T                        # d (R l) / d theta
-    for i, dth in heading_jacobian_many(p, tm):
-        Jp[:, :, i] += dRl * dth[:, None]
+    if np.any(lever != 0.0):                # else the heading does not move the sensor
+        dRl = Rl @ E_Z.T                    # d (R l) / d theta
+        for i, dth in heading_jacobian_many(p, tm):
+            Jp[:, :, i] += dRl * dth[:, None]
     return base + Rl, Jx, Jp
 
 
