@@ -331,3 +331,34 @@ def test_sensor_positions_are_sensor_position_row_by_row(lever):
             assert np.allclose(Jp[i], Jpi, rtol=1e-13, atol=1e-14)
             assert np.any(Jpi[:, SLICE[f"{stream}_delay"]] != 0.0)
             assert np.any(Jpi[:, SLICE["heading_drift"]] != 0.0) == lever
+
+
+def test_structural_projection_is_orthogonal_to_the_fix_parameter_columns(missions):
+    """The structural test's projected columns ``C~ = C - A Z`` (aqfg.fg.structure) are
+    orthogonal to every parameter column of the system, the fixes' lever-arm and
+    time-offset columns included (with the parameter priors' rows, which it leaves out)."""
+    from aqfg.fg.structure import _projected, _solve_columns
+    sm = BatchSmoother(effects=("gnss_delay", "lever_arm"))
+    bg = sm.build(missions[:1])
+    fs = FastSystem.build(bg, sm.settings)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    ev = fs.evaluate(X, th)
+    fac = fs.factor(*fs.normal(ev)[:4])
+    C = np.random.default_rng(3).normal(size=(len(fs.d0), 6, 2))
+    Zs, Zp = _solve_columns(fs, fac, ev, C)
+    pr = _projected(fs, ev, bg.parts[0].model, ["s_x", "s_y"], C, Zs, Zp)
+    K = len(fs.d0)
+    at = 6 * K
+    eq = np.einsum("kap,kac->pc", ev["Ap"], pr.Ct[:at].reshape(K, 6, 2))
+    n_fix_cols = 0
+    for m, (r, _, w, Jp) in zip(fs.meas, ev["meas"]):
+        n = r.size
+        Ctm = pr.Ct[at:at + n].reshape(r.shape + (2,))
+        at += n
+        if Jp is not None:
+            eq[m.cols] += np.einsum("nap,nac->pc", Jp * np.sqrt(w)[:, None, None], Ctm)
+            n_fix_cols += len(m.cols)
+    eq -= fs.lin_pA.T @ (fs.lin_pA @ Zp)
+    assert n_fix_cols == 2 * (3 + 4)    # GNSS and USBL: the variable node, the sensor node
+    assert np.abs(eq).max() < 1e-8 * np.abs(np.einsum("kap,kac->pc", ev["Ap"], C)).max()
