@@ -180,11 +180,112 @@ def test_same_fit_as_gtsam_path(missions):
         assert a.sigma_model[n] == pytest.approx(b.sigma_model[n], rel=1e-6), n
 
 
-def test_measurement_effects_keep_the_gtsam_path(missions):
-    sm = BatchSmoother(effects=("lever_arm",),
-                       estimate=("theta_e", "s_x", "s_y", "lever_arm.x", "lever_arm.y"))
+def test_usbl_distortions_keep_the_gtsam_path(missions):
+    sm = BatchSmoother(effects=("usbl_range_scale",))
     bg = sm.build(missions[:1])
     assert FastSystem.build(bg, sm.settings) is None
+
+
+@pytest.mark.parametrize("effects, walk", [
+    (("gnss_delay",), False), (("lever_arm",), False), (("gnss_delay", "lever_arm"), True),
+    (("lever_arm", "usbl_delay", "heading_drift"), True)])
+def test_sensor_effects_same_cost_gradient_hessian(missions, effects, walk):
+    """With a lever arm (rotated by the heading, so theta_e and a heading drift enter the
+    fixes) or a fix time offset, the numpy system is still the GTSAM graph's problem, the
+    parameters away from their start and the states far from theirs."""
+    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=60.0) if walk else FGSettings()
+    sm = BatchSmoother(effects=effects, settings=st)
+    bg = sm.build(missions)
+    fs = FastSystem.build(bg, sm.settings)
+    assert fs is not None
+    assert any(m.cols is not None and len(m.cols) for m in fs.meas)
+    rng = np.random.default_rng(0)
+    values = gtsam.Values(bg.values)
+    for n in bg.nodes:
+        values.update(n.key, values.atVector(n.key)
+                      + rng.normal(0, 0.05, fs.node_off[n.key][1]))
+    for _ in range(2):
+        X, th = fs.from_values(values)
+        ev = fs.evaluate(X, th)
+        assert ev["cost"] == pytest.approx(bg.error(values), rel=1e-12)
+        H, g = gtsam_normal(bg, values, fs)
+        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+        assert np.allclose(dense(fs, D, E, Hsp, Hpp), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
+        assert np.allclose(np.concatenate([gs.ravel(), gp]), g, rtol=1e-10,
+                           atol=1e-10 * np.abs(g).max())
+        for p in bg.parts:
+            for k in p.keys:
+                values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
+
+
+def test_gnss_rows_are_the_gtsam_factors():
+    """Each GNSS fix's whitened residual and Jacobian blocks (state, and the parameter
+    nodes it reads: the lever arm, the time offset, the heading) are its GTSAM factor's
+    linearisation, Huber reweighting included."""
+    m, _ = simulate("asv", seed=4, duration=120.0, effects={"gnss_delay.tau": 0.6,
+                                                            "lever_arm.x": -0.4})
+    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=50.0)
+    sm = BatchSmoother(effects=("gnss_delay", "lever_arm", "heading_drift"), settings=st)
+    bg = sm.build([m])
+    fs = FastSystem.build(bg, sm.settings)
+    assert fs is not None
+    rng = np.random.default_rng(2)
+    values = gtsam.Values(bg.values)
+    for n in bg.nodes:
+        values.update(n.key, values.atVector(n.key)
+                      + rng.normal(0, 0.05, fs.node_off[n.key][1]))
+    for k in bg.parts[0].keys:      # some fixes beyond the Huber threshold
+        values.update(k, values.atVector(k) + rng.normal(0, [2, 2, 0, .3, .3, 0]))
+    X, th = fs.from_values(values)
+    ev = fs.evaluate(X, th)
+    rows = {}
+    for meas, (r, J, w, Jp) in zip(fs.meas, ev["meas"]):
+        if meas.kind == "gnss":
+            assert Jp is not None and meas.cols is not None and len(meas.cols) == 8
+            for i, si in enumerate(meas.idx):
+                rows[int(si)] = (r[i], J[i], w[i], Jp[i], meas.cols)
+    assert len(rows) > 50
+    state_of = {k: fs.state_index[k] for k in bg.parts[0].keys}
+    col_of = {k: o for k, (o, _) in fs.node_off.items()}
+    seen, reweighted = 0, 0
+    for f in (bg.graph.at(i) for i in range(bg.graph.size())):
+        if not isinstance(f, gtsam.CustomFactor) or f.dim() != 2:
+            continue
+        keys = list(f.keys())
+        r, J, w, Jp, cols = rows[state_of[keys[0]]]
+        A, b = f.linearize(values).jacobian()
+        sw = np.sqrt(w)
+        assert np.allclose(b, -sw * r, rtol=1e-12, atol=1e-12)
+        assert np.allclose(A[:, :6], sw * J, rtol=1e-12, atol=1e-12)
+        Ap = np.zeros((2, fs.P))
+        Ap[:, cols] = sw * Jp
+        c = 6
+        for k in keys[1:]:
+            d = fs.node_off[k][1]
+            assert np.allclose(A[:, c:c + d], Ap[:, col_of[k]:col_of[k] + d],
+                               rtol=1e-12, atol=1e-12)
+            c += d
+        assert np.count_nonzero(Ap) == np.count_nonzero(A[:, 6:])   # no column elsewhere
+        seen += 1
+        reweighted += w < 1.0
+    assert seen == len(rows)
+    assert reweighted > 0
+
+
+def test_fit_recovers_a_simulated_gnss_delay():
+    """A fit with gnss_delay on the numpy path finds the simulated 0.8-s time offset, and
+    is the GTSAM path's fit."""
+    m, _ = simulate("asv", seed=0, duration=600.0, effects={"gnss_delay.tau": 0.8})
+    st = FGSettings(adapt_batch=False, adapt_track=False)
+    bs = BatchSmoother(effects=("gnss_delay",), settings=st)
+    assert FastSystem.build(bs.build([m]), bs.settings) is not None
+    a = fit_fg([m], effects=("gnss_delay",), settings=st)
+    tau, sig = a.values["gnss_delay.tau"], a.sigma["gnss_delay.tau"]
+    assert abs(tau - 0.8) < 3.0 * sig, (tau, sig)
+    assert tau > 4.0 * sig                                        # distinct from no delay
+    b = fit_fg([m], effects=("gnss_delay",), settings=st.with_(fast_lm=False))
+    for n in a.estimated:
+        assert a.values[n] == pytest.approx(b.values[n], rel=1e-6, abs=1e-4 * b.sigma[n]), n
 
 
 def test_linear_terms_are_the_graphs_linear_factors(missions):
@@ -205,3 +306,59 @@ def test_linear_terms_are_the_graphs_linear_factors(missions):
         assert np.array_equal(A, np.hstack(t.whitened_jacobians()))
         assert b == pytest.approx(t.mean / t.sigma, rel=1e-15, abs=0.0)
         assert f.error(at) == pytest.approx(0.5 * np.sum(t.whitened_residual(x) ** 2), rel=1e-12)
+
+
+@pytest.mark.parametrize("lever", [True, False])
+def test_sensor_positions_are_sensor_position_row_by_row(lever):
+    """The vectorised sensor model of the numpy system is the per-fix one: position and
+    Jacobians w.r.t. the state and every parameter, on both streams."""
+    from aqfg.model.measurements import sensor_position, sensor_positions
+    from aqfg.model.params import N_PARAMS, SLICE
+    from aqfg.model.rotation import rot_z
+    rng = np.random.default_rng(5)
+    p = 0.3 * rng.normal(size=N_PARAMS)
+    if not lever:
+        p[SLICE["lever_arm"]] = 0.0
+    X = rng.normal(size=(9, 6))
+    R = np.array([rot_z(a) @ rot_z(b).T for a, b in rng.normal(size=(9, 2))])
+    tm = rng.uniform(0.0, 300.0, 9)
+    for stream in ("gnss", "usbl"):
+        h, Jx, Jp = sensor_positions(X, R, tm, p, stream)
+        for i in range(len(X)):
+            hi, Jxi, Jpi = sensor_position(X[i], R[i], tm[i], p, stream)
+            assert np.allclose(h[i], hi, rtol=1e-14, atol=1e-14)
+            assert np.array_equal(Jx[i], Jxi)
+            assert np.allclose(Jp[i], Jpi, rtol=1e-13, atol=1e-14)
+            assert np.any(Jpi[:, SLICE[f"{stream}_delay"]] != 0.0)
+            assert np.any(Jpi[:, SLICE["heading_drift"]] != 0.0) == lever
+
+
+def test_structural_projection_is_orthogonal_to_the_fix_parameter_columns(missions):
+    """The structural test's projected columns ``C~ = C - A Z`` (aqfg.fg.structure) are
+    orthogonal to every parameter column of the system, the fixes' lever-arm and
+    time-offset columns included (with the parameter priors' rows, which it leaves out)."""
+    from aqfg.fg.structure import _projected, _solve_columns
+    sm = BatchSmoother(effects=("gnss_delay", "lever_arm"))
+    bg = sm.build(missions[:1])
+    fs = FastSystem.build(bg, sm.settings)
+    assert fs is not None
+    X, th = fs.from_values(bg.values)
+    ev = fs.evaluate(X, th)
+    fac = fs.factor(*fs.normal(ev)[:4])
+    C = np.random.default_rng(3).normal(size=(len(fs.d0), 6, 2))
+    Zs, Zp = _solve_columns(fs, fac, ev, C)
+    pr = _projected(fs, ev, bg.parts[0].model, ["s_x", "s_y"], C, Zs, Zp)
+    K = len(fs.d0)
+    at = 6 * K
+    eq = np.einsum("kap,kac->pc", ev["Ap"], pr.Ct[:at].reshape(K, 6, 2))
+    n_fix_cols = 0
+    for m, (r, _, w, Jp) in zip(fs.meas, ev["meas"]):
+        n = r.size
+        Ctm = pr.Ct[at:at + n].reshape(r.shape + (2,))
+        at += n
+        if Jp is not None:
+            eq[m.cols] += np.einsum("nap,nac->pc", Jp * np.sqrt(w)[:, None, None], Ctm)
+            n_fix_cols += len(m.cols)
+    eq -= fs.lin_pA.T @ (fs.lin_pA @ Zp)
+    assert n_fix_cols == 2 * (3 + 4)    # GNSS and USBL: the variable node, the sensor node
+    assert np.abs(eq).max() < 1e-8 * np.abs(np.einsum("kap,kac->pc", ev["Ap"], C)).max()

@@ -9,7 +9,8 @@ same problem has a fixed shape that numpy can evaluate in a few array operations
   parameter segment, as :meth:`BuiltGraph.fill`), whitened by ``W`` with ``W^T W = Q^-1``;
 * GNSS / USBL / depth factors on one knot, with GTSAM's Huber reweighting (``sqrt(w)`` of
   the whitened residual norm on residual and Jacobian, loss ``k |d| - k^2 / 2`` beyond
-  ``k``);
+  ``k``); a lever arm or a fix time offset gives their rows parameter columns
+  (:mod:`aqfg.fg.fastlm_meas`);
 * the graph's linear factors (priors, surface constraint, random walk of parameters), from
   the numpy form the build records beside them (:class:`aqfg.fg.factors.LinearTerm`).
 
@@ -19,9 +20,9 @@ states and a Schur complement of the parameters solve them exactly (the same sys
 GTSAM's elimination solves, in Cholesky form as GTSAM's default). The parameter marginal
 covariance is the inverse of that Schur complement.
 
-:meth:`FastSystem.build` returns None for graphs outside this shape (measurement effects
-such as a lever arm or USBL distortions, a Cauchy loss, factors between states of
-different knots): the caller then keeps the GTSAM path.
+:meth:`FastSystem.build` returns None for graphs outside this shape (USBL distortions,
+measurement effects outside the built-in catalogue, a Cauchy loss, factors between states
+of different knots): the caller then keeps the GTSAM path.
 """
 from __future__ import annotations
 
@@ -32,13 +33,10 @@ import numpy as np
 import scipy.linalg as sla
 
 from aqfg.fg import factors as fc
-from aqfg.fg import lm
-from aqfg.fg.common import Measurements, depth_assignment, knot_index
+from aqfg.fg import fastlm_meas, lm
 from aqfg.fg.fastlm_ops import Meas, propagator, sandwich, scatter_add, tri
-from aqfg.fg.fastlm_ops import plain_sensors as _plain_sensors
-from aqfg.fg.robust import huber_cost, huber_weight, row_norms
-from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
-from aqfg.model.measurements import range_bearing
+from aqfg.fg.fastlm_ops import plain_sensors as _plain_sensors  # noqa: F401  (fastlag's check)
+from aqfg.fg.robust import huber_cost, row_norms
 
 
 class FastSystem:
@@ -99,13 +97,7 @@ class FastSystem:
         sn = settings.sensors
         if sn.robust not in ("huber", "none"):
             return None
-        for part in bg.parts:
-            if any(isinstance(e, (SensorOffsetTerm, UsblTerm, FixDelayTerm))
-                   for e in part.model.effects):
-                return None
-        if lay.meas_groups("gnss") or lay.meas_groups("usbl"):
-            return None
-        if not _plain_sensors(lay.base):
+        if not fastlm_meas.supported(bg):
             return None
         self = cls(bg, settings)
         # ---- dynamics: whitening and parameter columns per interval
@@ -140,7 +132,7 @@ class FastSystem:
         self.gcols = {g: np.array(v, int).reshape(len(idx0), -1) for g, v in gmaps.items()}
         self.ncols = ncols
         # ---- measurements
-        self.meas = meas = self._measurements(settings)
+        self.meas = meas = fastlm_meas.measurements(self, settings)
         n_meas = sum(len(x.idx) for x in meas)
         # ---- the graph's linear factors, from their numpy form; every factor accounted for
         factors = [f for f in (bg.graph.at(i) for i in range(bg.graph.size())) if f is not None]
@@ -170,33 +162,6 @@ class FastSystem:
         self.hi = np.concatenate([bg.layout.bounds(n.group)[1] for n in bg.nodes]) \
             if bg.nodes else np.zeros(0)
         return self
-
-    def _measurements(self, settings) -> list[Meas]:
-        """The GNSS, USBL and depth factors of every mission part, by kind."""
-        sn = settings.sensors
-        meas: list[Meas] = []
-        for pi, part in enumerate(self.bg.parts):
-            m = Measurements.of(part.mission, settings, part.knots[0], part.knots[-1])
-            off = self.part_off[pi]
-
-            def k_of(stream):
-                if sn.robust == "none" or stream not in sn.robust_on:
-                    return None
-                return sn.robust_k_gnss if stream == "gnss" else sn.robust_k
-            if len(m.gnss_t):
-                ki = off + knot_index(part.knots, m.gnss_t)
-                meas.append(Meas("gnss", ki, m.gnss_z, np.repeat(m.gnss_sigma[:, None], 2, 1),
-                                  k_of("gnss")))
-            if len(m.usbl_t):
-                ki = off + knot_index(part.knots, m.usbl_t)
-                meas.append(Meas("usbl", ki, m.usbl_z, m.usbl_sigma, k_of("usbl"),
-                                  np.asarray(m.station, float)))
-            ri, ki = depth_assignment(part.knots, m.depth_t)
-            if len(ri):
-                meas.append(Meas("depth", off + ki, m.depth_z[ri][:, None],
-                                  np.full((len(ri), 1), sn.depth_sigma), k_of("depth"),
-                                  m.depth_t[ri] - part.knots[ki]))
-        return meas
 
     def _linear_terms(self, terms: Sequence[fc.LinearTerm]) -> bool:
         """The whitened ``A`` and ``b`` of the linear factors on one state each (grouped by
@@ -343,31 +308,8 @@ class FastSystem:
         out["Jx"] = np.concatenate(Jxs) if Jxs else np.zeros((0, 6, 6))
         out["Jp"] = np.concatenate(Jps) if Jps else np.zeros((0, 6, self.ncols))
         # measurements
-        mres = []
-        for m in self.meas:
-            x = X[m.idx]
-            if m.kind == "gnss":
-                r = (x[:, :2] - m.z) / m.sigma
-                J = np.zeros((len(r), 2, 6))
-                J[:, 0, 0] = 1.0 / m.sigma[:, 0]
-                J[:, 1, 1] = 1.0 / m.sigma[:, 1]
-            elif m.kind == "usbl":
-                h, Hd = range_bearing(x[:, :3] - m.extra)    # the USBL model's geometry
-                raw = h - m.z
-                raw[:, 1] = fc.wrap_angle(raw[:, 1])
-                r = raw / m.sigma
-                J = np.zeros((len(r), 2, 6))
-                J[:, :, :3] = Hd
-                J /= m.sigma[:, :, None]
-            else:
-                r = ((x[:, 2] + x[:, 5] * m.extra)[:, None] - m.z) / m.sigma
-                J = np.zeros((len(r), 1, 6))
-                J[:, 0, 2] = 1.0 / m.sigma[:, 0]
-                J[:, 0, 5] = m.extra / m.sigma[:, 0]
-            dist = row_norms(r)
-            w = huber_weight(dist, m.k)
-            cost += float(np.sum(huber_cost(dist, m.k)))
-            mres.append((r, J, w))
+        mres, mcost = fastlm_meas.evaluate(self, X, nv)
+        cost += mcost
         out["meas"] = mres
         # linear factors
         lres = {}
@@ -389,7 +331,7 @@ class FastSystem:
         sc = np.zeros(self.N)
         rd = ev["dyn_r"]
         sc[self.d0 + 1] = 0.5 * np.sum(rd * rd, axis=1)
-        for m, (r, _, _) in zip(self.meas, ev["meas"]):
+        for m, (r, _, _, _) in zip(self.meas, ev["meas"]):
             np.add.at(sc, m.idx, huber_cost(row_norms(r), m.k))
         for mm, (si, _, _) in self.lin_s.items():
             r = ev["lin_s"][mm]
@@ -459,10 +401,7 @@ class FastSystem:
         gs[d0] += np.matmul(A0t, rd[:, :, None])[:, :, 0]
         gs[d0 + 1] += np.matmul(Wt, rd[:, :, None])[:, :, 0]
         gp = Apf.T @ rd.ravel() + self.lin_pA.T @ ev["lin_p"]
-        for m, (r, J, w) in zip(self.meas, ev["meas"]):
-            Jt = J.transpose(0, 2, 1)
-            scatter_add(D, m.idx, w[:, None, None] * np.matmul(Jt, J))
-            scatter_add(gs, m.idx, w[:, None] * np.matmul(Jt, r[:, :, None])[:, :, 0])
+        fastlm_meas.add_normal(self, ev, D, Hsp, Hpp, gs, gp)
         for mm, (si, A, _) in self.lin_s.items():
             scatter_add(gs, si,
                          np.matmul(A.transpose(0, 2, 1), ev["lin_s"][mm][:, :, None])[:, :, 0])

@@ -27,13 +27,19 @@ class Meas:
     sigma: np.ndarray     # (n, m)
     k: float | None       # Huber threshold (None: plain Gaussian)
     extra: np.ndarray | None = None   # depth: dt after the knot; usbl: station (3,)
+    # fixes through the sensor model (:mod:`aqfg.fg.fastlm_meas`); None: the knot itself
+    tm: np.ndarray | None = None      # (n,) s since the mission start
+    R: np.ndarray | None = None       # (n, 3, 3) raw attitude (body -> ground)
+    nodes: tuple | None = None        # ((group, node key), ...) the factors read
+    cols: np.ndarray | None = None    # (c,) their columns in the system's parameters
+    pidx: np.ndarray | None = None    # (c,) their indices in the full parameter vector
 
 
-def plain_sensors(p: np.ndarray) -> bool:
+def plain_sensors(p: np.ndarray, offsets: bool = True) -> bool:
     """True when the measurement effects at ``p`` are null (no lever arm, no USBL
-    distortion), so a fix measures the knot position itself."""
-    ps = sensor_position(np.zeros(3), np.eye(3), 0.0, p)[0]
-    if np.any(ps != 0.0):
+    distortion; ``offsets`` False: the USBL distortions alone), so a fix measures the
+    knot position itself."""
+    if offsets and np.any(sensor_position(np.zeros(3), np.eye(3), 0.0, p)[0] != 0.0):
         return False
     z = np.array([10.0, 0.3])
     return all(np.array_equal(e.distort(z, p[sl]), z) for e, sl in USBL_TERMS)
@@ -98,7 +104,8 @@ def propagator(model, sl):
 def sandwich(fs: FastSystem, ev: dict, fac, key_time: dict, block: float):
     """:func:`aqfg.fg.covariance.block_sandwich` from the system ``fs``: per-block score
     ``g_b`` (factors assigned to the block of their latest knot, parameter-only factors
-    left out), ``Z = H^-1 G``. Returns ({node key: cov}, dof) or None."""
+    left out; a fix's parameter columns, a lever arm or a time offset, in its knot's
+    block), ``Z = H^-1 G``. Returns ({node key: cov}, dof) or None."""
     t_state = np.empty(fs.N)
     for p, o in zip(fs.bg.parts, fs.part_off):
         t_state[o:o + len(p.keys)] = [key_time[k] for k in p.keys]
@@ -115,10 +122,15 @@ def sandwich(fs: FastSystem, ev: dict, fac, key_time: dict, block: float):
     vals_s += [np.einsum("kji,kj->ki", A0, rd), np.einsum("kji,kj->ki", W, rd)]
     pg_b.append(bd)
     pg_v.append(np.einsum("kji,kj->ki", Ap, rd))
-    for m, (r, J, w) in zip(fs.meas, ev["meas"]):
+    for m, (r, J, w, Jp) in zip(fs.meas, ev["meas"]):
         rows_s.append(m.idx)
         rows_b.append(blk_state[m.idx])
         vals_s.append(w[:, None] * np.einsum("nji,nj->ni", J, r))
+        if Jp is not None and m.cols is not None and len(m.cols):
+            v = np.zeros((len(r), fs.P))
+            v[:, m.cols] = w[:, None] * np.einsum("nki,nk->ni", Jp, r)
+            pg_b.append(blk_state[m.idx])
+            pg_v.append(v)
     for mm, (si, A, _) in fs.lin_s.items():
         rows_s.append(si)
         rows_b.append(blk_state[si])

@@ -336,7 +336,9 @@ def _model_factors(layout: fc.ParamLayout, parts: list[MissionPart],
 
         def nkeys(groups, seg, mi=mi, memo=key_memo):
             if (groups, seg) not in memo:
-                memo[groups, seg] = tuple((g, fc.node_key(g, mi, seg)) for g in groups)
+                # one sensor node per mission: a fix in a later segment reads it too
+                memo[groups, seg] = tuple((g, fc.node_key(g, mi, seg if g == "variable" else 0))
+                                          for g in groups)
             return memo[groups, seg]
 
         for i in range(len(part.knots) - 1):

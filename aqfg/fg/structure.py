@@ -131,10 +131,13 @@ def _projected(fs: FastSystem, ev: dict, model: Model, cols: list[str], C: np.nd
                - np.einsum("kap,pc->kac", Ap, Zp)]
     b_rows = [-ev["dyn_r"]]
     t_rows = [np.repeat(t_state[d0 + 1], 6)]
-    for m, (r, J, w) in zip(fs.meas, ev["meas"]):
+    for m, (r, J, w, Jp) in zip(fs.meas, ev["meas"]):
         sw = np.sqrt(w)[:, None]
         Jw = J * sw[:, :, None]
-        Ct_rows.append(-np.einsum("nab,nbc->nac", Jw, Zs[m.idx]))
+        Ct = -np.einsum("nab,nbc->nac", Jw, Zs[m.idx])
+        if Jp is not None and m.cols is not None and len(m.cols):   # lever arm, time offset
+            Ct -= np.einsum("nap,pc->nac", Jp * sw[:, :, None], Zp[m.cols])
+        Ct_rows.append(Ct)
         b_rows.append(-(r * sw))
         t_rows.append(np.repeat(t_state[m.idx], r.shape[1]))
     Ct = np.concatenate([c.reshape(-1, len(cols)) for c in Ct_rows])

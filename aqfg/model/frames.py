@@ -45,6 +45,17 @@ def heading_jacobian(p: np.ndarray, tm: float) -> list[tuple[int, float]]:
     return out
 
 
+def heading_jacobian_many(p: np.ndarray, tm: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """:func:`heading_jacobian` at each of the times ``tm`` (n,): ``[(index in p, (n,)
+    values), ...]``."""
+    tm = np.asarray(tm, dtype=float)
+    out = [(I_THETA, np.ones(len(tm)))]
+    for e, sl in HEADING_TERMS:
+        J = np.array([e.heading_jacobian(float(t), p[sl]) for t in tm]).reshape(len(tm), -1)
+        out += [(sl.start + j, J[:, j]) for j in range(J.shape[1])]
+    return out
+
+
 def corrected_attitude(R_raw: np.ndarray, p: np.ndarray, tm: float) -> np.ndarray:
     """Ground attitude (3x3, body->ground) from the IMU's ``R_raw`` (Eq. 6)."""
     return rot_z(heading(p, tm)) @ R_raw

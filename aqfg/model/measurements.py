@@ -8,6 +8,8 @@ the EKF, the simulator, the re-trace and the diagnosis:
   ``R`` the heading-corrected attitude, :func:`aqfg.model.frames.heading`), and, given the
   state's velocity, ``- tau v`` for the stream's
   :class:`~aqfg.model.effects.FixDelayTerm` time offset ``tau``;
+* :func:`sensor_positions` -- the same for many fixes at once (the batch solver's numpy
+  form, :mod:`aqfg.fg.fastlm_meas`);
 * :func:`h_gnss` -- north, east of the antenna;
 * :func:`h_usbl` -- slant range ``|d|`` and bearing ``atan2(d_e, d_n)`` (rad, from north,
   clockwise) of the transponder seen from the station, then the
@@ -26,9 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
-from aqfg.model.frames import corrected_attitude, heading_jacobian
+from aqfg.model.frames import corrected_attitude, heading, heading_jacobian, heading_jacobian_many
 from aqfg.model.params import MEASUREMENT_EFFECTS, N_PARAMS, SLICE
-from aqfg.model.rotation import E_Z
+from aqfg.model.rotation import E_Z, rot_z
 
 OFFSET_TERMS: tuple[tuple[SensorOffsetTerm, slice], ...] = tuple(
     (e, SLICE[e.name]) for e in MEASUREMENT_EFFECTS if isinstance(e, SensorOffsetTerm))
@@ -69,6 +71,37 @@ def sensor_position(pos: np.ndarray, R_raw: np.ndarray, tm: float, p: np.ndarray
     dRl = E_Z @ Rl                          # d (R l) / d theta
     for i, dth in heading_jacobian(p, tm):
         Jp[:, i] += dRl * dth
+    return base + Rl, Jx, Jp
+
+
+def sensor_positions(X: np.ndarray, R_raw: np.ndarray, tm: np.ndarray, p: np.ndarray,
+                     stream: str = "gnss"):
+    """:func:`sensor_position` of states ``X`` (n, 6) with attitudes ``R_raw`` (n, 3, 3) at
+    ``tm`` (n,) s since the mission start, one parameter vector ``p``. Returns the
+    positions (n, 3), d/dstate (n, 3, 6), d/dp (n, 3, N_PARAMS)."""
+    X = np.asarray(X, dtype=float)
+    n = len(X)
+    R = rot_z(heading(p, np.asarray(tm, dtype=float))) @ R_raw
+    Jp = np.zeros((n, 3, N_PARAMS))
+    Jx = np.zeros((n, 3, 6))
+    Jx[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    base = X[:, :3].copy()
+    for d, sd in DELAY_TERMS:
+        if d.stream != stream:
+            continue
+        tau = d.delay(p[sd])
+        base -= tau * X[:, 3:6]
+        Jx[:, [0, 1, 2], [3, 4, 5]] -= tau
+        Jp[:, :, sd] -= X[:, 3:6, None] * d.delay_jacobian(p[sd])[None, None, :]
+    lever = np.zeros(3)
+    for e, sl in OFFSET_TERMS:
+        lever = lever + e.offset(p[sl])
+        Jp[:, :, sl] += R @ e.offset_jacobian(p[sl])
+    Rl = R @ lever
+    if np.any(lever != 0.0):                # else the heading does not move the sensor
+        dRl = Rl @ E_Z.T                    # d (R l) / d theta
+        for i, dth in heading_jacobian_many(p, tm):
+            Jp[:, :, i] += dRl * dth[:, None]
     return base + Rl, Jx, Jp
 
 
