@@ -650,8 +650,10 @@ def test_ctrl_c_on_a_fleet_run_stops_it_and_its_workers_quietly(otter, tmp_path)
     exit 130 and one line, its workers with it, none printing a traceback of its own."""
     pytest.importorskip("distributed")
     from aqfg.fleet import write_manifest
-    crop(otter, tmp_path / "m")
-    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": ["m"]})
+    # two whole missions: a run that outlasts its cluster's start-up on a fast machine
+    for name in ("m1", "m2"):
+        crop(otter, tmp_path / name, t_end=float("inf"))
+    p = write_manifest(tmp_path / "fleet.toml", {"asv-a": ["m1", "m2"]})
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-m", "aqfg", "fleet", str(p), "--out",
                              str(tmp_path / "out"), "--workers", "2"], cwd=tmp_path, env=env,

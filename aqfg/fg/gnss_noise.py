@@ -19,6 +19,10 @@ The error is described as a first-order Gauss-Markov (AR(1)) process per horizon
   error common to all fixes over minutes moves that track with it and is not seen. (The
   measurement variance by maximum likelihood is no use here: a receiver's own filter makes
   its fixes smooth, and the likelihood then puts all of their error into the motion.)
+* :func:`judged_sigma` is the sigma of the fixes as a reference that predictions are
+  judged against (the diagnosis's held-out fixes): the stated sigma unless the fixes'
+  wander about the smoother, plus what the smoother absorbs of white noise, shows it too
+  large.
 * :func:`fix_sigma` gives each fix the variance of an independent fix carrying the same
   information on a slowly varying quantity: ``sigma^2 (1 + rho) / (1 - rho)`` with ``rho``
   from its spacing to the neighbouring fixes (the variance of the mean of an AR(1)
