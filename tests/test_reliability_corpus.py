@@ -658,7 +658,11 @@ def test_ctrl_c_on_a_fleet_run_stops_it_and_its_workers_quietly(otter, tmp_path)
     proc = subprocess.Popen([sys.executable, "-m", "aqfg", "fleet", str(p), "--out",
                              str(tmp_path / "out"), "--workers", "2"], cwd=tmp_path, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)        # its own group, as a terminal's job
+                            start_new_session=True,        # its own group, as a terminal's job
+                            # and SIGINT at its default, as a terminal's job has it (a
+                            # background job of a script inherits it ignored, and Python
+                            # then installs no handler)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         workers: list[int] = []
         for _ in range(1200):                  # the cluster up: workers, SIGINT handled again
