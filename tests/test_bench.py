@@ -1,10 +1,13 @@
 """``aqfg bench --repeat 1`` runs end to end and prints every figure (no timing assertion)."""
 import re
 
+import pytest
+
 from aqfg import bench
 from aqfg.cli import main
 
 
+@pytest.mark.slow          # 40 s: every figure of the benchmark, each command a process
 def test_bench_command_prints_the_figures(capsys, tmp_path):
     assert main(["bench", "--repeat", "1", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
