@@ -51,6 +51,27 @@ def dense(fs, D, E, Hsp, Hpp):
     return H
 
 
+def assert_same_problem(bg, fs, values):
+    """The numpy system at ``values`` has the graph's cost, Hessian and gradient."""
+    X, th = fs.from_values(values)
+    ev = fs.evaluate(X, th)
+    assert ev["cost"] == pytest.approx(bg.error(values), rel=1e-12)
+    H, g = gtsam_normal(bg, values, fs)
+    D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
+    assert np.allclose(dense(fs, D, E, Hsp, Hpp), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
+    assert np.allclose(np.concatenate([gs.ravel(), gp]), g, rtol=1e-10,
+                       atol=1e-10 * np.abs(g).max())
+
+
+def states_far(bg, values, rng):
+    """``values`` (changed in place and returned) with every state moved far from where it
+    was: the robust losses beyond their thresholds."""
+    for p in bg.parts:
+        for k in p.keys:
+            values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
+    return values
+
+
 @pytest.fixture(scope="module")
 def missions():
     out = []
@@ -69,19 +90,8 @@ def test_same_cost_gradient_hessian(missions, walk):
     values = bg.values
     rng = np.random.default_rng(0)
     for _ in range(2):
-        X, th = fs.from_values(values)
-        ev = fs.evaluate(X, th)
-        assert ev["cost"] == pytest.approx(bg.error(values), rel=1e-12)
-        H, g = gtsam_normal(bg, values, fs)
-        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-        assert np.allclose(dense(fs, D, E, Hsp, Hpp), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
-        assert np.allclose(np.concatenate([gs.ravel(), gp]), g, rtol=1e-10,
-                           atol=1e-10 * np.abs(g).max())
-        # far from the start: robust losses beyond their thresholds
-        values = gtsam.Values(values)
-        for p in bg.parts:
-            for k in p.keys:
-                values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
+        assert_same_problem(bg, fs, values)
+        values = states_far(bg, gtsam.Values(values), rng)
 
 
 def test_process_scale_and_evidence(missions):
@@ -205,17 +215,8 @@ def test_sensor_effects_same_cost_gradient_hessian(missions, effects, walk):
         values.update(n.key, values.atVector(n.key)
                       + rng.normal(0, 0.05, fs.node_off[n.key][1]))
     for _ in range(2):
-        X, th = fs.from_values(values)
-        ev = fs.evaluate(X, th)
-        assert ev["cost"] == pytest.approx(bg.error(values), rel=1e-12)
-        H, g = gtsam_normal(bg, values, fs)
-        D, E, Hsp, Hpp, gs, gp = fs.normal(ev)
-        assert np.allclose(dense(fs, D, E, Hsp, Hpp), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
-        assert np.allclose(np.concatenate([gs.ravel(), gp]), g, rtol=1e-10,
-                           atol=1e-10 * np.abs(g).max())
-        for p in bg.parts:
-            for k in p.keys:
-                values.update(k, values.atVector(k) + rng.normal(0, [5, 5, 0, .5, .5, 0]))
+        assert_same_problem(bg, fs, values)
+        values = states_far(bg, values, rng)
 
 
 def test_gnss_rows_are_the_gtsam_factors():
