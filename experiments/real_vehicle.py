@@ -51,6 +51,7 @@ from aqfg.data import load_mission  # noqa: E402
 from aqfg.data.mission import Imu, Mission, with_gnss_every  # noqa: E402
 from aqfg.fg import gnss_noise  # noqa: E402
 from aqfg.fg.common import FGSettings  # noqa: E402
+from aqfg.model.measurements import sensor_positions  # noqa: E402
 from aqfg.model.params import MEASUREMENT_EFFECTS  # noqa: E402
 from aqfg.model.retrace import rollout  # noqa: E402
 from aqfg.model.vehicle import attitude_at  # noqa: E402
@@ -131,8 +132,7 @@ def sensor_of(result, i: int = 0):
 def _fix_positions(sensor, m: Mission, t: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Where the model puts the GNSS antenna at stamps ``t`` from states ``X`` (n, 6)."""
     model, p = sensor
-    R = attitude_at(m, t)
-    return np.array([model.h_gnss(X[i], R[i], t[i], p)[0] for i in range(len(t))]).reshape(-1, 2)
+    return sensor_positions(X, attitude_at(m, t), t - model.t0, p)[0][:, :2]
 
 
 def track_error(track, t: np.ndarray, ne: np.ndarray, sensor=None, m: Mission | None = None
@@ -198,10 +198,12 @@ def rotated(m: Mission, angle: float) -> Mission:
     return out
 
 
-def batch_scores(method: str, m: Mission, sparse: dict, dense: dict) -> dict:
+def batch_scores(method: str, m: Mission, sparse: dict, dense: dict, heading: bool = True
+                 ) -> dict:
     """``sparse``: keyword arguments of the fits of decimated fixes (the factor graph's
     settings with the GNSS noise measured on the other runs); ``dense``: of the fits of
-    every fix."""
+    every fix; ``heading``: also the factor graph's verdict on theta_e and the +30 deg
+    recovery."""
     row: dict = {}
     m8 = with_gnss_every(m, 8.0)
     r8, w8 = fit(method, [m8], **sparse)
@@ -217,7 +219,7 @@ def batch_scores(method: str, m: Mission, sparse: dict, dense: dict) -> dict:
     row["theta1"] = (r1.values["theta_e"], r1.sigma.get("theta_e", float("nan")))
     row["wall_batch"] = w8 + w1
     row["constants1"] = r1.vehicle_constants()
-    if method == "fg":
+    if method == "fg" and heading:
         # what aqfg fit writes (identifiability.settle): a heading offset the data do not
         # determine has no sigma, and a reason
         from aqfg.identifiability import settle
@@ -258,15 +260,6 @@ def online_scores(method: str, m: Mission, init: dict, effects: tuple, sparse: d
     return row
 
 
-def _fall(step) -> str:
-    """A step's held-out error beyond the noise, before -> after, in words."""
-    if not step.rmse_before > 0:
-        return "within the noise before"
-    if not step.rmse_after > 0:
-        return f"{step.rmse_before:.2f} m -> within the noise"
-    return f"{-100 * step.gain:+.0f}%"
-
-
 def diagnosis_scores(m: Mission) -> dict:
     """What ``aqfg diagnose RUN --auto`` says of one run (module docstring)."""
     from aqfg.diagnose.confirm import implausible
@@ -281,7 +274,7 @@ def diagnosis_scores(m: Mission) -> dict:
     last = seq.diagnoses[-1]
     est = [", ".join(f"{n.split('.')[-1]} {v['value']:.3g}±{v['sigma']:.2g}"
                      for n, v in s.estimate.items()) for s in seq.steps]
-    return {"added": [f"{s.effect} ({e}; {_fall(s)})" for s, e in zip(seq.steps, est)],
+    return {"added": [f"{s.effect} ({e}; {s.beyond_text()})" for s, e in zip(seq.steps, est)],
             "plausible": [not implausible(resolve(s.effect), s.estimate, [m]) for s in seq.steps],
             "gains": [float(s.gain) for s in seq.steps],
             "min_gain": float(last.settings.get("min_gain", float("nan"))),
@@ -301,7 +294,7 @@ def learned_scores(m: Mission, model_file, sparse: dict, dense: dict) -> dict:
     start from); the effects were chosen on this run's held-out fixes."""
     kw = {"effects": tuple(model_file.effects), "init": model_file.init()}
     try:
-        return batch_scores("fg", m, {**sparse, **kw}, {**dense, **kw})
+        return batch_scores("fg", m, {**sparse, **kw}, {**dense, **kw}, heading=False)
     except Exception as e:   # a failure is a result of the run, not the end
         print(f"{m.name} fit with the diagnosed model failed: {type(e).__name__}: {e}",
               file=sys.stderr)

@@ -62,6 +62,15 @@ class Step:
     noise_floor: float = float("nan")     # RMS distance (m) the held-out fixes' noise gives
     gain: float = float("nan")            # fall of the DR error beyond the noise (fraction)
 
+    def beyond_text(self) -> str:
+        """The dead-reckoning error beyond the noise floor, before -> after, in words."""
+        if not (self.rmse_before > 0):
+            return "within the noise before"
+        if not (self.rmse_after > 0):
+            return f"beyond the noise {self.rmse_before:.2f} m -> within it"
+        return (f"beyond the noise {self.rmse_before:.2f} -> {self.rmse_after:.2f} m, "
+                f"{-100 * self.gain:+.0f}%")
+
     def to_json(self) -> dict:
         return json_ready({"effect": self.effect, "estimate": self.estimate,
                        "consistent_before": bool(self.consistent_before),
@@ -160,7 +169,7 @@ class DiagnosisSequence:
             if s.independent:
                 extra += f"; still evidence for: {', '.join(s.independent)}"
             L.append(f"+ {s.effect:<32} held-out RMS {s.rmse_raw_after:6.2f} m  "
-                     f"({_beyond(s)}), {_cons(ev)}, dBIC "
+                     f"({s.beyond_text()}), {_cons(ev)}, dBIC "
                      f"{s.bic_change:.1f}  [{est}]{extra}")
         L.append(f"stopped: {self.stopped}")
         L.append(self.verdict())
@@ -181,16 +190,6 @@ class DiagnosisSequence:
         out["steps"] = [d.to_json() for d in self.diagnoses]
         out["timings"] = self.timings
         return json_ready(out)
-
-
-def _beyond(s: Step) -> str:
-    """The step's dead-reckoning error beyond the noise floor, before -> after."""
-    if not (s.rmse_before > 0):
-        return "within the noise before"
-    if not (s.rmse_after > 0):
-        return f"beyond the noise {s.rmse_before:.2f} m -> within it"
-    return (f"beyond the noise {s.rmse_before:.2f} -> {s.rmse_after:.2f} m, "
-            f"{-100 * s.gain:+.0f}%")
 
 
 def _passed(ev: FitEval | None) -> bool:
