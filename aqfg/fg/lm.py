@@ -97,6 +97,8 @@ def levenberg_marquardt(system: LMSystem[X], x: X, params: LMParams,
     err = system.cost(x)
     lam = params.lambda_initial
     out = LMResult(x, err, 0, 0, False, [], [(0, err, lam)])
+    if not np.isfinite(err):
+        return out                               # nothing to descend from: not converged
     for it in range(params.max_iterations):
         t_it = time.perf_counter()
         system.linearize(x)
