@@ -209,7 +209,7 @@ def settle(result, missions=()) -> list[str]:
     fit's per-mission parameters that a mission's own inputs cannot determine (likewise),
     then a sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for
     every parameter whose verdict is "not determined". Returns the new warnings (also appended
-    to ``info["warnings"]``)."""
+    to ``result.warnings``)."""
     info = result.info
     new: list[str] = []
     if "theta_e" in result.estimated:
@@ -235,5 +235,5 @@ def settle(result, missions=()) -> list[str]:
                 e["sigma"] = float("nan")
                 e.setdefault("sigma_note", f"{NOT}: {e['note']}" if e.get("note") else NOT)
     if new:
-        info.setdefault("warnings", []).extend(new)
+        result.warnings = [*result.warnings, *new]
     return new

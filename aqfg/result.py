@@ -260,6 +260,8 @@ class InfoView(Generic[T]):
 class Result:
     """What every estimator returns.
 
+    ``warnings`` are what a user must be told about the fit, in words (every estimator's;
+    logged as they arise, not written to the result's files).
     Facts only some estimators have are typed attributes below (``per_mission``,
     ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
     in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
@@ -324,6 +326,7 @@ class Result:
     dead_reckoning: DeadReckoning | None = None
     sigma_unimodal: dict[str, float] = field(default_factory=dict)
     sigma_before_profile: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

@@ -55,7 +55,7 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
     # the record keeps the model-as-given estimates, and the warning says what was added
     assert ae.base.values["s_x"] == given.values["s_x"]
-    assert any(w.startswith("added the effect linear_drag") for w in res.info["warnings"])
+    assert any(w.startswith("added the effect linear_drag") for w in res.warnings)
 
 
 def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout111,
@@ -72,7 +72,7 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     given = dataclasses.replace(
         fitted, sigma={n: s * 1e-3 if n in VAR else s for n, s in fitted.sigma.items()},
         structural_test=st)
-    warnings = list(given.info.get("warnings", []))
+    warnings = list(given.warnings)
     calls = []
 
     def finish(res, bs, missions, model, effects):    # completes the solve it is given
@@ -84,9 +84,9 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     assert ae is not None and not ae.adopted and "by more than 3 sigma" in ae.reason
     assert out.values == given.values and out.effects == given.effects == ()
     assert calls[-1] == ()                    # the model as given was finished
-    assert any("was not added" in w for w in out.info["warnings"])
+    assert any("was not added" in w for w in out.warnings)
     # the step returns its result: the fit it was given stays as it was
-    assert given.effect_step is None and given.info.get("warnings", []) == warnings
+    assert given.effect_step is None and given.warnings == warnings
 
 
 def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_comes_right():
@@ -143,7 +143,7 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     assert st is not None and st.effect == "ground_advance" and st.proven is False
     assert res.structural_test is not None and not res.structural_test.called_for
     assert any("suggest (do not prove) the effect ground_advance" in w
-               for w in res.info["warnings"])
+               for w in res.warnings)
     e = _errors(res, truth)
     before = st.sigma_before
     assert max(abs(e[n]) / before[n] for n in ("s_x", "s_y")) > 3.0
@@ -262,7 +262,7 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     assert out.effects == ("linear_drag",)
     e = _errors(out, truth)
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02
-    assert any("explains the fixes best" in w for w in out.info["warnings"])
+    assert any("explains the fixes best" in w for w in out.warnings)
 
 
 def test_a_second_minimum_as_good_widens_the_sigma():

@@ -67,7 +67,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     check_batch(res, truth)
     # the model is wrong here: the honest sigma is above the Hessian's, and it says so
     assert res.sigma["s_x"] > res.sigma_model["s_x"]
-    assert any("does not explain the fixes" in w for w in res.info["warnings"])
+    assert any("does not explain the fixes" in w for w in res.warnings)
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
     assert not res.too_short_for_sandwich and res.block_jackknife is None
 
@@ -88,7 +88,7 @@ def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
     assert e < 0.5 * e_base
     check_batch(res, truth)
     assert any("no effect reached the structural test's level" in w
-               for w in res.info["warnings"])
+               for w in res.warnings)
     from aqfg.result import effect_step_document
     assert effect_step_document(rec)["untested"] is True     # parameters.json says so
 
@@ -168,7 +168,7 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e > 3 * res.sigma_unimodal["theta_e"]        # one basin's sigma
     assert e <= 3 * res.sigma["theta_e"]
-    assert any("the sigmas cover the basins" in w for w in res.info["warnings"])
+    assert any("the sigmas cover the basins" in w for w in res.warnings)
 
 
 # a batch fit of otter-dev-calm-b at 8-s fixes (its effect added): another mission's constants
@@ -194,7 +194,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
     assert res.sigma_unimodal["theta_e"] == one.sigma["theta_e"]
     assert len(res.heading_profile.theta_e) == N_GRID       # the whole circle
-    assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
+    assert any("hardly determine the heading offset" in w for w in res.warnings)
     for n in ("s_x", "s_y"):
         assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]
 
@@ -671,13 +671,13 @@ def test_online_without_the_vehicles_constants_estimates_them_and_says_so(caplog
     with caplog.at_level("WARNING"):
         res = FixedLagSmoother().run(m)
     assert {"k", "k_x", "k_yz"} <= set(res.estimated)
-    assert any("estimates them too" in w for w in res.info["warnings"])
+    assert any("estimates them too" in w for w in res.warnings)
     assert "--params-from" in caplog.text
     held = FixedLagSmoother(estimate=("theta_e", "s_x", "s_y")).run(m)
     assert "k" not in held.estimated
-    assert any("another vehicle" in w for w in held.info["warnings"])
+    assert any("another vehicle" in w for w in held.warnings)
     given = FixedLagSmoother(init={"k": 9.0, "k_x": 1.8, "k_yz": 0.15}).run(m)
-    assert "k" not in given.estimated and not given.info["warnings"]
+    assert "k" not in given.estimated and not given.warnings
 
 
 def crop(m, a: float, b: float):
@@ -701,7 +701,7 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     res = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
     assert "held_sway" in given.info and given.plausible
     assert "k_yz" not in given.estimated
-    assert any("slid sideways" in w for w in given.info["warnings"])
+    assert any("slid sideways" in w for w in given.warnings)
     assert given.structural_test is not None
     assert given.structural_test.called_for[0]["effect"] == "linear_drag"
     assert res.effect_step is not None and res.effect_step.adopted
@@ -724,7 +724,7 @@ def test_a_suspiciously_sliding_fit_names_the_non_sliding_answer():
     m = with_gnss_every(crop(full, 300.0, 900.0), 4.0)
     res = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
     alt = res.info["alternative_held_sway"]
-    assert any("with the sway drag held high" in w for w in res.info["warnings"])
+    assert any("with the sway drag held high" in w for w in res.warnings)
     assert abs(wrap(alt["values"]["theta_e"] - truth.params["theta_e"])) < 3 * DEG
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) > 30 * DEG
     auto = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
@@ -1213,7 +1213,7 @@ def test_data_too_short_for_the_closed_form_are_searched_over_the_heading():
     assert near, starts
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e <= 3 * res.sigma["theta_e"], (np.degrees(e), np.degrees(res.sigma["theta_e"]))
-    assert any("the heading offset is ambiguous" in w for w in res.info["warnings"])
+    assert any("the heading offset is ambiguous" in w for w in res.warnings)
 
 
 def test_a_held_heading_is_not_reseeded_from_three_fixes_with_a_usbl_fix():

@@ -61,7 +61,7 @@ Choices the paper leaves open (details in the modules named):
   Gauss-Newton sigma times the measured consistency. A parameter the data do not
   determine has no sigma (absent from ``Result.sigma``) and a reason in
   ``info["sigma_notes"]``; ``info["observability"]``, ``info["converged"]`` and
-  ``info["warnings"]`` say what was (not) determined and whether the optimiser converged.
+  ``Result.warnings`` say what was (not) determined and whether the optimiser converged.
 * Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
   (:func:`aqfg.ekf.window.window_ref`) only checks it; measured in docs/update-error.md.
 """
@@ -267,7 +267,8 @@ class UpdateErrorEstimator:
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
         info.update(verdict_info(unc, names, first, sol, sigma))
-        for w in info["warnings"]:
+        warnings = info.pop("warnings")
+        for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
             method="update-error", mode="batch",
@@ -275,7 +276,7 @@ class UpdateErrorEstimator:
             values=dict(zip(self.models[0].all_names, map(float, ps[0]))), sigma=sigma_d,
             missions=mres,
             timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
-            info=info,
+            info=info, warnings=warnings,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     # ------------------------------------------------------------------ online
@@ -337,13 +338,14 @@ class UpdateErrorEstimator:
                                          for n in estimate}
                                 for i, (m, r) in enumerate(zip(self.missions, mres))}}
         info.update(online_verdicts(unc0, names, nonconv[0], sigma))
-        for w in info["warnings"]:
+        warnings = info.pop("warnings")
+        for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
             method="update-error", mode="online", estimated=tuple(dict.fromkeys(estimate)),
             values=dict(zip(self.models[0].all_names, map(float, last))), sigma=sig0,
             missions=mres, timings={"evaluation": t_eval, "optimisation": t_opt},
-            history=hist0, info=info,
+            history=hist0, info=info, warnings=warnings,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     def _online_one(self, mi: int, estimate, window_fixes, window, min_fixes, correct, every,

@@ -107,7 +107,7 @@ class BatchSmoother:
         solved on GTSAM's linearisation (``fast_lm`` off)."""
         self.factors = factors
         self.also_start = dict(also_start) if also_start else None
-        self.log_warnings = True           # info["warnings"] also to the log (WARNING)
+        self.log_warnings = True           # Result.warnings also to the log (WARNING)
         self.fast_solution: tuple | None = None   # (FastSystem, evaluation) of the last run
         self.short_solution: tuple | None = None  # the same where too short for the sandwich
         # the model-only re-trace of each mission in the result; False: left empty where
@@ -163,7 +163,7 @@ class BatchSmoother:
             held = self._hold_sway(missions, bg, basins, verdicts)
             if held is not None:
                 if self.log_warnings:
-                    for x in held.info["warnings"]:
+                    for x in held.warnings:
                         log.warning("fg: %s", x)
                 return held if self.defer_track else self.smooth_tracks(held)
         elif slips and max(slips) > plausibility.SUSPECT_SLIP:
@@ -183,7 +183,7 @@ class BatchSmoother:
         if held is not None:
             _held_sway_info(res, held, out.cost, slips)
         if self.log_warnings:
-            for w in res.info["warnings"]:
+            for w in res.warnings:
                 log.warning("fg: %s", w)
         res.info["process_noise_scale"] = sol.q_scale
         res.info["process_noise_measured"] = sol.q_measured
@@ -346,7 +346,7 @@ class BatchSmoother:
         w = (f"the free fit {why}: k_yz held at {st.fixed['k_yz']:.3g} "
              f"(sway drag {st.fixed['k_yz'] / st.fixed['k_x']:.0f}x the surge drag, where the "
              "slip is near zero whatever its value); run `aqfg diagnose` for the missing physics")
-        res.info["warnings"] = [w, *res.info.get("warnings", [])]
+        res.warnings = [w, *res.warnings]
         res.info["held_sway"] = {"k_yz": float(st.fixed["k_yz"]), "free_fit_basins": basins}
         return res
 
@@ -504,17 +504,17 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
 
 def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
                   s: FGSettings) -> None:
-    """Plausibility, the iteration limit, the outliers and the warnings into ``res.info``."""
+    """Plausibility, the iteration limit, the outliers and the warnings into ``res``."""
     res.plausible = all(v.plausible for v in verdicts)
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
     res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
     res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
-    res.info["warnings"] = batch_warnings(res, out.iterations)
+    res.warnings = batch_warnings(res, out.iterations)
     if n_out:
-        res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
-                                    "down-weighted as outliers (listed in Result.outliers)")
+        res.warnings.append(f"{n_out} fixes more than 5 sigma from the fit were "
+                            "down-weighted as outliers (listed in Result.outliers)")
 
 
 def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -> None:
@@ -530,7 +530,7 @@ def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -
             "values": dict(held.values), "sigma": dict(held.sigma),
             "sigma_unimodal": {**held.sigma, **held.sigma_unimodal},
             "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
-        res.info["warnings"].append(
+        res.warnings.append(
             f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
             f"with the sway drag held high (no sliding) theta_e is "
             f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "

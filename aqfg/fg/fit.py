@@ -100,10 +100,10 @@ def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,
         res = adopt_effect(res, bs, list(missions), model, effects, init, settings, progress)
     else:
         res = _finish(res, bs, missions, model, effects)
-    logged = 0 if auto else len(res.info.get("warnings", []))
+    logged = 0 if auto else len(res.warnings)
     if st.block_jackknife and len(missions) == 1 and res.too_short_for_sandwich:
         res = _block_jackknife(res, missions[0], model, effects, init, st)
-    for w in res.info.get("warnings", [])[logged:]:
+    for w in res.warnings[logged:]:
         log.warning("fg: %s", w)
     return res
 
@@ -252,9 +252,9 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     step = _effect_record(res, tried, best, called, cost0)
     name = step.effect
     if best.why:
-        refused = dataclasses.replace(res, effect_step=step, info={**res.info, "warnings": [
-            *res.info.get("warnings", []),
-            f"the effect {name} was not added ({best.why}): the model is fitted as given"]})
+        refused = dataclasses.replace(res, effect_step=step, info=dict(res.info), warnings=[
+            *res.warnings,
+            f"the effect {name} was not added ({best.why}): the model is fitted as given"])
         return _finish(refused, bs, missions, model, effects)
     assert best.new is not None and best.bs is not None
     new = refit_structure(best.new, missions, model, (*effects, name), None, init,
@@ -264,9 +264,9 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     base_s = float(res.timings.get("batch", [0.0])[0])
     step = dataclasses.replace(step, seconds_base=base_s)
     timings = {**new.timings, "batch": [base_s + float(new.timings.get("batch", [0.0])[0])]}
-    info = {**new.info, "warnings": [_added_warning(res, step, best.moved, called),
-                                     *new.info.get("warnings", [])]}
-    return dataclasses.replace(new, timings=timings, info=info, effect_step=step)
+    warnings = [_added_warning(res, step, best.moved, called), *new.warnings]
+    return dataclasses.replace(new, timings=timings, info=dict(new.info), effect_step=step,
+                               warnings=warnings)
 
 
 def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],

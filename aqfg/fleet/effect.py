@@ -97,10 +97,10 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
                           fixes_explained=r.sigma_structure is None, reason=why,
                           fleet=fleet)
         if why:
-            before[v] = dataclasses.replace(r, effect_step=step, info={
-                **r.info, "warnings": [*r.info.get("warnings", []), message]})
+            before[v] = dataclasses.replace(r, effect_step=step, info=dict(r.info),
+                                            warnings=[*r.warnings, message])
             continue
         assert after is not None
         a = after[v]
-        after[v] = dataclasses.replace(a, effect_step=step, info={
-            **a.info, "warnings": [message, *a.info.get("warnings", [])]})
+        after[v] = dataclasses.replace(a, effect_step=step, info=dict(a.info),
+                                       warnings=[message, *a.warnings])
