@@ -173,6 +173,18 @@ class SigmaStructure:
 
 
 @dataclass(frozen=True)
+class SolveSummary:
+    """How an optimiser's solve ended: whether it met its convergence test, its cost (0.5 x
+    the whitened squared error at the solution; None: not reported), its iterations and
+    trial steps (None: not reported), and whether it stopped at its iteration limit."""
+    converged: bool
+    cost: float | None = None
+    iterations: int | None = None
+    trials: int | None = None
+    hit_iteration_limit: bool = False
+
+
+@dataclass(frozen=True)
 class BaseFit:
     """The model-as-given fit kept beside a fit whose effect step added an effect: its
     effects, values and sigmas, and each mission's estimates for a joint fit (None: one
@@ -263,8 +275,12 @@ class Result:
     ``warnings`` are what a user must be told about the fit, in words (every estimator's;
     logged as they arise, not written to the result's files).
     Facts only some estimators have are typed attributes below (``per_mission``,
-    ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
-    in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
+    ``histories``, ``kernel``, ``settings``); they are kept in ``info`` under the same
+    keys, so code that reads or writes ``info`` keeps working. How the optimiser's solve
+    ended is ``solve`` (:class:`SolveSummary`: the factor graph's batch, its joint fit, and
+    the update-error batch's ``converged``; read as ``converged``, ``iterations``,
+    ``cost``); the update-error online run keeps its per-parameter ``converged`` and the
+    paper's ``nonconvergence`` measure in ``info``.
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
     hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
     ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
@@ -327,6 +343,7 @@ class Result:
     sigma_unimodal: dict[str, float] = field(default_factory=dict)
     sigma_before_profile: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    solve: SolveSummary | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -367,9 +384,21 @@ class Result:
     def histories(self, v: list[ParamHistory]) -> None:
         self.info["histories"] = list(v)
 
-    converged = InfoView(bool, "Whether the optimiser met its convergence test (None: not "
-                               "reported).")
-    iterations = InfoView(int, "Optimiser iterations (None: not reported).")
+    @property
+    def converged(self) -> bool | None:
+        """Whether the optimiser met its convergence test (None: not reported)."""
+        return None if self.solve is None else self.solve.converged
+
+    @property
+    def iterations(self) -> int | None:
+        """Optimiser iterations (None: not reported)."""
+        return None if self.solve is None else self.solve.iterations
+
+    @property
+    def cost(self) -> float:
+        """The solve's cost (:attr:`SolveSummary.cost`), NaN where none was reported."""
+        c = None if self.solve is None else self.solve.cost
+        return float("nan") if c is None else float(c)
     kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
                            'reported).')
     settings = InfoView(_as_stored, "The estimator's settings object (e.g. "

@@ -270,13 +270,14 @@ def test_a_second_minimum_as_good_widens_the_sigma():
     quadratic): where the other explains the fixes as well (cost within the ambiguity
     margin), each sigma is widened by the difference between them, top-level and per
     mission; a minimum clearly worse changes nothing."""
-    from aqfg.result import Result
+    from aqfg.result import Result, SolveSummary
     est = ("theta_e", "s_x", "k")
 
     def res(cost, th, sx, k):
         r = Result("fg", "batch", est, {"theta_e": th, "s_x": sx, "k": k},
                    {"theta_e": 0.003, "s_x": 0.005, "k": 0.06}, [])
-        r.info = {"cost": cost, "per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
+        r.solve = SolveSummary(True, cost)
+        r.info = {"per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
                                                       "s_x": {"value": sx, "sigma": 0.005}}}}
         return r
     given = res(1080.2, -1.1748, 0.0196, 1.388)
@@ -308,16 +309,18 @@ def test_a_start_that_ends_at_a_nan_cost_loses_to_the_other(heldout111, monkeypa
     cost (otter-dev-calm-a: a one-step sway drag of 101/s, NaN after one iteration); the
     other start's finite fit is the one judged, not the NaN one."""
     m, _truth, _res, given = heldout111
-    bad = dataclasses.replace(given, info={**given.info, "cost": float("nan")})
-    good = dataclasses.replace(given, info={**given.info, "cost": float(given.info["cost"]) - 100.0})
+    assert given.solve is not None
+    bad = dataclasses.replace(given, solve=dataclasses.replace(given.solve, cost=float("nan")))
+    good = dataclasses.replace(given, solve=dataclasses.replace(given.solve,
+                                                                cost=given.cost - 100.0))
     outs = iter([(bad, "bs-bad"), (good, "bs-good")])
     monkeypatch.setattr(fit_module, "_solve", lambda *a, **k: next(outs))
     pick = {"effect": "linear_drag", "p_value_robust": 1e-6,
             "estimate": {"linear_drag.c_x": 0.1, "linear_drag.c_yz": 101.0}}
     from aqfg.fg.effect_guard import variable_estimates
     base = variable_estimates(given)
-    out = fit_module._try_effect(pick, base, float(given.info["cost"]), [m], None, (), None,
+    out = fit_module._try_effect(pick, base, given.cost, [m], None, (), None,
                                  None, False)
     assert out.new is good and out.bs == "bs-good"
-    assert out.rec["cost_after"] == float(given.info["cost"]) - 100.0
+    assert out.rec["cost_after"] == given.cost - 100.0
     assert out.why == ""

@@ -333,12 +333,13 @@ def test_a_still_vehicle_gives_not_determined_not_nan():
     for n in ("s_x", "s_y"):
         assert obs[n] in ("determined", "weakly determined")
         assert abs(r.values[n]) < 3 * r.sigma[n]
-    assert isinstance(r.info["converged"], bool)
-    if not r.info["converged"]:
+    assert isinstance(r.converged, bool)
+    if not r.converged:
         assert any("without converging" in w for w in r.warnings)
     json.dumps({"warnings": r.warnings,
+                "converged": r.converged,
                 **{k: r.info[k] for k in ("observability", "sigma_notes", "per_mission",
-                                          "consistency", "converged")}},
+                                          "consistency")}},
                allow_nan=False)
     on = fit_update_error([m], mode="online")
     assert all(np.isfinite(v) for v in on.sigma.values())

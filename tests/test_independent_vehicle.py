@@ -311,7 +311,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     res = fit_fg([m], settings=FGSettings(auto_effect=False))
     basins = res.basins
     assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
-    cost = res.info["cost"]
+    cost = res.cost
     cheaper = [b for b in basins if b["cost"] < cost - 1.0]
     assert cheaper and all(b["rank"] > cost + 2.0 for b in cheaper), basins
     P = truth.params

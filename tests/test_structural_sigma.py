@@ -91,7 +91,7 @@ def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_m
     assert st is not None and st.effect == "reverse_thrust" and st.proven
     rf = st.refit
     assert rf is not None and rf.cost is not None and rf.move is not None
-    assert rf.cost < res.info["cost"]
+    assert rf.cost < res.cost
     assert rf.move["s_y"] > 5.0 * st.shift["s_y"], (rf, st.shift)
     first_order = float(np.hypot(st.sigma_before["s_y"], st.shift["s_y"]))
     assert abs(res.values["s_y"] - truth.params["s_y"]) > 3.0 * first_order

@@ -56,7 +56,7 @@ class FitEval:
     @property
     def cost(self) -> float:
         """Half the sum of squared whitened residuals (GTSAM's error) of the full fit."""
-        return float(self.full.info.get("cost", np.nan))
+        return self.full.cost
 
     @property
     def n_params(self) -> int:

@@ -60,8 +60,9 @@ Choices the paper leaves open (details in the modules named):
   update-error fit over blocks of fixes; online windows, the whitened-innovation
   Gauss-Newton sigma times the measured consistency. A parameter the data do not
   determine has no sigma (absent from ``Result.sigma``) and a reason in
-  ``info["sigma_notes"]``; ``info["observability"]``, ``info["converged"]`` and
-  ``Result.warnings`` say what was (not) determined and whether the optimiser converged.
+  ``info["sigma_notes"]``; ``info["observability"]``, ``Result.converged`` (online: per
+  parameter, ``info["converged"]``) and ``Result.warnings`` say what was (not) determined
+  and whether the optimiser converged.
 * Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
   (:func:`aqfg.ekf.window.window_ref`) only checks it; measured in docs/update-error.md.
 """
@@ -91,7 +92,7 @@ from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, Track
+from aqfg.result import MissionResult, ParamHistory, Result, SolveSummary, Track
 
 log = logging.getLogger(__name__)
 
@@ -268,6 +269,7 @@ class UpdateErrorEstimator:
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
         info.update(verdict_info(unc, names, first, sol, sigma))
         warnings = info.pop("warnings")
+        solve = SolveSummary(info.pop("converged"))
         for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
@@ -276,7 +278,7 @@ class UpdateErrorEstimator:
             values=dict(zip(self.models[0].all_names, map(float, ps[0]))), sigma=sigma_d,
             missions=mres,
             timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
-            info=info, warnings=warnings,
+            info=info, warnings=warnings, solve=solve,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     # ------------------------------------------------------------------ online

@@ -156,13 +156,14 @@ def _heading_gap(a: dict, b: dict) -> float:
     return max(gaps, default=0.0)
 
 
-def batch_warnings(res: Result, n_it: int) -> list[str]:
+def batch_warnings(res: Result) -> list[str]:
     """What a user must be told about the batch fit ``res``, in words."""
     info = res.info
     out = []
-    if info.get("hit_iteration_limit"):
-        out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
-                   "the estimate may not be a minimum (raise max_iterations or check the data)")
+    if res.solve is not None and res.solve.hit_iteration_limit:
+        out.append(f"the optimiser stopped at its iteration limit ({res.iterations}) before "
+                   "converging: the estimate may not be a minimum (raise max_iterations or "
+                   "check the data)")
     if res.plausible is False:
         for name, chk in info.get("plausibility", {}).items():
             for r in chk.get("reasons", []):

@@ -81,7 +81,7 @@ from aqfg.fg.plausibility import Plausibility
 from aqfg.fg.starts import alternative_starts, given_start, high_sway, plausibility_verdicts
 from aqfg.fg.user_factors import FactorSource
 from aqfg.model.vehicle import Model
-from aqfg.result import Result, Track
+from aqfg.result import Result, SolveSummary, Track
 from aqfg.threads import blas_threads
 
 log = logging.getLogger(__name__)
@@ -179,7 +179,10 @@ class BatchSmoother:
         _ambiguity_info(res, basins, out.cost, len(bg.parts))
         if sol.short and s.heading_profile and fs is not None and out.fast is not None:
             widen_by_profile(res, fs, bg, bg.nodes, out.values, s)
-        _verdict_info(res, bg, out, verdicts, s)
+        res.solve = SolveSummary(
+            out.converged, float(out.cost), out.iterations, out.trials,
+            hit_iteration_limit=(not out.converged) and out.iterations >= s.max_iterations)
+        _verdict_info(res, bg, verdicts)
         if held is not None:
             _held_sway_info(res, held, out.cost, slips)
         if self.log_warnings:
@@ -188,9 +191,7 @@ class BatchSmoother:
         res.info["process_noise_scale"] = sol.q_scale
         res.info["process_noise_measured"] = sol.q_measured
         res.info["process_noise_evidence"] = sol.q_tried
-        res.info.update({"iterations": out.iterations, "trials": out.trials,
-                         "converged": out.converged, "cost": float(out.cost),
-                         "n_states": sum(len(p.keys) for p in bg.parts),
+        res.info.update({"n_states": sum(len(p.keys) for p in bg.parts),
                          "n_factors": int(bg.graph.size()),
                          "kernel": "cpp" if bg.parts[0].model.uses_cpp else "numpy",
                          "settings": s})
@@ -502,16 +503,15 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
             th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
 
 
-def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
-                  s: FGSettings) -> None:
-    """Plausibility, the iteration limit, the outliers and the warnings into ``res``."""
+def _verdict_info(res: Result, bg: BuiltGraph, verdicts: list[Plausibility]) -> None:
+    """Plausibility, the outliers and the warnings (the iteration limit's from
+    ``res.solve``) into ``res``."""
     res.plausible = all(v.plausible for v in verdicts)
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
-    res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
     res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
-    res.warnings = batch_warnings(res, out.iterations)
+    res.warnings = batch_warnings(res)
     if n_out:
         res.warnings.append(f"{n_out} fixes more than 5 sigma from the fit were "
                             "down-weighted as outliers (listed in Result.outliers)")
@@ -523,17 +523,17 @@ def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -
     th_f, th_h = res.values.get("theta_e"), held.values.get("theta_e")
     # named when it explains the fixes almost as well (cost within 50 %): on the
     # Otter crops +19-28 %; on aqfg's simulator, whose vehicle does slide, +200 %
-    c_h = float(held.info.get("cost", np.inf))
+    c_h = held.cost
     if th_f is not None and th_h is not None and c_h <= 1.5 * float(err) and \
             abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
         res.info["alternative_held_sway"] = {
             "values": dict(held.values), "sigma": dict(held.sigma),
             "sigma_unimodal": {**held.sigma, **held.sigma_unimodal},
-            "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
+            "cost": held.cost, "cost_free": float(err)}
         res.warnings.append(
             f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
             f"with the sway drag held high (no sliding) theta_e is "
             f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "
-            f"(cost {held.info.get('cost', np.nan):.1f} against {err:.1f}): if this hull "
+            f"(cost {held.cost:.1f} against {err:.1f}): if this hull "
             f"does not slide, pass --init k_yz={held.values['k_yz']:.3g} and leave "
             "k_yz out of --estimate")

@@ -238,7 +238,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     called, picks = effect_candidates(res, bs, missions, effects)
     if not picks:
         return _finish(res, bs, missions, model, effects)
-    cost0 = float(res.info.get("cost", np.nan))
+    cost0 = res.cost
     tried = [_try_effect(pick, guard_estimates(res, pick["effect"]), cost0, missions, model,
                          effects, init, settings, progress, untested=called is None)
              for pick in picks]
@@ -411,7 +411,7 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
         rec["cost_after"] = float("nan")
         return EffectTry(rec, None, None, why, moved)
     new = widen_by_other_minimum(new, [o for o in solved if o is not new])
-    rec["cost_after"] = float(new.info.get("cost", np.nan))
+    rec["cost_after"] = new.cost
     moved, far = moves(base, variable_estimates(new))
     rec["moved"] = {label(m, n): d for (m, n), d in moved.items()}
     if new.plausible is False:
@@ -447,12 +447,12 @@ def refit_structure(res: Result, missions: list[Mission], model, effects: Sequen
     if tried is None:
         pick = next((c for c in ss.ranked if c["effect"] == name),
                     {"effect": name, "p_value_robust": ss.p_value_robust})
-        tried = _try_effect(pick, variable_estimates(res), float(res.info.get("cost", np.nan)),
+        tried = _try_effect(pick, variable_estimates(res), res.cost,
                             missions, model, effects, init, settings, progress, estimate)
     return cover_refit(res, tried.new, tried.why)
 
 
 def _finite_cost(res: Result) -> float:
     """The batch cost of ``res``, infinite where it is missing or not finite."""
-    c = float(res.info.get("cost", np.inf))
+    c = res.cost
     return c if math.isfinite(c) else math.inf

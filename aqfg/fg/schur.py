@@ -42,7 +42,7 @@ from aqfg.fg.graph_lm import active_bounds, diagonal_floor
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
-from aqfg.result import Covariance, Result
+from aqfg.result import Covariance, Result, SolveSummary
 
 Request = tuple[str, dict]
 
@@ -269,8 +269,7 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
     if names_f:
         cov["fixed"] = np.array(sol.cov_f, dtype=float)
     info: dict[str, Any] = {
-        "per_mission": per_mission, "iterations": sol.iterations,
-        "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
+        "per_mission": per_mission,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
         "plausibility": plaus}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
@@ -278,6 +277,7 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
                   covariance=Covariance(cov), sigma_model=sigma_model,
                   plausible=all(r.plausible is not False for r in results),
+                  solve=SolveSummary(sol.converged, sol.cost, sol.iterations, sol.trials),
                   sigma_inflation=sigma_inflation(sigma, sigma_model))
 
 

@@ -111,10 +111,10 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
         return dataclasses.replace(res, sigma_structure=dataclasses.replace(ss, refit=check))
     if new is None:
         return checked(RefitCheck(ss.effect, failed=why or "no solution"))
-    cost = float(new.info.get("cost", np.nan))
+    cost = new.cost
     if new.plausible is False:
         return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
-    if not cost < float(res.info.get("cost", np.nan)):
+    if not cost < res.cost:
         return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))
     info = dict(res.info)
     first = ss.shift

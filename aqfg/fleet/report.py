@@ -83,9 +83,9 @@ def fleet_table(fr: FleetResult) -> dict:
                            for j, n in enumerate(names)},
             "test": {k: t[k] for k in ("chi2", "dof", "p_value", "p_holm", "differs")},
             "missions": dict(zip(dirs[v], r.info["per_mission"].values())),
-            "iterations": r.info.get("iterations"), "converged": r.info.get("converged"),
+            "iterations": r.iterations, "converged": r.converged,
             "plausible": r.plausible,
-            "cost": r.info.get("cost")}
+            "cost": r.solve.cost if r.solve is not None else None}
         if fr.diagnosis.get(v):
             table[v]["diagnosis"] = fr.diagnosis[v]
     out = {"format": "aqfg-fleet/1", "manifest": str(fr.manifest.path), "parameters": list(names),

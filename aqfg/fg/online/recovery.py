@@ -236,7 +236,7 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
         "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
         "process_noise_measured": None if q_meas is None else float(q_meas),
         "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
-        "cost": float(bres.info.get("cost", np.nan)), "slip_deg": float(slip),
+        "cost": bres.cost, "slip_deg": float(slip),
         "gap": float(gap), "tolerance": float(tol),
         "restarted": bool(force or gap >= tol),
         "theta_e_determined": not undetermined,
@@ -386,7 +386,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
                  None)
     own_ref = bool(own is not None and own_b is not None and own_b["plausible"]
                    and not alt and as_good_a_basin(
-                       own_b, float(bres.info.get("cost", np.inf)),
+                       own_b, bres.cost if bres.solve is not None else np.inf,
                        {"theta_e": dict.fromkeys(own_b["theta_e"], bres.values["theta_e"])}))
     if own_ref:
         assert own_b is not None
@@ -450,7 +450,7 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
             "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},
             "theta_e_determined": res.info.get("observability", {}).get(
                 "theta_e", {}).get("verdict") != observability.NOT,
-            "free": list(free), "cost": float(res.info.get("cost", np.nan))}
+            "free": list(free), "cost": res.cost}
 
 
 def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: dict) -> None:
