@@ -280,7 +280,12 @@ class Result:
     ended is ``solve`` (:class:`SolveSummary`: the factor graph's batch, its joint fit, and
     the update-error batch's ``converged``; read as ``converged``, ``iterations``,
     ``cost``); the update-error online run keeps its per-parameter ``converged`` and the
-    paper's ``nonconvergence`` measure in ``info``.
+    paper's ``nonconvergence`` measure in ``info``. ``observability`` is each estimated
+    parameter's verdict (the factor graph's ``{name: {"verdict", "reason", ...}}``,
+    :func:`aqfg.fg.observability.verdicts`; the update-error method's ``{name: verdict}``
+    with the reasons in ``sigma_notes``; None: not reported) and ``sigma_notes`` why a
+    parameter has no sigma (``{name: reason}``, parameters.json's ``sigma_note``; None:
+    none given).
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
     hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
     ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
@@ -344,6 +349,8 @@ class Result:
     sigma_before_profile: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     solve: SolveSummary | None = None
+    observability: dict[str, Any] | None = None
+    sigma_notes: dict[str, str] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -471,7 +478,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         e = {"value": float(result.values[n]), "sigma": s if np.isfinite(s) else None,
              "unit": unit(n)}
         if not np.isfinite(s):
-            e["sigma_note"] = (result.info.get("sigma_notes") or {}).get(n) or NO_SIGMA
+            e["sigma_note"] = (result.sigma_notes or {}).get(n) or NO_SIGMA
         est[n] = e
     names = (model.active_names if model is not None and hasattr(model, "active_names")
              else tuple(result.values))

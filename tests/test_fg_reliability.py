@@ -38,7 +38,7 @@ def test_no_thrust_means_thrust_and_drag_not_determined(asv):
     m = copy.deepcopy(asv[0])
     m.motors.u[:] = 0.0
     res = fit_fg([m])
-    obs = res.info["observability"]
+    obs = res.observability
     for n in ("k", "k_x"):
         assert obs[n]["verdict"] == "not determined", (n, obs[n])
         assert "commanded" in obs[n]["reason"]
@@ -46,7 +46,7 @@ def test_no_thrust_means_thrust_and_drag_not_determined(asv):
 
 
 def test_a_rich_mission_determines_the_heading(clean_fit):
-    assert clean_fit.info["observability"]["theta_e"]["verdict"] == "determined"
+    assert clean_fit.observability["theta_e"]["verdict"] == "determined"
 
 
 def test_iteration_limit_is_flagged(asv):

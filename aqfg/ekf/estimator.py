@@ -60,7 +60,7 @@ Choices the paper leaves open (details in the modules named):
   update-error fit over blocks of fixes; online windows, the whitened-innovation
   Gauss-Newton sigma times the measured consistency. A parameter the data do not
   determine has no sigma (absent from ``Result.sigma``) and a reason in
-  ``info["sigma_notes"]``; ``info["observability"]``, ``Result.converged`` (online: per
+  ``Result.sigma_notes``; ``Result.observability``, ``Result.converged`` (online: per
   parameter, ``info["converged"]``) and ``Result.warnings`` say what was (not) determined
   and whether the optimiser converged.
 * Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
@@ -270,6 +270,7 @@ class UpdateErrorEstimator:
         info.update(verdict_info(unc, names, first, sol, sigma))
         warnings = info.pop("warnings")
         solve = SolveSummary(info.pop("converged"))
+        obs, notes = info.pop("observability", None), info.pop("sigma_notes", None)
         for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
@@ -278,7 +279,7 @@ class UpdateErrorEstimator:
             values=dict(zip(self.models[0].all_names, map(float, ps[0]))), sigma=sigma_d,
             missions=mres,
             timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
-            info=info, warnings=warnings, solve=solve,
+            info=info, warnings=warnings, solve=solve, observability=obs, sigma_notes=notes,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     # ------------------------------------------------------------------ online
@@ -341,13 +342,15 @@ class UpdateErrorEstimator:
                                 for i, (m, r) in enumerate(zip(self.missions, mres))}}
         info.update(online_verdicts(unc0, names, nonconv[0], sigma))
         warnings = info.pop("warnings")
+        obs, notes = info.pop("observability", None), info.pop("sigma_notes", None)
         for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
             method="update-error", mode="online", estimated=tuple(dict.fromkeys(estimate)),
             values=dict(zip(self.models[0].all_names, map(float, last))), sigma=sig0,
             missions=mres, timings={"evaluation": t_eval, "optimisation": t_opt},
-            history=hist0, info=info, warnings=warnings,
+            history=hist0, info=info, warnings=warnings, observability=obs,
+            sigma_notes=notes,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     def _online_one(self, mi: int, estimate, window_fixes, window, min_fixes, correct, every,
@@ -568,7 +571,7 @@ def fit_update_error(missions: list[Mission], *, mode: str = "batch",
     keyword arguments go to :meth:`UpdateErrorEstimator.run_offline` /
     :meth:`~UpdateErrorEstimator.run_online`. Result: sigma from
     :mod:`aqfg.ekf.uncertainty`; a parameter without sigma has a reason in
-    ``info["sigma_notes"]``.
+    ``Result.sigma_notes``.
     """
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")

@@ -185,7 +185,7 @@ def batch_warnings(res: Result) -> list[str]:
         out.append(f"these fixes hardly determine the heading offset: its evidence over the "
                    f"whole circle gives sigma {np.degrees(prof.sigma_theta_e):.0f} deg "
                    f"({np.degrees(before):.1f} deg within the chosen basin)")
-    for n, v in info.get("observability", {}).items():
+    for n, v in (res.observability or {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")
     infl = res.sigma_inflation

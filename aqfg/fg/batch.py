@@ -460,14 +460,14 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
 
 def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> None:
     """The model's sigmas, the honest ones' inflation over them and each parameter's
-    observability verdict into ``res.info``."""
+    observability verdict into ``res``."""
     layout, parts = bg.layout, bg.parts
     res.sigma_model = {n: float(v) for n, v in
                        sigma_by_name(layout, bg.nodes, cov_model).items()}
     res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
     prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
-    res.info["observability"] = observability.verdicts(
+    res.observability = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
         res.sigma_model, prior_sigma)
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],

@@ -145,7 +145,7 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
                 mdir.mkdir(parents=True, exist_ok=True)
                 notes = {n: e["sigma_note"] for n, e in local.items() if e.get("sigma_note")}
                 write_result(Result("fg", "batch", est, vals, sig, [mres],
-                                    info={"sigma_notes": notes} if notes else {}), mdir,
+                                    sigma_notes=notes or None), mdir,
                              provenance=provenance(method="fg", mode="fleet",
                                                    effects=res.effects, inputs=[m.path]))
                 written += [out / v.name / m.name / f for f in sorted(os.listdir(mdir))]

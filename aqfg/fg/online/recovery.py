@@ -376,7 +376,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
     from aqfg.fg.batch import as_good_a_basin
     slip = max((v.get("slip_deg") or 0.0
                 for v in bres.info.get("plausibility", {}).values()), default=0.0)
-    undetermined = bres.info.get("observability", {}).get(
+    undetermined = (bres.observability or {}).get(
         "theta_e", {}).get("verdict") == observability.NOT
     alt = bres.info.get("alternative_held_sway") \
         if slip > plausibility.SUSPECT_SLIP and not undetermined else None
@@ -448,7 +448,7 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
     return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
             "sigma_theta_e": float(res.sigma.get("theta_e", np.nan)),
             "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},
-            "theta_e_determined": res.info.get("observability", {}).get(
+            "theta_e_determined": (res.observability or {}).get(
                 "theta_e", {}).get("verdict") != observability.NOT,
             "free": list(free), "cost": res.cost}
 
