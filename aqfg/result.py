@@ -287,7 +287,8 @@ class Result:
     parameter has no sigma (``{name: reason}``, parameters.json's ``sigma_note``; None:
     none given).
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
-    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
+    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked) and why per mission in
+    ``plausibility`` (``{mission: Plausibility.as_dict()}``), its parameters'
     ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
     {parameter: reason}}``: what a mission's own inputs cannot determine,
     :func:`aqfg.fg.observability.mission_verdicts`), whether its data were
@@ -351,6 +352,7 @@ class Result:
     solve: SolveSummary | None = None
     observability: dict[str, Any] | None = None
     sigma_notes: dict[str, str] | None = None
+    plausibility: dict[str, dict] = field(default_factory=dict)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

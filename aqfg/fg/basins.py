@@ -158,14 +158,13 @@ def _heading_gap(a: dict, b: dict) -> float:
 
 def batch_warnings(res: Result) -> list[str]:
     """What a user must be told about the batch fit ``res``, in words."""
-    info = res.info
     out = []
     if res.solve is not None and res.solve.hit_iteration_limit:
         out.append(f"the optimiser stopped at its iteration limit ({res.iterations}) before "
                    "converging: the estimate may not be a minimum (raise max_iterations or "
                    "check the data)")
     if res.plausible is False:
-        for name, chk in info.get("plausibility", {}).items():
+        for name, chk in res.plausibility.items():
             for r in chk.get("reasons", []):
                 out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "
                            "(the model may lack the vehicle's physics: run `aqfg diagnose`)")

@@ -507,8 +507,8 @@ def _verdict_info(res: Result, bg: BuiltGraph, verdicts: list[Plausibility]) -> 
     """Plausibility, the outliers and the warnings (the iteration limit's from
     ``res.solve``) into ``res``."""
     res.plausible = all(v.plausible for v in verdicts)
-    res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
-                                for i, v in enumerate(verdicts)}
+    res.plausibility = {bg.parts[i].mission.name: v.as_dict()
+                        for i, v in enumerate(verdicts)}
     res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
     res.warnings = batch_warnings(res)

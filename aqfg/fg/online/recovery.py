@@ -309,7 +309,7 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
         # mission); replayed with such values held, every prediction diverged
         _batch_not_used(fl, t_fix, {
             "event": "batch re-initialisation implausible: not used",
-            "reasons": [r for v in bres.info.get("plausibility", {}).values()
+            "reasons": [r for v in bres.plausibility.values()
                         for r in v.get("reasons", [])]})
         return None
     if fl.policy.held and not fl.constants_given \
@@ -375,7 +375,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
     17 m off for 150 s (docs/independent-vehicle.md)."""
     from aqfg.fg.batch import as_good_a_basin
     slip = max((v.get("slip_deg") or 0.0
-                for v in bres.info.get("plausibility", {}).values()), default=0.0)
+                for v in bres.plausibility.values()), default=0.0)
     undetermined = (bres.observability or {}).get(
         "theta_e", {}).get("verdict") == observability.NOT
     alt = bres.info.get("alternative_held_sway") \
