@@ -198,7 +198,7 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     """Two Otter missions fitted jointly: the effect is added for the vehicle, and
     parameters.json keeps each mission's heading offset and current of the model as given,
     whose sigma carries the structural shift as the fit's top-level sigma does."""
-    from aqfg.result import parameters_document
+    from aqfg.parameters_doc import parameters_document
     names = ("otter-example", "otter-dev-calm-b")
     ms = [with_gnss_every(load_mission(data_path(n)), 8.0) for n in names]
     res = fit_fg(ms)

@@ -89,7 +89,7 @@ def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
     check_batch(res, truth)
     assert any("no effect reached the structural test's level" in w
                for w in res.warnings)
-    from aqfg.result import effect_step_document
+    from aqfg.parameters_doc import effect_step_document
     assert effect_step_document(rec)["untested"] is True     # parameters.json says so
 
 

@@ -14,7 +14,7 @@ from aqfg.data.mission import between, with_gnss_every
 from aqfg.fg import fit_fg
 from aqfg.fg.common import FGSettings
 from aqfg.fg.jackknife import MAX_BLOCKS, blocks, jackknife_sigma, without_fixes
-from aqfg.result import parameters_document
+from aqfg.parameters_doc import parameters_document
 
 DATA = Path(__file__).parent / "data"
 

@@ -18,7 +18,8 @@ from pathlib import Path
 from aqfg.commands.common import UsageError, printable
 from aqfg.commands.options import parameter_value
 from aqfg.model.frames import wrap_angle
-from aqfg.result import Result, read_parameter_values
+from aqfg.parameters_doc import read_parameter_values
+from aqfg.result import Result
 
 PLOTS = ("map.png", "parameters.png")
 

@@ -15,14 +15,13 @@ import numpy as np
 from aqfg.distributions import chi2_sf, holm
 from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult, fixed_covariance
-from aqfg.result import (
+from aqfg.parameters_doc import (
     PARAMETERS_FORMAT,
-    EffectStep,
-    Result,
     dead_reckoning_document,
     effect_step_document,
     without_effect_document,
 )
+from aqfg.result import EffectStep, Result
 
 
 def fixed_names(res: Result) -> tuple[str, ...]:
