@@ -16,7 +16,8 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
 
 
 # the online fit's record kept in parameters.json (format doc, "Outputs")
-ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
+# (and, last, the process-noise factor in use, Result.process_noise_scale)
+ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl")
 
 
 def effect_step_document(step: EffectStep) -> dict:
@@ -88,7 +89,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
         # (aqfg.fg.gnss_noise)
         doc["gnss_noise"] = result.gnss_noise.document()
-    tq = result.info.get("track_noise_scale")
+    tq = result.track_noise_scale
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with
         # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
@@ -111,6 +112,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
+        if result.process_noise_scale is not None:
+            doc["online"]["process_noise_scale"] = result.process_noise_scale
     if result.heading_check:
         # the fitted heading against the accelerometer's (aqfg.identifiability)
         doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,

@@ -280,7 +280,14 @@ class Result:
     ended is ``solve`` (:class:`SolveSummary`: the factor graph's batch, its joint fit, and
     the update-error batch's ``converged``; read as ``converged``, ``iterations``,
     ``cost``); the update-error online run keeps its per-parameter ``converged`` and the
-    paper's ``nonconvergence`` measure in ``info``. ``observability`` is each estimated
+    paper's ``nonconvergence`` measure in ``info``. The process-noise factor the solve
+    used is ``process_noise_scale`` (1: nominal; the batch's and the online smoother's),
+    the one the batch measured by the evidence without adopting it
+    ``process_noise_measured``, the factors the batch tried with their log evidence
+    ``process_noise_evidence``, and the factor each mission's track was smoothed with
+    ``track_noise_scale`` (``{mission: factor}``, :attr:`aqfg.fg.common.FGSettings.
+    adapt_track`; the log evidence per factor tried in ``track_noise_evidence``); None:
+    not reported. ``observability`` is each estimated
     parameter's verdict (the factor graph's ``{name: {"verdict", "reason", ...}}``,
     :func:`aqfg.fg.observability.verdicts`; the update-error method's ``{name: verdict}``
     with the reasons in ``sigma_notes``; None: not reported) and ``sigma_notes`` why a
@@ -353,6 +360,11 @@ class Result:
     observability: dict[str, Any] | None = None
     sigma_notes: dict[str, str] | None = None
     plausibility: dict[str, dict] = field(default_factory=dict)
+    process_noise_scale: float | None = None
+    process_noise_measured: float | None = None
+    process_noise_evidence: dict[float, float] | None = None
+    track_noise_scale: dict[str, float] | None = None
+    track_noise_evidence: dict[float, list[float]] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

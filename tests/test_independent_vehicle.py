@@ -114,8 +114,8 @@ def test_the_batch_track_follows_the_fixes_where_the_model_is_not_the_vehicle():
     # step adds, the model explains more of the motion: 0.48 against 0.58 m)
     st = FGSettings(dr_horizon=0.0, auto_effect=False)
     on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
-    assert on.info["track_noise_scale"][m.name] > 1.0
-    assert "track_noise_scale" not in off.info
+    assert on.track_noise_scale[m.name] > 1.0
+    assert off.track_noise_scale is None
     for n in on.estimated:
         assert on.values[n] == off.values[n] and on.sigma[n] == off.sigma[n], n
     e_on, e_off = track_rmse(on.missions[0].track, truth), track_rmse(off.missions[0].track, truth)
@@ -137,7 +137,7 @@ def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
     m = with_gnss_every(m, 8.0)
     st = FGSettings(dr_horizon=0.0)
     on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
-    assert on.info["track_noise_scale"] == {m.name: 1.0}
+    assert on.track_noise_scale == {m.name: 1.0}
     assert np.array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
 
 
@@ -479,9 +479,9 @@ def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
                             settings=FGSettings(adapt_batch=True)).run([view])
     e_nom = abs(wrap(nominal.values["theta_e"] - th))
     e_ad = abs(wrap(adapted.values["theta_e"] - th))
-    assert nominal.info["process_noise_scale"] == 1.0
+    assert nominal.process_noise_scale == 1.0
     assert e_nom > 3 * nominal.sigma["theta_e"] and e_nom > 20 * DEG
-    assert adapted.info["process_noise_scale"] >= 16.0
+    assert adapted.process_noise_scale >= 16.0
     assert e_ad < 10 * DEG and e_ad <= 2 * adapted.sigma["theta_e"]
 
 
@@ -495,8 +495,8 @@ def test_evidence_keeps_the_nominal_noise_when_the_model_is_right():
     est = ("theta_e", "s_x", "s_y")
     a = BatchSmoother(estimate=est, init=fixed, settings=FGSettings(adapt_batch=True)).run([m])
     b = BatchSmoother(estimate=est, init=fixed).run([m])
-    assert a.info["process_noise_scale"] == 1.0
-    assert set(a.info["process_noise_evidence"]) == {1.0, 4.0}
+    assert a.process_noise_scale == 1.0
+    assert set(a.process_noise_evidence) == {1.0, 4.0}
     assert abs(a.values["theta_e"] - b.values["theta_e"]) < 1e-9
 
 
@@ -618,8 +618,8 @@ def test_process_noise_adapts_only_when_the_model_is_wrong():
     true_fixed = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     good = FixedLagSmoother(init=true_fixed).run(m)
     bad = FixedLagSmoother(init={"k": 40.0, "k_x": 0.5, "k_yz": 0.3}).run(m)
-    assert good.info["process_noise_scale"] <= 2.0
-    assert bad.info["process_noise_scale"] >= 4.0 * good.info["process_noise_scale"]
+    assert good.process_noise_scale <= 2.0
+    assert bad.process_noise_scale >= 4.0 * good.process_noise_scale
 
 
 @pytest.mark.slow
@@ -767,7 +767,7 @@ def test_data_too_short_for_the_sandwich_get_the_evidence_noise():
     m = with_gnss_every(between(full, 60.0, 360.0), 8.0)
     auto = fit_fg([m])
     nominal = fit_fg([m], settings=FGSettings(adapt_batch=False, structural_sigma=False))
-    assert auto.info["process_noise_scale"] > 1.0 and nominal.info["process_noise_scale"] == 1.0
+    assert auto.process_noise_scale > 1.0 and nominal.process_noise_scale == 1.0
     assert abs(wrap(nominal.values["theta_e"] - th)) > 3 * nominal.sigma["theta_e"]
     assert abs(wrap(auto.values["theta_e"] - th)) <= 3 * auto.sigma["theta_e"]
 
@@ -886,7 +886,7 @@ def test_long_reinit_batch_keeps_the_nominal_noise_and_the_right_basin():
     assert all(not b["noise_by_evidence"] and b["process_noise_scale"] == 1.0 for b in long_)
     assert all(b["noise_by_evidence"] for b in short)
     assert all(b["process_noise_measured"] is not None for b in batches)
-    assert r.info["process_noise_scale"] >= batches[-1]["process_noise_measured"]
+    assert r.process_noise_scale >= batches[-1]["process_noise_measured"]
     i = list(r.history.names).index("theta_e")
     err = abs(wrap(r.history.values[-1, i] - truth.params["theta_e"]))
     assert err < 5 * DEG, np.degrees(err)

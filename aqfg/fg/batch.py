@@ -188,9 +188,9 @@ class BatchSmoother:
         if self.log_warnings:
             for w in res.warnings:
                 log.warning("fg: %s", w)
-        res.info["process_noise_scale"] = sol.q_scale
-        res.info["process_noise_measured"] = sol.q_measured
-        res.info["process_noise_evidence"] = sol.q_tried
+        res.process_noise_scale = sol.q_scale
+        res.process_noise_measured = sol.q_measured
+        res.process_noise_evidence = sol.q_tried
         res.info.update({"n_states": sum(len(p.keys) for p in bg.parts),
                          "n_factors": int(bg.graph.size()),
                          "kernel": "cpp" if bg.parts[0].model.uses_cpp else "numpy",
@@ -288,8 +288,8 @@ class BatchSmoother:
         t0 = time.perf_counter()
         X0, th = fs.from_values(out.values)
         q, Xq, tried = noise.track_noise_search(fs, X0, th, out.fast, s)
-        res.info["track_noise_scale"] = {p.mission.name: float(v) for p, v in zip(parts, q)}
-        res.info["track_noise_evidence"] = tried
+        res.track_noise_scale = {p.mission.name: float(v) for p, v in zip(parts, q)}
+        res.track_noise_evidence = tried
         if np.any(q != 1.0):
             fs.set_process_scale(1.0, per_part=q)
             X, *_ = levenberg_marquardt_fast(fs, None, s, start=(Xq, th), hold_params=True)
@@ -373,7 +373,7 @@ def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None,
     bs.log_warnings = False
     res = bs.run([mission])
     mr = res.missions[0]
-    return mr.track, mr.residuals, float(res.info.get("track_noise_scale", {}).get(mission.name, 1.0))
+    return mr.track, mr.residuals, float((res.track_noise_scale or {}).get(mission.name, 1.0))
 
 
 @dataclass

@@ -23,6 +23,7 @@ from aqfg.model.params import difference
 
 if TYPE_CHECKING:
     from aqfg.fg.online.smoother import FixedLagSmoother, UpdateInfo
+    from aqfg.result import Result
 
 # a held heading offset this far from the closed-form one of the fixes so far is re-seeded
 # while the held model fails (reseed)
@@ -32,6 +33,11 @@ RESEED_RHO = (0.8, 1.25)     # a re-seed also rescales an estimated thrust gain 
 
 def _first_line(exc: BaseException) -> str:
     return (str(exc).strip().splitlines() or [""])[0]
+
+
+def _noise_scale(res: Result) -> float:
+    """The process-noise factor ``res``'s solve used (1 where not reported)."""
+    return 1.0 if res.process_noise_scale is None else float(res.process_noise_scale)
 
 
 def after_update(fl: FixedLagSmoother, t_fix: float, info: UpdateInfo) -> UpdateInfo:
@@ -229,13 +235,13 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
     gap = abs(float(np.angle(np.exp(1j * (th_b - p[fl.model.index("theta_e")])))))
     sb = float(ref_s.get("theta_e", np.nan))
     tol = _restart_tolerance(pol.held, sb, bool(alt), slip)
-    q_meas = bres.info.get("process_noise_measured")
+    q_meas = bres.process_noise_measured
     pol.reinit_batches.append({
         "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
         "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
-        "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
+        "process_noise_scale": _noise_scale(bres),
         "process_noise_measured": None if q_meas is None else float(q_meas),
-        "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
+        "noise_by_evidence": bool(bres.process_noise_evidence),
         "cost": bres.cost, "slip_deg": float(slip),
         "gap": float(gap), "tolerance": float(tol),
         "restarted": bool(force or gap >= tol),
@@ -313,7 +319,7 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
                         for r in v.get("reasons", [])]})
         return None
     if fl.policy.held and not fl.constants_given \
-            and float(bres.info.get("process_noise_scale", 1.0)) >= fl.settings.adapt_max:
+            and _noise_scale(bres) >= fl.settings.adapt_max:
         # the evidence put the process noise at its bound: the model explains none of
         # the fixes so far, and its free constants and heading are whatever the noise
         # leaves (12 s of heldout-42, all six free: a top speed 4x the hull's, theta_e
@@ -337,8 +343,8 @@ def _take_batch_noise_and_sigma(fl: FixedLagSmoother, bres) -> dict[str, float]:
     by which the online sigma is reported from here (within the chosen basin; the spread
     of the basins that fit as well is added to the reported sigma until the next batch,
     the solve itself stays in one basin). Returns the batch's unimodal sigmas."""
-    q_meas = bres.info.get("process_noise_measured")
-    q_floor = float(q_meas if q_meas is not None else bres.info.get("process_noise_scale", 1.0))
+    q_meas = bres.process_noise_measured
+    q_floor = float(q_meas if q_meas is not None else _noise_scale(bres))
     rep = fl.report
     uni = {**bres.sigma, **bres.sigma_unimodal}
     rep.ambiguity = {n: max(float(bres.sigma[n]) ** 2 - float(v) ** 2, 0.0)
