@@ -272,27 +272,24 @@ class InfoView(Generic[T]):
 class Result:
     """What every estimator returns.
 
-    ``warnings`` are what a user must be told about the fit, in words (every estimator's;
-    logged as they arise, not written to the result's files).
-    Facts only some estimators have are typed attributes below (``per_mission``,
-    ``histories``, ``kernel``, ``settings``); they are kept in ``info`` under the same
-    keys, so code that reads or writes ``info`` keeps working. How the optimiser's solve
-    ended is ``solve`` (:class:`SolveSummary`: the factor graph's batch, its joint fit, and
-    the update-error batch's ``converged``; read as ``converged``, ``iterations``,
-    ``cost``); the update-error online run keeps its per-parameter ``converged`` and the
-    paper's ``nonconvergence`` measure in ``info``. The process-noise factor the solve
-    used is ``process_noise_scale`` (1: nominal; the batch's and the online smoother's),
-    the one the batch measured by the evidence without adopting it
-    ``process_noise_measured``, the factors the batch tried with their log evidence
-    ``process_noise_evidence``, and the factor each mission's track was smoothed with
-    ``track_noise_scale`` (``{mission: factor}``, :attr:`aqfg.fg.common.FGSettings.
-    adapt_track`; the log evidence per factor tried in ``track_noise_evidence``); None:
-    not reported. ``observability`` is each estimated
-    parameter's verdict (the factor graph's ``{name: {"verdict", "reason", ...}}``,
+    Every estimator's: ``warnings`` (what a user must be told about the fit, in words;
+    logged as they arise, not written to its files), ``observability`` (each estimated
+    parameter's verdict: the factor graph's ``{name: {"verdict", "reason", ...}}``,
     :func:`aqfg.fg.observability.verdicts`; the update-error method's ``{name: verdict}``
-    with the reasons in ``sigma_notes``; None: not reported) and ``sigma_notes`` why a
-    parameter has no sigma (``{name: reason}``, parameters.json's ``sigma_note``; None:
-    none given).
+    with the reasons in ``sigma_notes``; None: not reported) and ``sigma_notes`` (why a
+    parameter has no sigma, ``{name: reason}``: parameters.json's ``sigma_note``; None:
+    none given). How the optimiser's solve ended is ``solve`` (:class:`SolveSummary`: the
+    factor graph's batch and joint fit; the update-error batch's ``converged`` only), read
+    as ``converged``, ``iterations`` and ``cost``.
+
+    The process-noise factor a solve used is ``process_noise_scale`` (1: nominal; the
+    batch's and the online smoother's); the batch's also ``process_noise_measured`` (the
+    factor its evidence chose, also where the solve kept the nominal noise) and
+    ``process_noise_evidence`` (the log evidence per factor tried), and the factor each
+    mission's track was smoothed with, ``track_noise_scale`` (``{mission: factor}``,
+    :attr:`aqfg.fg.common.FGSettings.adapt_track`; the evidence per mission for each
+    factor tried in ``track_noise_evidence``); None: not reported.
+
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
     hull could be, :mod:`aqfg.fg.plausibility`; None: not checked) and why per mission in
     ``plausibility`` (``{mission: Plausibility.as_dict()}``), its parameters'
@@ -311,8 +308,8 @@ class Result:
     too short for the sandwich, the ``heading_profile``
     (:func:`aqfg.fg.basins.widen_by_profile`; the sigmas it widened, as they were, in
     ``sigma_before_profile``) and, where the reported sigmas cover more than the chosen
-    basin, each such sigma within that basin in ``sigma_unimodal``; its online smoother, the ``engine`` that
-    ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
+    basin, each such sigma within that basin in ``sigma_unimodal``; its online smoother,
+    the ``engine`` that ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
     leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
     :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
@@ -321,6 +318,20 @@ class Result:
     fitted heading against its accelerometer's and ``identifiability_warnings`` what the
     data were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
     worker applied it).
+
+    ``info`` holds the rest, free-form: each mission's estimates as the estimator wrote
+    them (``per_mission``, with its notes per entry; read typed as :attr:`per_mission`),
+    ``histories``, ``kernel`` and ``settings`` (typed views below, kept there under the
+    same keys), the graph's size (``n_states``, ``n_factors``), a joint fit's ``rounds``,
+    ``recovered`` and ``solver``, the held-sway fit (``held_sway``,
+    ``alternative_held_sway``), the online smoother's record (``events``,
+    ``reinit_batches``, ``rejected_usbl``: parameters.json's ``online``; ``window``,
+    ``n_updates``, ``warmup_end``, ``predicted_at_fix``, ``update_median_s``), the
+    diagnosis's refit start (``start``, ``cost_other_start``) and the update-error
+    method's optimiser record (``evaluations``, ``E``, ``status``, ``message``,
+    ``preset``, ``metric``, ``optimiser``, ``bounds``, ``sigma_method``,
+    ``consistency``; online, its per-parameter ``converged`` and the paper's
+    ``nonconvergence``, §III-F).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
