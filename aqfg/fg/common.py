@@ -75,12 +75,12 @@ class FGSettings:
         (docs/independent-vehicle.md). The online smoother's re-initialisation batches
         walk it too: the spread is added to the sigma it reports until its next batch.
     measure_noise: the batch also measures the process-noise factor by the evidence where
-        it does not adopt it (``info["process_noise_measured"]``; the solution stays the
+        it does not adopt it (``Result.process_noise_measured``; the solution stays the
         nominal noise's): the online re-initialisations take it as the floor of the online
         noise while solving a long stretch with the nominal noise.
     adapt_track: the batch's tracks (and their residuals) are smoothed once more, the
         parameters held at the fit, under the process-noise factor the evidence chooses for
-        the states given them (``info["track_noise_scale"]``). The parameters come from the
+        the states given them (``Result.track_noise_scale``). The parameters come from the
         nominal noise (above); the track then follows the fixes where the model is not the
         vehicle instead of the model's error: on Otter missions 2-5x closer to the truth,
         on a vehicle that is the model the same track (factor 1; docs/independent-vehicle.md).
