@@ -71,3 +71,30 @@ def test_lost_mission_is_rebuilt_and_the_run_goes_on(missions, batch):
     sol = drive(joint_lm(len(sessions), sm.settings), serve)
     assert sol.recovered >= 1 and rounds["lost"] >= 1 and sol.converged
     _assert_equal(combine(sol), batch)
+
+
+def test_numpy_session_serves_the_graphs_reduced_system(missions):
+    """A mission's session on its numpy system (the default) answers "sys" and "step" with
+    the Schur complement, right-hand side, damping scale and candidate cost of its GTSAM
+    graph's session."""
+    from aqfg.fg.common import FGSettings
+    sessions = [MissionSession(MissionProblem(BatchSmoother(settings=FGSettings(fast_lm=f)),
+                                              missions[0], fixed_prior=True))
+                for f in (True, False)]
+    assert sessions[0].fast is not None and sessions[1].fast is None
+    f0 = sessions[0].handle("open", {})["f0"]
+    assert np.array_equal(f0, sessions[1].handle("open", {})["f0"])
+    f = f0 * 1.05                         # off the mission's own start: a real step follows
+    for trial, lam in ((1, 1e-3), (2, 0.0)):
+        reps = [s.handle("sys", {"f": f, "lam": lam, "trial": trial, "start": trial == 1})
+                for s in sessions]
+        a, b = reps[0]["system"], reps[1]["system"]
+        assert a.cost == pytest.approx(b.cost, rel=1e-10)
+        np.testing.assert_allclose(a.H, b.H, rtol=1e-7, atol=1e-9 * np.abs(b.H).max())
+        np.testing.assert_allclose(a.eta, b.eta, rtol=1e-6, atol=1e-8 * np.abs(b.eta).max())
+        np.testing.assert_allclose(a.hdiag, b.hdiag, rtol=1e-10)
+        df = np.linalg.solve(b.H + np.diag(1e-3 * b.hdiag), b.eta)
+        steps = [s.handle("step", {"trial": trial, "delta_f": df, "f_new": f + df,
+                                   "mode": "try"}) for s in sessions]
+        assert steps[0]["cost"] == pytest.approx(steps[1]["cost"], rel=1e-8)
+        assert steps[0]["cost"] != pytest.approx(a.cost, rel=1e-6)   # the step moved it

@@ -18,8 +18,10 @@ from aqfg.fg import factors as fc
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
 from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.schur_fast import FastSession
 from aqfg.result import Result
 
 FIXED = fc.node_key("fixed")
@@ -69,17 +71,37 @@ class MissionProblem:
         self.dim = layout.dim("fixed")
         self.key_dims = self.bg.key_dims()
         self.locals = [n for n in self.bg.nodes if n.group != "fixed"]
-        gfg = self.bg.linearize(self.bg.values)
+        # the numpy form of the graph (None: outside its shape, the GTSAM path serves)
+        self.fs = FastSystem.build(self.bg, self.settings) if self.settings.fast_lm else None
+        self._orders: tuple | None = None
         if self.dim:
-            self.ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
-                gfg, gtsam.KeyVector([FIXED]))
-            self.local_ordering = gtsam.Ordering()
-            for i in range(self.ordering.size() - 1):
-                self.local_ordering.push_back(self.ordering.at(i))
             self._pin = gtsam.JacobianFactor(FIXED, _PIN * np.eye(self.dim), np.zeros(self.dim),
                                              gtsam.noiseModel.Unit.Create(self.dim))
-        else:
-            self.ordering = self.local_ordering = gtsam.Ordering.MetisGaussianFactorGraph(gfg)
+
+    def _orderings(self) -> tuple:
+        """The elimination orderings (all keys, the fixed node last; the locals alone),
+        made on first use: the numpy path needs them only for the result."""
+        if self._orders is None:
+            gfg = self.bg.linearize(self.bg.values)
+            if self.dim:
+                order = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
+                    gfg, gtsam.KeyVector([FIXED]))
+                local = gtsam.Ordering()
+                for i in range(order.size() - 1):
+                    local.push_back(order.at(i))
+                self._orders = (order, local)
+            else:
+                order = gtsam.Ordering.MetisGaussianFactorGraph(gfg)
+                self._orders = (order, order)
+        return self._orders
+
+    @property
+    def ordering(self) -> gtsam.Ordering:
+        return self._orderings()[0]
+
+    @property
+    def local_ordering(self) -> gtsam.Ordering:
+        return self._orderings()[1]
 
     @property
     def layout(self) -> fc.ParamLayout:
@@ -275,10 +297,14 @@ class MissionSession:
         self.system: ReducedSystem | None = None
         self.cand: tuple[int, gtsam.Values, float] | None = None    # (trial, values, cost)
         self.compute = 0.0                  # s spent in handle()
+        # the numpy system's session where the mission's graph has its form
+        self.fast = FastSession(problem, problem.fs) if problem.fs is not None else None
 
     def handle(self, op: str, args: dict) -> dict:
         t0 = time.perf_counter()
         try:
+            if self.fast is not None and op != "open":
+                return getattr(self.fast, op)(**args)
             return getattr(self, "_" + op)(**args)
         finally:
             self.compute += time.perf_counter() - t0
