@@ -95,7 +95,33 @@ class FastSession:
             sandwich = None
         res = self.p.result(self.values(), others, sandwich)
         res.model = None
-        return {"result": res}
+        out: dict = {"result": res}
+        if self.p.settings.adapt_track:
+            out["track"] = self.adapted_track()
+        return out
+
+    def adapted_track(self) -> tuple:
+        """The mission's track and residuals smoothed again with its parameters held at
+        the current point under the process noise its evidence chooses, and that noise's
+        factor (:attr:`aqfg.fg.common.FGSettings.adapt_track`, as the batch's
+        :meth:`~aqfg.fg.batch.BatchSmoother.smooth_tracks`; the fleet's
+        :func:`~aqfg.fleet.worker.track_op` without a second graph)."""
+        from aqfg.fg import noise
+        from aqfg.fg.batch_result import batch_result
+        fs, s, bg = self.fs, self.p.settings, self.p.bg
+        X0, th, ev = self.x
+        q, Xq, _ = noise.track_noise_search(fs, X0, th, ev, s)
+        X = X0
+        if np.any(q != 1.0):
+            fs.set_process_scale(1.0, per_part=q)
+            try:
+                X, *_ = levenberg_marquardt_fast(fs, None, s, start=(Xq, th), hold_params=True)
+            finally:
+                fs.set_process_scale(1.0)
+        cov = {n.key: np.zeros((bg.layout.dim(n.group),) * 2) for n in bg.nodes}
+        mr = batch_result(bg.layout, fs.to_values(X, th, bg.values), bg.parts, bg.nodes, cov,
+                          s, inertial_track=False).missions[0]
+        return mr.track, mr.residuals, float(q[0])
 
     # ------------------------------------------------------------------ linear algebra
     def values(self):
