@@ -98,3 +98,25 @@ def test_numpy_session_serves_the_graphs_reduced_system(missions):
                                    "mode": "try"}) for s in sessions]
         assert steps[0]["cost"] == pytest.approx(steps[1]["cost"], rel=1e-8)
         assert steps[0]["cost"] != pytest.approx(a.cost, rel=1e-6)   # the step moved it
+
+
+def test_session_track_is_the_track_smoothed_at_the_joint_parameters(missions):
+    """The adapted track a numpy session returns with its result is the one a separate
+    smooth of the mission at the joint fit's parameters gives (the fleet's track step):
+    the same process-noise factor, the same track."""
+    from aqfg.fg.batch import smooth_track
+    from aqfg.fg.common import FGSettings
+    st = FGSettings(adapt_track=True)
+    sm = BatchSmoother(settings=st)
+    sessions = [MissionSession(MissionProblem(sm, m, fixed_prior=(i == 0)))
+                for i, m in enumerate(missions)]
+
+    def serve(reqs):
+        return [s.handle(op, args) for s, (op, args) in zip(sessions, reqs)]
+    sol = drive(joint_lm(len(sessions), st), serve)
+    assert sol.tracks is not None and all(t is not None for t in sol.tracks)
+    for m, res, (track, residuals, q) in zip(missions, sol.results, sol.tracks):
+        ref_track, ref_res, ref_q = smooth_track(m, res.missions[0].p, settings=st)
+        assert q == ref_q
+        assert np.max(np.abs(track.pos - ref_track.pos)) < 1e-3
+        assert set(residuals) == set(ref_res)

@@ -15,9 +15,10 @@ import scipy.linalg as sla
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.fastlm_ops import tri
 from aqfg.fg.graph_lm import diagonal_floor
+from aqfg.fg.schur_system import FIXED, ReducedSystem
 
 if TYPE_CHECKING:
-    from aqfg.fg.schur_mission import MissionProblem, ReducedSystem
+    from aqfg.fg.schur_mission import MissionProblem
 
 
 class FastSession:
@@ -26,7 +27,6 @@ class FastSession:
     pending candidate. ``fcols``: the fixed node's columns in ``th``."""
 
     def __init__(self, problem: MissionProblem, fs: FastSystem):
-        from aqfg.fg.schur_mission import FIXED
         self.p, self.fs = problem, fs
         X, th = fs.from_values(problem.bg.values)
         self.x = (X, th, fs.evaluate(X, th))
@@ -144,7 +144,6 @@ class FastSession:
         """Damp the locals by ``lam`` x their floored diagonal (the fixed node is damped
         by the caller, on the sum), hold the local components ``held`` at their steps,
         eliminate the rest: the Schur complement on the fixed node."""
-        from aqfg.fg.schur_mission import ReducedSystem
         D, E, Hsp, Hpp, gs, gp, hs, hp, raw_p = self._linearize()
         fs = self.fs
         idx6 = np.arange(6)

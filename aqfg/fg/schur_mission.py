@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -22,36 +21,10 @@ from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.schur_fast import FastSession
+from aqfg.fg.schur_system import FIXED, ReducedSystem
 from aqfg.result import Result
 
-FIXED = fc.node_key("fixed")
 _PIN = 1e8          # whitened weight holding the fixed node during a mission's own solve
-
-
-@dataclass
-class ReducedSystem:
-    """Information on the fixed node after eliminating a mission's locals.
-
-    ``H`` (d, d) and ``eta`` (d,): the linear system ``H delta_f = eta`` (whitened
-    Gauss-Newton information, parameter units); ``cost``: 0.5 x the whitened squared error
-    at the linearisation point; ``hdiag`` (d,): diagonal of ``J_f^T J_f`` before the
-    elimination, unfloored (the batch's Marquardt damping scale, summed over missions).
-    """
-    H: np.ndarray
-    eta: np.ndarray
-    cost: float
-    hdiag: np.ndarray
-
-    def __add__(self, other: ReducedSystem) -> ReducedSystem:
-        return ReducedSystem(self.H + other.H, self.eta + other.eta, self.cost + other.cost,
-                             self.hdiag + other.hdiag)
-
-    @classmethod
-    def total(cls, systems: Sequence[ReducedSystem]) -> ReducedSystem:
-        out = systems[0]
-        for s in systems[1:]:
-            out = out + s
-        return out
 
 
 class MissionProblem:
@@ -280,7 +253,10 @@ class MissionSession:
     """A mission's state between rounds of :func:`joint_lm` (kept wherever the mission
     lives): the current values and linearisation, and the pending trial.
 
-    ``handle(op, args) -> reply`` serves the requests ("open", "sys", "step", "result").
+    ``handle(op, args) -> reply`` serves the requests ("open", "sys", "step", "result"):
+    on the mission's numpy system where its graph has that form
+    (:class:`aqfg.fg.schur_fast.FastSession`, which also returns the mission's adapted
+    track with its result), else on its GTSAM graph.
     A session created afresh in the middle of a run (its worker died) re-solves its locals
     at the client's ``f`` on "sys" and answers "lost" to a "step" it did not prepare.
     """
