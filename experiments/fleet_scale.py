@@ -21,8 +21,8 @@ a temporary directory first, then fitted:
    sigma over every vehicle's fixed parameters and every mission's own parameters);
 7. a projection of 10,000 missions on 100 workers from the same cost model.
 
-Run: ``python experiments/fleet_scale.py --workers 1,2,4,8,16`` (about 15 min on 2
-shared cores); ``--quick``: 2 vehicles x 3 missions x 3 min. Writes
+Run: ``python experiments/fleet_scale.py`` (``--workers 1,2,4,8,16`` by default; about
+20 min on 2 shared cores); ``--quick``: 2 vehicles x 3 missions x 3 min. Writes
 experiments/results/fleet_scale.md and fleet_scale_headline.md.
 """
 from __future__ import annotations
@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=900.0, help="s per mission")
     ap.add_argument("--gnss-period", type=float, default=8.0)
     ap.add_argument("--quick", action="store_true", help="2 vehicles x 3 missions x 180 s")
-    ap.add_argument("--workers", default="1,2",
+    ap.add_argument("--workers", default="1,2,4,8,16",
                     help="worker counts, comma-separated: those up to the machine's cores "
                          "measured, the others projected (1 is always measured)")
     ap.add_argument("--out", default=str(RESULTS))
