@@ -416,6 +416,29 @@ def test_a_round_waits_for_a_worker_that_rejoins(monkeypatch):
         solve._least_loaded([], {})
 
 
+def test_missions_are_spread_by_size_largest_first(tmp_path):
+    """A round's missions held by no worker go largest first to the worker holding the
+    least data: one mission as large as three others together has a worker to itself."""
+    from aqfg.fleet import solve
+    from aqfg.fleet.worker import MissionSpec
+
+    class TwoWorkers:
+        def scheduler_info(self, n_workers=-1):
+            return {"workers": {"tcp://a": {}, "tcp://b": {}}}
+    sizes = (100, 300, 100, 100)
+    specs = []
+    for i, n in enumerate(sizes):
+        d = tmp_path / f"m{i}"
+        d.mkdir()
+        (d / "gnss.csv").write_bytes(b"x" * 1000 * n)
+        specs.append(MissionSpec("run", "v", i, f"m{i}", str(d), i == 0, FGSettings()))
+    where: dict = {}
+    chunks = solve._chunks(TwoWorkers(), {"v": [("open", {})] * 4}, {"v": specs}, where)
+    held = {w: sorted(item[1].index for item in items) for w, items in chunks.items()}
+    assert sorted(held.values()) == [[0, 2, 3], [1]]
+    assert where[("v", 1)] != where[("v", 0)] == where[("v", 2)] == where[("v", 3)]
+
+
 @pytest.mark.slow
 def test_cli_fleet_no_auto_effect_fits_the_model_as_given(tmp_path, capsys):
     """An Otter vehicle, whose fit calls for the linear drag: `--no-auto-effect` keeps the

@@ -62,6 +62,9 @@ class Solution:
     rounds: int
     recovered: int
     cov_model_f: np.ndarray | None = None     # before the sandwich inflation
+    # per mission, its track under the noise its evidence chooses (track, residuals,
+    # factor), where its session made it (FGSettings.adapt_track on the numpy path)
+    tracks: list | None = None
 
 
 def _fixed_system(total: ReducedSystem, lam: float, clamps: Sequence = ()) -> np.ndarray:
@@ -232,7 +235,8 @@ def run_joint(n: int, settings: FGSettings, ask: Callable[[list[Request]], list[
                                 else {**sw, "offset": sw["offsets"][i]}})
                     for i, si in enumerate(systems)])
     return Solution(layout, x[0], cov_f, [r["result"] for r in reps], iterations, trials,
-                    converged, float(total.cost), history, rounds, system.recovered, cov_model_f)
+                    converged, float(total.cost), history, rounds, system.recovered, cov_model_f,
+                    [r.get("track") for r in reps])
 
 
 def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | None = None

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -18,38 +17,14 @@ from aqfg.fg import factors as fc
 from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import FGSettings, check_missions
 from aqfg.fg.covariance import honest_covariance
+from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
 from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.schur_fast import FastSession
+from aqfg.fg.schur_system import FIXED, ReducedSystem
 from aqfg.result import Result
 
-FIXED = fc.node_key("fixed")
 _PIN = 1e8          # whitened weight holding the fixed node during a mission's own solve
-
-
-@dataclass
-class ReducedSystem:
-    """Information on the fixed node after eliminating a mission's locals.
-
-    ``H`` (d, d) and ``eta`` (d,): the linear system ``H delta_f = eta`` (whitened
-    Gauss-Newton information, parameter units); ``cost``: 0.5 x the whitened squared error
-    at the linearisation point; ``hdiag`` (d,): diagonal of ``J_f^T J_f`` before the
-    elimination, unfloored (the batch's Marquardt damping scale, summed over missions).
-    """
-    H: np.ndarray
-    eta: np.ndarray
-    cost: float
-    hdiag: np.ndarray
-
-    def __add__(self, other: ReducedSystem) -> ReducedSystem:
-        return ReducedSystem(self.H + other.H, self.eta + other.eta, self.cost + other.cost,
-                             self.hdiag + other.hdiag)
-
-    @classmethod
-    def total(cls, systems: Sequence[ReducedSystem]) -> ReducedSystem:
-        out = systems[0]
-        for s in systems[1:]:
-            out = out + s
-        return out
 
 
 class MissionProblem:
@@ -69,17 +44,37 @@ class MissionProblem:
         self.dim = layout.dim("fixed")
         self.key_dims = self.bg.key_dims()
         self.locals = [n for n in self.bg.nodes if n.group != "fixed"]
-        gfg = self.bg.linearize(self.bg.values)
+        # the numpy form of the graph (None: outside its shape, the GTSAM path serves)
+        self.fs = FastSystem.build(self.bg, self.settings) if self.settings.fast_lm else None
+        self._orders: tuple | None = None
         if self.dim:
-            self.ordering = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
-                gfg, gtsam.KeyVector([FIXED]))
-            self.local_ordering = gtsam.Ordering()
-            for i in range(self.ordering.size() - 1):
-                self.local_ordering.push_back(self.ordering.at(i))
             self._pin = gtsam.JacobianFactor(FIXED, _PIN * np.eye(self.dim), np.zeros(self.dim),
                                              gtsam.noiseModel.Unit.Create(self.dim))
-        else:
-            self.ordering = self.local_ordering = gtsam.Ordering.MetisGaussianFactorGraph(gfg)
+
+    def _orderings(self) -> tuple:
+        """The elimination orderings (all keys, the fixed node last; the locals alone),
+        made on first use: the numpy path needs them only for the result."""
+        if self._orders is None:
+            gfg = self.bg.linearize(self.bg.values)
+            if self.dim:
+                order = gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(
+                    gfg, gtsam.KeyVector([FIXED]))
+                local = gtsam.Ordering()
+                for i in range(order.size() - 1):
+                    local.push_back(order.at(i))
+                self._orders = (order, local)
+            else:
+                order = gtsam.Ordering.MetisGaussianFactorGraph(gfg)
+                self._orders = (order, order)
+        return self._orders
+
+    @property
+    def ordering(self) -> gtsam.Ordering:
+        return self._orderings()[0]
+
+    @property
+    def local_ordering(self) -> gtsam.Ordering:
+        return self._orderings()[1]
 
     @property
     def layout(self) -> fc.ParamLayout:
@@ -258,7 +253,10 @@ class MissionSession:
     """A mission's state between rounds of :func:`joint_lm` (kept wherever the mission
     lives): the current values and linearisation, and the pending trial.
 
-    ``handle(op, args) -> reply`` serves the requests ("open", "sys", "step", "result").
+    ``handle(op, args) -> reply`` serves the requests ("open", "sys", "step", "result"):
+    on the mission's numpy system where its graph has that form
+    (:class:`aqfg.fg.schur_fast.FastSession`, which also returns the mission's adapted
+    track with its result), else on its GTSAM graph.
     A session created afresh in the middle of a run (its worker died) re-solves its locals
     at the client's ``f`` on "sys" and answers "lost" to a "step" it did not prepare.
     """
@@ -275,10 +273,14 @@ class MissionSession:
         self.system: ReducedSystem | None = None
         self.cand: tuple[int, gtsam.Values, float] | None = None    # (trial, values, cost)
         self.compute = 0.0                  # s spent in handle()
+        # the numpy system's session where the mission's graph has its form
+        self.fast = FastSession(problem, problem.fs) if problem.fs is not None else None
 
     def handle(self, op: str, args: dict) -> dict:
         t0 = time.perf_counter()
         try:
+            if self.fast is not None and op != "open":
+                return getattr(self.fast, op)(**args)
             return getattr(self, "_" + op)(**args)
         finally:
             self.compute += time.perf_counter() - t0

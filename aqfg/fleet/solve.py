@@ -9,6 +9,7 @@ goes on (see :class:`aqfg.fg.schur.MissionSession`).
 """
 from __future__ import annotations
 
+import functools
 import time
 import uuid
 from collections.abc import Sequence
@@ -38,6 +39,7 @@ from aqfg.fleet.worker import (
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
+_TRACKS = "_adapted_tracks"     # info key of the sessions' tracks until _finish takes them
 __all__ = ["FleetError", "FleetResult", "fit_fleet"]
 
 
@@ -133,17 +135,32 @@ def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, 
 
 def _chunks(client, pending: dict, specs: dict, where: dict) -> dict[str, list]:
     """A round's requests by worker, ``worker -> [(vehicle, spec, op, args)]``: each mission
-    on the worker that holds it (``where``, by vehicle and mission index), or on the least
-    loaded live one (``where`` updated)."""
+    on the worker that holds it (``where``, by vehicle and mission index); those held by
+    none placed largest first on the worker holding the least data (``where`` updated), so
+    that a round's workers finish together."""
     alive = _alive_workers(client)
+    size = {spec.key[1:]: _mission_bytes(spec.path) for v in pending for spec in specs[v]}
+    place = [spec for v in pending for spec in specs[v] if where.get(spec.key[1:]) not in alive]
+    for spec in sorted(place, key=lambda sp: -size[sp.key[1:]]):
+        where[spec.key[1:]] = _least_loaded(alive, where, size)
     chunks: dict[str, list] = {}               # worker -> [(vehicle, spec, op, args)]
     for v, reqs in pending.items():
         for spec, (op, args) in zip(specs[v], reqs):
-            w = where.get(spec.key[1:])
-            if w not in alive:
-                w = where[spec.key[1:]] = _least_loaded(alive, where)
-            chunks.setdefault(w, []).append((v, spec, op, args))
+            chunks.setdefault(where[spec.key[1:]], []).append((v, spec, op, args))
     return chunks
+
+
+@functools.lru_cache(maxsize=4096)
+def _mission_bytes(path: str) -> int:
+    """A mission's size on disk (bytes; its directory's files, or the file), what its
+    solve's cost grows with; 1 where it cannot be read here (the workers read it)."""
+    import os
+    try:
+        if os.path.isdir(path):
+            return max(sum(e.stat().st_size for e in os.scandir(path) if e.is_file()), 1)
+        return max(os.path.getsize(path), 1)
+    except OSError:
+        return 1
 
 
 def _gather(futs: dict, timeout, stats: dict, show, iters: dict, gens: dict,
@@ -249,6 +266,11 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
         stats["client_seconds"] = stats.get("client_seconds", 0.0) + time.perf_counter() - t_client
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
+    for v, r in results.items():
+        # the tracks the sessions smoothed under their evidence's noise, for _finish
+        tracks = sols[v].tracks or []
+        if tracks and all(t is not None for t in tracks):
+            r.info[_TRACKS] = tracks
     effect_names = tuple(getattr(e, "name", e) for e in effects)
     for r in results.values():
         r.effects = effect_names               # the model's effects, for the outputs
@@ -287,6 +309,8 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
         fe.record(results, pick, None, f"its fit failed ({e})")
         return specs, results
     why = fe.judge(results, new, pick["effect"])
+    for r in (new if why else results).values():
+        r.info.pop(_TRACKS, None)          # the fits not returned: no tracks to finish
     fe.record(results, pick, new, why)
     return (specs, results) if why else (specs2, new)
 
@@ -294,17 +318,18 @@ def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, ti
 def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dict
             ) -> dict[str, Result]:
     """Every vehicle's final fit, as ``aqfg fit`` finishes its own: the dead-reckoning
-    constants (:func:`refine_op`, on the worker that holds most of its missions) while each
-    mission's track is smoothed where the mission is (:func:`track_op`, from the joint
-    fit's parameters), then :func:`finish_op` with those tracks; Dask moves the replies
-    between the workers."""
+    constants (:func:`refine_op`, on the worker that holds most of its missions), then
+    :func:`finish_op` with each mission's track under the noise its evidence chooses: the
+    one its session smoothed with the result, or else one smoothed where the mission is
+    (:func:`track_op`, from the joint fit's parameters); Dask moves the replies between
+    the workers."""
     def args(v: str, home: list[str] | None) -> tuple:
         spec0 = specs[v][0]
+        tracks = results[v].info.pop(_TRACKS, None)     # made by the missions' sessions
         refined = client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
                                 key=f"aqfg-{spec0.run}-refine-{v}", workers=home,
                                 allow_other_workers=True)
-        tracks = None
-        if spec0.settings.adapt_track:
+        if spec0.settings.adapt_track and tracks is None:
             tracks = [client.submit(track_op, s, mr.p, pure=False, retries=2,
                                     key=f"aqfg-{s.run}-track-{v}-{s.index}",
                                     workers=_home([s], where), allow_other_workers=True)
@@ -395,13 +420,15 @@ def _alive_workers(client, wait: float = WORKER_WAIT) -> list[str]:
     return alive
 
 
-def _least_loaded(alive: list[str], where: dict) -> str:
+def _least_loaded(alive: list[str], where: dict, size: dict | None = None) -> str:
+    """The live worker holding the least: summed ``size`` of its missions (by vehicle and
+    mission index; 1 each where not given)."""
     if not alive:
         raise FleetError("no Dask worker is running")
     held = {w: 0 for w in alive}
-    for w in where.values():
+    for k, w in where.items():
         if w in held:
-            held[w] += 1
+            held[w] += (size or {}).get(k, 1)
     return min(alive, key=lambda w: (held[w], w))
 
 
