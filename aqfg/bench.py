@@ -134,7 +134,7 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0, compare_gtsam: bo
     for _ in range(repeat):
         if compare_gtsam:
             rg = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s,
-                                  settings=FGSettings(online_engine="gtsam")).run(m)
+                                  settings=FGSettings().with_(online={"engine": "gtsam"})).run(m)
             g_all += list(rg.timings["update"][1:])
             g_total += list(rg.timings["update_total"][1:])
         r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)

@@ -156,7 +156,7 @@ class RefitCheck:
 
 @dataclass(frozen=True)
 class SigmaStructure:
-    """The structural part of a batch fit's sigma (``FGSettings.structural_sigma``,
+    """The structural part of a batch fit's sigma (``FGSettings.batch.structural_sigma``,
     :mod:`aqfg.fg.structural_sigma`): the effect the data call for most (or, not
     ``proven``, suggest), its robust score-test p, the shift of each variable parameter it
     would cause (model units), the test's ranking (as ``StructuralShift.ranked``), the
@@ -196,7 +196,7 @@ class FleetEffect:
 
 @dataclass(frozen=True)
 class EffectStep:
-    """The effect step of a batch fit (``FGSettings.auto_effect``:
+    """The effect step of a batch fit (``FGSettings.batch.auto_effect``:
     :func:`aqfg.fg.fit.adopt_effect`, the fleet's :mod:`aqfg.fleet.effect`): the effect
     tried, whether it was added (else ``reason``), its robust score-test p, the costs
     without and with it, whether the model as given explained the fixes, the model-as-given
@@ -460,7 +460,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     tq = result.info.get("track_noise_scale")
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with
-        # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
+        # (FGSettings.batch.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
     jk = result.block_jackknife.document() if result.block_jackknife is not None else None
     if result.mode == "batch" and jk:
@@ -493,7 +493,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
 def sigma_structure_document(st: SigmaStructure) -> dict:
     """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
     # the shift of the variable parameters the missing effect the data call for most
-    # would cause, included in their sigma (FGSettings.structural_sigma)
+    # would cause, included in their sigma (FGSettings.batch.structural_sigma)
     out = {"effect": st.effect, "p_value_robust": float(st.p_value_robust),
            "shift": {n: float(v) for n, v in st.shift.items()},
            "proven": bool(st.proven),

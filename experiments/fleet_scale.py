@@ -6,7 +6,7 @@ a temporary directory first, then fitted:
 
 1. sequentially in one process, one ``BatchSmoother.run`` per vehicle (``aqfg fit`` of
    each vehicle's missions): wall time and peak memory (a child process);
-2. with ``fit_fleet`` (its dead-reckoning refinement off, ``FGSettings.dr_horizon = 0``:
+2. with ``fit_fleet`` (its dead-reckoning refinement off, ``FGSettings.batch.dr_horizon = 0``:
    the joint solve is what is compared) on a ``LocalCluster`` of 1 and of 2 worker processes: wall time,
    peak memory per worker, rounds, tasks, compute seconds per task and bytes sent back;
 3. time per added mission: one vehicle's 5, 10, ... missions on 2 workers (slope);
@@ -83,7 +83,7 @@ def noop(i):
 def fleet_run(manifest_path: Path, workers: int) -> dict:
     from distributed import Client, LocalCluster
 
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     from aqfg.fleet import fit_fleet, load_manifest
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                       dashboard_address=None, silence_logs=logging.ERROR) as lc, Client(lc) as c:
@@ -91,7 +91,7 @@ def fleet_run(manifest_path: Path, workers: int) -> dict:
         # the joint solve alone, as the sequential BatchSmoother.run it is compared with
         # (the dead-reckoning refinement after it is one task per vehicle)
         fr = fit_fleet(load_manifest(manifest_path), c, progress=True,
-                       settings=FGSettings(dr_horizon=0.0))
+                       settings=FGSettings().with_(batch={"dr_horizon": 0.0}))
         wall = time.perf_counter() - t0
         # the scheduler's overhead per task: 2000 empty tasks
         t1 = time.perf_counter()

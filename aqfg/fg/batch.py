@@ -104,7 +104,7 @@ class BatchSmoother:
         the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
         as for the heading basins. ``factors``: GTSAM factors of the user's own on the
         graph's states and parameters (:mod:`aqfg.fg.user_factors`); the graph is then
-        solved on GTSAM's linearisation (``fast_lm`` off)."""
+        solved on GTSAM's linearisation (``solver.fast_lm`` off)."""
         self.factors = factors
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # info["warnings"] also to the log (WARNING)
@@ -125,7 +125,7 @@ class BatchSmoother:
         self.init = dict(init or {})
         self.settings = settings or FGSettings()
         if factors is not None:          # the numpy form holds the built-in factors only
-            self.settings = self.settings.with_(fast_lm=False)
+            self.settings = self.settings.with_(solver={"fast_lm": False})
         self.progress = progress_fn(progress)
 
     # ---------------------------------------------------------------- graph
@@ -177,7 +177,7 @@ class BatchSmoother:
                        "iteration": out.it_times, "covariance": [t_end - t_cov]}
         _sigma_info(res, bg, cov_model, s)
         _ambiguity_info(res, basins, out.cost, len(bg.parts))
-        if sol.short and s.heading_profile and fs is not None and out.fast is not None:
+        if sol.short and s.batch.heading_profile and fs is not None and out.fast is not None:
             widen_by_profile(res, fs, bg, bg.nodes, out.values, s)
         _verdict_info(res, bg, out, verdicts, s)
         if held is not None:
@@ -203,7 +203,7 @@ class BatchSmoother:
         self.short_solution = ((fs, out.fast) if sol.short and fs is not None
                                and out.fast is not None else None)
         res.too_short_for_sandwich = bool(sol.short)
-        if s.adapt_track and self.fast_solution is not None:
+        if s.batch.adapt_track and self.fast_solution is not None:
             self._track_job = (fs, out, bg.layout, bg.parts, bg.nodes, cov)
         if not self.defer_track:
             self.smooth_tracks(res)
@@ -223,7 +223,7 @@ class BatchSmoother:
         # ranked a basin 43 deg off 7 lower in cost and 14.5 lower in evidence
         # (docs/independent-vehicle.md)
         le_out = np.nan
-        if sol.adapt and s.rank_by_evidence and fs is not None and out.fast is not None:
+        if sol.adapt and s.batch.rank_by_evidence and fs is not None and out.fast is not None:
             le_out = fs.log_evidence(out.fast)
         by_ev = bool(np.isfinite(le_out))
         q_out = sol.q_scale
@@ -274,7 +274,7 @@ class BatchSmoother:
         return replace(sol, out=out, q_scale=q_out, q_measured=q_out), verdicts, basins
 
     def smooth_tracks(self, res: Result) -> Result:
-        """:attr:`FGSettings.adapt_track`: the tracks and their residuals of the result
+        """:attr:`FGSettings.batch.adapt_track`: the tracks and their residuals of the result
         ``res`` of the last :meth:`run` (in place) from the states smoothed again with the
         parameters held at the fit, under the process-noise factor of the largest evidence
         of the states given them; ``res`` as it is where that does not apply (the setting
@@ -361,10 +361,11 @@ class BatchSmoother:
 def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None, effects=(),
                  settings: FGSettings | None = None) -> tuple[Track, dict, float]:
     """The track of ``mission`` smoothed with every parameter held at the full vector ``p``
-    under the process noise its evidence chooses (:attr:`FGSettings.adapt_track`, as the
+    under the process noise its evidence chooses (:attr:`FGSettings.batch.adapt_track`, as the
     batch's own tracks), for a fit whose states came from elsewhere (the fleet's joint
     solve). Returns the track, its residuals and the process-noise factor."""
-    s = (settings or FGSettings()).with_(adapt_track=True, adapt_batch=False, sandwich_block=0.0)
+    s = (settings or FGSettings()).with_(batch={"adapt_track": True, "adapt_noise": False,
+                                                   "sandwich_block": 0.0})
     names = mission_model(model, mission, effects).all_names
     bs = BatchSmoother(model, effects=effects, estimate=(), settings=s,
                        init={n: float(v) for n, v in zip(names, p)})
@@ -394,8 +395,8 @@ class _Solve:
 
 def _first_solve(bg: BuiltGraph, s: FGSettings, progress) -> _Solve:
     """LM from the graph's initial values, then the process noise its evidence chooses
-    (:attr:`FGSettings.adapt_batch`) or measures (:attr:`FGSettings.measure_noise`)."""
-    fs = FastSystem.build(bg, s) if s.fast_lm else None
+    (:attr:`FGSettings.batch.adapt_noise`) or measures (:attr:`FGSettings.batch.measure_noise`)."""
+    fs = FastSystem.build(bg, s) if s.solver.fast_lm else None
     ordering = None if fs is not None else \
         gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(bg.values))
     out = levenberg_marquardt(bg, bg.values, ordering, s, progress, fs)
@@ -403,9 +404,9 @@ def _first_solve(bg: BuiltGraph, s: FGSettings, progress) -> _Solve:
     # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
     # noise is the honest sigma there (docs/independent-vehicle.md)
     short = too_short_for_sandwich(bg, s)
-    adapt = short if s.adapt_batch is None else s.adapt_batch
+    adapt = short if s.batch.adapt_noise is None else s.batch.adapt_noise
     q_measured = None
-    if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
+    if (adapt or s.batch.measure_noise) and fs is not None and out.fast is not None:
         # how much process noise the model needs (aqfg.fg.noise): a model that is not
         # the vehicle's bends the parameters under the nominal noise; measured only
         # (measure_noise), the solution stays the nominal one
@@ -436,7 +437,7 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
         key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
         # next mission from a block boundary: its blocks start at its own start, as in
         # the fleet's per-mission solve (aqfg.fg.schur)
-        b = s.sandwich_block or 1.0
+        b = s.batch.sandwich_block or 1.0
         shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
     if out.fast is not None:
         assert fs is not None           # the numpy path ran: its system was built
@@ -451,7 +452,7 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
             # the undamped system is singular: no parameter is determined by the Hessian
             cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
         cov_sw = block_sandwich(gfg, bg.key_dims(), key_time, [n.key for n in node_list],
-                                s.sandwich_block) if s.sandwich_block else None
+                                s.batch.sandwich_block) if s.batch.sandwich_block else None
     cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                             cov_sw[1] if cov_sw else None)
     return cov_model, cov
@@ -464,7 +465,7 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     res.sigma_model = {n: float(v) for n, v in
                        sigma_by_name(layout, bg.nodes, cov_model).items()}
     res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
-    prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
+    prior_sigma = {n: s.graph.prior_sigma.get(n, s.graph.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
     res.info["observability"] = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
@@ -508,7 +509,7 @@ def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Pl
     res.plausible = all(v.plausible for v in verdicts)
     res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
                                 for i, v in enumerate(verdicts)}
-    res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.max_iterations
+    res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.solver.max_iterations
     res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
     res.info["warnings"] = batch_warnings(res, out.iterations)

@@ -16,10 +16,11 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings, check_missions
+from aqfg.fg.common import check_missions
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
 from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.settings import FGSettings
 from aqfg.result import Result
 
 FIXED = fc.node_key("fixed")
