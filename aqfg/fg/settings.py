@@ -34,7 +34,7 @@ class GraphSettings:
         spacing <= 1 s; about a constant-velocity track of PSD ``OnlineSettings.kinematic_q``),
         else the stated sigma; a :class:`~aqfg.fg.gnss_noise.GnssNoise` (e.g. another
         mission's of the same receiver); None: the stated sigma. Online each fix is
-        weighed by sigma, the batch by variance sigma^2 (1 + rho) / (1 - rho),
+        weighted by sigma, the batch by variance sigma^2 (1 + rho) / (1 - rho),
         rho = exp(-spacing / tau), never below the stated sigma: dense fixes' errors are
         correlated (docs/real-vehicle.md).
     prior_scale: a parameter's prior sigma is ``prior_scale`` x its ParamSpec.scale
