@@ -32,7 +32,7 @@ it, :mod:`aqfg.fg.fastlag`); the GTSAM engine is timed beside it on the same mis
 The factor graph's per-update time includes the parameter marginal covariances; the
 update-error optimisation time excludes its Gauss-Newton sigma (computed after). Fixed-lag
 updates during the warm-up (window grown to everything since the start until the
-parameters have converged, :class:`aqfg.fg.common.FGSettings`) are reported apart:
+parameters have converged, ``FGSettings.online.warmup_tol``) are reported apart:
 the 24 s-window figure is the median after the warm-up.
 
 ``run(repeat)`` returns the figures as a dict; ``report(figs)`` formats them as markdown.

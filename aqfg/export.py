@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from aqfg.data.geodesy import ne_to_latlon
+from aqfg.data.geodesy import ne_to_latlon, on_earth
 from aqfg.data.mission import Mission
 from aqfg.outputs import OutputSet, inside, unique_safe_names, write_json
 from aqfg.result import RESULT_FILES, MissionResult, Result, Track, parameters_document
@@ -90,8 +90,10 @@ def geojson_track(result: Result, mr: MissionResult, mission: Mission,
     feats = []
     lab = "smoothed" if result.mode == "batch" else "corrected"
     for kind, tr in ((lab, mr.track), ("inertial", mr.inertial)):
-        if not len(tr.t):
+        n = _usable_rows(tr, mission.origin)      # (cut where the track files are)
+        if not n:
             continue
+        tr = Track(tr.t[:n], tr.pos[:n], tr.vel[:n])
         ll = ne_to_latlon(np.asarray(tr.pos)[:, :2], mission.origin)
         feats.append({"type": "Feature",
                       "geometry": {"type": "LineString",
@@ -136,7 +138,7 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
         if result.mode == "online" and mr.filtered is not None:
             tracks.append(("causal.csv", mr.filtered))
         for name, tr in tracks:
-            tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}")
+            tr = finite_track(tr, f"{sub + '/' if sub else ''}{name}", origin)
             (d / name).write_text(track_csv(tr, origin))
             written.append(d / name)
         if tum and m is not None:
@@ -148,18 +150,28 @@ def write_result(result: Result, out_dir: str | os.PathLike, missions=None,
     return written
 
 
-def finite_track(track: Track, where: str) -> Track:
-    """``track`` up to its first state that is not finite (a track file never holds a
-    non-number), with a warning naming ``where`` and the time it ends (the model's
-    re-trace diverged there)."""
+def _usable_rows(track: Track, origin: tuple[float, float] | None) -> int:
+    """How many leading rows of ``track`` are finite (and, with ``origin``, on the Earth)."""
     ok = np.all(np.isfinite(track.pos), axis=1) & np.all(np.isfinite(track.vel), axis=1) \
         & np.isfinite(track.t)
-    if ok.all():
+    if origin is not None and len(track.t):
+        ok &= on_earth(np.asarray(track.pos)[:, :2], origin)
+    return len(ok) if ok.all() else int(np.argmin(ok))
+
+
+def finite_track(track: Track, where: str, origin: tuple[float, float] | None = None
+                 ) -> Track:
+    """``track`` up to its first state that is not finite or, with ``origin``, has no
+    latitude and longitude (:func:`~aqfg.data.geodesy.on_earth`): a track file never holds a
+    non-number. A warning names ``where`` and the time it ends (the model's re-trace
+    diverged there)."""
+    n = _usable_rows(track, origin)
+    if n == len(track.t):
         return track
-    n = int(np.argmin(ok))
     logging.getLogger("aqfg").warning(
-        "%s: the track is not finite from t = %.6g s (the model's re-trace diverged): written "
-        "up to there, %d of %d rows", where, float(track.t[n]), n, len(track.t))
+        "%s: the track is not finite or leaves the Earth from t = %.6g s (the model's "
+        "re-trace diverged): written up to there, %d of %d rows", where, float(track.t[n]),
+        n, len(track.t))
     return Track(track.t[:n], track.pos[:n], track.vel[:n])
 
 

@@ -370,7 +370,7 @@ class Result:
     kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
                            'reported).')
     settings = InfoView(_as_stored, "The estimator's settings object (e.g. "
-                                    "``aqfg.fg.common.FGSettings``).")
+                                    "``aqfg.fg.FGSettings``).")
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(self.values[n]), "sigma": float(self.sigma.get(n, np.nan))}

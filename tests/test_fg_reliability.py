@@ -90,3 +90,25 @@ def test_t_tail_factor_keeps_the_three_sigma_coverage():
     target = 2 * norm.sf(3.0)                                  # 0.27 %
     assert plain > 4 * target                                  # 1.7 % without the factor
     assert wide == pytest.approx(target, rel=0.15)
+
+
+def test_a_start_the_model_cannot_evaluate_gives_way_to_the_next(asv):
+    """Where the graph's cost is not finite at the best closed-form start (constants so
+    stiff that the dynamics from its states diverge), the batch starts from the next
+    candidate start where it is finite, and from the nominal constants where none is."""
+    from aqfg.fg import factors as fc
+    from aqfg.fg.batch import BatchSmoother
+    from aqfg.fg.starts import evaluable_values
+    bg = BatchSmoother().build([asv[0]])
+    fixed = fc.node_key("fixed")
+    names = bg.layout.names["fixed"]
+
+    def k_of(vals):
+        return float(vals.atVector(fixed)[names.index("k")])
+    first = k_of(bg.values)
+    assert evaluable_values(bg, lambda v: 1.0, {}) is bg.values
+    nxt = evaluable_values(bg, lambda v: np.nan if k_of(v) == first else 1.0, {})
+    assert k_of(nxt) == pytest.approx(bg.starts[0][1].fixed["k"])
+    nominal = float(bg.layout.initial("fixed")[names.index("k")])
+    last = evaluable_values(bg, lambda v: 1.0 if k_of(v) == nominal else np.nan, {})
+    assert k_of(last) == nominal

@@ -112,3 +112,13 @@ def test_joint_lm_generator_raises_what_the_loop_raises():
     with pytest.raises(KeyError):
         gen.send([{}])              # an "open" reply without the layout
     assert not _lm_threads()
+
+
+def test_a_start_where_the_cost_is_not_finite_is_not_a_minimum():
+    """From a point where the model cannot be evaluated (NaN cost) the loop takes no step
+    and does not call that point converged."""
+    class Nowhere(Rosenbrock):
+        def cost(self, p) -> float:
+            return float("nan")
+    out = levenberg_marquardt(Nowhere(), np.array([-1.2, 1.0]), LMParams(100, 0.0, 1e-20))
+    assert not out.converged and out.iterations == 0 and np.isnan(out.cost)

@@ -258,6 +258,10 @@ def test_a_track_file_never_holds_a_non_number(caplog):
     tr = finite_track(Track(np.arange(5.0), pos, np.zeros((5, 3))), "inertial.csv")
     assert len(tr.t) == 3 and np.isfinite(tr.pos).all()
     assert "inertial.csv" in caplog.text and "t = 3 s" in caplog.text
+    pos[3, 0] = 1e8                          # finite, but off the Earth: cut there too
+    tr = finite_track(Track(np.arange(5.0), pos, np.zeros((5, 3))), "inertial.csv",
+                      origin=(63.4, 10.3))
+    assert len(tr.t) == 3
 
 
 def test_online_cost_estimate_covers_the_window(mission):

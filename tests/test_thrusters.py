@@ -114,3 +114,14 @@ def test_a_vehicle_drifting_astern_between_legs_is_not_reversed(sim):
     out.gnss = Gnss(g.t, ne, g.sigma)
     assert thruster_findings(out) == []
     assert thruster_findings(flipped(out, 0))      # still found (here by the summed demand)
+
+
+def test_a_vehicle_driven_astern_is_not_reversed(sim):
+    """The same motion logged as a vehicle driven astern (commands negated, heading turned
+    half a circle, a correct compass): the motion while pushed points astern of the logged
+    heading, which a reversal with a heading 180 deg off would explain as well; nothing is
+    reported that holds in only one of the two frames."""
+    q = quat_mul(sim.imu.q, [0.0, 0.0, 0.0, 1.0])
+    astern = flipped(flipped(sim, 0), 1)
+    astern.imu = type(sim.imu)(sim.imu.t, q, sim.imu.acc, sim.imu.gyro)
+    assert thruster_findings(astern) == []

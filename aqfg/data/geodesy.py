@@ -63,9 +63,9 @@ def latlon_to_ne(lat, lon, origin: tuple[float, float]) -> np.ndarray:
     return np.stack([d @ nh, d @ eh], -1)
 
 
-def ne_to_latlon(ne, origin: tuple[float, float]) -> np.ndarray:
-    """Inverse of :func:`latlon_to_ne`: (n, 2) north, east (m) -> (n, 2) lat, lon (deg)."""
-    lat0, lon0 = _check_origin(origin)
+def _plane(ne, lat0: float):
+    """The tangent-plane offsets ``v`` of north/east ``ne`` and the quadratic ``a d^2 + b d
+    + c = 0`` for the height ``d`` along the normal that puts ``v`` on the ellipsoid."""
     ne = np.asarray(ne, dtype=float)
     p0, nh, eh, dh = _basis(lat0)
     v = ne[..., :1] * nh + ne[..., 1:2] * eh          # offset in the tangent plane
@@ -74,6 +74,23 @@ def ne_to_latlon(ne, origin: tuple[float, float]) -> np.ndarray:
     a = float(dh @ (w * dh))
     b = 2.0 * ((p0 + v) @ (w * dh))
     c = 2.0 * (v @ (w * p0)) + np.einsum("...i,...i->...", v, w * v)
+    return p0, v, dh, a, b, c
+
+
+def on_earth(ne, origin: tuple[float, float]) -> np.ndarray:
+    """Whether each north/east offset (n, 2) from ``origin`` (m) has a latitude and
+    longitude: finite, and within the tangent plane's reach of the ellipsoid."""
+    ne = np.asarray(ne, dtype=float)
+    ok = np.all(np.isfinite(ne), axis=-1)
+    _, _, _, a, b, c = _plane(np.where(ok[..., None], ne, 0.0), _check_origin(origin)[0])
+    return ok & (b * b - 4.0 * a * c >= 0)
+
+
+def ne_to_latlon(ne, origin: tuple[float, float]) -> np.ndarray:
+    """Inverse of :func:`latlon_to_ne`: (n, 2) north, east (m) -> (n, 2) lat, lon (deg).
+    ValueError for an offset beyond the tangent plane's reach (:func:`on_earth`)."""
+    lat0, lon0 = _check_origin(origin)
+    p0, v, dh, a, b, c = _plane(ne, lat0)
     disc = b * b - 4.0 * a * c
     if np.any(disc < 0):
         raise ValueError("north/east offset too large for the tangent-plane projection")

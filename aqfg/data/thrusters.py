@@ -11,9 +11,10 @@ referenced to north: theta_e), so the body frame is then turned to put the missi
 velocity while driven forward (each interval weighted by its time and the size of its summed
 demand, whatever its sign: a slow boat drifts astern in the wind between legs, and a frame
 set by time alone turned such a log 180 deg): the vehicle is taken to travel forward on the
-whole when its thrusters push it. For each thruster ``i`` with a horizontal axis ``a_i``
-two partial correlations are taken, the other thrusters' demands held (linear least
-squares):
+whole when its thrusters push it (where that turns it more than 90 deg from the logged
+heading, a finding must hold in both frames: :func:`thruster_findings`). For each thruster
+``i`` with a horizontal axis ``a_i`` two partial correlations are taken, the other
+thrusters' demands held (linear least squares):
 
 - ``d_i`` with the speed along ``a_i`` (the speed follows the thrust);
 - ``d_i`` with the acceleration along ``a_i``, the drag ``v|v|`` along ``a_i`` held too
@@ -195,19 +196,32 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
     """The thrusters (and the summed thrust) whose demand correlates negatively with the
     motion it should cause, beyond chance at level ``alpha`` for the mission (module doc).
     Thrusters pointing more up or down than sideways are not tested (the fixes are
-    horizontal); a mission without two fixes inside its inputs gives none."""
+    horizontal); a mission without two fixes inside its inputs gives none.
+
+    The frame is turned so the mean motion while the thrusters push points forward (the
+    logged heading's offset is unknown: theta_e). Where that turns it more than 90 deg from
+    the logged heading, the data contradict either the heading or the vehicle's going
+    forward when pushed (a log of one manoeuvre astern); a finding is then reported only
+    where both frames show it."""
     a, b, v, acc = body_motion(m, correlation_time(m))
     if len(a) < 5:
         return []
-    # the logged heading's offset is unknown (theta_e): turn the frame so the mean motion
-    # while the thrusters push points forward (each interval weighted by its time and its
-    # summed demand's size, whatever its sign: a slow vehicle drifts astern in the wind
-    # between legs)
     dem = _mean_demand(m, a, b)
     dirs = np.asarray(m.thruster_dir, dtype=float)
+    # each interval weighted by its time and its summed demand's size, whatever its sign:
+    # a slow vehicle drifts astern in the wind between legs
     push = np.abs(dem @ dirs[:, 0]) * (b - a)
     mean = (v * (push if push.sum() > 0 else b - a)[:, None]).sum(axis=0)
-    v, acc = _turn(v, mean), _turn(acc, mean)
+    found = _findings(m, a, b, _turn(v, mean), _turn(acc, mean), dem, dirs, alpha)
+    if mean[0] < 0:
+        logged = {f.thruster for f in _findings(m, a, b, v, acc, dem, dirs, alpha)}
+        found = [f for f in found if f.thruster in logged]
+    return found
+
+
+def _findings(m: Mission, a: np.ndarray, b: np.ndarray, v: np.ndarray, acc: np.ndarray,
+              dem: np.ndarray, dirs: np.ndarray, alpha: float) -> list[ThrusterFinding]:
+    """The findings with body velocities ``v`` and accelerations ``acc`` in one frame."""
     mid = 0.5 * (a + b)
     dem_acc = _mean_demand(m, mid[:-1], mid[1:])          # between the velocities' middles
     v_acc = 0.5 * (v[1:] + v[:-1])

@@ -46,7 +46,6 @@ from aqfg.fg.basins import (
 )
 from aqfg.fg.batch_result import batch_result
 from aqfg.fg.common import (
-    FGSettings,
     check_missions,
     mission_model,
     outliers,
@@ -78,7 +77,14 @@ from aqfg.fg.graph_lm import (
     hessian_diagonal as hessian_diagonal,
 )
 from aqfg.fg.plausibility import Plausibility
-from aqfg.fg.starts import alternative_starts, given_start, high_sway, plausibility_verdicts
+from aqfg.fg.settings import FGSettings
+from aqfg.fg.starts import (
+    alternative_starts,
+    evaluable_values,
+    given_start,
+    high_sway,
+    plausibility_verdicts,
+)
 from aqfg.fg.user_factors import FactorSource
 from aqfg.model.vehicle import Model
 from aqfg.result import Result, Track
@@ -155,7 +161,7 @@ class BatchSmoother:
         self.progress(0.0, "building the graph")
         bg = self.build(missions)
         t_built = time.perf_counter()
-        sol, verdicts, basins = self._search_basins(bg, _first_solve(bg, s, self.progress))
+        sol, verdicts, basins = self._search_basins(bg, _first_solve(bg, s, self.progress, self.init))
         out, fs = sol.out, sol.fs
         slips = [v.slip_deg for v in verdicts if v.slip_deg is not None]
         held = None
@@ -393,13 +399,17 @@ class _Solve:
     q_measured: float | None = None
 
 
-def _first_solve(bg: BuiltGraph, s: FGSettings, progress) -> _Solve:
-    """LM from the graph's initial values, then the process noise its evidence chooses
-    (:attr:`FGSettings.batch.adapt_noise`) or measures (:attr:`FGSettings.batch.measure_noise`)."""
+def _first_solve(bg: BuiltGraph, s: FGSettings, progress, init: dict) -> _Solve:
+    """LM from the graph's initial values (or the first start where the model can be
+    evaluated: :func:`~aqfg.fg.starts.evaluable_values`), then the process noise its
+    evidence chooses (:attr:`FGSettings.batch.adapt_noise`) or measures
+    (:attr:`FGSettings.batch.measure_noise`)."""
     fs = FastSystem.build(bg, s) if s.solver.fast_lm else None
+    values = evaluable_values(bg, (lambda v: fs.evaluate(*fs.from_values(v))["cost"])
+                              if fs is not None else bg.graph.error, init)
     ordering = None if fs is not None else \
-        gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(bg.values))
-    out = levenberg_marquardt(bg, bg.values, ordering, s, progress, fs)
+        gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
+    out = levenberg_marquardt(bg, values, ordering, s, progress, fs)
     q_scale, q_tried = 1.0, dict[float, float]()
     # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
     # noise is the honest sigma there (docs/independent-vehicle.md)

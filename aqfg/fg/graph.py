@@ -18,7 +18,6 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.common import (
-    FGSettings,
     Measurements,
     default_estimate,
     first_knot_term,
@@ -28,6 +27,7 @@ from aqfg.fg.common import (
     mission_model,
 )
 from aqfg.fg.init import Start, candidate_starts, current_prior, start_states
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.user_factors import FactorSource, GraphKeys
 from aqfg.memo import remember
 from aqfg.model.params import N_DYN

@@ -60,7 +60,7 @@ class LMParams:
 
     @classmethod
     def of(cls, settings, max_iterations: int | None = None) -> LMParams:
-        """The parameters of :class:`aqfg.fg.common.FGSettings` ``settings``."""
+        """The parameters of :class:`aqfg.fg.settings.FGSettings` ``settings``."""
         return cls(settings.solver.max_iterations if max_iterations is None else max_iterations,
                    settings.solver.rel_tol, settings.solver.abs_tol)
 
@@ -97,6 +97,8 @@ def levenberg_marquardt(system: LMSystem[X], x: X, params: LMParams,
     err = system.cost(x)
     lam = params.lambda_initial
     out = LMResult(x, err, 0, 0, False, [], [(0, err, lam)])
+    if not np.isfinite(err):
+        return out                               # nothing to descend from: not converged
     for it in range(params.max_iterations):
         t_it = time.perf_counter()
         system.linearize(x)

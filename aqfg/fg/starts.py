@@ -133,6 +133,34 @@ def alternative_starts(bg: BuiltGraph, verdicts: list[Plausibility], init: dict,
                    start_values(bg, sts, True, init))
 
 
+def evaluable_values(bg: BuiltGraph, cost, init: dict) -> gtsam.Values:
+    """The graph's start values, or, where ``cost(values)`` is not finite there, the values
+    of the first of the other closed-form starts, in misfit order, where it is; the nominal
+    constants with the knot states from the fixes last. (A grid point's constants can
+    make the dynamics from the start's states diverge: a drag so stiff that the explicit
+    integration is unstable at the speeds of those states.)"""
+    if np.isfinite(cost(bg.values)):
+        return bg.values
+    if bg.starts and all(bg.starts):
+        for j in range(1, max(len(st) for st in bg.starts)):
+            vals = start_values(bg, [st[min(j, len(st) - 1)] for st in bg.starts], True, init)
+            if np.isfinite(cost(vals)):
+                return vals
+    vals = gtsam.Values(bg.values)
+    for part in bg.parts:
+        for k, x in zip(part.keys, initial_states(part.mission, part.knots)):
+            vals.update(k, x)
+    if "fixed" in bg.layout.names:
+        key = fc.node_key("fixed")
+        f = vals.atVector(key).copy()
+        nominal = bg.layout.initial("fixed")
+        for i, n in enumerate(bg.layout.names["fixed"]):
+            if n not in init:
+                f[i] = nominal[i]
+        vals.update(key, bg.layout.project("fixed", f))
+    return vals if np.isfinite(cost(vals)) else bg.values
+
+
 def turned_values(bg: BuiltGraph, turn: float) -> gtsam.Values:
     """The graph's start values with the heading offset of each mission that has no
     closed-form start turned by ``turn`` rad and its current at zero (the knot states

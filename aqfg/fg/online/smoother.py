@@ -36,7 +36,6 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.common import (
-    FGSettings,
     check_missions,
     default_estimate,
     initial_states,
@@ -57,6 +56,7 @@ from aqfg.fg.online.policy import HoldPolicy, Phase
 from aqfg.fg.online.report import ParamPriors, SigmaReport
 from aqfg.fg.online.tracks import p_segments, retrace, with_tail
 from aqfg.fg.online.views import StepSource
+from aqfg.fg.settings import FGSettings
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, OnlineEngine, ParamHistory, Result, Track
