@@ -177,7 +177,7 @@ def test_the_causal_track_runs_on_past_the_last_fix_with_the_model():
 def test_random_walk_online_follows_heading_drift():
     """A heading offset drifting at 0.03 rad/min: with the variable parameters as a random
     walk the online estimate keeps up; a constant node lags far behind, overconfident. The
-    default (the heading offset of the window's past walking, online_heading_walk) stays
+    default (the heading offset of the window's past walking, online.heading_walk) stays
     consistent."""
     rate = 5e-4
     m, tr = simulate("asv", seed=3, duration=600.0, effects={"heading_drift": rate})
@@ -202,7 +202,7 @@ def test_random_walk_online_follows_heading_drift():
 def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
     """A current changing by 0.15 m/s over the mission (the diagnosis's current_drift case):
     the online smoother's current (a Gauss-Markov process between the window and its past,
-    ``online_current_walk``, on by default) ends near the final current, within 3 sigma,
+    ``online.current_walk``, on by default) ends near the final current, within 3 sigma,
     and the causal track follows the fixes; held constant, the current ends between the
     start and end values with a sigma that claims otherwise."""
     from aqfg.sim.cases import simulate_case
@@ -230,7 +230,7 @@ def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
 def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(engine):
     """A USBL fix whose range/bearing innovation is beyond the chi-square(2) gate is left
     out (the EKF's rule); with the correct model and clean fixes none is; after
-    ``online_max_rejects`` in a row the next is taken whatever it says (an AUV with depth
+    ``online.max_rejects`` in a row the next is taken whatever it says (an AUV with depth
     readings, both engines)."""
     import dataclasses
     m, tr = simulate("auv", seed=4, duration=300.0, usbl=True, usbl_outlier_rate=0.0,

@@ -652,7 +652,7 @@ def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data
 def test_dense_fixes_start_the_batch_by_their_count():
     """With 1-s GNSS the held start (heading 30 deg off) dragged the causal track 5 m RMS
     off the fixes until the 20-s batch; the first batch now runs after
-    ``online_init_fixes`` fixes when they come sooner, and the track follows the fixes."""
+    ``online.init_fixes`` fixes when they come sooner, and the track follows the fixes."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
     m, truth = mission("otter-dev-calm-a", 1.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects,

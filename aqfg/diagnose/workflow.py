@@ -481,7 +481,7 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     prog = progress_fn(progress)
     missions = check_missions(missions)
     # the nominal process noise: a noise chosen to explain the fixes would hide the
-    # misfit the diagnosis is there to show (adapt_batch None would choose it on short data)
+    # misfit the diagnosis is there to show (batch.adapt_noise None would choose it on short data)
     settings = (settings or FGSettings()).with_(batch={"adapt_noise": False,
                                                           "adapt_track": False})
     effects = tuple(resolve(e) for e in effects)

@@ -419,7 +419,7 @@ def _first_solve(bg: BuiltGraph, s: FGSettings, progress, init: dict) -> _Solve:
     if (adapt or s.batch.measure_noise) and fs is not None and out.fast is not None:
         # how much process noise the model needs (aqfg.fg.noise): a model that is not
         # the vehicle's bends the parameters under the nominal noise; measured only
-        # (measure_noise), the solution stays the nominal one
+        # (batch.measure_noise), the solution stays the nominal one
         X0, th0 = fs.from_values(out.values)
         q_ev, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
         q_measured = q_ev

@@ -32,7 +32,7 @@ class WindowWalk:
         """The walking parameters' indices, variances per second and stationary variances."""
         s, layout = self.s, self.layout
         # random walk of the current and the heading offset (FGSettings.online.current_walk,
-        # online_heading_walk): variance per second of each estimated parameter that walks
+        # heading_walk): variance per second of each estimated parameter that walks
         cw = float(s.online.current_walk)
         hw = float(s.online.heading_walk)
         rate = {"s_x": cw, "s_y": cw, "theta_e": hw}

@@ -79,7 +79,7 @@ class HoldPolicy:
         or "rescue": one brought forward because the held model fails (``failing``), which
         keeps the schedule of checks.
 
-        The first batch: after online_init_after s, or online_init_fixes fixes if sooner,
+        The first batch: after online.init_after s, or online.init_fixes fixes if sooner,
         or at every fix from the 4th while the held model fails: its process noise adapted
         to the bound, its last two fixes beyond the USBL gate's quantile, or two of its
         last three beyond chi-square(2)'s 99 % one -- not their sum, which one USBL outlier
