@@ -174,7 +174,7 @@ def batch_times(repeat: int = 3, duration: float = 900.0, seed: int = 0,
         t0 = time.perf_counter()
         r = fit_fg([m], mode="batch", estimate=six, init=dict(OLD_PARAMS))
         fg.append(time.perf_counter() - t0)
-        iters.append(r.info.get("iterations", np.nan))
+        iters.append(np.nan if r.iterations is None else r.iterations)
     out = {"fg_batch": fg, "fg_iterations": iters, "duration": duration}
     if update_error:
         from aqfg.ekf.estimator import fit_update_error
@@ -212,7 +212,7 @@ def otter_batch_times(repeat: int = 3, name: str = OTTER_MISSION) -> dict:
         r = fit_fg([m], mode="batch")
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-        iters.append(r.info.get("iterations", np.nan))
+        iters.append(np.nan if r.iterations is None else r.iterations)
         dr.append(float((r.timings.get("dead_reckoning") or [0.0])[0]))
         err.append(float(np.degrees(abs(np.angle(np.exp(1j * (r.values["theta_e"] - th_true)))))))
     return {"name": name, "duration": float(m.t1 - m.t0), "wall": wall, "cpu": cpu,

@@ -21,7 +21,8 @@ import numpy as np
 from aqfg.data.geodesy import ne_to_latlon, on_earth
 from aqfg.data.mission import Mission
 from aqfg.outputs import OutputSet, inside, unique_safe_names, write_json
-from aqfg.result import RESULT_FILES, MissionResult, Result, Track, parameters_document
+from aqfg.parameters_doc import parameters_document
+from aqfg.result import RESULT_FILES, MissionResult, Result, Track
 
 TRACK_HEADER = "t,north,east,down,vn,ve,vd"
 

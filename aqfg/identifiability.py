@@ -3,7 +3,7 @@ determined" with no sigma and a reason, never a Hessian sigma around an arbitrar
 
 Two sources, for either estimator:
 
-* the estimator's own verdicts (``info["observability"]``: :mod:`aqfg.fg.observability`,
+* the estimator's own verdicts (``Result.observability``: :mod:`aqfg.fg.observability`,
   :mod:`aqfg.ekf.uncertainty`), e.g. no thrust command, no motion, one heading;
 * :func:`heading_against_accelerometer`: the fitted track's horizontal acceleration
   against the IMU's specific force turned into the ground frame with the fitted heading
@@ -102,23 +102,27 @@ def heading_against_accelerometer(mission, track, theta_e: float) -> HeadingChec
     return HeadingCheck(offset, float(abs(cross) / norm), int(good.sum()))
 
 
-def _verdict(info: dict, name: str) -> tuple[str | None, str]:
-    """(verdict, reason) of ``name`` in either estimator's ``info["observability"]``."""
-    v = (info.get("observability") or {}).get(name)
+def _verdict(result, name: str) -> tuple[str | None, str]:
+    """(verdict, reason) of ``name`` in either estimator's ``Result.observability``."""
+    v = (result.observability or {}).get(name)
     if isinstance(v, dict):
         return v.get("verdict"), str(v.get("reason") or "")
-    return v, str((info.get("sigma_notes") or {}).get(name) or "")
+    return v, str((result.sigma_notes or {}).get(name) or "")
 
 
-def _mark_not_determined(info: dict, name: str, reason: str) -> None:
-    obs = info.setdefault("observability", {})
-    if _verdict(info, name)[0] == NOT:
+def _mark_not_determined(result, name: str, reason: str) -> None:
+    if result.observability is None:
+        result.observability = {}
+    obs = result.observability
+    if _verdict(result, name)[0] == NOT:
         return                          # the estimator's own reason stands
     if isinstance(obs.get(name), dict):
         obs[name].update(verdict=NOT, reason=reason)
     else:
         obs[name] = NOT
-        info.setdefault("sigma_notes", {})[name] = reason
+        if result.sigma_notes is None:
+            result.sigma_notes = {}
+        result.sigma_notes[name] = reason
 
 
 def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> str | None:
@@ -151,7 +155,7 @@ def _mark(result, i: int, name: str, reason: str) -> None:
         e.setdefault("sigma_note", f"{NOT}: {reason}")
         if i > 0:
             return
-    _mark_not_determined(info, name, reason)
+    _mark_not_determined(result, name, reason)
 
 
 def _mission_excitation(result, new: list[str]) -> None:
@@ -207,20 +211,22 @@ def settle(result, missions=()) -> list[str]:
     mission's track (a disagreement makes ``theta_e`` not determined: in a joint fit that
     mission's, whose ``per_mission`` entry gets sigma NaN and a ``sigma_note``), a joint
     fit's per-mission parameters that a mission's own inputs cannot determine (likewise),
-    then a sigma of NaN (written ``null``) with the reason in ``info["sigma_notes"]`` for
+    then a sigma of NaN (written ``null``) with the reason in ``result.sigma_notes`` for
     every parameter whose verdict is "not determined". Returns the new warnings (also appended
-    to ``info["warnings"]``)."""
+    to ``result.warnings``)."""
     info = result.info
     new: list[str] = []
     if "theta_e" in result.estimated:
         _heading_checks(result, missions, new)
     _mission_excitation(result, new)
-    notes = info.setdefault("sigma_notes", {})
+    if result.sigma_notes is None:
+        result.sigma_notes = {}
+    notes = result.sigma_notes
     per = info.get("per_mission") or {}
     # the top level reports the first mission's per-mission values: its verdict is theirs
     first = [result.missions[0].name] if len(result.missions) > 1 else list(per)
     for n in result.estimated:
-        verdict, reason = _verdict(info, n)
+        verdict, reason = _verdict(result, n)
         if verdict != NOT:
             continue
         result.sigma[n] = float("nan")
@@ -235,5 +241,5 @@ def settle(result, missions=()) -> list[str]:
                 e["sigma"] = float("nan")
                 e.setdefault("sigma_note", f"{NOT}: {e['note']}" if e.get("note") else NOT)
     if new:
-        info.setdefault("warnings", []).extend(new)
+        result.warnings = [*result.warnings, *new]
     return new

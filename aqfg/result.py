@@ -1,5 +1,5 @@
-"""The one result type every estimator returns, as plain data, and the documents it is
-written as (its files: :mod:`aqfg.export`; format doc, "Outputs").
+"""The one result type every estimator returns, as plain data (the documents it is written
+as: :mod:`aqfg.parameters_doc`; its files: :mod:`aqfg.export`; format doc, "Outputs").
 
 Diagnosis, plots, the report and the benchmarks read a :class:`Result` and never care
 which estimator produced it.
@@ -173,6 +173,18 @@ class SigmaStructure:
 
 
 @dataclass(frozen=True)
+class SolveSummary:
+    """How an optimiser's solve ended: whether it met its convergence test, its cost (0.5 x
+    the whitened squared error at the solution; None: not reported), its iterations and
+    trial steps (None: not reported), and whether it stopped at its iteration limit."""
+    converged: bool
+    cost: float | None = None
+    iterations: int | None = None
+    trials: int | None = None
+    hit_iteration_limit: bool = False
+
+
+@dataclass(frozen=True)
 class BaseFit:
     """The model-as-given fit kept beside a fit whose effect step added an effect: its
     effects, values and sigmas, and each mission's estimates for a joint fit (None: one
@@ -260,11 +272,27 @@ class InfoView(Generic[T]):
 class Result:
     """What every estimator returns.
 
-    Facts only some estimators have are typed attributes below (``per_mission``,
-    ``histories``, ``converged``, ``iterations``, ``kernel``, ``settings``); they are kept
-    in ``info`` under the same keys, so code that reads or writes ``info`` keeps working.
+    Every estimator's: ``warnings`` (what a user must be told about the fit, in words;
+    logged as they arise, not written to its files), ``observability`` (each estimated
+    parameter's verdict: the factor graph's ``{name: {"verdict", "reason", ...}}``,
+    :func:`aqfg.fg.observability.verdicts`; the update-error method's ``{name: verdict}``
+    with the reasons in ``sigma_notes``; None: not reported) and ``sigma_notes`` (why a
+    parameter has no sigma, ``{name: reason}``: parameters.json's ``sigma_note``; None:
+    none given). How the optimiser's solve ended is ``solve`` (:class:`SolveSummary`: the
+    factor graph's batch and joint fit; the update-error batch's ``converged`` only), read
+    as ``converged``, ``iterations`` and ``cost``.
+
+    The process-noise factor a solve used is ``process_noise_scale`` (1: nominal; the
+    batch's and the online smoother's); the batch's also ``process_noise_measured`` (the
+    factor its evidence chose, also where the solve kept the nominal noise) and
+    ``process_noise_evidence`` (the log evidence per factor tried), and the factor each
+    mission's track was smoothed with, ``track_noise_scale`` (``{mission: factor}``,
+    :attr:`FGSettings.batch.adapt_track`; the evidence per mission for each
+    factor tried in ``track_noise_evidence``); None: not reported.
+
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
-    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked), its parameters'
+    hull could be, :mod:`aqfg.fg.plausibility`; None: not checked) and why per mission in
+    ``plausibility`` (``{mission: Plausibility.as_dict()}``), its parameters'
     ``covariance`` and, for a joint fit, ``observability_per_mission`` (``{mission:
     {parameter: reason}}``: what a mission's own inputs cannot determine,
     :func:`aqfg.fg.observability.mission_verdicts`), whether its data were
@@ -280,8 +308,8 @@ class Result:
     too short for the sandwich, the ``heading_profile``
     (:func:`aqfg.fg.basins.widen_by_profile`; the sigmas it widened, as they were, in
     ``sigma_before_profile``) and, where the reported sigmas cover more than the chosen
-    basin, each such sigma within that basin in ``sigma_unimodal``; its online smoother, the ``engine`` that
-    ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
+    basin, each such sigma within that basin in ``sigma_unimodal``; its online smoother,
+    the ``engine`` that ran its window and the ``sigma_inflation`` of its last re-initialisation. Its steps
     leave typed records: ``gnss_noise`` (the GNSS noise the fixes were weighted by,
     :mod:`aqfg.fg.gnss_noise`), ``structural_test`` (the structural test's ranking,
     :mod:`aqfg.fg.structure`), ``sigma_structure``, ``block_jackknife``, ``other_minimum``
@@ -290,6 +318,20 @@ class Result:
     fitted heading against its accelerometer's and ``identifiability_warnings`` what the
     data were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
     worker applied it).
+
+    ``info`` holds the rest, free-form: each mission's estimates as the estimator wrote
+    them (``per_mission``, with its notes per entry; read typed as :attr:`per_mission`),
+    ``histories``, ``kernel`` and ``settings`` (typed views below, kept there under the
+    same keys), the graph's size (``n_states``, ``n_factors``), a joint fit's ``rounds``,
+    ``recovered`` and ``solver``, the held-sway fit (``held_sway``,
+    ``alternative_held_sway``), the online smoother's record (``events``,
+    ``reinit_batches``, ``rejected_usbl``: parameters.json's ``online``; ``window``,
+    ``n_updates``, ``warmup_end``, ``predicted_at_fix``, ``update_median_s``), the
+    diagnosis's refit start (``start``, ``cost_other_start``) and the update-error
+    method's optimiser record (``evaluations``, ``E``, ``status``, ``message``,
+    ``preset``, ``metric``, ``optimiser``, ``bounds``, ``sigma_method``,
+    ``consistency``; online, its per-parameter ``converged`` and the paper's
+    ``nonconvergence``, §III-F).
     """
     method: str                        # "fg" or "update-error"
     mode: str                          # "batch" or "online"
@@ -324,6 +366,16 @@ class Result:
     dead_reckoning: DeadReckoning | None = None
     sigma_unimodal: dict[str, float] = field(default_factory=dict)
     sigma_before_profile: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    solve: SolveSummary | None = None
+    observability: dict[str, Any] | None = None
+    sigma_notes: dict[str, str] | None = None
+    plausibility: dict[str, dict] = field(default_factory=dict)
+    process_noise_scale: float | None = None
+    process_noise_measured: float | None = None
+    process_noise_evidence: dict[float, float] | None = None
+    track_noise_scale: dict[str, float] | None = None
+    track_noise_evidence: dict[float, list[float]] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -364,9 +416,21 @@ class Result:
     def histories(self, v: list[ParamHistory]) -> None:
         self.info["histories"] = list(v)
 
-    converged = InfoView(bool, "Whether the optimiser met its convergence test (None: not "
-                               "reported).")
-    iterations = InfoView(int, "Optimiser iterations (None: not reported).")
+    @property
+    def converged(self) -> bool | None:
+        """Whether the optimiser met its convergence test (None: not reported)."""
+        return None if self.solve is None else self.solve.converged
+
+    @property
+    def iterations(self) -> int | None:
+        """Optimiser iterations (None: not reported)."""
+        return None if self.solve is None else self.solve.iterations
+
+    @property
+    def cost(self) -> float:
+        """The solve's cost (:attr:`SolveSummary.cost`), NaN where none was reported."""
+        c = None if self.solve is None else self.solve.cost
+        return float("nan") if c is None else float(c)
     kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
                            'reported).')
     settings = InfoView(_as_stored, "The estimator's settings object (e.g. "
@@ -377,174 +441,5 @@ class Result:
                 for n in self.estimated}
 
 
-PARAMETERS_FORMAT = "aqfg-parameters/1"
 RESULT_FILES = ("parameters.json", "trajectory.csv", "inertial.csv", "causal.csv",
                 "trajectory.tum", "track.geojson")
-NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the estimator "
-            "computed none")
-
-
-# the online fit's record kept in parameters.json (format doc, "Outputs")
-ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl", "process_noise_scale")
-
-
-def effect_step_document(step: EffectStep) -> dict:
-    """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
-    fleet's share, from a result's ``effect_step``: the effect, whether it was added (and
-    why not), its robust p, the costs without and with it, and how far its refit moved the
-    heading offset and the current beside the move the test predicted."""
-    return {"effect": step.effect, "adopted": bool(step.adopted),
-            "p_value_robust": float(step.p_value_robust),
-            "cost_before": float(step.cost_before),
-            "cost_after": float(step.cost_after),
-            **({"moved": {n: float(v) for n, v in step.moved.items()}}
-               if step.moved is not None else {}),
-            **({"predicted_move": {n: float(v) for n, v in step.predicted_move.items()}}
-               if step.predicted_move is not None else {}),
-            **({"reason": step.reason} if step.reason else {}),
-            **({"untested": True} if step.untested else {})}
-
-
-def without_effect_document(base: BaseFit) -> dict:
-    """``auto_effect.without_effect`` of ``parameters.json`` (``aqfg fit``'s and the
-    fleet's): the heading offset and current of the model as given (``base``, the effect
-    step's), and each mission's under ``per_mission`` for a joint fit."""
-    out: dict = {n: {"value": float(base.values[n]),
-                     "sigma": float(base.sigma.get(n, float("nan")))}
-                 for n in ("theta_e", "s_x", "s_y") if n in base.values}
-    if base.per_mission:
-        out["per_mission"] = {
-            m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
-                for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
-            for m, d in base.per_mission.items()}
-    return out
-
-
-def parameters_document(result: Result, provenance: dict | None = None) -> dict:
-    """The content of ``parameters.json`` (format doc, "Outputs"): the estimated parameters
-    (value, 1-sigma, unit), the fixed parameters the model used (value, unit), per-mission
-    values when several missions were fitted, and the provenance. A missing 1-sigma is
-    ``null`` with a ``sigma_note``."""
-    model = result.model
-
-    def unit(n: str) -> str | None:
-        try:
-            return model.spec(n).unit if model is not None else None
-        except (KeyError, AttributeError):
-            return None
-
-    est: dict = {}
-    for n in result.estimated:
-        s = float(result.sigma.get(n, np.nan))
-        e = {"value": float(result.values[n]), "sigma": s if np.isfinite(s) else None,
-             "unit": unit(n)}
-        if not np.isfinite(s):
-            e["sigma_note"] = (result.info.get("sigma_notes") or {}).get(n) or NO_SIGMA
-        est[n] = e
-    names = (model.active_names if model is not None and hasattr(model, "active_names")
-             else tuple(result.values))
-    fixed = {n: {"value": float(result.values[n]), "unit": unit(n)}
-             for n in names if n not in result.estimated and n in result.values}
-    doc: dict = {"format": PARAMETERS_FORMAT, "method": result.method, "mode": result.mode,
-                 "parameters": est, "fixed": fixed}
-    per = result.info.get("per_mission")
-    if per and len(result.missions) > 1:
-        doc["per_mission"] = per
-    dr = result.dead_reckoning
-    if dr is not None and (dr.segments or dr.current):
-        doc["dead_reckoning"] = dead_reckoning_document(dr)
-    if result.gnss_noise is not None:
-        # the GNSS error's AR(1) sigma and correlation time the fixes were weighted by
-        # (aqfg.fg.gnss_noise)
-        doc["gnss_noise"] = result.gnss_noise.document()
-    tq = result.info.get("track_noise_scale")
-    if result.mode == "batch" and tq:
-        # the process-noise factor each mission's trajectory was smoothed with
-        # (FGSettings.batch.adapt_track; 1: the model explains the motion between fixes)
-        doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
-    jk = result.block_jackknife.document() if result.block_jackknife is not None else None
-    if result.mode == "batch" and jk:
-        # the spread of the fit without each time block's fixes, which the sigma includes
-        # where larger (data too short for the sandwich; aqfg.fg.jackknife)
-        doc["block_jackknife"] = jk
-    st = result.sigma_structure
-    if result.mode == "batch" and st is not None:
-        doc["sigma_structure"] = sigma_structure_document(st)
-    ae = result.effect_step
-    if result.mode == "batch" and ae is not None:
-        # the effect the structural test named, whether the fit added it (FGSettings.
-        # auto_effect), and the heading offset and current of the model as given
-        doc["auto_effect"] = {**effect_step_document(ae),
-                              "without_effect": without_effect_document(ae.base)}
-    if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
-        # what the online run did besides its updates: re-initialisations, re-seeds,
-        # recoveries, fixes left out (docs/independent-vehicle.md)
-        doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
-    if result.heading_check:
-        # the fitted heading against the accelerometer's (aqfg.identifiability)
-        doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,
-                                    "windows": c.windows}
-                                for m, c in result.heading_check.items()}
-    if provenance is not None:
-        doc["provenance"] = provenance
-    return doc
-
-
-def sigma_structure_document(st: SigmaStructure) -> dict:
-    """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
-    # the shift of the variable parameters the missing effect the data call for most
-    # would cause, included in their sigma (FGSettings.batch.structural_sigma)
-    out = {"effect": st.effect, "p_value_robust": float(st.p_value_robust),
-           "shift": {n: float(v) for n, v in st.shift.items()},
-           "proven": bool(st.proven),
-           "sigma_before": {n: float(v) for n, v in st.sigma_before.items()}}
-    if st.refit is not None:
-        # the fit again with the effect (aqfg.fg.fit.refit_structure)
-        out["refit"] = st.refit.document()
-    return out
-
-
-def dead_reckoning_document(dr: DeadReckoning) -> dict:
-    """The ``dead_reckoning`` entry of ``parameters.json``: whether the thrust/drag
-    constants were refined by prediction error (:mod:`aqfg.fg.dead_reckoning`), the
-    smoother's own values, and the prediction errors before and after (or why they were
-    not tried); each mission's current for dead reckoning (:mod:`aqfg.fg.dr_current`)."""
-    out: dict = {"horizon_s": dr.horizon_s, "applied": bool(dr.applied)}
-    if dr.segments:                   # the constants' refinement ran
-        out.update({
-            "smoother": {n: {"value": v, "sigma": _finite_or_none(dr.sigma_before.get(n))}
-                         for n, v in dr.before.items()},
-            "prediction_error_m": {"median_before": dr.median_abs_before_m,
-                                   "median_after": dr.median_abs_after_m},
-            "wald": _finite_or_none(dr.wald), "wald_threshold": dr.wald_threshold})
-    if not dr.applied:
-        if dr.segments:
-            out["refined"] = {n: {"value": v, "sigma": _finite_or_none(dr.sigma_after.get(n))}
-                              for n, v in dr.after.items()}
-        out["reason"] = dr.reason
-    if dr.current:
-        # each mission's current by prediction error (aqfg.fg.dr_current)
-        out["current"] = {c.mission: c.document() for c in dr.current}
-    return out
-
-
-def _finite_or_none(x) -> float | None:
-    return float(x) if x is not None and np.isfinite(x) else None
-
-
-def read_parameter_values(doc: dict) -> dict[str, float]:
-    """``{name: value}`` from a parameters.json document (estimated and fixed), in the
-    current layout or the earlier flat one ``{name: {"value": v, "sigma": s}}``."""
-    if "parameters" in doc and isinstance(doc["parameters"], dict):
-        entries = {**doc.get("fixed", {}), **doc["parameters"]}
-    else:
-        entries = {k: v for k, v in doc.items() if k not in ("provenance", "null_reasons")}
-    out = {}
-    for name, e in entries.items():
-        v = e.get("value") if isinstance(e, dict) else e
-        if v is None:
-            raise ValueError(f"entry {name!r} has no \"value\"")
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ValueError(f"value of {name!r} must be a number, got {v!r}")  # noqa: TRY004
-        out[name] = float(v)
-    return out

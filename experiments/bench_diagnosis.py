@@ -108,7 +108,7 @@ def bench_user(repeat: int, duration: float) -> list[dict]:
         ws, cs, its, loads = [], [], [], []
         for _ in range(n):
             r, w, c, ld = _timed(lambda mission=mission, eff=eff: fit_fg([mission], effects=eff))
-            ws.append(w); cs.append(c); its.append(r.info["iterations"]); loads.append(ld)
+            ws.append(w); cs.append(c); its.append(r.iterations); loads.append(ld)
         est = {k: round(float(v), 4) for k, v in r.values.items()
                if k.startswith(("wind_drag.", "user_wind.", "linear_drag.", "user_drag."))
                and k.split(".")[0] in [getattr(e, "name", e) for e in eff]}

@@ -118,7 +118,7 @@ def batch_times(repeat: int, gnss_every: float, duration: float = 900.0) -> dict
         r = fit_fg([m], estimate=SIX, init=dict(OLD_PARAMS))
         out["total"].append(time.perf_counter() - t0)
         out["build"].append(r.timings["build"][0])
-        out["iterations"].append(r.info["iterations"])
+        out["iterations"].append(r.iterations)
         out["iteration"].append(med(r.timings["iteration"]))
         out["covariance"].append(r.timings["covariance"][0])
     out["z"] = {n: (r.values[n] - tr.params[n]) / r.sigma[n] for n in SIX}

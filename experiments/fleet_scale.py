@@ -64,7 +64,7 @@ def sequential(paths_by_vehicle: dict) -> dict:
         r = BatchSmoother().run([load_mission(p) for p in paths])
         per[v] = time.perf_counter() - t
         out[v] = {"values": r.values, "sigma": r.sigma, "per_mission": r.info["per_mission"],
-                  "iterations": r.info["iterations"]}
+                  "iterations": r.iterations}
     return {"results": out, "seconds": time.perf_counter() - t0, "per_vehicle": per,
             "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
 
@@ -185,7 +185,7 @@ def report(args, names, seq, runs, grow, slope, t_sim) -> str:
                      f"{st['rounds']} / {st['tasks']}", f"{fe:.1e} / {me:.1e}"])
     st = r2["fr"].stats
     by = st["by_op"]                                  # op -> [tasks, seconds, reply bytes]
-    iters = {v: r2["fr"].results[v].info["iterations"] for v in names}
+    iters = {v: r2["fr"].results[v].iterations for v in names}
     seq_it = {v: seq["results"][v]["iterations"] for v in names}
     it_tasks = sum(by[o][0] for o in ("sys", "step") if o in by)
     t_iter = sum(by[o][1] for o in ("sys", "step") if o in by) / max(it_tasks, 1)

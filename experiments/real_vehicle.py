@@ -226,7 +226,7 @@ def batch_scores(method: str, m: Mission, sparse: dict, dense: dict, heading: bo
         said = copy.deepcopy(r8)
         settle(said, [m8])
         row["theta_note"] = ("" if np.isfinite(said.sigma["theta_e"])
-                             else said.info["sigma_notes"].get("theta_e", "not determined"))
+                             else said.sigma_notes.get("theta_e", "not determined"))
         ri, wi = fit(method, [with_gnss_every(rotated(m, INJECT), 8.0)], **sparse)
         row["inject"] = float(np.degrees(wrap(ri.values["theta_e"] - r8.values["theta_e"] + INJECT)))
         row["wall_batch"] += wi

@@ -56,7 +56,7 @@ def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111
         assert abs(e[n]) <= 3 * res.sigma[n], (n, e[n], res.sigma[n])
     # the record keeps the model-as-given estimates, and the warning says what was added
     assert ae.base.values["s_x"] == given.values["s_x"]
-    assert any(w.startswith("added the effect linear_drag") for w in res.info["warnings"])
+    assert any(w.startswith("added the effect linear_drag") for w in res.warnings)
 
 
 def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout111,
@@ -73,7 +73,7 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     given = dataclasses.replace(
         fitted, sigma={n: s * 1e-3 if n in VAR else s for n, s in fitted.sigma.items()},
         structural_test=st)
-    warnings = list(given.info.get("warnings", []))
+    warnings = list(given.warnings)
     calls = []
 
     def finish(res, bs, missions, model, effects):    # completes the solve it is given
@@ -85,9 +85,9 @@ def test_a_refit_that_moves_the_estimates_beyond_their_sigma_is_refused(heldout1
     assert ae is not None and not ae.adopted and "by more than 3 sigma" in ae.reason
     assert out.values == given.values and out.effects == given.effects == ()
     assert calls[-1] == ()                    # the model as given was finished
-    assert any("was not added" in w for w in out.info["warnings"])
+    assert any("was not added" in w for w in out.warnings)
     # the step returns its result: the fit it was given stays as it was
-    assert given.effect_step is None and given.info.get("warnings", []) == warnings
+    assert given.effect_step is None and given.warnings == warnings
 
 
 def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_comes_right():
@@ -144,7 +144,7 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     assert st is not None and st.effect == "ground_advance" and st.proven is False
     assert res.structural_test is not None and not res.structural_test.called_for
     assert any("suggest (do not prove) the effect ground_advance" in w
-               for w in res.info["warnings"])
+               for w in res.warnings)
     e = _errors(res, truth)
     before = st.sigma_before
     assert max(abs(e[n]) / before[n] for n in ("s_x", "s_y")) > 3.0
@@ -199,7 +199,7 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     """Two Otter missions fitted jointly: the effect is added for the vehicle, and
     parameters.json keeps each mission's heading offset and current of the model as given,
     whose sigma carries the structural shift as the fit's top-level sigma does."""
-    from aqfg.result import parameters_document
+    from aqfg.parameters_doc import parameters_document
     names = ("otter-example", "otter-dev-calm-b")
     ms = [with_gnss_every(load_mission(data_path(n)), 8.0) for n in names]
     res = fit_fg(ms)
@@ -263,7 +263,7 @@ def test_the_effect_that_explains_the_fixes_best_is_added(heldout111, monkeypatc
     assert out.effects == ("linear_drag",)
     e = _errors(out, truth)
     assert float(np.hypot(e["s_x"], e["s_y"])) < 0.02
-    assert any("explains the fixes best" in w for w in out.info["warnings"])
+    assert any("explains the fixes best" in w for w in out.warnings)
 
 
 def test_a_second_minimum_as_good_widens_the_sigma():
@@ -271,13 +271,14 @@ def test_a_second_minimum_as_good_widens_the_sigma():
     quadratic): where the other explains the fixes as well (cost within the ambiguity
     margin), each sigma is widened by the difference between them, top-level and per
     mission; a minimum clearly worse changes nothing."""
-    from aqfg.result import Result
+    from aqfg.result import Result, SolveSummary
     est = ("theta_e", "s_x", "k")
 
     def res(cost, th, sx, k):
         r = Result("fg", "batch", est, {"theta_e": th, "s_x": sx, "k": k},
                    {"theta_e": 0.003, "s_x": 0.005, "k": 0.06}, [])
-        r.info = {"cost": cost, "per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
+        r.solve = SolveSummary(True, cost)
+        r.info = {"per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
                                                       "s_x": {"value": sx, "sigma": 0.005}}}}
         return r
     given = res(1080.2, -1.1748, 0.0196, 1.388)
@@ -309,16 +310,18 @@ def test_a_start_that_ends_at_a_nan_cost_loses_to_the_other(heldout111, monkeypa
     cost (otter-dev-calm-a: a one-step sway drag of 101/s, NaN after one iteration); the
     other start's finite fit is the one judged, not the NaN one."""
     m, _truth, _res, given = heldout111
-    bad = dataclasses.replace(given, info={**given.info, "cost": float("nan")})
-    good = dataclasses.replace(given, info={**given.info, "cost": float(given.info["cost"]) - 100.0})
+    assert given.solve is not None
+    bad = dataclasses.replace(given, solve=dataclasses.replace(given.solve, cost=float("nan")))
+    good = dataclasses.replace(given, solve=dataclasses.replace(given.solve,
+                                                                cost=given.cost - 100.0))
     outs = iter([(bad, "bs-bad"), (good, "bs-good")])
     monkeypatch.setattr(fit_module, "_solve", lambda *a, **k: next(outs))
     pick = {"effect": "linear_drag", "p_value_robust": 1e-6,
             "estimate": {"linear_drag.c_x": 0.1, "linear_drag.c_yz": 101.0}}
     from aqfg.fg.effect_guard import variable_estimates
     base = variable_estimates(given)
-    out = fit_module._try_effect(pick, base, float(given.info["cost"]), [m], None, (), None,
+    out = fit_module._try_effect(pick, base, given.cost, [m], None, (), None,
                                  None, False)
     assert out.new is good and out.bs == "bs-good"
-    assert out.rec["cost_after"] == float(given.info["cost"]) - 100.0
+    assert out.rec["cost_after"] == given.cost - 100.0
     assert out.why == ""

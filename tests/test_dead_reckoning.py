@@ -13,7 +13,7 @@ from aqfg.data.io import load_mission, load_truth
 from aqfg.data.mission import between, with_gnss_every
 from aqfg.evaluate import dead_reckoning_error
 from aqfg.fg import BatchSmoother, FGSettings, fit_fg
-from aqfg.result import parameters_document, read_parameter_values
+from aqfg.parameters_doc import parameters_document, read_parameter_values
 from aqfg.sim.simulator import simulate
 
 CONSTANTS = ("k", "k_x", "k_yz")

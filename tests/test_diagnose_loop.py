@@ -24,7 +24,7 @@ from aqfg.data.mission import with_gnss_every
 from aqfg.diagnose.sequence import DiagnosisSequence, diagnose_sequence, save_sequence
 from aqfg.evaluate import rmse
 from aqfg.model.modelfile import read_model
-from aqfg.result import read_parameter_values
+from aqfg.parameters_doc import read_parameter_values
 from aqfg.sim.cases import simulate_case
 from aqfg.sim.simulator import simulate
 

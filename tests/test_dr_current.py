@@ -15,7 +15,7 @@ from aqfg.data.mission import between
 from aqfg.evaluate import inertial_rmse
 from aqfg.fg import fit_fg
 from aqfg.fg.dr_current import CURRENT, refine_current
-from aqfg.result import parameters_document
+from aqfg.parameters_doc import parameters_document
 from aqfg.sim.simulator import simulate
 
 TRUE_CURRENT = (0.15, -0.10)          # m/s north, east

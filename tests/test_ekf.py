@@ -327,21 +327,22 @@ def test_a_still_vehicle_gives_not_determined_not_nan():
     r = fit_update_error([m], mode="batch")
     assert all(np.isfinite(v) for v in r.sigma.values())
     assert set(r.sigma) == {"s_x", "s_y"}
-    obs = r.info["observability"]
+    obs = r.observability
     for n in ("theta_e", "k", "k_x", "k_yz"):
-        assert obs[n] == "not determined" and r.info["sigma_notes"][n]
+        assert obs[n] == "not determined" and r.sigma_notes[n]
     for n in ("s_x", "s_y"):
         assert obs[n] in ("determined", "weakly determined")
         assert abs(r.values[n]) < 3 * r.sigma[n]
-    assert isinstance(r.info["converged"], bool)
-    if not r.info["converged"]:
-        assert any("without converging" in w for w in r.info["warnings"])
-    json.dumps({k: r.info[k] for k in ("observability", "sigma_notes", "per_mission",
-                                       "warnings", "consistency", "converged")},
+    assert isinstance(r.converged, bool)
+    if not r.converged:
+        assert any("without converging" in w for w in r.warnings)
+    json.dumps({"warnings": r.warnings, "converged": r.converged,
+                "observability": r.observability, "sigma_notes": r.sigma_notes,
+                **{k: r.info[k] for k in ("per_mission", "consistency")}},
                allow_nan=False)
     on = fit_update_error([m], mode="online")
     assert all(np.isfinite(v) for v in on.sigma.values())
-    assert on.info["observability"]["theta_e"] == "not determined"
+    assert on.observability["theta_e"] == "not determined"
 
 
 def test_fit_update_error_returns_a_complete_result(tmp_path):

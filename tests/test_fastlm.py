@@ -183,8 +183,8 @@ def test_held_parameter_stays_when_another_meets_its_bound(missions):
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
     b = fit_fg(missions, settings=FGSettings().with_(solver={"fast_lm": False}))
-    assert a.info["iterations"] == b.info["iterations"]
-    assert a.info["cost"] == pytest.approx(b.info["cost"], rel=1e-9)
+    assert a.iterations == b.iterations
+    assert a.cost == pytest.approx(b.cost, rel=1e-9)
     for n in a.estimated:
         assert a.values[n] == pytest.approx(b.values[n], rel=1e-7, abs=1e-9), n
         assert a.sigma[n] == pytest.approx(b.sigma[n], rel=1e-6), n

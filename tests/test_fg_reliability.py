@@ -31,29 +31,29 @@ def test_one_bad_gnss_fix_is_down_weighted_and_reported(asv, clean_fit):
         assert abs(res.values[n] - clean_fit.values[n]) < 2 * clean_fit.sigma[n], n
     flagged = res.outliers[m.name]["gnss"]
     assert any(abs(o["t"] - m.gnss.t[i]) < 1e-6 for o in flagged)
-    assert any("outliers" in w for w in res.info["warnings"])
+    assert any("outliers" in w for w in res.warnings)
 
 
 def test_no_thrust_means_thrust_and_drag_not_determined(asv):
     m = copy.deepcopy(asv[0])
     m.motors.u[:] = 0.0
     res = fit_fg([m])
-    obs = res.info["observability"]
+    obs = res.observability
     for n in ("k", "k_x"):
         assert obs[n]["verdict"] == "not determined", (n, obs[n])
         assert "commanded" in obs[n]["reason"]
-    assert any("k is not determined" in w for w in res.info["warnings"])
+    assert any("k is not determined" in w for w in res.warnings)
 
 
 def test_a_rich_mission_determines_the_heading(clean_fit):
-    assert clean_fit.info["observability"]["theta_e"]["verdict"] == "determined"
+    assert clean_fit.observability["theta_e"]["verdict"] == "determined"
 
 
 def test_iteration_limit_is_flagged(asv):
     two = FGSettings().with_(solver={"max_iterations": 2, "rel_tol": 0.0, "abs_tol": 0.0})
     res = fit_fg([asv[0]], settings=two)
-    assert res.info["hit_iteration_limit"]
-    assert any("iteration limit" in w for w in res.info["warnings"])
+    assert res.solve is not None and res.solve.hit_iteration_limit
+    assert any("iteration limit" in w for w in res.warnings)
 
 
 def test_sandwich_raises_a_variance_only_where_the_ratio_is_significant():

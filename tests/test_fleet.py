@@ -254,7 +254,7 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         d, e = fr.results[v.name].dead_reckoning, ref.dead_reckoning
         assert d.applied == e.applied and d.blocks == e.blocks, (d, e)
         # the tracks under the noise each mission's evidence chooses, as fit_fg's
-        assert fr.results[v.name].info["track_noise_scale"] == ref.info["track_noise_scale"]
+        assert fr.results[v.name].track_noise_scale == ref.track_noise_scale
         for a, b in zip(fr.results[v.name].missions, ref.missions):
             assert np.max(np.abs(a.track.pos - b.track.pos)) < 0.05, a.name
     # outputs: per vehicle, per mission, fleet table with a test per vehicle, report

@@ -67,7 +67,7 @@ def test_batch_heading_and_current_on_the_otter(name, every):
     check_batch(res, truth)
     # the model is wrong here: the honest sigma is above the Hessian's, and it says so
     assert res.sigma["s_x"] > res.sigma_model["s_x"]
-    assert any("does not explain the fixes" in w for w in res.info["warnings"])
+    assert any("does not explain the fixes" in w for w in res.warnings)
     # a whole mission has the sandwich's blocks: the short data's jackknife does not run
     assert not res.too_short_for_sandwich and res.block_jackknife is None
 
@@ -88,8 +88,8 @@ def test_an_unexplained_fit_tries_the_effects_the_test_ranks_first():
     assert e < 0.5 * e_base
     check_batch(res, truth)
     assert any("no effect reached the structural test's level" in w
-               for w in res.info["warnings"])
-    from aqfg.result import effect_step_document
+               for w in res.warnings)
+    from aqfg.parameters_doc import effect_step_document
     assert effect_step_document(rec)["untested"] is True     # parameters.json says so
 
 
@@ -114,8 +114,8 @@ def test_the_batch_track_follows_the_fixes_where_the_model_is_not_the_vehicle():
     # step adds, the model explains more of the motion: 0.48 against 0.58 m)
     st = FGSettings().with_(batch={"dr_horizon": 0.0, "auto_effect": False})
     on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(batch={"adapt_track": False}))
-    assert on.info["track_noise_scale"][m.name] > 1.0
-    assert "track_noise_scale" not in off.info
+    assert on.track_noise_scale[m.name] > 1.0
+    assert off.track_noise_scale is None
     for n in on.estimated:
         assert on.values[n] == off.values[n] and on.sigma[n] == off.sigma[n], n
     e_on, e_off = track_rmse(on.missions[0].track, truth), track_rmse(off.missions[0].track, truth)
@@ -137,7 +137,7 @@ def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
     m = with_gnss_every(m, 8.0)
     st = FGSettings().with_(batch={"dr_horizon": 0.0})
     on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(batch={"adapt_track": False}))
-    assert on.info["track_noise_scale"] == {m.name: 1.0}
+    assert on.track_noise_scale == {m.name: 1.0}
     assert np.array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
 
 
@@ -168,7 +168,7 @@ def test_an_ambiguous_batch_reports_the_spread_of_its_basins():
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e > 3 * res.sigma_unimodal["theta_e"]        # one basin's sigma
     assert e <= 3 * res.sigma["theta_e"]
-    assert any("the sigmas cover the basins" in w for w in res.info["warnings"])
+    assert any("the sigmas cover the basins" in w for w in res.warnings)
 
 
 # a batch fit of otter-dev-calm-b at 8-s fixes (its effect added): another mission's constants
@@ -194,7 +194,7 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     assert e <= 3 * res.sigma["theta_e"]                               # ... honestly
     assert res.sigma_unimodal["theta_e"] == one.sigma["theta_e"]
     assert len(res.heading_profile.theta_e) == N_GRID       # the whole circle
-    assert any("hardly determine the heading offset" in w for w in res.info["warnings"])
+    assert any("hardly determine the heading offset" in w for w in res.warnings)
     for n in ("s_x", "s_y"):
         assert abs(res.values[n] - truth.params[n]) <= 3 * res.sigma[n]
 
@@ -312,7 +312,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     res = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
     basins = res.basins
     assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
-    cost = res.info["cost"]
+    cost = res.cost
     cheaper = [b for b in basins if b["cost"] < cost - 1.0]
     assert cheaper and all(b["rank"] > cost + 2.0 for b in cheaper), basins
     P = truth.params
@@ -480,9 +480,9 @@ def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
                             settings=FGSettings().with_(batch={"adapt_noise": True})).run([view])
     e_nom = abs(wrap(nominal.values["theta_e"] - th))
     e_ad = abs(wrap(adapted.values["theta_e"] - th))
-    assert nominal.info["process_noise_scale"] == 1.0
+    assert nominal.process_noise_scale == 1.0
     assert e_nom > 3 * nominal.sigma["theta_e"] and e_nom > 20 * DEG
-    assert adapted.info["process_noise_scale"] >= 16.0
+    assert adapted.process_noise_scale >= 16.0
     assert e_ad < 10 * DEG and e_ad <= 2 * adapted.sigma["theta_e"]
 
 
@@ -497,8 +497,8 @@ def test_evidence_keeps_the_nominal_noise_when_the_model_is_right():
     a = BatchSmoother(estimate=est, init=fixed,
                       settings=FGSettings().with_(batch={"adapt_noise": True})).run([m])
     b = BatchSmoother(estimate=est, init=fixed).run([m])
-    assert a.info["process_noise_scale"] == 1.0
-    assert set(a.info["process_noise_evidence"]) == {1.0, 4.0}
+    assert a.process_noise_scale == 1.0
+    assert set(a.process_noise_evidence) == {1.0, 4.0}
     assert abs(a.values["theta_e"] - b.values["theta_e"]) < 1e-9
 
 
@@ -620,8 +620,8 @@ def test_process_noise_adapts_only_when_the_model_is_wrong():
     true_fixed = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     good = FixedLagSmoother(init=true_fixed).run(m)
     bad = FixedLagSmoother(init={"k": 40.0, "k_x": 0.5, "k_yz": 0.3}).run(m)
-    assert good.info["process_noise_scale"] <= 2.0
-    assert bad.info["process_noise_scale"] >= 4.0 * good.info["process_noise_scale"]
+    assert good.process_noise_scale <= 2.0
+    assert bad.process_noise_scale >= 4.0 * good.process_noise_scale
 
 
 @pytest.mark.slow
@@ -673,13 +673,13 @@ def test_online_without_the_vehicles_constants_estimates_them_and_says_so(caplog
     with caplog.at_level("WARNING"):
         res = FixedLagSmoother().run(m)
     assert {"k", "k_x", "k_yz"} <= set(res.estimated)
-    assert any("estimates them too" in w for w in res.info["warnings"])
+    assert any("estimates them too" in w for w in res.warnings)
     assert "--params-from" in caplog.text
     held = FixedLagSmoother(estimate=("theta_e", "s_x", "s_y")).run(m)
     assert "k" not in held.estimated
-    assert any("another vehicle" in w for w in held.info["warnings"])
+    assert any("another vehicle" in w for w in held.warnings)
     given = FixedLagSmoother(init={"k": 9.0, "k_x": 1.8, "k_yz": 0.15}).run(m)
-    assert "k" not in given.estimated and not given.info["warnings"]
+    assert "k" not in given.estimated and not given.warnings
 
 
 def crop(m, a: float, b: float):
@@ -704,7 +704,7 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     res = fit_fg([m], settings=FGSettings().with_(graph={"prior_sigma": SLIDING}))
     assert "held_sway" in given.info and given.plausible
     assert "k_yz" not in given.estimated
-    assert any("slid sideways" in w for w in given.info["warnings"])
+    assert any("slid sideways" in w for w in given.warnings)
     assert given.structural_test is not None
     assert given.structural_test.called_for[0]["effect"] == "linear_drag"
     assert res.effect_step is not None and res.effect_step.adopted
@@ -728,7 +728,7 @@ def test_a_suspiciously_sliding_fit_names_the_non_sliding_answer():
     res = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False},
                                                   graph={"prior_sigma": SLIDING}))
     alt = res.info["alternative_held_sway"]
-    assert any("with the sway drag held high" in w for w in res.info["warnings"])
+    assert any("with the sway drag held high" in w for w in res.warnings)
     assert abs(wrap(alt["values"]["theta_e"] - truth.params["theta_e"])) < 3 * DEG
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) > 30 * DEG
     auto = fit_fg([m], settings=FGSettings().with_(graph={"prior_sigma": SLIDING}))
@@ -772,7 +772,7 @@ def test_data_too_short_for_the_sandwich_get_the_evidence_noise():
     auto = fit_fg([m])
     nominal = fit_fg([m], settings=FGSettings().with_(batch={"adapt_noise": False,
                                                              "structural_sigma": False}))
-    assert auto.info["process_noise_scale"] > 1.0 and nominal.info["process_noise_scale"] == 1.0
+    assert auto.process_noise_scale > 1.0 and nominal.process_noise_scale == 1.0
     assert abs(wrap(nominal.values["theta_e"] - th)) > 3 * nominal.sigma["theta_e"]
     assert abs(wrap(auto.values["theta_e"] - th)) <= 3 * auto.sigma["theta_e"]
 
@@ -892,7 +892,7 @@ def test_long_reinit_batch_keeps_the_nominal_noise_and_the_right_basin():
     assert all(not b["noise_by_evidence"] and b["process_noise_scale"] == 1.0 for b in long_)
     assert all(b["noise_by_evidence"] for b in short)
     assert all(b["process_noise_measured"] is not None for b in batches)
-    assert r.info["process_noise_scale"] >= batches[-1]["process_noise_measured"]
+    assert r.process_noise_scale >= batches[-1]["process_noise_measured"]
     i = list(r.history.names).index("theta_e")
     err = abs(wrap(r.history.values[-1, i] - truth.params["theta_e"]))
     assert err < 5 * DEG, np.degrees(err)
@@ -1218,7 +1218,7 @@ def test_data_too_short_for_the_closed_form_are_searched_over_the_heading():
     assert near, starts
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e <= 3 * res.sigma["theta_e"], (np.degrees(e), np.degrees(res.sigma["theta_e"]))
-    assert any("the heading offset is ambiguous" in w for w in res.info["warnings"])
+    assert any("the heading offset is ambiguous" in w for w in res.warnings)
 
 
 def test_a_held_heading_is_not_reseeded_from_three_fixes_with_a_usbl_fix():

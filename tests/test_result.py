@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from aqfg.result import Estimate, ParamHistory, Result
+from aqfg.result import Estimate, ParamHistory, Result, SolveSummary
 
 
 def _result(info=None, history=None) -> Result:
@@ -16,19 +16,27 @@ def _result(info=None, history=None) -> Result:
 def test_typed_attributes_read_info():
     r = _result({"per_mission": {"a": {"theta_e": {"value": 0.5, "sigma": 0.01}},
                                  "b": {"theta_e": {"value": 0.6}}},
-                 "converged": True, "iterations": 7, "kernel": "cpp"})
+                 "kernel": "cpp"})
     assert r.per_mission["a"]["theta_e"] == Estimate(0.5, 0.01)
     assert r.per_mission["b"]["theta_e"].value == 0.6 and math.isnan(r.per_mission["b"]["theta_e"].sigma)
-    assert (r.converged, r.iterations, r.kernel, r.settings) == (True, 7, "cpp", None)
+    assert (r.kernel, r.settings) == ("cpp", None)
+
+
+def test_the_solve_summary_is_read_as_converged_iterations_and_cost():
+    r = _result()
+    assert (r.converged, r.iterations, r.solve) == (None, None, None) and math.isnan(r.cost)
+    r.solve = SolveSummary(True, 12.5, 7, 9)
+    assert (r.converged, r.iterations, r.cost) == (True, 7, 12.5)
+    assert not r.solve.hit_iteration_limit and "iterations" not in r.info
+    r.solve = SolveSummary(False)                  # the update-error batch: converged only
+    assert r.converged is False and r.iterations is None and math.isnan(r.cost)
 
 
 def test_typed_attributes_write_info():
     r = _result()
     assert r.per_mission == {} and r.histories == [] and r.converged is None
     r.per_mission = {"m": {"s_x": Estimate(0.1, 0.02)}}
-    r.iterations = 3
     assert r.info["per_mission"] == {"m": {"s_x": {"value": 0.1, "sigma": 0.02}}}
-    assert r.info["iterations"] == 3
     h = ParamHistory(np.zeros(1), ("k",), np.ones((1, 1)), np.ones((1, 1)))
     assert _result(history=h).histories == [h]
     r.histories = [h, h]

@@ -46,8 +46,8 @@ def _assert_equal(a, b, tol=0.05):
 def test_apart_equals_joint_batch(missions, batch):
     res = solve_apart(BatchSmoother(), missions)
     # the same Levenberg-Marquardt iterates, not only the same optimum
-    assert res.info["iterations"] == batch.info["iterations"]
-    assert res.info["cost"] == pytest.approx(batch.info["cost"], rel=1e-9)
+    assert res.iterations == batch.iterations
+    assert res.cost == pytest.approx(batch.cost, rel=1e-9)
     _assert_equal(res, batch, tol=1e-3)
     for a, b in zip(res.missions, batch.missions):
         assert np.max(np.abs(a.track.pos - b.track.pos)) < 1e-4

@@ -80,7 +80,7 @@ def asv8():
 def test_batch_single_asv_mission(asv8):
     m, tr = asv8
     res = BatchSmoother().run([m])
-    assert res.estimated == SIX and res.info["converged"] and res.info["kernel"] == "cpp"
+    assert res.estimated == SIX and res.converged and res.info["kernel"] == "cpp"
     for n in SIX:
         assert abs(res.values[n] - tr.params[n]) < 3 * res.sigma[n], n
     mr = res.missions[0]

@@ -45,7 +45,7 @@ def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
         moved = abs(refit.values[n] - res.values[n])
         assert 0.5 * moved < st.shift[n] < 2.0 * moved, (n, st.shift[n], moved)
         assert rf.move[n] == pytest.approx(moved, rel=0.05, abs=1e-4), (n, rf, moved)
-    assert any("linear_drag" in w and "sigma includes" in w for w in res.info["warnings"])
+    assert any("linear_drag" in w and "sigma includes" in w for w in res.warnings)
 
 
 def test_a_heldout_otter_current_biased_by_the_missing_drag_is_within_its_sigma():
@@ -92,7 +92,7 @@ def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_m
     assert st is not None and st.effect == "reverse_thrust" and st.proven
     rf = st.refit
     assert rf is not None and rf.cost is not None and rf.move is not None
-    assert rf.cost < res.info["cost"]
+    assert rf.cost < res.cost
     assert rf.move["s_y"] > 5.0 * st.shift["s_y"], (rf, st.shift)
     first_order = float(np.hypot(st.sigma_before["s_y"], st.shift["s_y"]))
     assert abs(res.values["s_y"] - truth.params["s_y"]) > 3.0 * first_order
@@ -101,7 +101,7 @@ def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_m
         if n == "theta_e":
             err = float(np.angle(np.exp(1j * err)))
         assert abs(err) <= 3.0 * res.sigma[n], (n, err, res.sigma[n])
-    assert any("refitted with it" in w and "reverse_thrust" in w for w in res.info["warnings"])
+    assert any("refitted with it" in w and "reverse_thrust" in w for w in res.warnings)
 
 
 def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test_alone():

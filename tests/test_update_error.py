@@ -217,7 +217,7 @@ def test_usbl_outliers_move_the_estimates_by_less_than_their_sigma():
         fits[rate] = UpdateErrorEstimator(None, without_gnss(m, keep_first=True)).run_offline()
     clean, dirty = fits[0.0], fits[0.1]
     for n in VARIABLE + FIXED:
-        assert n in clean.sigma, (n, clean.info["sigma_notes"])
+        assert n in clean.sigma, (n, clean.sigma_notes)
         shift = (dirty.values[n] - clean.values[n]) / clean.sigma[n]
         assert abs(shift) < 1.5, (n, shift)
         z = (clean.values[n] - tr.params[n]) / clean.sigma[n]
@@ -291,8 +291,8 @@ def test_batch_sigma_survives_a_gate_flip_on_an_independent_vehicle():
         if n in r.sigma:
             assert np.isfinite(r.sigma[n]) and r.sigma[n] > 0
         else:
-            assert r.info["observability"][n] in ("not determined", "at bound")
-            assert r.info["sigma_notes"][n]
+            assert r.observability[n] in ("not determined", "at bound")
+            assert r.sigma_notes[n]
     assert {"theta_e", "s_x", "s_y"} <= set(r.sigma)
     d = np.degrees(np.angle(np.exp(1j * (r.values["theta_e"] - tr.params["theta_e"]))))
     assert abs(d) < 3.0 and abs(np.radians(d)) < 3 * r.sigma["theta_e"]

@@ -163,7 +163,7 @@ def _fit(method: str, effects: tuple[str, ...], thin, mission, truth, model, sta
            "track_rmse_m": inertial_rmse(res.model or model, mission, res.missions[0].p,
                                          truth),
            "values": {n: float(res.values[n]) for n in est}, "seconds": dt,
-           "warnings": [strip_advice(w) for w in res.info.get("warnings", [])]}
+           "warnings": [strip_advice(w) for w in res.warnings]}
     rows.append(row)
     return row
 

@@ -18,7 +18,8 @@ from pathlib import Path
 from aqfg.commands.common import UsageError, printable
 from aqfg.commands.options import parameter_value
 from aqfg.model.frames import wrap_angle
-from aqfg.result import Result, read_parameter_values
+from aqfg.parameters_doc import read_parameter_values
+from aqfg.result import Result
 
 PLOTS = ("map.png", "parameters.png")
 
@@ -316,7 +317,7 @@ def _print_summary(result) -> None:
                   f"reckoning over {dr.horizon_s:.0f} s, ({c.after[0]:.3f}, {c.after[1]:.3f}) m/s "
                   f"N/E: the smoother's ({c.before[0]:.3f}, {c.before[1]:.3f}) predicted the "
                   "left-out time blocks worse")
-    tq = {n: q for n, q in (result.info.get("track_noise_scale") or {}).items() if q > 1.0}
+    tq = {n: q for n, q in (result.track_noise_scale or {}).items() if q > 1.0}
     if tq and result.mode == "batch":
         print("trajectory smoothed with the process noise x"
               + ", x".join(f"{q:g} ({n})" for n, q in tq.items())

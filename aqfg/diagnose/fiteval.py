@@ -57,7 +57,7 @@ class FitEval:
     @property
     def cost(self) -> float:
         """Half the sum of squared whitened residuals (GTSAM's error) of the full fit."""
-        return float(self.full.info.get("cost", np.nan))
+        return self.full.cost
 
     @property
     def n_params(self) -> int:
@@ -141,7 +141,7 @@ def fit_all(missions: list[Mission], model, effects, label: str, *, settings: FG
     """The model (base + ``effects``) fitted to all fixes; ``start``: an evaluation of a
     related model (e.g. the base model when ``effects`` adds a candidate) whose fit starts
     this one (:mod:`aqfg.diagnose.refit`); ``log_warnings``: the fit's warnings to the log
-    too (always in its ``info["warnings"]``)."""
+    too (always in its ``warnings``)."""
     sm = WarmBatchSmoother(model, effects=effects, settings=settings,
                            start=start.full if start is not None else None)
     sm.log_warnings = log_warnings
@@ -225,7 +225,7 @@ def _work(part: str) -> FitEval:
     smoother's global start (``"cold"``), without its model object (a user effect's
     callable need not pickle)."""
     a = _JOBS["args"]
-    # (a candidate's refits keep their warnings in info["warnings"]: logged, the base
+    # (a candidate's refits keep their warnings in Result.warnings: logged, the base
     # fit's misfit warning came seven times, each advising `aqfg diagnose`, inside it)
     ev = fit_all(a["missions"], a["model"], a["effects"], a["label"],
                  settings=a["kw"]["settings"], start=a["start"] if part == "warm" else None,

@@ -60,8 +60,9 @@ Choices the paper leaves open (details in the modules named):
   update-error fit over blocks of fixes; online windows, the whitened-innovation
   Gauss-Newton sigma times the measured consistency. A parameter the data do not
   determine has no sigma (absent from ``Result.sigma``) and a reason in
-  ``info["sigma_notes"]``; ``info["observability"]``, ``info["converged"]`` and
-  ``info["warnings"]`` say what was (not) determined and whether the optimiser converged.
+  ``Result.sigma_notes``; ``Result.observability``, ``Result.converged`` (online: per
+  parameter, ``info["converged"]``) and ``Result.warnings`` say what was (not) determined
+  and whether the optimiser converged.
 * Speed: the window runs in C++ (``cpp_factors/ekf.cpp``), the numpy reference
   (:func:`aqfg.ekf.window.window_ref`) only checks it; measured in docs/update-error.md.
 """
@@ -91,7 +92,7 @@ from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, Track
+from aqfg.result import MissionResult, ParamHistory, Result, SolveSummary, Track
 
 log = logging.getLogger(__name__)
 
@@ -267,7 +268,10 @@ class UpdateErrorEstimator:
                 "optimiser": sol.optimiser, "per_mission": per_mission,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
         info.update(verdict_info(unc, names, first, sol, sigma))
-        for w in info["warnings"]:
+        warnings = info.pop("warnings")
+        solve = SolveSummary(info.pop("converged"))
+        obs, notes = info.pop("observability", None), info.pop("sigma_notes", None)
+        for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
             method="update-error", mode="batch",
@@ -275,7 +279,7 @@ class UpdateErrorEstimator:
             values=dict(zip(self.models[0].all_names, map(float, ps[0]))), sigma=sigma_d,
             missions=mres,
             timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
-            info=info,
+            info=info, warnings=warnings, solve=solve, observability=obs, sigma_notes=notes,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     # ------------------------------------------------------------------ online
@@ -337,13 +341,16 @@ class UpdateErrorEstimator:
                                          for n in estimate}
                                 for i, (m, r) in enumerate(zip(self.missions, mres))}}
         info.update(online_verdicts(unc0, names, nonconv[0], sigma))
-        for w in info["warnings"]:
+        warnings = info.pop("warnings")
+        obs, notes = info.pop("observability", None), info.pop("sigma_notes", None)
+        for w in warnings:
             log.warning("update-error: %s", w)
         return Result(
             method="update-error", mode="online", estimated=tuple(dict.fromkeys(estimate)),
             values=dict(zip(self.models[0].all_names, map(float, last))), sigma=sig0,
             missions=mres, timings={"evaluation": t_eval, "optimisation": t_opt},
-            history=hist0, info=info,
+            history=hist0, info=info, warnings=warnings, observability=obs,
+            sigma_notes=notes,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     def _online_one(self, mi: int, estimate, window_fixes, window, min_fixes, correct, every,
@@ -564,7 +571,7 @@ def fit_update_error(missions: list[Mission], *, mode: str = "batch",
     keyword arguments go to :meth:`UpdateErrorEstimator.run_offline` /
     :meth:`~UpdateErrorEstimator.run_online`. Result: sigma from
     :mod:`aqfg.ekf.uncertainty`; a parameter without sigma has a reason in
-    ``info["sigma_notes"]``.
+    ``Result.sigma_notes``.
     """
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")

@@ -156,15 +156,15 @@ def _heading_gap(a: dict, b: dict) -> float:
     return max(gaps, default=0.0)
 
 
-def batch_warnings(res: Result, n_it: int) -> list[str]:
+def batch_warnings(res: Result) -> list[str]:
     """What a user must be told about the batch fit ``res``, in words."""
-    info = res.info
     out = []
-    if info.get("hit_iteration_limit"):
-        out.append(f"the optimiser stopped at its iteration limit ({n_it}) before converging: "
-                   "the estimate may not be a minimum (raise max_iterations or check the data)")
+    if res.solve is not None and res.solve.hit_iteration_limit:
+        out.append(f"the optimiser stopped at its iteration limit ({res.iterations}) before "
+                   "converging: the estimate may not be a minimum (raise max_iterations or "
+                   "check the data)")
     if res.plausible is False:
-        for name, chk in info.get("plausibility", {}).items():
+        for name, chk in res.plausibility.items():
             for r in chk.get("reasons", []):
                 out.append(f"{name}: implausible solution: {r}; no start gave a plausible one "
                            "(the model may lack the vehicle's physics: run `aqfg diagnose`)")
@@ -184,7 +184,7 @@ def batch_warnings(res: Result, n_it: int) -> list[str]:
         out.append(f"these fixes hardly determine the heading offset: its evidence over the "
                    f"whole circle gives sigma {np.degrees(prof.sigma_theta_e):.0f} deg "
                    f"({np.degrees(before):.1f} deg within the chosen basin)")
-    for n, v in info.get("observability", {}).items():
+    for n, v in (res.observability or {}).items():
         if v["verdict"] == observability.NOT:
             out.append(f"{n} is not determined by this data: {v['reason']}")
     infl = res.sigma_inflation

@@ -87,7 +87,7 @@ from aqfg.fg.starts import (
 )
 from aqfg.fg.user_factors import FactorSource
 from aqfg.model.vehicle import Model
-from aqfg.result import Result, Track
+from aqfg.result import Result, SolveSummary, Track
 from aqfg.threads import blas_threads
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ class BatchSmoother:
         solved on GTSAM's linearisation (``solver.fast_lm`` off)."""
         self.factors = factors
         self.also_start = dict(also_start) if also_start else None
-        self.log_warnings = True           # info["warnings"] also to the log (WARNING)
+        self.log_warnings = True           # Result.warnings also to the log (WARNING)
         self.fast_solution: tuple | None = None   # (FastSystem, evaluation) of the last run
         self.short_solution: tuple | None = None  # the same where too short for the sandwich
         # the model-only re-trace of each mission in the result; False: left empty where
@@ -169,7 +169,7 @@ class BatchSmoother:
             held = self._hold_sway(missions, bg, basins, verdicts)
             if held is not None:
                 if self.log_warnings:
-                    for x in held.info["warnings"]:
+                    for x in held.warnings:
                         log.warning("fg: %s", x)
                 return held if self.defer_track else self.smooth_tracks(held)
         elif slips and max(slips) > plausibility.SUSPECT_SLIP:
@@ -185,18 +185,19 @@ class BatchSmoother:
         _ambiguity_info(res, basins, out.cost, len(bg.parts))
         if sol.short and s.batch.heading_profile and fs is not None and out.fast is not None:
             widen_by_profile(res, fs, bg, bg.nodes, out.values, s)
-        _verdict_info(res, bg, out, verdicts, s)
+        res.solve = SolveSummary(
+            out.converged, float(out.cost), out.iterations, out.trials,
+            hit_iteration_limit=(not out.converged) and out.iterations >= s.solver.max_iterations)
+        _verdict_info(res, bg, verdicts)
         if held is not None:
             _held_sway_info(res, held, out.cost, slips)
         if self.log_warnings:
-            for w in res.info["warnings"]:
+            for w in res.warnings:
                 log.warning("fg: %s", w)
-        res.info["process_noise_scale"] = sol.q_scale
-        res.info["process_noise_measured"] = sol.q_measured
-        res.info["process_noise_evidence"] = sol.q_tried
-        res.info.update({"iterations": out.iterations, "trials": out.trials,
-                         "converged": out.converged, "cost": float(out.cost),
-                         "n_states": sum(len(p.keys) for p in bg.parts),
+        res.process_noise_scale = sol.q_scale
+        res.process_noise_measured = sol.q_measured
+        res.process_noise_evidence = sol.q_tried
+        res.info.update({"n_states": sum(len(p.keys) for p in bg.parts),
                          "n_factors": int(bg.graph.size()),
                          "kernel": "cpp" if bg.parts[0].model.uses_cpp else "numpy",
                          "settings": s})
@@ -293,8 +294,8 @@ class BatchSmoother:
         t0 = time.perf_counter()
         X0, th = fs.from_values(out.values)
         q, Xq, tried = noise.track_noise_search(fs, X0, th, out.fast, s)
-        res.info["track_noise_scale"] = {p.mission.name: float(v) for p, v in zip(parts, q)}
-        res.info["track_noise_evidence"] = tried
+        res.track_noise_scale = {p.mission.name: float(v) for p, v in zip(parts, q)}
+        res.track_noise_evidence = tried
         if np.any(q != 1.0):
             fs.set_process_scale(1.0, per_part=q)
             X, *_ = levenberg_marquardt_fast(fs, None, s, start=(Xq, th), hold_params=True)
@@ -352,7 +353,7 @@ class BatchSmoother:
         w = (f"the free fit {why}: k_yz held at {st.fixed['k_yz']:.3g} "
              f"(sway drag {st.fixed['k_yz'] / st.fixed['k_x']:.0f}x the surge drag, where the "
              "slip is near zero whatever its value); run `aqfg diagnose` for the missing physics")
-        res.info["warnings"] = [w, *res.info.get("warnings", [])]
+        res.warnings = [w, *res.warnings]
         res.info["held_sway"] = {"k_yz": float(st.fixed["k_yz"]), "free_fit_basins": basins}
         return res
 
@@ -379,7 +380,7 @@ def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None,
     bs.log_warnings = False
     res = bs.run([mission])
     mr = res.missions[0]
-    return mr.track, mr.residuals, float(res.info.get("track_noise_scale", {}).get(mission.name, 1.0))
+    return mr.track, mr.residuals, float((res.track_noise_scale or {}).get(mission.name, 1.0))
 
 
 @dataclass
@@ -470,14 +471,14 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
 
 def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> None:
     """The model's sigmas, the honest ones' inflation over them and each parameter's
-    observability verdict into ``res.info``."""
+    observability verdict into ``res``."""
     layout, parts = bg.layout, bg.parts
     res.sigma_model = {n: float(v) for n, v in
                        sigma_by_name(layout, bg.nodes, cov_model).items()}
     res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
     prior_sigma = {n: s.graph.prior_sigma.get(n, s.graph.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
-    res.info["observability"] = observability.verdicts(
+    res.observability = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,
         res.sigma_model, prior_sigma)
     per = observability.mission_verdicts(parts[0].model, [p.mission for p in parts],
@@ -513,19 +514,18 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
             th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
 
 
-def _verdict_info(res: Result, bg: BuiltGraph, out: LMOutcome, verdicts: list[Plausibility],
-                  s: FGSettings) -> None:
-    """Plausibility, the iteration limit, the outliers and the warnings into ``res.info``."""
+def _verdict_info(res: Result, bg: BuiltGraph, verdicts: list[Plausibility]) -> None:
+    """Plausibility, the outliers and the warnings (the iteration limit's from
+    ``res.solve``) into ``res``."""
     res.plausible = all(v.plausible for v in verdicts)
-    res.info["plausibility"] = {bg.parts[i].mission.name: v.as_dict()
-                                for i, v in enumerate(verdicts)}
-    res.info["hit_iteration_limit"] = (not out.converged) and out.iterations >= s.solver.max_iterations
+    res.plausibility = {bg.parts[i].mission.name: v.as_dict()
+                        for i, v in enumerate(verdicts)}
     res.outliers = {mr.name: outliers(mr.residuals) for mr in res.missions}
     n_out = sum(len(v) for o in res.outliers.values() for v in o.values())
-    res.info["warnings"] = batch_warnings(res, out.iterations)
+    res.warnings = batch_warnings(res)
     if n_out:
-        res.info["warnings"].append(f"{n_out} fixes more than 5 sigma from the fit were "
-                                    "down-weighted as outliers (listed in Result.outliers)")
+        res.warnings.append(f"{n_out} fixes more than 5 sigma from the fit were "
+                            "down-weighted as outliers (listed in Result.outliers)")
 
 
 def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -> None:
@@ -534,17 +534,17 @@ def _held_sway_info(res: Result, held: Result, err: float, slips: list[float]) -
     th_f, th_h = res.values.get("theta_e"), held.values.get("theta_e")
     # named when it explains the fixes almost as well (cost within 50 %): on the
     # Otter crops +19-28 %; on aqfg's simulator, whose vehicle does slide, +200 %
-    c_h = float(held.info.get("cost", np.inf))
+    c_h = held.cost
     if th_f is not None and th_h is not None and c_h <= 1.5 * float(err) and \
             abs(float(np.angle(np.exp(1j * (th_f - th_h))))) > np.radians(10.0):
         res.info["alternative_held_sway"] = {
             "values": dict(held.values), "sigma": dict(held.sigma),
             "sigma_unimodal": {**held.sigma, **held.sigma_unimodal},
-            "cost": float(held.info.get("cost", np.nan)), "cost_free": float(err)}
-        res.info["warnings"].append(
+            "cost": held.cost, "cost_free": float(err)}
+        res.warnings.append(
             f"the fit slides {max(slips):.0f} deg off the thrust axis on held courses; "
             f"with the sway drag held high (no sliding) theta_e is "
             f"{np.degrees(th_h):.1f} deg instead of {np.degrees(th_f):.1f} deg "
-            f"(cost {held.info.get('cost', np.nan):.1f} against {err:.1f}): if this hull "
+            f"(cost {held.cost:.1f} against {err:.1f}): if this hull "
             f"does not slide, pass --init k_yz={held.values['k_yz']:.3g} and leave "
             "k_yz out of --estimate")

@@ -35,9 +35,9 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     records it. (On `heldout-103` at 8-s fixes the lower of two minima 4.4 apart in cost
     put the current 0.019 m/s off with sigma 0.005, the other 0.008 off:
     docs/independent-vehicle.md.)"""
-    cost = float(res.info.get("cost", np.nan))
+    cost = res.cost
     near = [o for o in others
-            if float(o.info.get("cost", np.inf)) - cost < ambiguity_margin(cost)]
+            if o.cost - cost < ambiguity_margin(cost)]
     if not near:
         return res
     # the largest difference over the near minima, top-level and per mission
@@ -65,7 +65,7 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     sigma = dict(res.sigma)
     for n, d in d_top.items():
         sigma[n] = float(np.hypot(sigma[n], d))
-    other = OtherMinimum([float(o.info.get("cost", np.nan)) for o in near], d_top, before)
+    other = OtherMinimum([o.cost for o in near], d_top, before)
     return dataclasses.replace(res, sigma=sigma, info=info, other_minimum=other)
 
 

@@ -101,10 +101,10 @@ def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,
         res = adopt_effect(res, bs, list(missions), model, effects, init, settings, progress)
     else:
         res = _finish(res, bs, missions, model, effects)
-    logged = 0 if auto else len(res.info.get("warnings", []))
+    logged = 0 if auto else len(res.warnings)
     if st.batch.block_jackknife and len(missions) == 1 and res.too_short_for_sandwich:
         res = _block_jackknife(res, missions[0], model, effects, init, st)
-    for w in res.info.get("warnings", [])[logged:]:
+    for w in res.warnings[logged:]:
         log.warning("fg: %s", w)
     return res
 
@@ -240,7 +240,7 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     called, picks = effect_candidates(res, bs, missions, effects)
     if not picks:
         return _finish(res, bs, missions, model, effects)
-    cost0 = float(res.info.get("cost", np.nan))
+    cost0 = res.cost
     tried = [_try_effect(pick, guard_estimates(res, pick["effect"]), cost0, missions, model,
                          effects, init, settings, progress, untested=called is None)
              for pick in picks]
@@ -254,9 +254,9 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     step = _effect_record(res, tried, best, called, cost0)
     name = step.effect
     if best.why:
-        refused = dataclasses.replace(res, effect_step=step, info={**res.info, "warnings": [
-            *res.info.get("warnings", []),
-            f"the effect {name} was not added ({best.why}): the model is fitted as given"]})
+        refused = dataclasses.replace(res, effect_step=step, info=dict(res.info), warnings=[
+            *res.warnings,
+            f"the effect {name} was not added ({best.why}): the model is fitted as given"])
         return _finish(refused, bs, missions, model, effects)
     assert best.new is not None and best.bs is not None
     new = refit_structure(best.new, missions, model, (*effects, name), None, init,
@@ -266,9 +266,9 @@ def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
     base_s = float(res.timings.get("batch", [0.0])[0])
     step = dataclasses.replace(step, seconds_base=base_s)
     timings = {**new.timings, "batch": [base_s + float(new.timings.get("batch", [0.0])[0])]}
-    info = {**new.info, "warnings": [_added_warning(res, step, best.moved, called),
-                                     *new.info.get("warnings", [])]}
-    return dataclasses.replace(new, timings=timings, info=info, effect_step=step)
+    warnings = [_added_warning(res, step, best.moved, called), *new.warnings]
+    return dataclasses.replace(new, timings=timings, info=dict(new.info), effect_step=step,
+                               warnings=warnings)
 
 
 def effect_candidates(res: Result, bs: BatchSmoother, missions: list[Mission],
@@ -413,7 +413,7 @@ def _try_effect(pick: dict, base: dict, cost0: float, missions: list[Mission], m
         rec["cost_after"] = float("nan")
         return EffectTry(rec, None, None, why, moved)
     new = widen_by_other_minimum(new, [o for o in solved if o is not new])
-    rec["cost_after"] = float(new.info.get("cost", np.nan))
+    rec["cost_after"] = new.cost
     moved, far = moves(base, variable_estimates(new))
     rec["moved"] = {label(m, n): d for (m, n), d in moved.items()}
     if new.plausible is False:
@@ -449,12 +449,12 @@ def refit_structure(res: Result, missions: list[Mission], model, effects: Sequen
     if tried is None:
         pick = next((c for c in ss.ranked if c["effect"] == name),
                     {"effect": name, "p_value_robust": ss.p_value_robust})
-        tried = _try_effect(pick, variable_estimates(res), float(res.info.get("cost", np.nan)),
+        tried = _try_effect(pick, variable_estimates(res), res.cost,
                             missions, model, effects, init, settings, progress, estimate)
     return cover_refit(res, tried.new, tried.why)
 
 
 def _finite_cost(res: Result) -> float:
     """The batch cost of ``res``, infinite where it is missing or not finite."""
-    c = float(res.info.get("cost", np.inf))
+    c = res.cost
     return c if math.isfinite(c) else math.inf

@@ -110,16 +110,17 @@ def widen(res: Result, mission: Mission, refit: Callable[[Mission], Result]) -> 
         if n in sigma and not s <= sigma[n]:
             before[n] = float(sigma[n])
             sigma[n] = s
-    info = dict(res.info)
+    warnings = list(res.warnings)
     moved = [n for n in ("theta_e", "s_x", "s_y") if n in before and sj[n] > 2.0 * before[n]]
     if moved:
         parts = [f"theta_e {math.degrees(before['theta_e']):.2g} -> "
                  f"{math.degrees(sj['theta_e']):.2g} deg" if n == "theta_e" else
                  f"{n} {before[n]:.2g} -> {sj[n]:.2g} m/s" for n in moved]
-        info["warnings"] = [*info.get("warnings", []), (
+        warnings = [*warnings, (
             f"these fixes are too short to test the model; leaving out each of "
             f"{len(edges) - 1} {edges[1] - edges[0]:.0f}-s blocks of fixes moved the fit by "
             f"more than its sigma claimed: sigma widened to the block jackknife's "
             f"({', '.join(parts)})")]
-    return dataclasses.replace(res, sigma=sigma, info=info, block_jackknife=BlockJackknife(
-        len(edges) - 1, float(edges[1] - edges[0]), sj, before))
+    return dataclasses.replace(res, sigma=sigma, info=dict(res.info), warnings=warnings,
+                               block_jackknife=BlockJackknife(
+                                   len(edges) - 1, float(edges[1] - edges[0]), sj, before))

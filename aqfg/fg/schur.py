@@ -43,7 +43,7 @@ from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
 from aqfg.fg.settings import FGSettings
-from aqfg.result import Covariance, Result
+from aqfg.result import Covariance, Result, SolveSummary
 
 Request = tuple[str, dict]
 
@@ -265,20 +265,19 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
     plaus: dict = {}
     for r in results:
         per_mission.update(r.info.get("per_mission", {}))
-        plaus.update(r.info.get("plausibility", {}))
+        plaus.update(r.plausibility)
     cov = dict(r0.covariance.blocks) if r0.covariance is not None else {}
     if names_f:
         cov["fixed"] = np.array(sol.cov_f, dtype=float)
     info: dict[str, Any] = {
-        "per_mission": per_mission, "iterations": sol.iterations,
-        "trials": sol.trials, "converged": sol.converged, "cost": sol.cost,
-        "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur",
-        "plausibility": plaus}
+        "per_mission": per_mission,
+        "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur"}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
                   covariance=Covariance(cov), sigma_model=sigma_model,
-                  plausible=all(r.plausible is not False for r in results),
+                  plausible=all(r.plausible is not False for r in results), plausibility=plaus,
+                  solve=SolveSummary(sol.converged, sol.cost, sol.iterations, sol.trials),
                   sigma_inflation=sigma_inflation(sigma, sigma_model))
 
 

@@ -250,7 +250,7 @@ class MissionProblem:
                            for C in [cov_model[k]]
                            for i, n in enumerate(self.layout.names[g])}
         verdicts = self.smoother.check_plausibility(self.bg, values)
-        res.info["plausibility"] = {self.name: verdicts[0].as_dict()}
+        res.plausibility = {self.name: verdicts[0].as_dict()}
         res.plausible = all(v.plausible for v in verdicts)
         return res
 

@@ -98,10 +98,10 @@ class BatchSettings:
         better estimates. The diagnosis sets False (a noise that explains the fixes would
         hide the misfit it shows).
     measure_noise: also measure that factor where it is not adopted
-        (``info["process_noise_measured"]``; default False). The online
+        (``Result.process_noise_measured``; default False). The online
         re-initialisations set True: it is the floor of their online noise.
     adapt_track: smooth the tracks once more, the parameters held, under the process-noise
-        factor the evidence chooses for the states (``info["track_noise_scale"]``; default
+        factor the evidence chooses for the states (``Result.track_noise_scale``; default
         True: the track follows the fixes where the model is not the vehicle). The
         diagnosis and the online re-initialisations set False: they need the nominal fit's
         states.

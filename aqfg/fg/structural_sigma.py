@@ -71,11 +71,10 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
         info["per_mission"] = per
     ss = SigmaStructure(sh.effect, sh.p_robust, dict(sh.shift), sh.proven,
                         [dict(c) for c in sh.ranked], before, w)
-    info["warnings"] = [*info.get("warnings", []), w]
     if log_warnings:
         log.warning("fg: %s", w)
     return dataclasses.replace(res, sigma=sigma, info=info, structural_test=sh,
-                               sigma_structure=ss)
+                               sigma_structure=ss, warnings=[*res.warnings, w])
 
 
 def structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],
@@ -112,10 +111,10 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
         return dataclasses.replace(res, sigma_structure=dataclasses.replace(ss, refit=check))
     if new is None:
         return checked(RefitCheck(ss.effect, failed=why or "no solution"))
-    cost = float(new.info.get("cost", np.nan))
+    cost = new.cost
     if new.plausible is False:
         return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
-    if not cost < float(res.info.get("cost", np.nan)):
+    if not cost < res.cost:
         return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))
     info = dict(res.info)
     first = ss.shift
@@ -138,10 +137,10 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
         info["per_mission"] = per
     w = structure_warning(ss.effect, True, float(ss.p_value_robust), first,
                           moved={n: move[n] for n in names})
-    info["warnings"] = [w if x == ss.warning else x for x in info.get("warnings", [])]
     checked_ss = dataclasses.replace(ss, refit=RefitCheck(ss.effect, cost, move, before),
                                      warning=w)
-    return dataclasses.replace(res, sigma=sigma, info=info, sigma_structure=checked_ss)
+    return dataclasses.replace(res, sigma=sigma, info=info, sigma_structure=checked_ss,
+                               warnings=[w if x == ss.warning else x for x in res.warnings])
 
 
 def _cover(sigma: float, move: float, first: float) -> float:

@@ -40,7 +40,7 @@ def choose(results: dict[str, Result], effects: Sequence) -> dict | None:
 
 
 def _cost(results: dict[str, Result]) -> float:
-    return sum(float(r.info.get("cost", math.nan)) for r in results.values())
+    return sum(r.cost for r in results.values())
 
 
 def judge(before: dict[str, Result], after: dict[str, Result], effect: str) -> str:
@@ -91,16 +91,16 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
             r = before[v] = cover_refit(r, after[v])
         step = EffectStep(effect=name, adopted=not why,
                           p_value_robust=pick["p_value_robust"].get(v, p),
-                          cost_before=float(r.info.get("cost", math.nan)), base=base_record(r),
-                          cost_after=(float(after[v].info.get("cost", math.nan))
+                          cost_before=r.cost, base=base_record(r),
+                          cost_after=(after[v].cost
                                       if after is not None else math.nan),
                           fixes_explained=r.sigma_structure is None, reason=why,
                           fleet=fleet)
         if why:
-            before[v] = dataclasses.replace(r, effect_step=step, info={
-                **r.info, "warnings": [*r.info.get("warnings", []), message]})
+            before[v] = dataclasses.replace(r, effect_step=step, info=dict(r.info),
+                                            warnings=[*r.warnings, message])
             continue
         assert after is not None
         a = after[v]
-        after[v] = dataclasses.replace(a, effect_step=step, info={
-            **a.info, "warnings": [message, *a.info.get("warnings", [])]})
+        after[v] = dataclasses.replace(a, effect_step=step, info=dict(a.info),
+                                       warnings=[message, *a.warnings])

@@ -15,14 +15,13 @@ import numpy as np
 from aqfg.distributions import chi2_sf, holm
 from aqfg.export import write_result
 from aqfg.fleet.solve import FleetResult, fixed_covariance
-from aqfg.result import (
+from aqfg.parameters_doc import (
     PARAMETERS_FORMAT,
-    EffectStep,
-    Result,
     dead_reckoning_document,
     effect_step_document,
     without_effect_document,
 )
+from aqfg.result import EffectStep, Result
 
 
 def fixed_names(res: Result) -> tuple[str, ...]:
@@ -83,9 +82,9 @@ def fleet_table(fr: FleetResult) -> dict:
                            for j, n in enumerate(names)},
             "test": {k: t[k] for k in ("chi2", "dof", "p_value", "p_holm", "differs")},
             "missions": dict(zip(dirs[v], r.info["per_mission"].values())),
-            "iterations": r.info.get("iterations"), "converged": r.info.get("converged"),
+            "iterations": r.iterations, "converged": r.converged,
             "plausible": r.plausible,
-            "cost": r.info.get("cost")}
+            "cost": r.solve.cost if r.solve is not None else None}
         if fr.diagnosis.get(v):
             table[v]["diagnosis"] = fr.diagnosis[v]
     out = {"format": "aqfg-fleet/1", "manifest": str(fr.manifest.path), "parameters": list(names),
@@ -145,7 +144,7 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
                 mdir.mkdir(parents=True, exist_ok=True)
                 notes = {n: e["sigma_note"] for n, e in local.items() if e.get("sigma_note")}
                 write_result(Result("fg", "batch", est, vals, sig, [mres],
-                                    info={"sigma_notes": notes} if notes else {}), mdir,
+                                    sigma_notes=notes or None), mdir,
                              provenance=provenance(method="fg", mode="fleet",
                                                    effects=res.effects, inputs=[m.path]))
                 written += [out / v.name / m.name / f for f in sorted(os.listdir(mdir))]

@@ -146,7 +146,7 @@ def finish_op(specs: list[MissionSpec], result, tracks: list | None = None):
         q = {}
         for mr, (track, residuals, scale) in zip(result.missions, tracks):
             mr.track, mr.residuals, q[mr.name] = track, residuals, scale
-        result.info["track_noise_scale"] = q
+        result.track_noise_scale = q
     # what the data cannot determine, as aqfg fit says it (the accelerometer check needs
     # the missions, which are here)
     result.identifiability_warnings = tuple(settle(result, missions))

@@ -22,6 +22,7 @@ from aqfg.model.params import difference
 
 if TYPE_CHECKING:
     from aqfg.fg.online.smoother import FixedLagSmoother, UpdateInfo
+    from aqfg.result import Result
 
 # a held heading offset this far from the closed-form one of the fixes so far is re-seeded
 # while the held model fails (reseed)
@@ -31,6 +32,11 @@ RESEED_RHO = (0.8, 1.25)     # a re-seed also rescales an estimated thrust gain 
 
 def _first_line(exc: BaseException) -> str:
     return (str(exc).strip().splitlines() or [""])[0]
+
+
+def _noise_scale(res: Result) -> float:
+    """The process-noise factor ``res``'s solve used (1 where not reported)."""
+    return 1.0 if res.process_noise_scale is None else float(res.process_noise_scale)
 
 
 def after_update(fl: FixedLagSmoother, t_fix: float, info: UpdateInfo) -> UpdateInfo:
@@ -228,14 +234,14 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
     gap = abs(float(np.angle(np.exp(1j * (th_b - p[fl.model.index("theta_e")])))))
     sb = float(ref_s.get("theta_e", np.nan))
     tol = _restart_tolerance(pol.held, sb, bool(alt), slip)
-    q_meas = bres.info.get("process_noise_measured")
+    q_meas = bres.process_noise_measured
     pol.reinit_batches.append({
         "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
         "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
-        "process_noise_scale": float(bres.info.get("process_noise_scale", 1.0)),
+        "process_noise_scale": _noise_scale(bres),
         "process_noise_measured": None if q_meas is None else float(q_meas),
-        "noise_by_evidence": bool(bres.info.get("process_noise_evidence")),
-        "cost": float(bres.info.get("cost", np.nan)), "slip_deg": float(slip),
+        "noise_by_evidence": bool(bres.process_noise_evidence),
+        "cost": bres.cost, "slip_deg": float(slip),
         "gap": float(gap), "tolerance": float(tol),
         "restarted": bool(force or gap >= tol),
         "theta_e_determined": not undetermined,
@@ -308,11 +314,11 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
         # mission); replayed with such values held, every prediction diverged
         _batch_not_used(fl, t_fix, {
             "event": "batch re-initialisation implausible: not used",
-            "reasons": [r for v in bres.info.get("plausibility", {}).values()
+            "reasons": [r for v in bres.plausibility.values()
                         for r in v.get("reasons", [])]})
         return None
     if fl.policy.held and not fl.constants_given \
-            and float(bres.info.get("process_noise_scale", 1.0)) >= fl.settings.graph.process_scale_max:
+            and _noise_scale(bres) >= fl.settings.graph.process_scale_max:
         # the evidence put the process noise at its bound: the model explains none of
         # the fixes so far, and its free constants and heading are whatever the noise
         # leaves (12 s of heldout-42, all six free: a top speed 4x the hull's, theta_e
@@ -336,8 +342,8 @@ def _take_batch_noise_and_sigma(fl: FixedLagSmoother, bres) -> dict[str, float]:
     by which the online sigma is reported from here (within the chosen basin; the spread
     of the basins that fit as well is added to the reported sigma until the next batch,
     the solve itself stays in one basin). Returns the batch's unimodal sigmas."""
-    q_meas = bres.info.get("process_noise_measured")
-    q_floor = float(q_meas if q_meas is not None else bres.info.get("process_noise_scale", 1.0))
+    q_meas = bres.process_noise_measured
+    q_floor = float(q_meas if q_meas is not None else _noise_scale(bres))
     rep = fl.report
     uni = {**bres.sigma, **bres.sigma_unimodal}
     rep.ambiguity = {n: max(float(bres.sigma[n]) ** 2 - float(v) ** 2, 0.0)
@@ -374,8 +380,8 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
     17 m off for 150 s (docs/independent-vehicle.md)."""
     from aqfg.fg.batch import as_good_a_basin
     slip = max((v.get("slip_deg") or 0.0
-                for v in bres.info.get("plausibility", {}).values()), default=0.0)
-    undetermined = bres.info.get("observability", {}).get(
+                for v in bres.plausibility.values()), default=0.0)
+    undetermined = (bres.observability or {}).get(
         "theta_e", {}).get("verdict") == observability.NOT
     alt = bres.info.get("alternative_held_sway") \
         if slip > plausibility.SUSPECT_SLIP and not undetermined else None
@@ -385,7 +391,7 @@ def _reference(fl: FixedLagSmoother, bres, uni: dict, own: dict | None):
                  None)
     own_ref = bool(own is not None and own_b is not None and own_b["plausible"]
                    and not alt and as_good_a_basin(
-                       own_b, float(bres.info.get("cost", np.inf)),
+                       own_b, bres.cost if bres.solve is not None else np.inf,
                        {"theta_e": dict.fromkeys(own_b["theta_e"], bres.values["theta_e"])}))
     if own_ref:
         assert own_b is not None
@@ -447,9 +453,9 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
     return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
             "sigma_theta_e": float(res.sigma.get("theta_e", np.nan)),
             "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},
-            "theta_e_determined": res.info.get("observability", {}).get(
+            "theta_e_determined": (res.observability or {}).get(
                 "theta_e", {}).get("verdict") != observability.NOT,
-            "free": list(free), "cost": float(res.info.get("cost", np.nan))}
+            "free": list(free), "cost": res.cost}
 
 
 def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: dict) -> None:

@@ -247,7 +247,7 @@ class FixedLagSmoother:
 
     @property
     def q_scale(self) -> float:
-        """The process-noise variance factor in use (adaptive; ``info["process_noise_scale"]``)."""
+        """The process-noise variance factor in use (adaptive; ``Result.process_noise_scale``)."""
         return self.noise.q_scale
 
     @property
@@ -479,7 +479,8 @@ class FixedLagSmoother:
         return Result(method="fg", mode="online", estimated=lay.estimated,
                       values=dict(zip(self.model.all_names, map(float, p))), sigma=sigma,
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
-                      history=hist, info=self._info(),
+                      history=hist, info=self._info(), warnings=list(self.warnings),
+                      process_noise_scale=float(self.noise.q_scale),
                       effects=tuple(e.name for e in self.model.effects), model=self.model,
                       engine=OnlineEngine(self.engine, self.engine_note),
                       sigma_inflation=dict(self.report.inflation))
@@ -492,8 +493,6 @@ class FixedLagSmoother:
                 "predicted_at_fix": (np.array(self.pred_t), np.array(self.pred_x).reshape(-1, 6)),
                 "update_median_s": float(np.median(ups)) if ups else float("nan"),
                 "events": list(self.events),
-                "warnings": list(self.warnings),
-                "process_noise_scale": float(self.noise.q_scale),
                 "rejected_usbl": sorted(t for t, out in self.gate.rejected.items() if out),
                 "reinit_batches": list(self.policy.reinit_batches),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
