@@ -32,7 +32,7 @@ it, :mod:`aqfg.fg.fastlag`); the GTSAM engine is timed beside it on the same mis
 The factor graph's per-update time includes the parameter marginal covariances; the
 update-error optimisation time excludes its Gauss-Newton sigma (computed after). Fixed-lag
 updates during the warm-up (window grown to everything since the start until the
-parameters have converged, :class:`aqfg.fg.common.FGSettings`) are reported apart:
+parameters have converged, ``FGSettings.online.warmup_tol``) are reported apart:
 the 24 s-window figure is the median after the warm-up.
 
 ``run(repeat)`` returns the figures as a dict; ``report(figs)`` formats them as markdown.
@@ -134,7 +134,7 @@ def online_times(sc: Scenario, repeat: int = 3, seed: int = 0, compare_gtsam: bo
     for _ in range(repeat):
         if compare_gtsam:
             rg = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s,
-                                  settings=FGSettings(online_engine="gtsam")).run(m)
+                                  settings=FGSettings().with_(online={"engine": "gtsam"})).run(m)
             g_all += list(rg.timings["update"][1:])
             g_total += list(rg.timings["update_total"][1:])
         r = FixedLagSmoother(None, estimate=VARIABLE, init=init, window=sc.window_s).run(m)

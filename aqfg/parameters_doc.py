@@ -92,7 +92,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     tq = result.track_noise_scale
     if result.mode == "batch" and tq:
         # the process-noise factor each mission's trajectory was smoothed with
-        # (FGSettings.adapt_track; 1: the model explains the motion between fixes)
+        # (FGSettings.batch.adapt_track; 1: the model explains the motion between fixes)
         doc["track"] = {"process_noise_scale": {n: float(q) for n, q in tq.items()}}
     jk = result.block_jackknife.document() if result.block_jackknife is not None else None
     if result.mode == "batch" and jk:
@@ -127,7 +127,7 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
 def sigma_structure_document(st: SigmaStructure) -> dict:
     """``parameters.json``'s ``sigma_structure``: the structural part of the batch's sigma."""
     # the shift of the variable parameters the missing effect the data call for most
-    # would cause, included in their sigma (FGSettings.structural_sigma)
+    # would cause, included in their sigma (FGSettings.batch.structural_sigma)
     out = {"effect": st.effect, "p_value_robust": float(st.p_value_robust),
            "shift": {n: float(v) for n, v in st.shift.items()},
            "proven": bool(st.proven),

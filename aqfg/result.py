@@ -156,7 +156,7 @@ class RefitCheck:
 
 @dataclass(frozen=True)
 class SigmaStructure:
-    """The structural part of a batch fit's sigma (``FGSettings.structural_sigma``,
+    """The structural part of a batch fit's sigma (``FGSettings.batch.structural_sigma``,
     :mod:`aqfg.fg.structural_sigma`): the effect the data call for most (or, not
     ``proven``, suggest), its robust score-test p, the shift of each variable parameter it
     would cause (model units), the test's ranking (as ``StructuralShift.ranked``), the
@@ -208,7 +208,7 @@ class FleetEffect:
 
 @dataclass(frozen=True)
 class EffectStep:
-    """The effect step of a batch fit (``FGSettings.auto_effect``:
+    """The effect step of a batch fit (``FGSettings.batch.auto_effect``:
     :func:`aqfg.fg.fit.adopt_effect`, the fleet's :mod:`aqfg.fleet.effect`): the effect
     tried, whether it was added (else ``reason``), its robust score-test p, the costs
     without and with it, whether the model as given explained the fixes, the model-as-given
@@ -287,7 +287,7 @@ class Result:
     factor its evidence chose, also where the solve kept the nominal noise) and
     ``process_noise_evidence`` (the log evidence per factor tried), and the factor each
     mission's track was smoothed with, ``track_noise_scale`` (``{mission: factor}``,
-    :attr:`aqfg.fg.common.FGSettings.adapt_track`; the evidence per mission for each
+    :attr:`FGSettings.batch.adapt_track`; the evidence per mission for each
     factor tried in ``track_noise_evidence``); None: not reported.
 
     The factor graph's batch leaves whether its solution is ``plausible`` (a vehicle some
@@ -434,7 +434,7 @@ class Result:
     kernel = InfoView(str, 'Which kernel integrated the model: "cpp" or "numpy" (None: not '
                            'reported).')
     settings = InfoView(_as_stored, "The estimator's settings object (e.g. "
-                                    "``aqfg.fg.common.FGSettings``).")
+                                    "``aqfg.fg.FGSettings``).")
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(self.values[n]), "sigma": float(self.sigma.get(n, np.nan))}

@@ -1,5 +1,5 @@
-"""The batch fit's effect step (FGSettings.auto_effect): the default fit against the model as
-given (``auto_effect=False``) on missions with truth, at GNSS every 1, 4 and 8 s.
+"""The batch fit's effect step (FGSettings.batch.auto_effect): the default fit against the model as
+given (``batch.auto_effect = False``) on missions with truth, at GNSS every 1, 4 and 8 s.
 
 Per run: the effect added (or none), theta_e error (deg; against the mission mean of a
 drifting offset), current error (m/s), max abs(error)/sigma of theta_e and the current, batch
@@ -51,7 +51,7 @@ def fits(m, params: dict, t_mean: float) -> dict:
     t0 = time.perf_counter()
     r = fit_fg([m])
     t1 = time.perf_counter()
-    g = fit_fg([m], settings=FGSettings(auto_effect=False))
+    g = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
     t2 = time.perf_counter()
     ae = r.effect_step
     return {"added": ae.effect if ae is not None and ae.adopted else None,
@@ -127,7 +127,7 @@ def main() -> None:
         fn, head = one_mission, f"## {root.name}/: GNSS every 1, 4, 8 s"
     with ProcessPoolExecutor(a.jobs) as ex:
         rows = list(ex.map(fn, tasks))
-    text = (f"{C.stamp()}\n\n# The batch fit's effect step (`FGSettings.auto_effect`)\n\n"
+    text = (f"{C.stamp()}\n\n# The batch fit's effect step (`FGSettings.batch.auto_effect`)\n\n"
             f"{time.perf_counter() - t0:.0f} s wall on a shared 2-core machine.\n\n"
             + table(rows, head))
     a.out.parent.mkdir(exist_ok=True)

@@ -1,5 +1,5 @@
 """The online causal track's first minute, paper's constants: the factor graph with and
-without its kinematic floor while the parameters are held (``FGSettings.online_kinematic_q``,
+without its kinematic floor while the parameters are held (``FGSettings.online.kinematic_q``,
 :mod:`aqfg.fg.kinematic`) against the update-error method.
 
 For every mission with truth under ``--data`` (default: the Otter missions in tests/data)
@@ -53,7 +53,7 @@ def one(args) -> dict:
     out: dict = {"mission": path.name, "every": every}
     runs = {"fg": lambda: fit_fg([m], mode="online"),
             "fg, no floor": lambda: fit_fg([m], mode="online",
-                                           settings=FGSettings(online_kinematic_q=0.0)),
+                                           settings=FGSettings().with_(online={"kinematic_q": 0.0})),
             "update-error": lambda: fit_update_error([m], mode="online")}
     for k, f in runs.items():
         mr = f().missions[0]
@@ -101,7 +101,7 @@ def main() -> None:
     lines = [C.stamp(), "", f"# The online causal track's first minute, paper's constants ({where})", "",
              f"{len(rows)} runs, {wall:.0f} s wall. Causal RMSE (m) over "
              f"the first {SPLIT:.0f} s / after it / whole run; 'no floor': "
-             "`online_kinematic_q = 0` (the model's prediction while the parameters are "
+             "`FGSettings.online.kinematic_q = 0` (the model's prediction while the parameters are "
              "held).", "",
              "| mission | GNSS every | " + " | ".join(kinds) + " |",
              "| --- | --- | " + " | ".join("---" for _ in kinds) + " |"]

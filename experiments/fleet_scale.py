@@ -7,7 +7,7 @@ a temporary directory first, then fitted:
 1. sequentially in one process, per vehicle one ``BatchSmoother.run`` (the joint solve
    alone) and one ``fit_fg`` (the same steps as the fleet's: structural sigma, effect
    step, tracks): wall times and peak memory (a child process);
-2. with ``fit_fleet`` (its dead-reckoning refinement off, ``FGSettings.dr_horizon = 0``,
+2. with ``fit_fleet`` (its dead-reckoning refinement off, ``FGSettings.batch.dr_horizon = 0``,
    as the sequential fits) on a ``LocalCluster`` of each ``--workers`` count up to the
    machine's cores: wall time, peak memory per worker, rounds, tasks, compute seconds per
    task (Dask's task stream) and bytes sent back;
@@ -172,7 +172,7 @@ def sequential(paths_by_vehicle: dict) -> dict:
     from aqfg.data.io import load_mission
     from aqfg.fg import fit_fg
     from aqfg.fg.batch import BatchSmoother
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     out, per = {}, {}
     t_batch = t_fit = 0.0
     for v, paths in paths_by_vehicle.items():
@@ -183,7 +183,7 @@ def sequential(paths_by_vehicle: dict) -> dict:
         out[v] = {"values": r.values, "sigma": r.sigma, "per_mission": r.info["per_mission"],
                   "iterations": r.iterations}
         t = time.perf_counter()
-        fit_fg([load_mission(p) for p in paths], settings=FGSettings(dr_horizon=0.0))
+        fit_fg([load_mission(p) for p in paths], settings=FGSettings().with_(batch={"dr_horizon": 0.0}))
         t_fit += time.perf_counter() - t
     return {"results": out, "seconds": t_batch, "fit_seconds": t_fit, "per_vehicle": per,
             "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
@@ -203,7 +203,7 @@ def noop(i):
 def fleet_run(manifest_path: Path, workers: int) -> dict:
     from distributed import Client, LocalCluster, get_task_stream
 
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     from aqfg.fleet import fit_fleet, load_manifest
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                       dashboard_address=None, silence_logs=logging.ERROR) as lc, Client(lc) as c:
@@ -212,7 +212,7 @@ def fleet_run(manifest_path: Path, workers: int) -> dict:
         # the dead-reckoning refinement off, as the sequential fits it is compared with
         with get_task_stream(c) as ts:
             fr = fit_fleet(load_manifest(manifest_path), c, progress=True,
-                           settings=FGSettings(dr_horizon=0.0))
+                           settings=FGSettings().with_(batch={"dr_horizon": 0.0}))
         wall = time.perf_counter() - t0
         # the scheduler's overhead per task: 2000 empty tasks
         t1 = time.perf_counter()

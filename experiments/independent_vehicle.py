@@ -79,7 +79,7 @@ def batch_row(method: str, m, truth, effects=(), settings=None) -> dict:
         fit_update_error([m], mode="batch")
     dt = time.perf_counter() - t0
     P = truth.params
-    # (the effects of the fit: those given and the one the fit added, FGSettings.auto_effect)
+    # (the effects of the fit: those given and the one the fit added, FGSettings.batch.auto_effect)
     e_th = wrap_deg(r.values["theta_e"] - (theta_true(truth, 0.0) if "heading_drift" in r.effects
                                            else theta_true(truth)))
     e_s = np.array([r.values["s_x"] - P.get("s_x", 0.0), r.values["s_y"] - P.get("s_y", 0.0)])
@@ -167,11 +167,11 @@ def one(args) -> dict:
             except Exception as exc:          # a method failing is a result, not a crash
                 out[f"{key}_{meth}"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
     if (out.get("batch_fg") or {}).get("added"):
-        # the model as given, beside the fit that added an effect (FGSettings.auto_effect)
+        # the model as given, beside the fit that added an effect (FGSettings.batch.auto_effect)
         from aqfg.fg import FGSettings
         try:
             out["batch_fg_given"] = batch_row("fg", m, truth,
-                                              settings=FGSettings(auto_effect=False))
+                                              settings=FGSettings().with_(batch={"auto_effect": False}))
         except Exception as exc:
             out["batch_fg_given"] = {"error": f"{type(exc).__name__}: {exc}"[:120]}
     try:

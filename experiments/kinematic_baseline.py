@@ -8,7 +8,7 @@ mission in tests/data) at 1-, 4- and 8-s GNSS (USBL as recorded): the online fac
 graph's causal RMSE (first 60 s / whole run) against the filter's (its prediction from the
 fixes so far), and the online corrected track and the batch smoothed track (all six
 parameters) against the Rauch-Tung-Striebel smoother's. The kinematic tracks use the
-factor graph's fix table and USBL gate, at PSD ``FGSettings.online_kinematic_q``.
+factor graph's fix table and USBL gate, at PSD ``FGSettings.online.kinematic_q``.
 Writes ``experiments/results/kinematic_baseline.md`` (``--out``).
 Run: ``python experiments/kinematic_baseline.py [--data DIR --out FILE]``.
 """

@@ -50,7 +50,7 @@ if str(ROOT) not in sys.path:
 from aqfg.data import load_mission  # noqa: E402
 from aqfg.data.mission import Imu, Mission, with_gnss_every  # noqa: E402
 from aqfg.fg import gnss_noise  # noqa: E402
-from aqfg.fg.common import FGSettings  # noqa: E402
+from aqfg.fg.settings import FGSettings  # noqa: E402
 from aqfg.model.measurements import sensor_positions  # noqa: E402
 from aqfg.model.params import MEASUREMENT_EFFECTS  # noqa: E402
 from aqfg.model.retrace import rollout  # noqa: E402
@@ -472,7 +472,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="", help="comma-separated run names (default: all)")
     ap.add_argument("--save", default="", help="also pickle the per-run numbers to this file")
     ap.add_argument("--white", action="store_true",
-                    help="factor graph: the fixes at their stated sigma (FGSettings.gnss_noise=None)")
+                    help="factor graph: the fixes at their stated sigma (FGSettings.graph.gnss_noise=None)")
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods (default: both)")
     ap.add_argument("--no-diagnosis", action="store_true", help="leave out aqfg diagnose --auto")
     args = ap.parse_args(argv)
@@ -491,16 +491,16 @@ def main(argv=None) -> int:
     for n, m in missions.items():
         others = [o for k, o in missions.items() if k != n]
         runs[n] = {"cog": cog_reference(m)}
-        noise = None if args.white else gnss_noise.measure(others, FGSettings().online_kinematic_q,
-                                                             FGSettings().sensors.gnss_sigma)
+        noise = None if args.white else gnss_noise.measure(others, FGSettings().online.kinematic_q,
+                                                             FGSettings().graph.sensors.gnss_sigma)
         runs[n]["noise_own"] = (None if args.white else
-                                gnss_noise.measure([m], FGSettings().online_kinematic_q,
-                                                   FGSettings().sensors.gnss_sigma))
+                                gnss_noise.measure([m], FGSettings().online.kinematic_q,
+                                                   FGSettings().graph.sensors.gnss_sigma))
         runs[n]["noise"] = noise
         for method in args.methods.split(","):
             if method == "fg":
-                sparse = {"settings": FGSettings(gnss_noise=noise)}
-                dense = {"settings": FGSettings(gnss_noise=None)} if args.white else {}
+                sparse = {"settings": FGSettings().with_(graph={"gnss_noise": noise})}
+                dense = {"settings": FGSettings().with_(graph={"gnss_noise": None})} if args.white else {}
             else:
                 sparse = dense = {}
             try:
@@ -519,8 +519,8 @@ def main(argv=None) -> int:
             if d.get("model") is not None:
                 noise = runs[n]["noise"]
                 runs[n]["learned"] = learned_scores(
-                    m, d.pop("model"), {"settings": FGSettings(gnss_noise=noise)},
-                    {"settings": FGSettings(gnss_noise=None)} if args.white else {})
+                    m, d.pop("model"), {"settings": FGSettings().with_(graph={"gnss_noise": noise})},
+                    {"settings": FGSettings().with_(graph={"gnss_noise": None})} if args.white else {})
             d.pop("model", None)
             print(f"{n} {method}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items()
                                                 if isinstance(v, float)), file=sys.stderr, flush=True)

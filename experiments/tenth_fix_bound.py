@@ -34,7 +34,7 @@ from independent_vehicle import DATA, EVERY, MISSIONS, RESULTS  # noqa: E402
 
 from aqfg.data import load_mission, load_truth  # noqa: E402
 from aqfg.data.mission import with_gnss_every  # noqa: E402
-from aqfg.fg.common import FGSettings  # noqa: E402
+from aqfg.fg.settings import FGSettings  # noqa: E402
 from aqfg.model.retrace import fixes  # noqa: E402
 
 N_FIX = 10
@@ -47,7 +47,7 @@ def rot(a: float) -> np.ndarray:
 
 def fix_information(m, t: np.ndarray, p: np.ndarray) -> list[np.ndarray]:
     """Per fix, the inverse of its horizontal NE covariance (m^-2)."""
-    sn = FGSettings().sensors
+    sn = FGSettings().graph.sensors
     out = []
     ut = m.usbl.t if m.usbl is not None else np.zeros(0)
     st = np.asarray(m.usbl_station, float) if m.usbl is not None else None

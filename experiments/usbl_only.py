@@ -56,7 +56,7 @@ def run_variant(v: str, mission, init: dict):
         from aqfg.ekf.estimator import UpdateErrorEstimator
         return UpdateErrorEstimator(None, mission, init=init).run_online(
             estimate=VARIABLE, window_fixes=10 if v == "update-error-10" else WINDOW_FIXES)
-    settings = FGSettings(walk_sigma=dict(WALK)) if v == "fg-rw" else None
+    settings = FGSettings().with_(graph={"walk_sigma": dict(WALK)}) if v == "fg-rw" else None
     return C.fit("fg", [mission], mode="online", estimate=VARIABLE, init=init, window=WINDOW_S,
                  settings=settings)[0]
 

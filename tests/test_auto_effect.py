@@ -1,4 +1,4 @@
-"""The batch fit adds the effect the structural test finds missing (FGSettings.auto_effect,
+"""The batch fit adds the effect the structural test finds missing (FGSettings.batch.auto_effect,
 aqfg.fg.fit.adopt_effect): on the Otter, whose linear surge drag the paper's model lacks,
 the heading offset and current come out right where the model as given biases them; on a
 vehicle that is the model nothing is added; a refit that would move the estimates beyond
@@ -33,7 +33,8 @@ def _errors(res, truth) -> dict[str, float]:
 def heldout111():
     d = data_path("otter-heldout-111")
     m = with_gnss_every(load_mission(d), 8.0)
-    return m, load_truth(d), fit_fg([m]), fit_fg([m], settings=FGSettings(auto_effect=False))
+    as_given = FGSettings().with_(batch={"auto_effect": False})
+    return m, load_truth(d), fit_fg([m]), fit_fg([m], settings=as_given)
 
 
 def test_the_otters_missing_drag_is_added_and_the_current_comes_right(heldout111):
@@ -98,7 +99,7 @@ def test_a_propeller_that_sees_the_speed_over_ground_is_added_and_the_current_co
     d = data_path("remus-dev-a")
     m, truth = with_gnss_every(load_mission(d), 8.0), load_truth(d)
     res = fit_fg([m])
-    given = fit_fg([m], settings=FGSettings(auto_effect=False))
+    given = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
     ae = res.effect_step
     assert ae is not None and ae.adopted and res.effects == ("ground_advance",), ae
     e, e0 = _errors(res, truth), _errors(given, truth)
@@ -137,7 +138,7 @@ def test_an_effect_the_data_suggest_widens_the_sigma_without_being_added():
     assert max(abs(e[n]) for n in ("s_x", "s_y")) < 0.005
     for n in VAR:
         assert abs(e[n]) <= 3 * auto.sigma[n], (n, e[n], auto.sigma[n])
-    res = fit_fg([m], settings=FGSettings(auto_effect=False))
+    res = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
     assert res.effects == () and res.effect_step is None
     st = res.sigma_structure
     assert st is not None and st.effect == "ground_advance" and st.proven is False
@@ -206,8 +207,8 @@ def test_a_joint_fit_keeps_each_missions_estimates_without_the_effect():
     assert res.effects == ("linear_drag",)
     per = parameters_document(res)["auto_effect"]["without_effect"]["per_mission"]
     assert set(per) == set(names)
-    given = fit_fg(ms, settings=FGSettings(auto_effect=False))
-    plain = fit_fg(ms, settings=FGSettings(structural_sigma=False))
+    given = fit_fg(ms, settings=FGSettings().with_(batch={"auto_effect": False}))
+    plain = fit_fg(ms, settings=FGSettings().with_(batch={"structural_sigma": False}))
     ss = given.sigma_structure
     assert ss is not None
     shift = ss.shift

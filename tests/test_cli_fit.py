@@ -157,7 +157,7 @@ def test_fit_online_says_what_the_gtsam_engine_leaves_out(tmp_path, capsys):
     and the heading offset constant in the window's past: the command says so."""
     m, tr = simulate("auv", seed=6, duration=60.0, usbl=True, gnss_period=8.0)
     out = fit_online_with_true_constants(m, tr, tmp_path, capsys, "--effect", "lever_arm")
-    assert "online: GTSAM engine" in out and "online_heading_walk needs the numpy engine" in out
+    assert "online: GTSAM engine" in out and "online.heading_walk needs the numpy engine" in out
 
 
 def test_fit_batch_says_the_track_needed_more_process_noise(tmp_path, capsys):

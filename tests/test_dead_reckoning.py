@@ -17,14 +17,14 @@ from aqfg.parameters_doc import parameters_document, read_parameter_values
 from aqfg.sim.simulator import simulate
 
 CONSTANTS = ("k", "k_x", "k_yz")
-AS_GIVEN = FGSettings(auto_effect=False)
+AS_GIVEN = FGSettings().with_(batch={"auto_effect": False})
 
 
 @pytest.fixture(scope="module")
 def calm_b():
     d = data_path("otter-dev-calm-b")
     m = with_gnss_every(load_mission(d), 8.0)
-    # the model as given (no effect added: FGSettings.auto_effect), as the smoother's
+    # the model as given (no effect added: FGSettings.batch.auto_effect), as the smoother's
     return m, load_truth(d), BatchSmoother().run([m]), fit_fg([m], settings=AS_GIVEN)
 
 
@@ -46,7 +46,7 @@ def test_on_the_otter_the_refined_constants_dead_reckon_better(calm_b):
     # help dead reckoning fails this
     assert e_r < 0.7 * e_s, (e_s, e_r)
     # the heading offset and current are the smoother's, untouched (their sigma widened
-    # only by the structural shift, FGSettings.structural_sigma, or the move of the refit
+    # only by the structural shift, FGSettings.batch.structural_sigma, or the move of the refit
     # that checks it where larger: aqfg.fg.fit.refit_structure)
     st = r.sigma_structure
     shift = st.shift if st is not None else {}
@@ -94,7 +94,7 @@ def test_a_vehicle_that_is_the_model_keeps_the_smoothers_constants():
 
 def test_horizon_zero_keeps_the_smoothers_fit(calm_b):
     m, _, smoother, _ = calm_b
-    r = fit_fg([m], settings=FGSettings(dr_horizon=0.0, auto_effect=False))
+    r = fit_fg([m], settings=FGSettings().with_(batch={"dr_horizon": 0.0, "auto_effect": False}))
     assert r.dead_reckoning is None
     for n in CONSTANTS:
         assert r.values[n] == smoother.values[n]

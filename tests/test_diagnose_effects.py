@@ -10,16 +10,16 @@ effect) is experiments/diagnosis_sweep.py.
 import pytest
 
 from aqfg.diagnose.workflow import diagnose
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.sim.cases import CASES, simulate_case
 from aqfg.model.params import SPEC
 
 
 # the simulator's vehicle is the paper's (sway drag 0.3 1/m): the diagnosis of its cases
-# with the paper vehicles' sway prior (0.9 1/m, FGSettings.prior_sigma without k_yz); with
+# with the paper vehicles' sway prior (0.9 1/m, FGSettings.graph.prior_sigma without k_yz); with
 # the default prior (30 1/m) a free sway drag absorbs part of a hidden linear drag, which
 # then ranks second (seed 0: p = 0.02, not confirmed)
-PAPER_SWAY = FGSettings(prior_sigma={"s_x": 0.3, "s_y": 0.3})
+PAPER_SWAY = FGSettings().with_(graph={"prior_sigma": {"s_x": 0.3, "s_y": 0.3}})
 
 
 @pytest.mark.slow

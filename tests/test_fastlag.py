@@ -162,7 +162,8 @@ def test_cpp_block_matches_the_numpy_linearisation_and_swaps_in_place():
     # whole runs: the same estimates and sigmas to rounding
     m, _, init = _mission(2, False)
     a, b2 = (FixedLagSmoother(init=init, window=24.0,
-                              settings=FGSettings(fast_cpp_block=f)).run(m) for f in (True, False))
+                              settings=FGSettings().with_(online={"cpp_block": f})).run(m)
+              for f in (True, False))
     assert np.allclose(a.history.values, b2.history.values, rtol=1e-8, atol=1e-10)
     assert np.allclose(a.history.sigma, b2.history.sigma, rtol=1e-8, atol=1e-12)
     assert np.allclose(a.missions[0].filtered.pos, b2.missions[0].filtered.pos, rtol=0, atol=1e-7)
@@ -239,8 +240,8 @@ def test_numpy_engine_agrees_with_gtsam_engine_and_truth(usbl, seed):
     # (the GTSAM engine holds the current and the heading offset constant: the numpy one
     # too, here; with the heading's walk its sigma is the walk's, about 3x the constant's)
     runs = {e: FixedLagSmoother(init=init, window=window,
-                                settings=FGSettings(online_engine=e, online_current_walk=0.0,
-                                                    online_heading_walk=0.0)).run(m)
+                                settings=FGSettings().with_(online={"engine": e, "current_walk": 0.0,
+                                                                    "heading_walk": 0.0})).run(m)
             for e in ("numpy", "gtsam")}
     a, b = runs["numpy"], runs["gtsam"]
     assert a.engine.name == "numpy" and b.engine.name == "gtsam"
@@ -266,8 +267,8 @@ def test_numpy_engine_takes_depth_readings():
     m, truth = simulate("auv", seed=5, duration=300.0, usbl=True, gnss_period=None)
     init = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     r = FixedLagSmoother(init=init, window=15.0,
-                         settings=FGSettings(online_current_walk=0.0,
-                                             online_heading_walk=0.0)).run(m)
+                         settings=FGSettings().with_(online={"current_walk": 0.0,
+                                                             "heading_walk": 0.0})).run(m)
     assert r.engine.name == "numpy"
     fa = r.missions[0].filtered
     down = np.interp(fa.t, truth.t, truth.pos[:, 2])
@@ -289,7 +290,7 @@ def test_wrong_model_completes_and_unsupported_configurations_fall_back():
     fl = FixedLagSmoother(estimate=VAR, effects=("lever_arm",), window=24.0)
     fl.start(m)
     assert fl.engine == "gtsam" and "measurement" in fl.engine_note
-    fl = FixedLagSmoother(window=24.0, settings=FGSettings(online_engine="gtsam"))
+    fl = FixedLagSmoother(window=24.0, settings=FGSettings().with_(online={"engine": "gtsam"}))
     fl.start(m)
     assert fl.engine == "gtsam"
 
@@ -326,13 +327,13 @@ def test_current_walk_is_the_marginal_walked_as_an_explicit_node():
     eliminated (Schur complement)."""
     m, _, init = _mission(4, False)
     sw = 0.02
-    fl = FixedLagSmoother(init=init, window=30.0, settings=FGSettings(online_current_walk=sw))
+    fl = FixedLagSmoother(init=init, window=30.0, settings=FGSettings().with_(online={"current_walk": sw}))
     fl.start(m, plan=True)
     while fl.n_fix < 14:                  # ~100 s of 8-s fixes: knots have left the window
         fl.update()
     eng = fl.backend.win
     w = eng._walk_idx
-    # the heading offset walks too (FGSettings.online_heading_walk, a plain walk)
+    # the heading offset walks too (FGSettings.online.heading_walk, a plain walk)
     assert [eng.names[j] for j in w] == ["theta_e", "s_x", "s_y"]
     P, N = eng.P, len(eng.b)
     # the window's own dynamics factors, placed; the rest of the held quadratic is the marginal

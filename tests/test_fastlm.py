@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.fit import fit_fg
 from aqfg.sim.simulator import simulate
@@ -83,7 +83,8 @@ def missions():
 
 @pytest.mark.parametrize("walk", [False, True])
 def test_same_cost_gradient_hessian(missions, walk):
-    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=60.0) if walk else FGSettings()
+    st = (FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.004}, "walk_segment": 60.0})
+          if walk else FGSettings())
     bg = BatchSmoother(settings=st).build(missions)
     fs = FastSystem.build(bg, st)
     assert fs is not None
@@ -107,7 +108,7 @@ def test_process_scale_and_evidence(missions):
     fs.set_process_scale(q)
     d = np.sqrt(np.array([q, q, 1.0, q, q, 1.0]))
     dt = float(bg.parts[0].knots[1] - bg.parts[0].knots[0])
-    Q = st.process.cov(dt, True)
+    Q = st.graph.process.cov(dt, True)
     assert np.allclose(fs.WtW[0], np.linalg.inv(d[:, None] * Q * d[None, :]), rtol=1e-9)
     ev = fs.evaluate(X, th)
     D, E, Hsp, Hpp, _, _ = fs.normal(ev)
@@ -181,7 +182,7 @@ def test_held_parameter_stays_when_another_meets_its_bound(missions):
 @pytest.mark.slow
 def test_same_fit_as_gtsam_path(missions):
     a = fit_fg(missions)
-    b = fit_fg(missions, settings=FGSettings(fast_lm=False))
+    b = fit_fg(missions, settings=FGSettings().with_(solver={"fast_lm": False}))
     assert a.iterations == b.iterations
     assert a.cost == pytest.approx(b.cost, rel=1e-9)
     for n in a.estimated:
@@ -203,7 +204,8 @@ def test_sensor_effects_same_cost_gradient_hessian(missions, effects, walk):
     """With a lever arm (rotated by the heading, so theta_e and a heading drift enter the
     fixes) or a fix time offset, the numpy system is still the GTSAM graph's problem, the
     parameters away from their start and the states far from theirs."""
-    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=60.0) if walk else FGSettings()
+    st = (FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.004}, "walk_segment": 60.0})
+          if walk else FGSettings())
     sm = BatchSmoother(effects=effects, settings=st)
     bg = sm.build(missions)
     fs = FastSystem.build(bg, sm.settings)
@@ -225,7 +227,7 @@ def test_gnss_rows_are_the_gtsam_factors():
     linearisation, Huber reweighting included."""
     m, _ = simulate("asv", seed=4, duration=120.0, effects={"gnss_delay.tau": 0.6,
                                                             "lever_arm.x": -0.4})
-    st = FGSettings(walk_sigma={"theta_e": 0.004}, walk_segment=50.0)
+    st = FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.004}, "walk_segment": 50.0})
     sm = BatchSmoother(effects=("gnss_delay", "lever_arm", "heading_drift"), settings=st)
     bg = sm.build([m])
     fs = FastSystem.build(bg, sm.settings)
@@ -277,14 +279,14 @@ def test_fit_recovers_a_simulated_gnss_delay():
     """A fit with gnss_delay on the numpy path finds the simulated 0.8-s time offset, and
     is the GTSAM path's fit."""
     m, _ = simulate("asv", seed=0, duration=600.0, effects={"gnss_delay.tau": 0.8})
-    st = FGSettings(adapt_batch=False, adapt_track=False)
+    st = FGSettings().with_(batch={"adapt_noise": False, "adapt_track": False})
     bs = BatchSmoother(effects=("gnss_delay",), settings=st)
     assert FastSystem.build(bs.build([m]), bs.settings) is not None
     a = fit_fg([m], effects=("gnss_delay",), settings=st)
     tau, sig = a.values["gnss_delay.tau"], a.sigma["gnss_delay.tau"]
     assert abs(tau - 0.8) < 3.0 * sig, (tau, sig)
     assert tau > 4.0 * sig                                        # distinct from no delay
-    b = fit_fg([m], effects=("gnss_delay",), settings=st.with_(fast_lm=False))
+    b = fit_fg([m], effects=("gnss_delay",), settings=st.with_(solver={"fast_lm": False}))
     for n in a.estimated:
         assert a.values[n] == pytest.approx(b.values[n], rel=1e-6, abs=1e-4 * b.sigma[n]), n
 
@@ -292,7 +294,8 @@ def test_fit_recovers_a_simulated_gnss_delay():
 def test_linear_terms_are_the_graphs_linear_factors(missions):
     """The numpy form of the priors, surface constraint and random walk is what GTSAM's
     factors linearise to (whitened A, b at zero) and evaluate to (whitened error)."""
-    s = FGSettings(walk_sigma={"theta_e": 1e-8, "s_x": 0.003, "s_y": 0.003}, walk_segment=40.0)
+    s = FGSettings().with_(graph={"walk_sigma": {"theta_e": 1e-8, "s_x": 0.003, "s_y": 0.003},
+                                  "walk_segment": 40.0})
     bg = BatchSmoother(settings=s).build(missions)
     rng = np.random.default_rng(1)
     assert {t.kind for t in bg.linear} == {"prior", "linear", "between"}

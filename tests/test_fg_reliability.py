@@ -50,7 +50,8 @@ def test_a_rich_mission_determines_the_heading(clean_fit):
 
 
 def test_iteration_limit_is_flagged(asv):
-    res = fit_fg([asv[0]], settings=FGSettings(max_iterations=2, rel_tol=0.0, abs_tol=0.0))
+    two = FGSettings().with_(solver={"max_iterations": 2, "rel_tol": 0.0, "abs_tol": 0.0})
+    res = fit_fg([asv[0]], settings=two)
     assert res.solve is not None and res.solve.hit_iteration_limit
     assert any("iteration limit" in w for w in res.warnings)
 

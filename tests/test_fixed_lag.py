@@ -45,7 +45,7 @@ def test_online_corrects_30_degree_heading_error_within_3_fixes(vehicle, seed):
     # the same smoother without estimation and without process-noise adaptation (which
     # would let the fixes pull the wrong-heading track and hide what estimation buys)
     none = FixedLagSmoother(init=init, window=24.0, estimate=(),
-                            settings=FGSettings(adapt_process=False)).run(m)
+                            settings=FGSettings().with_(online={"adapt_noise": False})).run(m)
     e_est, e_none = prediction_errors(est, tr), prediction_errors(none, tr)
     late = slice(3, 12)                        # predictions of fixes 4..12 (after 3 fixes)
     assert np.mean(e_est[late]) < 3.0, e_est
@@ -63,8 +63,8 @@ def test_fixed_lag_end_agrees_with_batch(vehicle, usbl, seed):
     # the batch's model: one constant current and heading offset (the online default lets
     # them move)
     fl = FixedLagSmoother(init=init, window=24.0,
-                          settings=FGSettings(online_current_walk=0.0,
-                                              online_heading_walk=0.0)).run(m)
+                          settings=FGSettings().with_(online={"current_walk": 0.0,
+                                                              "heading_walk": 0.0})).run(m)
     b = BatchSmoother(init=init, estimate=VAR).run([m])
     for n in VAR:
         assert abs(fl.values[n] - b.values[n]) < 2 * b.sigma[n], (n, fl.values[n], b.values[n],
@@ -84,7 +84,8 @@ def test_step_by_step_api_window_and_past_correction():
     m, tr = simulate("asv", seed=7, duration=300.0, params={"theta_e": 0.6})
     m = with_gnss_every(m, 8.0)
     fl = FixedLagSmoother(init=fixed_truth(tr), window=24.0,       # plain 24 s window, the
-                          settings=FGSettings(warmup_tol=0.0, online_engine="gtsam"))   # ISAM2
+                          settings=FGSettings().with_(online={"warmup_tol": 0.0,           # ISAM2
+                                                              "engine": "gtsam"}))
     info = fl.start(m)
     assert info.t == pytest.approx(m.gnss.t[0]) and set(info.values) == set(VAR)
     n_states = []
@@ -176,14 +177,15 @@ def test_the_causal_track_runs_on_past_the_last_fix_with_the_model():
 def test_random_walk_online_follows_heading_drift():
     """A heading offset drifting at 0.03 rad/min: with the variable parameters as a random
     walk the online estimate keeps up; a constant node lags far behind, overconfident. The
-    default (the heading offset of the window's past walking, online_heading_walk) stays
+    default (the heading offset of the window's past walking, online.heading_walk) stays
     consistent."""
     rate = 5e-4
     m, tr = simulate("asv", seed=3, duration=600.0, effects={"heading_drift": rate})
     m = with_gnss_every(m, 8.0)
-    st = FGSettings(walk_sigma={"theta_e": 0.004, "s_x": 1e-4, "s_y": 1e-4}, walk_segment=60.0)
+    st = FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.004, "s_x": 1e-4, "s_y": 1e-4},
+                                   "walk_segment": 60.0})
     errs = {}
-    for name, s in (("walk", st), ("constant", FGSettings(online_heading_walk=0.0)),
+    for name, s in (("walk", st), ("constant", FGSettings().with_(online={"heading_walk": 0.0})),
                     ("default", FGSettings())):
         h = FixedLagSmoother(init=fixed_truth(tr), settings=s).run(m).history
         err = h.values[:, 0] - (tr.params["theta_e"] + rate * (h.t - m.t0))
@@ -200,7 +202,7 @@ def test_random_walk_online_follows_heading_drift():
 def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
     """A current changing by 0.15 m/s over the mission (the diagnosis's current_drift case):
     the online smoother's current (a Gauss-Markov process between the window and its past,
-    ``online_current_walk``, on by default) ends near the final current, within 3 sigma,
+    ``online.current_walk``, on by default) ends near the final current, within 3 sigma,
     and the causal track follows the fixes; held constant, the current ends between the
     start and end values with a sigma that claims otherwise."""
     from aqfg.sim.cases import simulate_case
@@ -208,9 +210,9 @@ def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
     P = tr.params
     end = np.array([P["s_x"] + P["current_drift.ds_x"] * m.t1,
                     P["s_y"] + P["current_drift.ds_y"] * m.t1])
-    assert FGSettings().online_current_walk > 0
+    assert FGSettings().online.current_walk > 0
     out = {}
-    for name, st in (("walk", FGSettings()), ("constant", FGSettings(online_current_walk=0.0))):
+    for name, st in (("walk", FGSettings()), ("constant", FGSettings().with_(online={"current_walk": 0.0}))):
         r = FixedLagSmoother(init=fixed_truth(tr), settings=st).run(m)
         e = np.array([r.values["s_x"], r.values["s_y"]]) - end
         z = np.abs(e) / np.array([r.sigma["s_x"], r.sigma["s_y"]])
@@ -228,13 +230,13 @@ def test_the_online_current_follows_a_drifting_current_with_an_honest_sigma():
 def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(engine):
     """A USBL fix whose range/bearing innovation is beyond the chi-square(2) gate is left
     out (the EKF's rule); with the correct model and clean fixes none is; after
-    ``online_max_rejects`` in a row the next is taken whatever it says (an AUV with depth
+    ``online.max_rejects`` in a row the next is taken whatever it says (an AUV with depth
     readings, both engines)."""
     import dataclasses
     m, tr = simulate("auv", seed=4, duration=300.0, usbl=True, usbl_outlier_rate=0.0,
                      gnss_period=None)
     fixed = fixed_truth(tr)
-    st = FGSettings(online_engine=engine)
+    st = FGSettings().with_(online={"engine": engine})
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
     assert clean.engine.name == engine
     assert clean.info["rejected_usbl"] == []
@@ -251,7 +253,7 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     assert track_rmse(res.missions[0].filtered, tr) < 2.5
     # the gate is what keeps the track: without it the outliers pull it off
     raw = fit_fg([mo], mode="online", init=fixed,
-                 settings=st.with_(online_gate_usbl=float("inf")))
+                 settings=st.with_(online={"gate_usbl": float("inf")}))
     assert raw.info["rejected_usbl"] == []
     g, r = (track_rmse(x.missions[0].track, tr) for x in (res, raw))
     assert g < 0.5 * r, f"corrected track {g:.2f} m with the gate, {r:.2f} m without"
@@ -272,7 +274,7 @@ def test_fixes_that_all_disagree_with_the_track_are_followed_after_a_few(engine)
     rng[40:] += 12.0
     mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
     res = fit_fg([mo], mode="online", init=fixed_truth(tr),
-                 settings=FGSettings(online_engine=engine))
+                 settings=FGSettings().with_(online={"engine": engine}))
     out = [t for t in res.info["rejected_usbl"] if t >= u.t[40] - 1e-6]
     assert 1 <= len(out) <= 8 and max(out) <= u.t[50], out
 
@@ -286,7 +288,7 @@ def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch, e
     m, tr = simulate("asv", seed=4, duration=300.0, usbl=True, usbl_outlier_rate=0.0,
                      gnss_period=None)
     fixed = fixed_truth(tr)
-    st = FGSettings(online_engine=engine) if engine == "gtsam" else None
+    st = FGSettings().with_(online={"engine": engine}) if engine == "gtsam" else None
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
     target = float(m.usbl.t[30])
     from aqfg.fg.online.gate import UsblGate
@@ -341,14 +343,14 @@ def test_a_held_model_that_fails_its_fixes_brings_the_first_batch_forward():
     m, tr = simulate("asv", seed=11, duration=60.0, params={"theta_e": np.radians(150.0)},
                      gnss_period=2.0)
     assert m.usbl is None
-    st = FGSettings(online_kinematic_q=0.0)    # the model's own causal track (no floor)
+    st = FGSettings().with_(online={"kinematic_q": 0.0})    # the model's own causal track (no floor)
     res = FixedLagSmoother(init=fixed_truth(tr), settings=st).run(m)
     first = [e["t"] for e in res.info["events"]
              if e["event"].startswith(("held heading re-seeded", "re-initialised",
                                        "parameters released"))]
-    assert first and first[0] < st.online_init_after - 4.0, res.info["events"]
+    assert first and first[0] < st.online.init_after - 4.0, res.info["events"]
     f = res.missions[0].filtered
-    sel = (f.t > first[0] + 4.0) & (f.t <= st.online_init_after)
+    sel = (f.t > first[0] + 4.0) & (f.t <= st.online.init_after)
     assert sel.sum() >= 3
     ref = np.column_stack([np.interp(f.t[sel], tr.t, tr.pos[:, a]) for a in range(2)])
     err = np.linalg.norm(f.pos[sel, :2] - ref, axis=1)

@@ -16,7 +16,7 @@ from aqfg.commands.common import EXIT_DATA
 from aqfg.data.io import load_mission, load_truth, save_mission
 from aqfg.data.mission import with_gnss_every
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.fit import fit_fg
 from aqfg.fleet import ManifestError, fit_fleet, load_manifest, write_manifest
 from aqfg.fleet.report import differs_from_fleet, effect_document, save_fleet
@@ -246,7 +246,7 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         ms = [with_gnss_every(load_mission(m.path), 8.0) for m in v.missions]
         # each vehicle equals fit_fg of its missions with the fleet's model
         ref = fit_fg(ms, effects=fr.results[v.name].effects,
-                     settings=FGSettings(auto_effect=False))
+                     settings=FGSettings().with_(batch={"auto_effect": False}))
         # (with the linear drag the two solvers' stopping points differ by up to a few
         # hundredths of a sigma, and the sigmas evaluated there by up to 0.5 % (k_yz,
         # poorly determined: sigma 5))
@@ -332,7 +332,8 @@ def test_worker_killed_mid_run_is_retried(tmp_path, cluster):
     # (the refinement of the constants after the joint solve is off: it runs once, after
     # the rounds, and is compared with fit_fg in the test above; so is the structural
     # sigma, which BatchSmoother.run leaves to fit_fg)
-    tight = FGSettings(rel_tol=1e-12, abs_tol=1e-9, dr_horizon=0.0, structural_sigma=False)
+    tight = FGSettings().with_(solver={"rel_tol": 1e-12, "abs_tol": 1e-9},
+                               batch={"dr_horizon": 0.0, "structural_sigma": False})
     fr = fit_fleet(load_manifest(p), cluster, settings=tight, progress=progress, timeout=120)
     assert killed and killed[0][1] >= 1, killed           # it held missions of this run
     assert killed[0][0] not in cluster.run(os.getpid).values()

@@ -7,7 +7,7 @@ import pytest
 
 from aqfg.data.mission import Gnss
 from aqfg.fg import gnss_noise as gn
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 
 
 def _motion(t: np.ndarray, q: float, rng) -> np.ndarray:
@@ -83,7 +83,7 @@ def test_apply_weights_every_mission_and_reports_the_noise(otter_mission):
     assert gn.GnssNoise.from_document(doc, "x") == noise
     with pytest.raises(ValueError, match="x: gnss_noise"):
         gn.GnssNoise.from_document({"sigma": -1, "tau": 2}, "x")
-    assert FGSettings().gnss_noise == "measure"
+    assert FGSettings().graph.gnss_noise == "measure"
 
 
 @pytest.fixture

@@ -21,15 +21,15 @@ from aqfg.fg.online import policy, recovery
 from aqfg.result import Track
 
 DEG = np.pi / 180
-# the batches' basins ranked by cost, as before FGSettings.rank_by_evidence: what the
+# the batches' basins ranked by cost, as before FGSettings.batch.rank_by_evidence: what the
 # online safety nets met then, and still meet in batches too long for the evidence
-BY_COST = FGSettings(rank_by_evidence=False)
+BY_COST = FGSettings().with_(batch={"rank_by_evidence": False})
 # the model's own causal track, without the kinematic floor while the parameters are held
-# (FGSettings.online_kinematic_q): the tests of the hold's mechanisms (re-seeds, the first
+# (FGSettings.online.kinematic_q): the tests of the hold's mechanisms (re-seeds, the first
 # batch's timing, the held model's noise) measure what they do to the model's prediction,
 # which the floor would otherwise hide
-MODEL_TRACK = FGSettings(online_kinematic_q=0.0)
-# the sway drag's prior of the paper's vehicles (0.9 1/m around 0.3: FGSettings.prior_sigma
+MODEL_TRACK = FGSettings().with_(online={"kinematic_q": 0.0})
+# the sway drag's prior of the paper's vehicles (0.9 1/m around 0.3: FGSettings.graph.prior_sigma
 # without k_yz), under which these crops slide: the basins the plausibility rules and their
 # rescues are for; the default prior (30 1/m) fits them without sliding
 # (test_the_sway_prior_fits_the_sliding_crops_without_a_rescue)
@@ -112,8 +112,8 @@ def test_the_batch_track_follows_the_fixes_where_the_model_is_not_the_vehicle():
     m, truth = mission("otter-dev-calm-a", 8.0)
     # the smoother's own constants, the model as given (with the linear drag the effect
     # step adds, the model explains more of the motion: 0.48 against 0.58 m)
-    st = FGSettings(dr_horizon=0.0, auto_effect=False)
-    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
+    st = FGSettings().with_(batch={"dr_horizon": 0.0, "auto_effect": False})
+    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(batch={"adapt_track": False}))
     assert on.track_noise_scale[m.name] > 1.0
     assert off.track_noise_scale is None
     for n in on.estimated:
@@ -135,8 +135,8 @@ def test_the_batch_track_is_unchanged_where_the_model_is_the_vehicle():
     from aqfg.sim.simulator import simulate
     m, _ = simulate("asv", seed=4, duration=300.0, usbl=True)
     m = with_gnss_every(m, 8.0)
-    st = FGSettings(dr_horizon=0.0)
-    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(adapt_track=False))
+    st = FGSettings().with_(batch={"dr_horizon": 0.0})
+    on, off = fit_fg([m], settings=st), fit_fg([m], settings=st.with_(batch={"adapt_track": False}))
     assert on.track_noise_scale == {m.name: 1.0}
     assert np.array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
 
@@ -181,12 +181,12 @@ def test_a_short_batch_heading_sigma_holds_its_profile_over_the_circle():
     one basin 147 deg off, whose curvature claimed sigma 12 deg; the evidence over the whole
     circle is nearly flat, and the sigma says so."""
     from aqfg.data.mission import between
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     from aqfg.fg.profile import N_GRID
     m, truth = mission("otter-heldout-93-40s", 8.0)
     c = between(m, -np.inf, 11.01)
     kw = dict(estimate=("theta_e", "s_x", "s_y"), init=CONSTANTS_CALM_B, effects=["linear_drag"])
-    one = fit_fg([c], settings=FGSettings(heading_profile=False), **kw)
+    one = fit_fg([c], settings=FGSettings().with_(batch={"heading_profile": False}), **kw)
     res = fit_fg([c], **kw)
     e = abs(wrap(res.values["theta_e"] - truth.params["theta_e"]))
     assert e > np.radians(90.0) and e > 3 * one.sigma["theta_e"]      # the defect
@@ -204,10 +204,11 @@ def test_online_sigma_holds_a_short_batch_heading_profile():
     """The online smoother's re-initialisation batches walk the heading profile too: on
     seed 66 at 8-s fixes with calm-b's constants, the 15.5-s batch's basin claimed
     sigma 6 deg at a heading 22 deg off; the same solve, and a sigma that holds it."""
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     m, truth = mission("otter-heldout-66-90s", 8.0)
     kw = dict(mode="online", init=CONSTANTS_CALM_B, effects=["linear_drag"])
-    runs = [fit_fg([m], settings=FGSettings(heading_profile=p), **kw) for p in (False, True)]
+    runs = [fit_fg([m], settings=FGSettings().with_(batch={"heading_profile": p}), **kw)
+            for p in (False, True)]
     (h0, h1) = (r.history for r in runs)
     i = list(h1.names).index("theta_e")
     k = int(np.argmin(np.abs(h1.t - 15.5)))
@@ -237,7 +238,7 @@ def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
     the one basin's: 3 deg against 16.5). (The basins ranked by cost: ranked by evidence,
     that batch is not ambiguous; a batch too long for the evidence still ranks by cost.)"""
     m, _ = mission("otter-dev-calm-a", 4.0)
-    res = fit_fg([m], mode="online", settings=BY_COST.with_(prior_sigma=SLIDING))
+    res = fit_fg([m], mode="online", settings=BY_COST.with_(graph={"prior_sigma": SLIDING}))
     h = res.history
     i = list(h.names).index("theta_e")
     amb = [b for b in res.info["reinit_batches"]
@@ -308,7 +309,7 @@ def test_short_data_rank_heading_basins_by_their_evidence():
     sliding one has 14.5 less log evidence. Ranked by evidence, the batch is within 10 deg
     of the crop's mean offset, and the lower-cost basin is listed with the higher rank."""
     m, truth = mission("otter-heldout-52-300s", 0.0)
-    res = fit_fg([m], settings=FGSettings(auto_effect=False))
+    res = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
     basins = res.basins
     assert res.too_short_for_sandwich and all("log_evidence" in b for b in basins)
     cost = res.cost
@@ -425,7 +426,7 @@ def test_online_random_walk_survives_failed_releases():
     a batch of the fixes so far. (Without the USBL gate.) The run no longer gets into
     trouble by itself (the heading search of the re-initialisation batches), so a skipped
     fix is also injected after the 80-s release: the next update must re-initialise."""
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
 
     class Troubled(FixedLagSmoother):
         injected = False
@@ -439,8 +440,8 @@ def test_online_random_walk_survives_failed_releases():
             return info
 
     m, truth = mission("otter-dev-calm-b", 8.0)
-    st = FGSettings(walk_sigma={"theta_e": 0.0026}, online_gate_usbl=np.inf,
-                    prior_sigma=SLIDING)
+    st = FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.0026}, "prior_sigma": SLIDING},
+                            online={"gate_usbl": np.inf})
     for cls in (FixedLagSmoother, Troubled):
         res = cls(settings=st).run(m)
         f = res.missions[0].filtered
@@ -465,7 +466,7 @@ def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
     the smoother's own constants of another mission: those refined for dead reckoning
     (aqfg.fg.dead_reckoning, what fit_fg returns) make even the nominal fit right here
     (3.2 deg off, sigma 9 deg)."""
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     from aqfg.fg.fixed_lag import _mission_until
     other = BatchSmoother().run([load_mission(data_path("otter-dev-calm-b"))])
     init = {n: other.values[n] for n in ("k", "k_x", "k_yz")}
@@ -474,9 +475,9 @@ def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
     th = truth.params["theta_e"]
     est = ("theta_e", "s_x", "s_y")
     nominal = BatchSmoother(estimate=est, init=init,
-                            settings=FGSettings(adapt_batch=False)).run([view])
+                            settings=FGSettings().with_(batch={"adapt_noise": False})).run([view])
     adapted = BatchSmoother(estimate=est, init=init,
-                            settings=FGSettings(adapt_batch=True)).run([view])
+                            settings=FGSettings().with_(batch={"adapt_noise": True})).run([view])
     e_nom = abs(wrap(nominal.values["theta_e"] - th))
     e_ad = abs(wrap(adapted.values["theta_e"] - th))
     assert nominal.process_noise_scale == 1.0
@@ -488,12 +489,13 @@ def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
 def test_evidence_keeps_the_nominal_noise_when_the_model_is_right():
     """On aqfg's own simulator (the model is the vehicle) the evidence search keeps q = 1
     and the estimate is the nominal fit's."""
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     from aqfg.sim import simulate
     m, truth = simulate("asv", seed=4, duration=300.0, gnss_period=4.0)
     fixed = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     est = ("theta_e", "s_x", "s_y")
-    a = BatchSmoother(estimate=est, init=fixed, settings=FGSettings(adapt_batch=True)).run([m])
+    a = BatchSmoother(estimate=est, init=fixed,
+                      settings=FGSettings().with_(batch={"adapt_noise": True})).run([m])
     b = BatchSmoother(estimate=est, init=fixed).run([m])
     assert a.process_noise_scale == 1.0
     assert set(a.process_noise_evidence) == {1.0, 4.0}
@@ -505,7 +507,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     after marginalisation) is recovered by a restart and recorded, not raised."""
     from aqfg.sim import simulate
     m, _ = simulate("asv", seed=3, duration=120.0, gnss_period=8.0)
-    fl = FixedLagSmoother(window=24.0, settings=FGSettings(online_engine="gtsam"))
+    fl = FixedLagSmoother(window=24.0, settings=FGSettings().with_(online={"engine": "gtsam"}))
     fl.start(m, plan=True)
     for _ in range(5):
         fl.update()
@@ -534,7 +536,7 @@ def test_restart_while_held_keeps_the_hold_and_the_release_removes_only_it():
 
     from aqfg.sim import simulate
     m, _ = simulate("asv", seed=3, duration=120.0, gnss_period=4.0)
-    fl = FixedLagSmoother(window=24.0, settings=FGSettings(online_engine="gtsam"))
+    fl = FixedLagSmoother(window=24.0, settings=FGSettings().with_(online={"engine": "gtsam"}))
     fl.start(m, plan=True)
     for _ in range(3):
         fl.update()
@@ -650,7 +652,7 @@ def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data
 def test_dense_fixes_start_the_batch_by_their_count():
     """With 1-s GNSS the held start (heading 30 deg off) dragged the causal track 5 m RMS
     off the fixes until the 20-s batch; the first batch now runs after
-    ``online_init_fixes`` fixes when they come sooner, and the track follows the fixes."""
+    ``online.init_fixes`` fixes when they come sooner, and the track follows the fixes."""
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
     m, truth = mission("otter-dev-calm-a", 1.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects,
@@ -697,8 +699,9 @@ def test_an_implausibly_sliding_fit_is_replaced_by_a_plausible_one():
     full = load_mission(data_path("otter-dev-calm-a"))
     truth = load_truth(data_path("otter-dev-calm-a"))
     m = with_gnss_every(crop(full, 0.0, 450.0), 8.0)
-    given = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
-    res = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
+    given = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False},
+                                                    graph={"prior_sigma": SLIDING}))
+    res = fit_fg([m], settings=FGSettings().with_(graph={"prior_sigma": SLIDING}))
     assert "held_sway" in given.info and given.plausible
     assert "k_yz" not in given.estimated
     assert any("slid sideways" in w for w in given.warnings)
@@ -722,12 +725,13 @@ def test_a_suspiciously_sliding_fit_names_the_non_sliding_answer():
     full = load_mission(data_path("otter-example"))
     truth = load_truth(data_path("otter-example"))
     m = with_gnss_every(crop(full, 300.0, 900.0), 4.0)
-    res = fit_fg([m], settings=FGSettings(auto_effect=False, prior_sigma=SLIDING))
+    res = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False},
+                                                  graph={"prior_sigma": SLIDING}))
     alt = res.info["alternative_held_sway"]
     assert any("with the sway drag held high" in w for w in res.warnings)
     assert abs(wrap(alt["values"]["theta_e"] - truth.params["theta_e"])) < 3 * DEG
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) > 30 * DEG
-    auto = fit_fg([m], settings=FGSettings(prior_sigma=SLIDING))
+    auto = fit_fg([m], settings=FGSettings().with_(graph={"prior_sigma": SLIDING}))
     assert auto.effects == ("linear_drag",) and auto.effect_step is not None and auto.effect_step.untested
     check_batch(auto, truth)
 
@@ -761,12 +765,13 @@ def test_data_too_short_for_the_sandwich_get_the_evidence_noise():
     so the Hessian sigma alone claimed theta_e to 0.2 deg with an error of 2.7 deg; by
     default such data now get the evidence-chosen process noise, and an honest sigma."""
     from aqfg.data.mission import between
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     full = load_mission(data_path("otter-example"))
     th = load_truth(data_path("otter-example")).params["theta_e"]
     m = with_gnss_every(between(full, 60.0, 360.0), 8.0)
     auto = fit_fg([m])
-    nominal = fit_fg([m], settings=FGSettings(adapt_batch=False, structural_sigma=False))
+    nominal = fit_fg([m], settings=FGSettings().with_(batch={"adapt_noise": False,
+                                                             "structural_sigma": False}))
     assert auto.process_noise_scale > 1.0 and nominal.process_noise_scale == 1.0
     assert abs(wrap(nominal.values["theta_e"] - th)) > 3 * nominal.sigma["theta_e"]
     assert abs(wrap(auto.values["theta_e"] - th)) <= 3 * auto.sigma["theta_e"]
@@ -844,7 +849,7 @@ def test_the_usbl_gate_stands_down_when_the_track_is_off(name, start, every):
     full, truth = load_mission(data_path(name)), load_truth(data_path(name))
     m = with_gnss_every(between(full, start, float(full.imu.t[-1])), every)
     gated = fit_fg([m], mode="online")
-    plain = fit_fg([m], mode="online", settings=FGSettings(online_gate_usbl=np.inf))
+    plain = fit_fg([m], mode="online", settings=FGSettings().with_(online={"gate_usbl": np.inf}))
     assert causal_rmse(gated, truth) <= causal_rmse(plain, truth) + 0.1
 
 
@@ -860,7 +865,8 @@ def test_a_short_batch_searches_the_heading_all_round(name, t0):
     m, truth = mission(name, 8.0)
     r = BatchSmoother(estimate=("theta_e", "s_x", "s_y"), init=other.vehicle_constants(),
                       effects=other.effects,
-                      settings=FGSettings(adapt_batch=True)).run([between(m, t0, t0 + 24.0)])
+                      settings=FGSettings().with_(batch={"adapt_noise": True})
+                      ).run([between(m, t0, t0 + 24.0)])
     err = abs(wrap(r.values["theta_e"] - truth.params["theta_e"]))
     assert any(b["start"].startswith("turned heading start") for b in r.basins)
     assert err < np.radians(20.0) and err < 3.0 * r.sigma["theta_e"], (np.degrees(err),
@@ -1062,7 +1068,7 @@ def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternat
     test_short_data_rank_heading_basins_by_their_evidence.)"""
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-52-300s", 0.0)
-    r = FixedLagSmoother(settings=BY_COST.with_(prior_sigma=SLIDING)).run(m)
+    r = FixedLagSmoother(settings=BY_COST.with_(graph={"prior_sigma": SLIDING})).run(m)
     sliding = [b for b in r.info["reinit_batches"] if b["slip_deg"] > plausibility.SUSPECT_SLIP]
     assert sliding and all(b["reference"] == "non-sliding alternative" for b in sliding), \
         r.info["reinit_batches"]
@@ -1132,8 +1138,7 @@ def test_the_online_heading_follows_a_drifting_offset():
     """otter-heldout-44 (offset drifting +0.03 deg/s, 27 deg over the mission), 8-s GNSS, the
     paper's constants: with one heading offset per mission the online heading ended 16 deg
     behind the drifted offset; the walk of the heading offset in the window's past
-    (FGSettings.online_heading_walk) lets it follow."""
-    from dataclasses import replace
+    (FGSettings.online.heading_walk) lets it follow."""
     m, truth = mission("otter-heldout-44", 8.0)
 
     def end_error(settings):
@@ -1144,8 +1149,8 @@ def test_the_online_heading_follows_a_drifting_offset():
         return abs(wrap(h.values[-1, i] - th))
 
     walk = end_error(FGSettings())
-    const = end_error(replace(FGSettings(), online_heading_walk=0.0))
-    assert FGSettings().online_heading_walk > 0
+    const = end_error(FGSettings().with_(online={"heading_walk": 0.0}))
+    assert FGSettings().online.heading_walk > 0
     assert walk < 10 * DEG and walk < 0.6 * const, (np.degrees(walk), np.degrees(const))
 
 
@@ -1244,10 +1249,10 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     m, truth = mission("otter-heldout-281-60s", 8.0)
 
     def run(q: float):
-        fl = FixedLagSmoother(window=24.0, settings=FGSettings(online_kinematic_q=q))
+        fl = FixedLagSmoother(window=24.0, settings=FGSettings().with_(online={"kinematic_q": q}))
         return fl, fl.run(m)
 
-    fl, on = run(FGSettings().online_kinematic_q)
+    fl, on = run(FGSettings().online.kinematic_q)
     _, off = run(0.0)
     e_on = track_rmse(on.missions[0].filtered, truth)
     e_off = track_rmse(off.missions[0].filtered, truth)
@@ -1283,7 +1288,7 @@ def test_the_sway_prior_fits_the_sliding_crops_without_a_rescue():
                                 ("otter-example", 300.0, 900.0, 4.0)):
         truth = load_truth(data_path(name))
         m = with_gnss_every(crop(load_mission(data_path(name)), t0, t1), every)
-        r = fit_fg([m], settings=FGSettings(auto_effect=False))
+        r = fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
         assert r.plausible and "held_sway" not in r.info
         assert "alternative_held_sway" not in r.info and "k_yz" in r.estimated
         assert abs(wrap(r.values["theta_e"] - truth.params["theta_e"])) < 3 * DEG, name

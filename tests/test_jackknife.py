@@ -12,7 +12,7 @@ import pytest
 from aqfg.data import load_mission, load_truth
 from aqfg.data.mission import between, with_gnss_every
 from aqfg.fg import fit_fg
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.jackknife import MAX_BLOCKS, blocks, jackknife_sigma, without_fixes
 from aqfg.parameters_doc import parameters_document
 
@@ -72,7 +72,7 @@ def test_a_short_crop_current_sigma_holds_its_error(calm_b):
 
     def worst_z(r):
         return max(abs(r.values[n] - truth.params.get(n, 0.0)) / r.sigma[n] for n in ("s_x", "s_y"))
-    before = fit_fg([m], settings=FGSettings(block_jackknife=False))
+    before = fit_fg([m], settings=FGSettings().with_(batch={"block_jackknife": False}))
     assert before.block_jackknife is None
     assert worst_z(before) > 5.0                       # the defect, without the jackknife
     r = fit_fg([m])

@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.robust import huber_cost, huber_cost_squared, huber_scalar, huber_weight
 from aqfg.fg.schur import joint_lm
@@ -72,7 +72,7 @@ def test_loop_stops_at_the_iteration_limit_and_at_a_bound():
 
 
 def test_params_follow_the_settings():
-    s = FGSettings(max_iterations=7, rel_tol=1e-4, abs_tol=2e-3)
+    s = FGSettings().with_(solver={"max_iterations": 7, "rel_tol": 1e-4, "abs_tol": 2e-3})
     p = LMParams.of(s)
     assert (p.max_iterations, p.rel_tol, p.abs_tol) == (7, 1e-4, 2e-3)
     assert LMParams.of(s, max_iterations=2).max_iterations == 2

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.noise import variance_factor
 
 S = FGSettings()
@@ -29,7 +29,7 @@ def test_follows_a_model_error():
     rng = np.random.default_rng(1)
     qs = [variance_factor(*innovations(rng, 64.0, n=10, R=0.25, Q=0.07), S) for _ in range(50)]
     assert 16.0 <= np.median(qs) <= 256.0
-    assert variance_factor(*innovations(rng, 1e6, R=0.25, Q=0.07), S) == S.adapt_max
+    assert variance_factor(*innovations(rng, 1e6, R=0.25, Q=0.07), S) == S.graph.process_scale_max
 
 
 def test_an_outlying_fix_does_not_raise_it():
@@ -46,7 +46,7 @@ def test_a_run_of_unexplained_fixes_is_the_model_failing():
     rng = np.random.default_rng(4)
     e2, R, Q = innovations(rng, 1.0)
     e2[-1] = e2[-3] = 1e4
-    assert variance_factor(e2, R, Q, S) == S.adapt_max
+    assert variance_factor(e2, R, Q, S) == S.graph.process_scale_max
     e2, R, Q = innovations(rng, 1.0)
     e2[-2] = 1e4
     assert variance_factor(e2, R, Q, S) == 1.0

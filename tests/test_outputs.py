@@ -283,7 +283,7 @@ def test_fit_outputs_provenance(mission_dir, tmp_path):
     assert "thrust_asymmetry.ratio" in p["units"]
     assert p["inputs"] == [str(mission_dir.resolve())] and p["created_utc"].endswith("+00:00")
     assert p["command"].startswith("aqfg fit ") and "estimator" in p["settings"]
-    assert p["settings"]["estimator"]["knot_spacing"] == 1.0
+    assert p["settings"]["estimator"]["graph"]["knot_spacing"] == 1.0
 
 
 # ------------------------------------------------------------- outputs for other tools

@@ -16,7 +16,7 @@ from aqfg.fg.predictions import MIN_LEAD, Predictions, segments
 @pytest.fixture(scope="module")
 def calm_b():
     m = with_gnss_every(load_mission(data_path("otter-dev-calm-b")), 8.0)
-    return m, fit_fg([m], settings=FGSettings(auto_effect=False))
+    return m, fit_fg([m], settings=FGSettings().with_(batch={"auto_effect": False}))
 
 
 @pytest.mark.parametrize("names, logs", [(("k", "k_x", "k_yz"), True), (("s_x", "s_y"), False)])

@@ -77,8 +77,8 @@ def test_numpy_session_serves_the_graphs_reduced_system(missions):
     """A mission's session on its numpy system (the default) answers "sys" and "step" with
     the Schur complement, right-hand side, damping scale and candidate cost of its GTSAM
     graph's session."""
-    from aqfg.fg.common import FGSettings
-    sessions = [MissionSession(MissionProblem(BatchSmoother(settings=FGSettings(fast_lm=f)),
+    from aqfg.fg.settings import FGSettings
+    sessions = [MissionSession(MissionProblem(BatchSmoother(settings=FGSettings().with_(solver={"fast_lm": f})),
                                               missions[0], fixed_prior=True))
                 for f in (True, False)]
     assert sessions[0].fast is not None and sessions[1].fast is None
@@ -105,8 +105,8 @@ def test_session_track_is_the_track_smoothed_at_the_joint_parameters(missions):
     smooth of the mission at the joint fit's parameters gives (the fleet's track step):
     the same process-noise factor, the same track."""
     from aqfg.fg.batch import smooth_track
-    from aqfg.fg.common import FGSettings
-    st = FGSettings(adapt_track=True)
+    from aqfg.fg.settings import FGSettings
+    st = FGSettings().with_(batch={"adapt_track": True})
     sm = BatchSmoother(settings=st)
     sessions = [MissionSession(MissionProblem(sm, m, fixed_prior=(i == 0)))
                 for i, m in enumerate(missions)]

@@ -168,8 +168,8 @@ def test_multi_mission_batch_shares_the_fixed_node():
 
 def test_result_does_not_depend_much_on_knot_spacing(asv8):
     m, _ = asv8
-    a = fit_fg([m], settings=FGSettings(knot_spacing=0.5))
-    b = fit_fg([m], settings=FGSettings(knot_spacing=2.0))
+    a = fit_fg([m], settings=FGSettings().with_(graph={"knot_spacing": 0.5}))
+    b = fit_fg([m], settings=FGSettings().with_(graph={"knot_spacing": 2.0}))
     assert len(a.missions[0].track.t) > 2.5 * len(b.missions[0].track.t)
     for n in SIX:
         assert abs(a.values[n] - b.values[n]) < 0.5 * a.sigma[n], n
@@ -182,7 +182,8 @@ def test_random_walk_follows_heading_drift():
     rate = 5e-4
     m, tr = simulate("asv", seed=3, duration=600.0, effects={"heading_drift": rate})
     m = with_gnss_every(m, 8.0)
-    st = FGSettings(walk_sigma={"theta_e": 0.004, "s_x": 1e-4, "s_y": 1e-4}, walk_segment=60.0)
+    st = FGSettings().with_(graph={"walk_sigma": {"theta_e": 0.004, "s_x": 1e-4, "s_y": 1e-4},
+                                   "walk_segment": 60.0})
     res = fit_fg([m], estimate=("theta_e", "s_x", "s_y"),
                  init={n: tr.params[n] for n in ("k", "k_x", "k_yz")}, settings=st)
     h = res.history
@@ -222,5 +223,5 @@ def test_bad_input_is_named():
     with pytest.raises(ValueError, match="share the vehicle type"):
         fit_fg([m2, a])
     with pytest.raises(ValueError, match="knot spacing"):
-        fit_fg([m2], settings=FGSettings(knot_spacing=0.0))
+        fit_fg([m2], settings=FGSettings().with_(graph={"knot_spacing": 0.0}))
     assert isinstance(fc.ProcessNoise(), fc.ProcessNoise)

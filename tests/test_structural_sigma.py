@@ -14,8 +14,8 @@ from aqfg.fg import FGSettings, fit_fg
 from aqfg.sim.simulator import simulate
 
 VAR = ("theta_e", "s_x", "s_y")
-AS_GIVEN = FGSettings(auto_effect=False)     # the model as given: no effect added
-# the paper vehicles' sway prior (0.9 1/m around 0.3: FGSettings.prior_sigma without k_yz),
+AS_GIVEN = FGSettings().with_(batch={"auto_effect": False})     # the model as given: no effect added
+# the paper vehicles' sway prior (0.9 1/m around 0.3: FGSettings.graph.prior_sigma without k_yz),
 # under which the Otter's missing drag biases the current as the two scenarios below need;
 # the default prior (30 1/m) leaves less bias there (docs/independent-vehicle.md)
 PAPER_SWAY = {"s_x": 0.3, "s_y": 0.3}
@@ -31,7 +31,7 @@ def test_the_otters_missing_linear_drag_widens_sigma_by_the_shift_it_causes():
     res = fit_fg([m], settings=AS_GIVEN)
     st = res.sigma_structure
     assert st is not None and st.effect == "linear_drag" and st.p_value_robust < 1e-3
-    off = fit_fg([m], settings=FGSettings(structural_sigma=False))
+    off = fit_fg([m], settings=FGSettings().with_(batch={"structural_sigma": False}))
     assert off.sigma_structure is None
     refit = fit_fg([m], effects=("linear_drag",), settings=AS_GIVEN)
     rf = st.refit                           # the fit again with the effect (refit_structure)
@@ -56,8 +56,9 @@ def test_a_heldout_otter_current_biased_by_the_missing_drag_is_within_its_sigma(
     d = data_path("otter-heldout-111")
     truth = load_truth(d)
     m = load_mission(d)
-    res = fit_fg([m], settings=AS_GIVEN.with_(prior_sigma=PAPER_SWAY))
-    off = fit_fg([m], settings=FGSettings(structural_sigma=False, prior_sigma=PAPER_SWAY))
+    res = fit_fg([m], settings=AS_GIVEN.with_(graph={"prior_sigma": PAPER_SWAY}))
+    off = fit_fg([m], settings=FGSettings().with_(batch={"structural_sigma": False},
+                                                  graph={"prior_sigma": PAPER_SWAY}))
     assert res.sigma_structure is not None and res.sigma_structure.effect == "linear_drag"
     z_off = abs(off.values["s_x"] - truth.params["s_x"]) / off.sigma["s_x"]
     assert z_off > 3.0, z_off                         # what the sandwich alone reports
@@ -85,7 +86,7 @@ def test_a_structural_sigma_checked_by_refitting_covers_a_move_the_first_order_m
     the first-order shift alone s_y is more than 3 sigma off."""
     d = data_path("otter-heldout-146")
     m, truth = with_gnss_every(load_mission(d), 8.0), load_truth(d)
-    res = fit_fg([m], settings=FGSettings(prior_sigma=PAPER_SWAY))
+    res = fit_fg([m], settings=FGSettings().with_(graph={"prior_sigma": PAPER_SWAY}))
     assert res.effects == ("linear_drag",)
     st = res.sigma_structure
     assert st is not None and st.effect == "reverse_thrust" and st.proven
@@ -111,7 +112,7 @@ def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test
     jackknife, which widens it further, off: tests/test_jackknife.py)."""
     m, truth = (with_gnss_every(load_mission(data_path("otter-heldout-73-170s")), 4.0),
                 load_truth(data_path("otter-heldout-73-170s")))
-    res = fit_fg([m], settings=AS_GIVEN.with_(block_jackknife=False))
+    res = fit_fg([m], settings=AS_GIVEN.with_(batch={"block_jackknife": False}))
     assert res.too_short_for_sandwich
     st = res.sigma_structure
     assert st is not None

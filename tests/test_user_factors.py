@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.sim import simulate
 
 LOOSE = 1e3          # sigma of the entries a factor leaves free
@@ -21,7 +21,7 @@ def sparse():
 
 
 def _settings() -> FGSettings:
-    return FGSettings(auto_effect=False, heading_profile=False, adapt_track=False)
+    return FGSettings().with_(batch={"auto_effect": False, "heading_profile": False, "adapt_track": False})
 
 
 def _at(track, t: float) -> np.ndarray:

@@ -139,15 +139,15 @@ def _fit(method: str, effects: tuple[str, ...], thin, mission, truth, model, sta
     from aqfg.ekf.estimator import fit_update_error
     from aqfg.evaluate import inertial_rmse
     from aqfg.export import write_result
-    from aqfg.fg.common import FGSettings
     from aqfg.fg.fit import fit_fg
+    from aqfg.fg.settings import FGSettings
     from aqfg.outputs import provenance
     from aqfg.plots import plot_fit
     est = SIX + tuple(f"{e}.ratio" for e in effects)
     t0 = time.perf_counter()
     if method == "fg":
         res = fit_fg([thin], mode="batch", effects=effects, estimate=est,
-                     settings=FGSettings(auto_effect=False))
+                     settings=FGSettings().with_(batch={"auto_effect": False}))
     else:
         res = fit_update_error([thin], mode="batch", effects=effects, estimate=est)
     dt = time.perf_counter() - t0

@@ -293,11 +293,11 @@ def _fg_settings(args) -> dict:
     """``{"settings": FGSettings}`` where the command line changes the defaults: the effect
     step off, or the receiver's noise measured on the missions a ``--params-from`` file was
     fitted to."""
-    from aqfg.fg.common import FGSettings
-    st = FGSettings(auto_effect=not getattr(args, "no_auto_effect", False))
+    from aqfg.fg.settings import FGSettings
+    st = FGSettings().with_(batch={"auto_effect": not getattr(args, "no_auto_effect", False)})
     noise = gnss_noise_from(args.params_from)
     if noise is not None:
-        st = st.with_(gnss_noise=noise)
+        st = st.with_(graph={"gnss_noise": noise})
     return {} if st == FGSettings() else {"settings": st}
 
 

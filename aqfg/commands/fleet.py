@@ -33,12 +33,12 @@ def run(args) -> int:
           f"on {where}", file=sys.stderr)
     with fleet_client(args.workers, args.scheduler, while_starting=_load_solver) as client:
         from aqfg.commands.common import Progress
-        from aqfg.fg.common import FGSettings
+        from aqfg.fg.settings import FGSettings
         from aqfg.fleet.solve import fit_fleet
         fr = fit_fleet(manifest, client, effects=effects, gnss_every=args.gnss_every,
                        diagnose=args.diagnose,
                        progress=Progress("fleet"),     # a bar on a terminal only
-                       settings=FGSettings(auto_effect=not args.no_auto_effect))
+                       settings=FGSettings().with_(batch={"auto_effect": not args.no_auto_effect}))
     from aqfg.fleet.report import fixed_names, fleet_table, save_fleet
     save_fleet(fr, out, overwrite=args.force)
     table = fleet_table(fr)

@@ -101,7 +101,7 @@ def _options(args, imap):
     effects, init, _ = _effects_and_init(args, [layout_mission(imap)], from_file)
     st = _fg_settings(args).get("settings")
     noise = gnss_noise_from(args.params_from)
-    default_sigma = (st or _default_settings()).sensors.gnss_sigma
+    default_sigma = (st or _default_settings()).graph.sensors.gnss_sigma
     window = args.window or 24.0
 
     def make():
@@ -113,7 +113,7 @@ def _options(args, imap):
 
 
 def _default_settings():
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
     return FGSettings()
 
 

@@ -21,7 +21,8 @@ from aqfg.diagnose.consistency import ConsistencyTest, nis_test
 from aqfg.diagnose.heldout import HeldOut, heldout_innovations
 from aqfg.diagnose.linearise import linear_system
 from aqfg.diagnose.refit import WarmBatchSmoother
-from aqfg.fg.common import FGSettings, mission_model
+from aqfg.fg.common import mission_model
+from aqfg.fg.settings import FGSettings
 from aqfg.model.vehicle import Model
 from aqfg.result import Result
 from aqfg.threads import blas_threads  # noqa: F401  (re-exported for the diagnosis)

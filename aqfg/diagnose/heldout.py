@@ -27,8 +27,9 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.diagnose.consistency import ConsistencyTest, nis_test
 from aqfg.diagnose.marginals import anchor_covariances
-from aqfg.fg.common import FGSettings, interp_states
+from aqfg.fg.common import interp_states
 from aqfg.fg.score import LinearSystem
+from aqfg.fg.settings import FGSettings
 from aqfg.model.reference import wrap_angle
 from aqfg.model.vehicle import Model, attitude_at
 from aqfg.result import MissionResult, Track
@@ -106,7 +107,7 @@ class HeldOut:
 def _fix_rows(mission: Mission, settings: FGSettings):
     """Held-out fixes: (sensor, t, z (2,), R (2x2)) sorted by time."""
     rows = []
-    sn = settings.sensors
+    sn = settings.graph.sensors
     g = mission.gnss
     if g is not None and len(g.t):
         sig = g.sigma if g.sigma is not None else np.full(len(g.t), sn.gnss_sigma)
@@ -274,7 +275,7 @@ def _predict_fix(pr: _Predictor, row: tuple, leg_state: tuple, R_att: np.ndarray
     xj, Phj, Jpj = leg_state
     nu, Hp, Hth, fix_ne = _measure(pr, sensor, xj, R_att, tj, z)
     G = _sensitivity(pr, Hp, Hth, Phj, Jpj)
-    Q = pr.settings.process.cov(dt, pr.planar)
+    Q = pr.settings.graph.process.cov(dt, pr.planar)
     S = G @ Sa @ G.T + Hp @ Q @ Hp.T + R
     S = 0.5 * (S + S.T)
     nis = float(nu @ np.linalg.solve(S, nu))

@@ -19,8 +19,8 @@ import scipy.sparse as sp
 
 from aqfg.data.mission import Mission
 from aqfg.fg.batch import BatchSmoother, BuiltGraph, solution_values
-from aqfg.fg.common import FGSettings
 from aqfg.fg.score import LinearSystem
+from aqfg.fg.settings import FGSettings
 from aqfg.result import Result
 
 
@@ -156,7 +156,7 @@ def linear_system(missions: list[Mission], result: Result, candidates, *,
     ``built``: the graph that fit was solved on (no candidates): reused instead of a rebuild.
     """
     settings = settings or result.info.get("settings") or FGSettings()
-    if settings.walk_sigma:
+    if settings.graph.walk_sigma:
         raise ValueError("the score test needs constant variable parameters (walk_sigma=None)")
     base_model = result.model
     if base_model is None:

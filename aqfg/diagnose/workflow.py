@@ -100,7 +100,7 @@ from aqfg.diagnose.rendering import (  # noqa: F401
 )
 from aqfg.diagnose.wording import gain_cell, heldout_change, percent_change  # noqa: F401
 from aqfg.fg import gnss_noise
-from aqfg.fg.common import FGSettings, check_missions, progress_fn
+from aqfg.fg.common import check_missions, progress_fn
 from aqfg.fg.score import (
     Projected,
     ScoreTest,
@@ -109,6 +109,7 @@ from aqfg.fg.score import (
     project,
     score_tests,
 )
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.structure import candidate_effects
 from aqfg.model.effects import resolve
 
@@ -306,14 +307,14 @@ def diagnose(missions: Sequence[Mission] | Mission, model=None, effects: Sequenc
 def _held_out_splits(missions: list[Mission], settings: FGSettings, gnss_every: float):
     """The held-out GNSS fixes' 1-sigma (m; None: their stated sigma) and each mission's
     split into fit and held-out fixes (GNSS one every ``gnss_every`` s). The sigma is
-    ``settings.gnss_noise``'s where that is a :class:`~aqfg.fg.gnss_noise.GnssNoise`, the
+    ``settings.graph.gnss_noise``'s where that is a :class:`~aqfg.fg.gnss_noise.GnssNoise`, the
     stated one where it is None, else the stated one unless the fixes' wander shows it too
     large (:func:`~aqfg.fg.gnss_noise.judged_sigma`: a stated sigma far above it would
     hide any dead-reckoning error)."""
-    gn = settings.gnss_noise
+    gn = settings.graph.gnss_noise
     sigma = (None if gn is None else gn.sigma if isinstance(gn, gnss_noise.GnssNoise) else
-             gnss_noise.judged_sigma(missions, settings.online_kinematic_q,
-                                     settings.sensors.gnss_sigma))
+             gnss_noise.judged_sigma(missions, settings.online.kinematic_q,
+                                     settings.graph.sensors.gnss_sigma))
     return sigma, [split_fixes(m, gnss_every, sigma) for m in missions]
 
 
@@ -329,7 +330,7 @@ def _screen_of(missions: list[Mission], base: FitEval, cands: list,
 
 def _fit_settings(settings: FGSettings, jobs: int, heldout_sigma: float | None) -> dict:
     """The fits' settings as recorded in ``diagnosis.json`` (after the tests' own)."""
-    return {"knot_spacing": settings.knot_spacing, "sigma_a": settings.process.sigma_a,
+    return {"knot_spacing": settings.graph.knot_spacing, "sigma_a": settings.graph.process.sigma_a,
             "jobs": jobs, "heldout_gnss_sigma": heldout_sigma}
 
 
@@ -480,8 +481,9 @@ def diagnose_step(missions: Sequence[Mission] | Mission, model=None, effects: Se
     prog = progress_fn(progress)
     missions = check_missions(missions)
     # the nominal process noise: a noise chosen to explain the fixes would hide the
-    # misfit the diagnosis is there to show (adapt_batch None would choose it on short data)
-    settings = (settings or FGSettings()).with_(adapt_batch=False, adapt_track=False)
+    # misfit the diagnosis is there to show (batch.adapt_noise None would choose it on short data)
+    settings = (settings or FGSettings()).with_(batch={"adapt_noise": False,
+                                                          "adapt_track": False})
     effects = tuple(resolve(e) for e in effects)
     jobs = default_jobs() if jobs is None else max(1, int(jobs))
     timings: dict = {}

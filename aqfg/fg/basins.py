@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from aqfg.fg import observability
-from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph import BuiltGraph
 from aqfg.fg.graph_lm import LMOutcome
 from aqfg.fg.profile import heading_profile, worth_walking
+from aqfg.fg.settings import FGSettings
 from aqfg.result import HeadingEvidence, Result
 
 
@@ -88,7 +88,7 @@ def ambiguity_variance(chosen: dict[str, float], ambiguous: list[dict], cost: fl
 
 def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, values,
                       s: FGSettings) -> None:
-    """:attr:`FGSettings.heading_profile`: the heading offset's profile over the circle
+    """:attr:`FGSettings.batch.heading_profile`: the heading offset's profile over the circle
     (:func:`aqfg.fg.profile.heading_profile`, one mission's theta_e) into
     ``res.heading_profile``; each sigma of the first mission's parameters widened to
     the profile's spread about the fit where that is larger (the former sigmas in

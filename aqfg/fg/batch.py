@@ -46,7 +46,6 @@ from aqfg.fg.basins import (
 )
 from aqfg.fg.batch_result import batch_result
 from aqfg.fg.common import (
-    FGSettings,
     check_missions,
     mission_model,
     outliers,
@@ -78,6 +77,7 @@ from aqfg.fg.graph_lm import (
     hessian_diagonal as hessian_diagonal,
 )
 from aqfg.fg.plausibility import Plausibility
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.starts import (
     alternative_starts,
     evaluable_values,
@@ -110,7 +110,7 @@ class BatchSmoother:
         the fixes), e.g. an online estimate; the lower cost among plausible solutions wins
         as for the heading basins. ``factors``: GTSAM factors of the user's own on the
         graph's states and parameters (:mod:`aqfg.fg.user_factors`); the graph is then
-        solved on GTSAM's linearisation (``fast_lm`` off)."""
+        solved on GTSAM's linearisation (``solver.fast_lm`` off)."""
         self.factors = factors
         self.also_start = dict(also_start) if also_start else None
         self.log_warnings = True           # Result.warnings also to the log (WARNING)
@@ -131,7 +131,7 @@ class BatchSmoother:
         self.init = dict(init or {})
         self.settings = settings or FGSettings()
         if factors is not None:          # the numpy form holds the built-in factors only
-            self.settings = self.settings.with_(fast_lm=False)
+            self.settings = self.settings.with_(solver={"fast_lm": False})
         self.progress = progress_fn(progress)
 
     # ---------------------------------------------------------------- graph
@@ -183,11 +183,11 @@ class BatchSmoother:
                        "iteration": out.it_times, "covariance": [t_end - t_cov]}
         _sigma_info(res, bg, cov_model, s)
         _ambiguity_info(res, basins, out.cost, len(bg.parts))
-        if sol.short and s.heading_profile and fs is not None and out.fast is not None:
+        if sol.short and s.batch.heading_profile and fs is not None and out.fast is not None:
             widen_by_profile(res, fs, bg, bg.nodes, out.values, s)
         res.solve = SolveSummary(
             out.converged, float(out.cost), out.iterations, out.trials,
-            hit_iteration_limit=(not out.converged) and out.iterations >= s.max_iterations)
+            hit_iteration_limit=(not out.converged) and out.iterations >= s.solver.max_iterations)
         _verdict_info(res, bg, verdicts)
         if held is not None:
             _held_sway_info(res, held, out.cost, slips)
@@ -210,7 +210,7 @@ class BatchSmoother:
         self.short_solution = ((fs, out.fast) if sol.short and fs is not None
                                and out.fast is not None else None)
         res.too_short_for_sandwich = bool(sol.short)
-        if s.adapt_track and self.fast_solution is not None:
+        if s.batch.adapt_track and self.fast_solution is not None:
             self._track_job = (fs, out, bg.layout, bg.parts, bg.nodes, cov)
         if not self.defer_track:
             self.smooth_tracks(res)
@@ -230,7 +230,7 @@ class BatchSmoother:
         # ranked a basin 43 deg off 7 lower in cost and 14.5 lower in evidence
         # (docs/independent-vehicle.md)
         le_out = np.nan
-        if sol.adapt and s.rank_by_evidence and fs is not None and out.fast is not None:
+        if sol.adapt and s.batch.rank_by_evidence and fs is not None and out.fast is not None:
             le_out = fs.log_evidence(out.fast)
         by_ev = bool(np.isfinite(le_out))
         q_out = sol.q_scale
@@ -281,7 +281,7 @@ class BatchSmoother:
         return replace(sol, out=out, q_scale=q_out, q_measured=q_out), verdicts, basins
 
     def smooth_tracks(self, res: Result) -> Result:
-        """:attr:`FGSettings.adapt_track`: the tracks and their residuals of the result
+        """:attr:`FGSettings.batch.adapt_track`: the tracks and their residuals of the result
         ``res`` of the last :meth:`run` (in place) from the states smoothed again with the
         parameters held at the fit, under the process-noise factor of the largest evidence
         of the states given them; ``res`` as it is where that does not apply (the setting
@@ -368,10 +368,11 @@ class BatchSmoother:
 def smooth_track(mission: Mission, p: np.ndarray, *, model: Model | None = None, effects=(),
                  settings: FGSettings | None = None) -> tuple[Track, dict, float]:
     """The track of ``mission`` smoothed with every parameter held at the full vector ``p``
-    under the process noise its evidence chooses (:attr:`FGSettings.adapt_track`, as the
+    under the process noise its evidence chooses (:attr:`FGSettings.batch.adapt_track`, as the
     batch's own tracks), for a fit whose states came from elsewhere (the fleet's joint
     solve). Returns the track, its residuals and the process-noise factor."""
-    s = (settings or FGSettings()).with_(adapt_track=True, adapt_batch=False, sandwich_block=0.0)
+    s = (settings or FGSettings()).with_(batch={"adapt_track": True, "adapt_noise": False,
+                                                   "sandwich_block": 0.0})
     names = mission_model(model, mission, effects).all_names
     bs = BatchSmoother(model, effects=effects, estimate=(), settings=s,
                        init={n: float(v) for n, v in zip(names, p)})
@@ -402,9 +403,9 @@ class _Solve:
 def _first_solve(bg: BuiltGraph, s: FGSettings, progress, init: dict) -> _Solve:
     """LM from the graph's initial values (or the first start where the model can be
     evaluated: :func:`~aqfg.fg.starts.evaluable_values`), then the process noise its
-    evidence chooses (:attr:`FGSettings.adapt_batch`) or measures
-    (:attr:`FGSettings.measure_noise`)."""
-    fs = FastSystem.build(bg, s) if s.fast_lm else None
+    evidence chooses (:attr:`FGSettings.batch.adapt_noise`) or measures
+    (:attr:`FGSettings.batch.measure_noise`)."""
+    fs = FastSystem.build(bg, s) if s.solver.fast_lm else None
     values = evaluable_values(bg, (lambda v: fs.evaluate(*fs.from_values(v))["cost"])
                               if fs is not None else bg.graph.error, init)
     ordering = None if fs is not None else \
@@ -414,12 +415,12 @@ def _first_solve(bg: BuiltGraph, s: FGSettings, progress, init: dict) -> _Solve:
     # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
     # noise is the honest sigma there (docs/independent-vehicle.md)
     short = too_short_for_sandwich(bg, s)
-    adapt = short if s.adapt_batch is None else s.adapt_batch
+    adapt = short if s.batch.adapt_noise is None else s.batch.adapt_noise
     q_measured = None
-    if (adapt or s.measure_noise) and fs is not None and out.fast is not None:
+    if (adapt or s.batch.measure_noise) and fs is not None and out.fast is not None:
         # how much process noise the model needs (aqfg.fg.noise): a model that is not
         # the vehicle's bends the parameters under the nominal noise; measured only
-        # (measure_noise), the solution stays the nominal one
+        # (batch.measure_noise), the solution stays the nominal one
         X0, th0 = fs.from_values(out.values)
         q_ev, Xq, thq, q_tried = noise.evidence_search(fs, X0, th0, out.fast, s)
         q_measured = q_ev
@@ -447,7 +448,7 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
         key_time.update({k: shift + float(t) - t_first for k, t in zip(part.keys, part.knots)})
         # next mission from a block boundary: its blocks start at its own start, as in
         # the fleet's per-mission solve (aqfg.fg.schur)
-        b = s.sandwich_block or 1.0
+        b = s.batch.sandwich_block or 1.0
         shift += b * (np.floor((float(part.knots[-1]) - t_first) / b) + 2.0)
     if out.fast is not None:
         assert fs is not None           # the numpy path ran: its system was built
@@ -462,7 +463,7 @@ def _covariances(bg: BuiltGraph, sol: _Solve, s: FGSettings) -> tuple[dict, dict
             # the undamped system is singular: no parameter is determined by the Hessian
             cov_model = {k: np.diag(np.full(layout.dim(g), np.inf)) for g, k, _ in node_list}
         cov_sw = block_sandwich(gfg, bg.key_dims(), key_time, [n.key for n in node_list],
-                                s.sandwich_block) if s.sandwich_block else None
+                                s.batch.sandwich_block) if s.batch.sandwich_block else None
     cov = honest_covariance(cov_model, cov_sw[0] if cov_sw else None,
                             cov_sw[1] if cov_sw else None)
     return cov_model, cov
@@ -475,7 +476,7 @@ def _sigma_info(res: Result, bg: BuiltGraph, cov_model: dict, s: FGSettings) -> 
     res.sigma_model = {n: float(v) for n, v in
                        sigma_by_name(layout, bg.nodes, cov_model).items()}
     res.sigma_inflation = sigma_inflation(res.sigma, res.sigma_model)
-    prior_sigma = {n: s.prior_sigma.get(n, s.prior_scale * parts[0].model.spec(n).scale)
+    prior_sigma = {n: s.graph.prior_sigma.get(n, s.graph.prior_scale * parts[0].model.spec(n).scale)
                    for n in layout.estimated}
     res.observability = observability.verdicts(
         parts[0].model, [p.mission for p in parts], layout.estimated, res.sigma,

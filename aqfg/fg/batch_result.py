@@ -7,8 +7,9 @@ import gtsam
 import numpy as np
 
 from aqfg.fg import factors as fc
-from aqfg.fg.common import FGSettings, piecewise_inertial, residuals
+from aqfg.fg.common import piecewise_inertial, residuals
 from aqfg.fg.graph import MissionPart, ParamNode
+from aqfg.fg.settings import FGSettings
 from aqfg.result import Covariance, MissionResult, ParamHistory, Residuals, Result, Track
 
 
@@ -89,6 +90,6 @@ def _dynamics_residuals(part: MissionPart, X: np.ndarray, p_segments, s: FGSetti
         raw[a:b] = X[a + 1:b + 1] - pred
     dts = np.diff(part.knots)
     uniq, inv = np.unique(dts, return_inverse=True)
-    Ls = np.array([np.linalg.cholesky(s.process.cov(dt, part.mission.planar)) for dt in uniq])
+    Ls = np.array([np.linalg.cholesky(s.graph.process.cov(dt, part.mission.planar)) for dt in uniq])
     norm = np.linalg.solve(Ls[inv], raw[:, :, None])[:, :, 0] if len(raw) else raw.copy()
     return Residuals(part.knots[1:].copy(), raw, norm)

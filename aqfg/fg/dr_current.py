@@ -18,7 +18,7 @@ the smoother's robust scale) under the current fitted without that block (one Ga
 step from the full fit, residuals linearised: the current enters nearly linearly over a
 horizon) against under the smoother's. Its 1-sigma is the larger of the smoother's and the
 leave-one-block-out jackknife's. A mission with a piecewise current
-(``FGSettings.walk_sigma``) or fewer than two blocks keeps the smoother's.
+(``FGSettings.graph.walk_sigma``) or fewer than two blocks keeps the smoother's.
 
 It is the drift of the model's own predictions (the mission's parameter vector, its
 re-trace ``inertial.csv``), reported in ``parameters.json`` under

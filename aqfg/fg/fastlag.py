@@ -1,5 +1,5 @@
 """The fixed-lag smoother's window in numpy: the online engine without a Python callback per
-factor (:class:`aqfg.fg.fixed_lag.FixedLagSmoother` with ``FGSettings.online_engine =
+factor (:class:`aqfg.fg.fixed_lag.FixedLagSmoother` with ``FGSettings.online.engine =
 "numpy"``).
 
 The GTSAM engine (ISAM2 with ``CustomFactor`` s) calls Python for every new and every
@@ -18,7 +18,7 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   dense Gaussian on ``[theta, oldest knot]``, a Schur complement, linearised where the
   knot left, as GTSAM's linear container factor), whose current moves by a Gauss-Markov
   step and whose heading offset by a random-walk step as knots leave (every
-  ``WALK_EVERY`` s of them; ``FGSettings.online_current_walk``, ``online_heading_walk``,
+  ``WALK_EVERY`` s of them; ``FGSettings.online.current_walk``, ``heading_walk``,
   :meth:`LagWindow._walk`);
 * per update one Gauss-Newton step (as one ISAM2 iteration): each dynamics factor keeps
   its linearisation (prediction and Jacobians at ``(x0_lin, theta_lin)``) until its first
@@ -30,7 +30,7 @@ relinearised dynamics factor (docs/speed.md). This engine holds the same problem
   (``linearise_into``), the step (``window_step``) and the marginalisation
   (``schur_drop``) are one C++ call each; the numpy code here and in
   :mod:`aqfg.fg.fastlag_dyn` is their reference
-  (``FGSettings.fast_cpp_block=False``; docs/speed.md).
+  (``FGSettings.online.cpp_block=False``; docs/speed.md).
 
 :meth:`LagWindow.unsupported` says why a configuration needs the GTSAM engine
 (measurement effects such as a lever arm or USBL distortions, a Cauchy loss, random-walk
@@ -123,13 +123,13 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
         of the parameters."""
         s, model, layout = self.s, self.model, self.layout
         self.hold_w = None if hold_sigma is None else 1.0 / np.asarray(hold_sigma, float) ** 2
-        sn = s.sensors
+        sn = s.graph.sensors
         self.k_gnss = (None if sn.robust == "none" or "gnss" not in sn.robust_on
                        else sn.robust_k_gnss)
         self.k_usbl = (None if sn.robust == "none" or "usbl" not in sn.robust_on
                        else sn.robust_k)
-        self.surf_w = 1.0 / np.asarray(s.surface_sigma, float) ** 2
-        self.relin_th = s.fast_relin_param * np.array([model.spec(n).scale
+        self.surf_w = 1.0 / np.asarray(s.graph.surface_sigma, float) ** 2
+        self.relin_th = s.online.relin_param_fraction * np.array([model.spec(n).scale
                                                        for n in layout.estimated])
         self._relin_th_l = self.relin_th.tolist()
 
@@ -148,10 +148,10 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
         # the window's solve and Schur complement in C++ (kernel window_step, schur_drop;
         # the numpy code below is their reference)
         self._cwin = (cpp is not None and hasattr(cpp, "window_step")
-                      and self.s.fast_cpp_block)
+                      and self.s.online.cpp_block)
         self._lcols = (np.ascontiguousarray(self.jcols, np.int64)
                        if self.jcols is not None and P and cpp is not None
-                       and hasattr(cpp, "linearise_into") and self.s.fast_cpp_block else None)
+                       and hasattr(cpp, "linearise_into") and self.s.online.cpp_block else None)
         self.last_ok = True
 
     def _init_estimate(self, x0: np.ndarray, prior_sigma: np.ndarray, first_mean: np.ndarray,
@@ -194,9 +194,9 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
         """Why this engine cannot run the configuration ("" when it can)."""
         from aqfg.fg.fastlm import _plain_sensors
         from aqfg.model.effects import FixDelayTerm, SensorOffsetTerm, UsblTerm
-        if settings.sensors.robust not in ("huber", "none"):
-            return f"{settings.sensors.robust} loss"
-        if settings.walk_sigma:
+        if settings.graph.sensors.robust not in ("huber", "none"):
+            return f"{settings.graph.sensors.robust} loss"
+        if settings.graph.walk_sigma:
             return "random-walk parameters"
         if any(isinstance(e, (SensorOffsetTerm, UsblTerm, FixDelayTerm)) for e in model.effects) \
                 or layout.meas_groups("gnss") or layout.meas_groups("usbl") \
@@ -303,7 +303,7 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
 
     def broaden(self, state_sigma: np.ndarray, prior_scale: float) -> None:
         """Recovery from a failed step: broad priors around the current estimate on every
-        knot (``state_sigma``) and the parameters (``prior_scale`` x their scales), and the
+        knot (``state_sigma``) and the parameters (``graph.prior_scale`` x their scales), and the
         dynamics factors relinearised at the estimate."""
         P = self.P
         sc = np.array([prior_scale * self.layout.model.spec(n).scale
@@ -323,13 +323,13 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
     def _relinearise(self) -> None:
         """Relinearise the dynamics factors whose first knot or parameters moved past the
         thresholds since their linearisation, and the fixes whose knot moved past
-        ``relin_pos``."""
+        ``online.relin_pos``."""
         # in Python floats: a few knots, and numpy calls cost microseconds each
         P = self.P
         th = self.z[:P]
         X = self.z[P:].reshape(-1, 6)
         Xl = X.tolist()
-        rp = self.s.relin_pos
+        rp = self.s.online.relin_pos
         for i, (x, f) in enumerate(zip(Xl, self.FXL)):
             # NaN (no fix): False
             if abs(x[0] - f[0]) > rp or abs(x[1] - f[1]) > rp or abs(x[2] - f[2]) > rp:
@@ -339,7 +339,7 @@ class LagWindow(WindowFixes, WindowDynamics, WindowWalk):
         # a dynamics factor is exactly invariant to a move of its first knot's position
         # (the model never reads it: x1 and the block shift with it), so only the velocity
         # and the parameters are compared
-        rv, rt, thl = self.s.relin_vel, self._relin_th_l, th.tolist()
+        rv, rt, thl = self.s.online.relin_vel, self._relin_th_l, th.tolist()
         move = []
         for i, (x, x0, t0) in enumerate(zip(Xl, self.X0L, self.THL)):
             if abs(x[3] - x0[3]) > rv or abs(x[4] - x0[4]) > rv or abs(x[5] - x0[5]) > rv:

@@ -79,7 +79,7 @@ class WindowDynamics:
     def _propagator(self, steps):
         """The dynamics factor's kernel over ``steps``: ``f(x0, p) -> (x1, Jx, Jp)``
         (:func:`fc.propagator`), with the vehicle's geometry converted once; with the C++
-        block (``FGSettings.fast_cpp_block``) also ``f.into``, the factor linearised and
+        block (``FGSettings.online.cpp_block``) also ``f.into``, the factor linearised and
         swapped into the held quadratic in one call (kernel ``linearise_into``)."""
         if self._kern is None:
             if compiled_kernel() is None or not self.model.uses_cpp:
@@ -93,7 +93,7 @@ class WindowDynamics:
         W = self._wcache.get(key)
         if W is None:
             W = self._wcache[key] = np.linalg.inv(np.linalg.cholesky(
-                self.s.process.cov(dt, self.planar)))
+                self.s.graph.process.cov(dt, self.planar)))
         return W if q == 1.0 else W * (1.0 / math.sqrt(q))
 
     def dyn_linear(self, i: int, x0: np.ndarray, th: np.ndarray, pred, Jx, Jp, W):

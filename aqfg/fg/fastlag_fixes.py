@@ -53,7 +53,7 @@ class WindowFixes:
         tk = self.kt[-1]
         j = a + int(np.argmin(np.abs(dt_[a:b] - tk)))
         e = float(dt_[j] - tk)
-        var = self.s.sensors.depth_sigma ** 2 + float(self.s.process.cov(abs(e))[2, 2])
+        var = self.s.graph.sensors.depth_sigma ** 2 + float(self.s.graph.process.cov(abs(e))[2, 2])
         o = self.P + 6 * (self.n - 1)
         J = np.zeros(6)
         J[2], J[5] = 1.0, e

@@ -1,6 +1,6 @@
 """The random walk of the current and the heading offset in
 :class:`aqfg.fg.fastlag.LagWindow`: a Gauss-Markov step applied to the marginal of the knots
-that left the window (``FGSettings.online_current_walk``, ``online_heading_walk``)."""
+that left the window (``FGSettings.online.current_walk``, ``heading_walk``)."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 # s: the current's walk is applied to the marginal in steps of at least this (one step
-# costs ~90-170 us; its correlation time is minutes, FGSettings.online_current_walk)
+# costs ~90-170 us; its correlation time is minutes, FGSettings.online.current_walk)
 WALK_EVERY = 30.0
 
 
@@ -31,17 +31,17 @@ class WindowWalk:
     def _init_walk(self) -> None:
         """The walking parameters' indices, variances per second and stationary variances."""
         s, layout = self.s, self.layout
-        # random walk of the current and the heading offset (FGSettings.online_current_walk,
-        # online_heading_walk): variance per second of each estimated parameter that walks
-        cw = float(s.online_current_walk)
-        hw = float(s.online_heading_walk)
+        # random walk of the current and the heading offset (FGSettings.online.current_walk,
+        # heading_walk): variance per second of each estimated parameter that walks
+        cw = float(s.online.current_walk)
+        hw = float(s.online.heading_walk)
         rate = {"s_x": cw, "s_y": cw, "theta_e": hw}
         wv = [j for j, n in enumerate(layout.estimated)
               if rate.get(n, 0.0) > 0 and n in layout.names.get("variable", ())]
         self._walk_idx = np.array(wv, int)
         self._walk_var = np.array([rate[layout.estimated[j]] ** 2 for j in wv])
-        # its stationary variance: the current's prior (s.prior_sigma), inf: a plain walk
-        self._walk_stat = np.array([float(s.prior_sigma.get(layout.estimated[j], math.inf))
+        # its stationary variance: the current's prior (s.graph.prior_sigma), inf: a plain walk
+        self._walk_stat = np.array([float(s.graph.prior_sigma.get(layout.estimated[j], math.inf))
                                     ** 2 for j in wv])
         self._walk_cache: dict = {}
         self._walk_due = 0.0           # s of the marginal's time not walked yet
@@ -63,12 +63,12 @@ class WindowWalk:
 
     def _walk(self, dt: float) -> None:
         """The current (and the heading offset: a plain random walk of
-        ``online_heading_walk`` rad per sqrt(s)) of the information that has left the window
+        ``online.heading_walk`` rad per sqrt(s)) of the information that has left the window
         moves before it meets the window's data: a first-order Gauss-Markov process (the
         INS bias model) around the
         prior's centre ``mu0``, ``s' - mu0 = a (s - mu0) + w``, diffusing as a random walk of
-        ``online_current_walk`` m/s per sqrt(s) over short times and with the current's
-        prior (``FGSettings.prior_sigma``) as its stationary sigma, so that the prior does
+        ``online.current_walk`` m/s per sqrt(s) over short times and with the current's
+        prior (``FGSettings.graph.prior_sigma``) as its stationary sigma, so that the prior does
         not wash out over a long mission (``a = exp(-dt / tau)``, ``tau = 2 S / sigma^2``,
         ``var(w) = S (1 - a^2)``).
 

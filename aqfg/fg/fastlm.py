@@ -94,7 +94,7 @@ class FastSystem:
     def build(cls, bg, settings) -> FastSystem | None:
         """The numpy form of ``bg``, or None when the graph is not of the supported shape."""
         lay = bg.layout
-        sn = settings.sensors
+        sn = settings.graph.sensors
         if sn.robust not in ("huber", "none"):
             return None
         if not fastlm_meas.supported(bg):
@@ -113,7 +113,7 @@ class FastSystem:
                 key = (round(dt, 9), part.mission.planar)
                 if key not in wcache:       # the graph's own whitening (R^T R = Q^-1), the
                     # noise model of the first interval of that length, as the graph's
-                    wcache[key] = settings.process.noise_model(dt, part.mission.planar).R()
+                    wcache[key] = settings.graph.process.noise_model(dt, part.mission.planar).R()
                 W.append(wcache[key])
                 hz.append(part.mission.planar)
                 idx0.append(self.part_off[pi] + i)
@@ -519,6 +519,6 @@ def levenberg_marquardt_fast(fs: FastSystem, values: gtsam.Values | None, s, pro
         {j: 0.0 for j in (range(fs.P) if hold_params is True else hold_params)} or None
     out = lm.levenberg_marquardt(FastLM(fs, held), (X, th, fs.evaluate(X, th)),
                                  lm.LMParams.of(s, max_iterations),
-                                 lm.batch_progress(progress, s.max_iterations))
+                                 lm.batch_progress(progress, s.solver.max_iterations))
     X, th, ev = out.x
     return X, th, out.cost, ev, out.iterations, out.trials, out.converged, out.it_times

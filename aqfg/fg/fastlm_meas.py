@@ -53,7 +53,7 @@ def _has_sensor_model(model, stream: str) -> bool:
 def measurements(fs: FastSystem, settings) -> list[Meas]:
     """The GNSS, USBL and depth factors of every mission part, by kind (the fixes of a
     stream with a sensor model also by parameter segment)."""
-    sn = settings.sensors
+    sn = settings.graph.sensors
     lay = fs.layout
     meas: list[Meas] = []
     for pi, part in enumerate(fs.bg.parts):

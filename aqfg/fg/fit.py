@@ -23,7 +23,7 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import dead_reckoning, gnss_noise, jackknife
 from aqfg.fg.batch import MISFIT_INFLATION, BatchSmoother
-from aqfg.fg.common import FGSettings, check_missions, mission_model
+from aqfg.fg.common import check_missions, mission_model
 from aqfg.fg.effect_guard import (
     base_record,
     bic_cost,
@@ -35,6 +35,7 @@ from aqfg.fg.effect_guard import (
     widen_by_other_minimum,
 )
 from aqfg.fg.fixed_lag import FixedLagSmoother, UpdateInfo
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.structural_sigma import cover_refit, structural_sigma
 from aqfg.fg.structure import structural_shift
 from aqfg.model.effects import resolve
@@ -63,7 +64,7 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     online: the variable ones). ``init``: initial values, and the values of the parameters
     not estimated. ``effects``: model effects (names or UserEffect objects).
 
-    The steps: the fixes weighted by the GNSS noise (``FGSettings.gnss_noise``), the
+    The steps: the fixes weighted by the GNSS noise (``FGSettings.graph.gnss_noise``), the
     batch (:func:`fit_batch`) or online (:func:`fit_online`) fit of the weighted
     missions, and the noise's record (:func:`with_gnss_noise`).
     """
@@ -71,8 +72,8 @@ def fit_fg(missions: Sequence[Mission] | Mission, *, mode: str = "batch",
     if mode not in ("batch", "online"):
         raise ValueError(f"mode must be 'batch' or 'online', got {mode!r}")
     st = settings or FGSettings()
-    weighted, noise = gnss_noise.apply(list(missions), st.gnss_noise, st.online_kinematic_q,
-                                       st.sensors.gnss_sigma, track=mode == "online")
+    weighted, noise = gnss_noise.apply(list(missions), st.graph.gnss_noise, st.online.kinematic_q,
+                                       st.graph.sensors.gnss_sigma, track=mode == "online")
     if mode == "batch":
         res = fit_batch(weighted, model, effects, estimate, init, settings, progress)
     else:
@@ -101,7 +102,7 @@ def fit_batch(missions: list[Mission], model, effects: Sequence, estimate, init,
     else:
         res = _finish(res, bs, missions, model, effects)
     logged = 0 if auto else len(res.warnings)
-    if st.block_jackknife and len(missions) == 1 and res.too_short_for_sandwich:
+    if st.batch.block_jackknife and len(missions) == 1 and res.too_short_for_sandwich:
         res = _block_jackknife(res, missions[0], model, effects, init, st)
     for w in res.warnings[logged:]:
         log.warning("fg: %s", w)
@@ -137,14 +138,15 @@ def merge_online(results: list[Result]) -> Result:
 
 def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, init,
                      settings: FGSettings) -> Result:
-    """:attr:`FGSettings.block_jackknife` on the batch fit ``res`` of ``mission``
+    """:attr:`FGSettings.batch.block_jackknife` on the batch fit ``res`` of ``mission``
     (:func:`aqfg.fg.jackknife.widen`): its refits keep ``res``'s model (its effects, the
     effect step's among them) and its estimated parameters, without the effect step, the
     heading profile or the track's noise, and log nothing (their warnings are theirs, not
     the fit's)."""
     have = {getattr(e, "name", e) for e in effects}
     eff = (*effects, *(n for n in res.effects if n not in have))
-    quick = settings.with_(auto_effect=False, heading_profile=False, adapt_track=False)
+    quick = settings.with_(batch={"auto_effect": False, "heading_profile": False,
+                                   "adapt_track": False})
     est = tuple(res.estimated)
 
     def refit(m: Mission) -> Result:
@@ -155,9 +157,9 @@ def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, in
 
 def auto_effect_applies(settings: FGSettings, estimate: Sequence[str] | None) -> bool:
     """Whether a batch fit (``aqfg fit``'s or the fleet's) takes the effect step
-    (:attr:`FGSettings.auto_effect`): on, the default parameters (no ``estimate``: with it
+    (:attr:`FGSettings.batch.auto_effect`): on, the default parameters (no ``estimate``: with it
     the user has chosen the model) and the structural test that names the effect."""
-    return settings.auto_effect and estimate is None and settings.structural_sigma
+    return settings.batch.auto_effect and estimate is None and settings.batch.structural_sigma
 
 
 def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init, settings,
@@ -169,7 +171,7 @@ def _solve(missions: Sequence[Mission], model, effects: Sequence, estimate, init
     bs = BatchSmoother(model, effects=effects, estimate=estimate, init=init,
                        settings=settings, progress=progress)
     bs.log_warnings = log_warnings
-    bs.inertial = bs.settings.dr_horizon <= 0   # re-traced once, with the final constants
+    bs.inertial = bs.settings.batch.dr_horizon <= 0   # re-traced once, with the final constants
     bs.defer_track = True
     res = bs.run(missions)
     sol = bs.fast_solution or bs.short_solution
@@ -194,7 +196,7 @@ def _finish(res: Result, bs: BatchSmoother, missions: Sequence[Mission], model,
     # the constants to dead-reckon with: multi-step prediction error where it differs
     # significantly from the smoother's one-interval fit (aqfg.fg.dead_reckoning), from
     # the nominal fit's states (as the fleet's)
-    res = dead_reckoning.refine(res, list(missions), bs.settings.dr_horizon)
+    res = dead_reckoning.refine(res, list(missions), bs.settings.batch.dr_horizon)
     res = bs.smooth_tracks(res)
     return with_inertial_tracks(res, missions, model, effects)
 
@@ -226,7 +228,7 @@ class EffectTry:
 
 def adopt_effect(res: Result, bs: BatchSmoother, missions: list[Mission], model,
                  effects: Sequence, init, settings: FGSettings | None, progress=False) -> Result:
-    """:attr:`FGSettings.auto_effect`: where the structural test of the batch fit ``res``
+    """:attr:`FGSettings.batch.auto_effect`: where the structural test of the batch fit ``res``
     names missing effects (its ``structural_test``), the fit again with the
     best-supported one of the vehicle's dynamics (not a drift of the heading offset or the
     current) added, and with the one of largest score statistic if that is another

@@ -243,7 +243,7 @@ def weighted(mission: Mission, noise: GnssNoise | None, default_sigma: float,
 
 def resolve(missions: list[Mission], noise, q: float, default_sigma: float
             ) -> GnssNoise | None:
-    """The GNSS noise ``noise`` names (:attr:`FGSettings.gnss_noise`): a :class:`GnssNoise`
+    """The GNSS noise ``noise`` names (:attr:`FGSettings.graph.gnss_noise`): a :class:`GnssNoise`
     as it is, ``"measure"``: :func:`measure` on these missions' fixes (constant-velocity
     PSD ``q``), None: none (the fixes' stated sigma)."""
     if isinstance(noise, str):
@@ -255,7 +255,7 @@ def resolve(missions: list[Mission], noise, q: float, default_sigma: float
 
 def apply(missions: list[Mission], noise, q: float, default_sigma: float, track: bool = True
           ) -> tuple[list[Mission], GnssNoise | None]:
-    """The missions with their fixes weighted by ``noise`` (:attr:`FGSettings.gnss_noise`):
+    """The missions with their fixes weighted by ``noise`` (:attr:`FGSettings.graph.gnss_noise`):
     a :class:`GnssNoise`, ``"measure"`` (:func:`measure` on these missions' fixes, with
     the constant-velocity PSD ``q``) or None (the fixes' stated sigma, as they are);
     ``track`` as :func:`weighted`."""

@@ -1,7 +1,7 @@
 """The batch factor graph of missions of one vehicle: its parts, nodes and factors.
 
 :func:`build_graph` lays out each mission's state knots (one every
-``FGSettings.knot_spacing``), its parameter segments (the random walk of the variable
+``FGSettings.graph.knot_spacing``), its parameter segments (the random walk of the variable
 parameters), the parameter nodes with their priors, the dynamics factors reading one
 :class:`aqfg.fg.factors.DynamicsCache` and the measurement factors; :class:`BuiltGraph`
 evaluates and linearises the result (see :mod:`aqfg.fg.batch`).
@@ -18,7 +18,6 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.common import (
-    FGSettings,
     Measurements,
     default_estimate,
     first_knot_term,
@@ -28,6 +27,7 @@ from aqfg.fg.common import (
     mission_model,
 )
 from aqfg.fg.init import Start, candidate_starts, current_prior, start_states
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.user_factors import FactorSource, GraphKeys
 from aqfg.memo import remember
 from aqfg.model.params import N_DYN
@@ -132,10 +132,10 @@ class BuiltGraph:
 
 def too_short_for_sandwich(bg: BuiltGraph, s: FGSettings) -> bool:
     """Whether ``bg``'s missions have fewer of the sandwich's time blocks
-    (``s.sandwich_block``) than its parameters + 2: there the evidence chooses the batch's
-    process noise (``FGSettings.adapt_batch``) and the structural test alone decides
+    (``s.batch.sandwich_block``) than its parameters + 2: there the evidence chooses the batch's
+    process noise (``FGSettings.batch.adapt_noise``) and the structural test alone decides
     whether the fit explains its fixes (:func:`aqfg.fg.structural_sigma.structural_sigma`)."""
-    b = s.sandwich_block or np.inf
+    b = s.batch.sandwich_block or np.inf
     n_blocks = sum(int(np.floor((float(p.knots[-1]) - float(p.knots[0])) / b)) + 1
                    for p in bg.parts)
     return n_blocks < sum(bg.layout.dim(g) for g, _, _ in bg.nodes) + 2
@@ -211,20 +211,20 @@ def _mission_parts(missions: list[Mission], models: list[Model],
     surface constraint; its starts, best first."""
     parts: list[MissionPart] = []
     nf = 0
-    walk = s.walk_sigma and "variable" in layout.names
+    walk = s.graph.walk_sigma and "variable" in layout.names
     guesses: list[Start | None] = []
     all_starts: list[list[Start]] = []
-    cur_sig = current_prior(s.prior_sigma)
+    cur_sig = current_prior(s.graph.prior_sigma)
     for mi, (m, model) in enumerate(zip(missions, models)):
-        knots = knot_times(m, s.knot_spacing)
+        knots = knot_times(m, s.graph.knot_spacing)
         steps, off = model.steps(m, knots)
         K = len(knots) - 1
         if walk:
-            seg_of = np.floor((knots[:-1] - knots[0]) / s.walk_segment).astype(int)
+            seg_of = np.floor((knots[:-1] - knots[0]) / s.graph.walk_segment).astype(int)
         else:
             seg_of = np.zeros(K, int)
         nseg = int(seg_of.max()) + 1 if K else 1
-        seg_starts = knots[0] + s.walk_segment * np.arange(nseg) if walk else knots[:1]
+        seg_starts = knots[0] + s.graph.walk_segment * np.arange(nseg) if walk else knots[:1]
         slices: list[tuple | None] = []
         for j in range(nseg):
             ii = np.nonzero(seg_of == j)[0]
@@ -248,7 +248,7 @@ def _mission_parts(missions: list[Mission], models: list[Model],
         out.add_linear(first_knot_term(m, keys[0], X0[0], s))
         if m.planar:
             for k in keys:
-                out.add_linear(fc.surface_term(k, *s.surface_sigma))
+                out.add_linear(fc.surface_term(k, *s.graph.surface_sigma))
         parts.append(MissionPart(mi, m, model, knots, keys, seg_of, seg_starts, slices, nf))
         nf += K
     return parts, guesses, all_starts
@@ -290,7 +290,8 @@ def _param_nodes(layout: fc.ParamLayout, parts: list[MissionPart],
             f0[names.index("k")] *= rho2     # steady speed ~ sqrt(k / k_x)
         out.values.insert(k, layout.project("fixed", f0))
         if fixed_prior:
-            out.add_linear(fc.param_prior_term(layout, "fixed", k, s.prior_scale, sigma=s.prior_sigma))
+            out.add_linear(fc.param_prior_term(layout, "fixed", k, s.graph.prior_scale,
+                                               sigma=s.graph.prior_sigma))
         node_list.append(ParamNode("fixed", k, None))
     for part in parts:
         if "variable" in layout.names:
@@ -307,18 +308,19 @@ def _param_nodes(layout: fc.ParamLayout, parts: list[MissionPart],
                 out.values.insert(k, v0)
                 node_list.append(ParamNode("variable", k, part.index))
                 if j == 0:
-                    out.add_linear(fc.param_prior_term(layout, "variable", k, s.prior_scale,
-                                                       sigma=s.prior_sigma))
+                    out.add_linear(fc.param_prior_term(layout, "variable", k, s.graph.prior_scale,
+                                                       sigma=s.graph.prior_sigma))
                 else:
-                    sig = np.array([(s.walk_sigma or {}).get(n, 0.0)
+                    sig = np.array([(s.graph.walk_sigma or {}).get(n, 0.0)
                                     for n in layout.names["variable"]])
                     k_prev = fc.node_key("variable", part.index, j - 1)
                     out.add_linear(fc.walk_term(layout, k_prev, k, np.maximum(sig, 1e-9),
-                                                s.walk_segment))
+                                                s.graph.walk_segment))
         if "sensor" in layout.names:
             k = fc.node_key("sensor", part.index)
             out.values.insert(k, layout.initial("sensor"))
-            out.add_linear(fc.param_prior_term(layout, "sensor", k, s.prior_scale, sigma=s.prior_sigma))
+            out.add_linear(fc.param_prior_term(layout, "sensor", k, s.graph.prior_scale,
+                                               sigma=s.graph.prior_sigma))
             node_list.append(ParamNode("sensor", k, part.index))
     return node_list
 
@@ -345,7 +347,7 @@ def _model_factors(layout: fc.ParamLayout, parts: list[MissionPart],
             dt = float(part.knots[i + 1] - part.knots[i])
             key = (round(dt, 9), part.mission.planar)
             if key not in noise_cache:
-                noise_cache[key] = s.process.noise_model(dt, part.mission.planar)
+                noise_cache[key] = s.graph.process.noise_model(dt, part.mission.planar)
             graph.add(fc.cached_dynamics_factor(cache, part.f0 + i, layout, part.keys[i],
                                                 part.keys[i + 1],
                                                 nkeys(dyn_groups, int(part.seg_of[i])),

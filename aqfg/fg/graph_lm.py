@@ -15,9 +15,9 @@ import numpy as np
 
 from aqfg.fg import factors as fc
 from aqfg.fg import lm
-from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.graph import BuiltGraph
+from aqfg.fg.settings import FGSettings
 
 
 @dataclass
@@ -47,7 +47,7 @@ def fast_covariance(fs: FastSystem, ev: dict, node_list, layout, key_time, s: FG
     for _, k, _ in node_list:
         o, d = fs.node_off[k]
         cov[k] = C[o:o + d, o:o + d].copy()
-    sw = fs.sandwich(ev, fac, key_time, s.sandwich_block) if s.sandwich_block else None
+    sw = fs.sandwich(ev, fac, key_time, s.batch.sandwich_block) if s.batch.sandwich_block else None
     return cov, sw
 
 
@@ -136,7 +136,7 @@ def levenberg_marquardt(bg: BuiltGraph, values: gtsam.Values, ordering: gtsam.Or
     system = GraphLM(bg, ordering, bg.nodes,
                      lambda vals: project_nodes(bg.layout, bg.nodes, vals))
     out = lm.levenberg_marquardt(system, values, lm.LMParams.of(s),
-                                 lm.batch_progress(progress, s.max_iterations))
+                                 lm.batch_progress(progress, s.solver.max_iterations))
     return LMOutcome(out.x, out.cost, system.settle(out.x), out.iterations, out.trials,
                      out.converged, out.it_times)
 

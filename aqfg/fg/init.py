@@ -101,7 +101,7 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
     With ``window`` (s), every window of that length gets its own position offset, so the
     misfit measures how well the model predicts motion over a window rather than how far
     the roll-out of the whole mission has drifted. ``current_sigma`` (m/s, north and east):
-    the current's prior, as in the batch (``FGSettings.prior_sigma``). On a straight leg
+    the current's prior, as in the batch (``FGSettings.graph.prior_sigma``). On a straight leg
     at constant speed the model track and the current's drift are the same direction in
     time, and without it the split between them, so theta, is arbitrary: a 20-s start of
     an Otter mission came out 177 deg off, the "current" 2 m/s (docs/independent-vehicle.md).
@@ -149,7 +149,7 @@ def closed_form(W: np.ndarray, knots: np.ndarray, tf: np.ndarray, pf: np.ndarray
 
 def current_prior(prior_sigma: dict | None) -> tuple[float, float] | None:
     """The closed form's current prior (m/s, north and east): the batch's
-    (``FGSettings.prior_sigma``), None without one on both components."""
+    (``FGSettings.graph.prior_sigma``), None without one on both components."""
     ps = prior_sigma or {}
     return (float(ps["s_x"]), float(ps["s_y"])) if "s_x" in ps and "s_y" in ps else None
 

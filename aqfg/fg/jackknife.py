@@ -45,7 +45,7 @@ def blocks(mission: Mission) -> np.ndarray:
 def refits(missions: Sequence[Mission], n_params: int, sandwich_block: float = 60.0) -> int:
     """How many refits :func:`widen` makes after a batch fit of ``missions`` estimating
     ``n_params`` parameters (for the cost estimate): one per block where the fit is one
-    mission's and too short for the sandwich (fewer ``sandwich_block``-s blocks from the
+    mission's and too short for the sandwich (fewer ``batch.sandwich_block``-s blocks from the
     first fix to the end of the inputs than the parameters + 2, as
     :func:`aqfg.fg.graph.too_short_for_sandwich` counts them), else 0."""
     if len(missions) != 1 or not sandwich_block > 0:

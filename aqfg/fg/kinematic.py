@@ -29,7 +29,7 @@ import numpy as np
 from aqfg.model.process import white_acceleration
 
 if TYPE_CHECKING:                       # common imports nothing from here; keep it so
-    from aqfg.fg.common import FGSettings
+    from aqfg.fg.settings import FGSettings
 
 FLOOR_CHOICE_FIXES = 3      # fixes whose prediction errors choose the floor or the model
 FLOOR_Z = 2.0               # the filter's advantage, in sigma of the fixes' noise, to choose it
@@ -65,10 +65,10 @@ class KinematicFilter:
 
     @classmethod
     def from_settings(cls, s: FGSettings) -> KinematicFilter:
-        """The filter of the settings' causal floor (``online_kinematic_q``, the USBL
+        """The filter of the settings' causal floor (``online.kinematic_q``, the USBL
         gate's quantile and rejects rule): the floor's and the baseline's are this one."""
-        return cls(q=s.online_kinematic_q, gate=s.online_gate_usbl,
-                   max_rejects=s.online_max_rejects)
+        return cls(q=s.online.kinematic_q, gate=s.online.gate_usbl,
+                   max_rejects=s.online.max_rejects)
 
     @property
     def started(self) -> bool:

@@ -60,9 +60,9 @@ class LMParams:
 
     @classmethod
     def of(cls, settings, max_iterations: int | None = None) -> LMParams:
-        """The parameters of :class:`aqfg.fg.common.FGSettings` ``settings``."""
-        return cls(settings.max_iterations if max_iterations is None else max_iterations,
-                   settings.rel_tol, settings.abs_tol)
+        """The parameters of :class:`aqfg.fg.settings.FGSettings` ``settings``."""
+        return cls(settings.solver.max_iterations if max_iterations is None else max_iterations,
+                   settings.solver.rel_tol, settings.solver.abs_tol)
 
 
 @dataclass

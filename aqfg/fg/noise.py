@@ -20,9 +20,9 @@ from collections.abc import Iterable
 import numpy as np
 import numpy.typing as npt
 
-from aqfg.fg.common import FGSettings
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.robust import huber_cost_squared
+from aqfg.fg.settings import FGSettings
 
 LR_CHI2_1 = 3.841           # chi-square(1) 95 % quantile
 CHI2_2_99 = 9.21            # chi-square(2) 99 % quantile
@@ -31,7 +31,7 @@ CHI2_2_99 = 9.21            # chi-square(2) 99 % quantile
 def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
                     settings: FGSettings, min_count: int = 3) -> float:
     """The process-noise variance factor ``q`` that best explains fix innovations, by
-    maximum likelihood on a grid of powers of sqrt 2 in ``[1, settings.adapt_max]`` (so
+    maximum likelihood on a grid of powers of sqrt 2 in ``[1, settings.graph.process_scale_max]`` (so
     that noise models can be shared).
 
     ``e2`` squared horizontal innovation (m^2) of each fix against the model's prediction
@@ -52,7 +52,7 @@ def variance_factor(e2: npt.ArrayLike, var: npt.ArrayLike, q_pos: npt.ArrayLike,
     ea, va, qa = ea[ok], va[ok], qa[ok]
     if len(ea) < min_count:
         return 1.0
-    n = int(np.floor(2.0 * np.log2(max(settings.adapt_max, 1.0)))) + 1
+    n = int(np.floor(2.0 * np.log2(max(settings.graph.process_scale_max, 1.0)))) + 1
     grid = 2.0 ** (np.arange(n) / 2.0)
     v = grid[:, None] * qa[None, :] + 2.0 * va[None, :]
     u = ea[None, :] / v
@@ -120,7 +120,7 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
                     ) -> tuple[float, np.ndarray, np.ndarray, dict[float, float]]:
     """The batch's process-noise variance factor: the largest log evidence
     (:meth:`FastSystem.log_evidence`, a Laplace approximation) over q = 1, 4, 16, ...
-    (at most ``settings.adapt_max``), each solved by a few LM iterations warm-started
+    (at most ``settings.graph.process_scale_max``), each solved by a few LM iterations warm-started
     from the previous one, stopping when the evidence falls.
 
     ``(X, th, ev)`` is the solution at the system's current factor (1). Returns the
@@ -137,12 +137,12 @@ def evidence_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
 def _climb(fs: FastSystem, best: tuple, step: float, settings: FGSettings, iterations: int,
            tried: dict[float, float]) -> tuple:
     """From ``best`` = ``(log evidence, factor, X, th)``, the factor multiplied by ``step``
-    while it stays in ``[1, settings.adapt_max]``, each solved by ``iterations`` LM
+    while it stays in ``[1, settings.graph.process_scale_max]``, each solved by ``iterations`` LM
     iterations warm-started from the best so far, until the evidence falls; the evidence
     of each factor tried into ``tried``. Returns the best; the system is left at the last
     factor tried."""
     q = best[1]
-    while 1.0 <= q * step <= settings.adapt_max:
+    while 1.0 <= q * step <= settings.graph.process_scale_max:
         q *= step
         fs.set_process_scale(q)
         Xq, thq, _, evq, *_ = levenberg_marquardt_fast(
@@ -160,7 +160,7 @@ def basin_evidence(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
                    ) -> tuple[float, float, np.ndarray, np.ndarray]:
     """The largest log evidence (:meth:`FastSystem.log_evidence`) of the basin of the
     solution ``(X, th, ev)`` at the system's current factor, over the factors 4x apart in
-    ``[1, settings.adapt_max]``: searched upwards, then (where that gains nothing)
+    ``[1, settings.graph.process_scale_max]``: searched upwards, then (where that gains nothing)
     downwards, each by a few LM iterations warm-started from the best so far, stopping
     when the evidence falls. Returns ``(log evidence, factor, X, th)`` (the solution not
     fully converged where the factor moved); the system is left at that factor.
@@ -180,9 +180,9 @@ def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
                        settings: FGSettings, iterations: int = 2
                        ) -> tuple[np.ndarray, np.ndarray, dict[float, list[float]]]:
     """Each mission part's process-noise factor for its track given the parameters ``th``
-    (:attr:`FGSettings.adapt_track`): the largest log evidence of its states
+    (:attr:`FGSettings.batch.adapt_track`): the largest log evidence of its states
     (:meth:`FastSystem.part_log_evidence`) over q = 1, 4, 16, ... (at most
-    ``settings.adapt_max``), each solved by a few LM iterations with the parameters held,
+    ``settings.graph.process_scale_max``), each solved by a few LM iterations with the parameters held,
     warm-started from the previous one; a part's search stops when its evidence falls.
 
     ``(X, th, ev)`` is the solution at factor 1. Returns the factor per part, the states
@@ -196,7 +196,7 @@ def track_noise_search(fs: FastSystem, X: np.ndarray, th: np.ndarray, ev: dict,
     tried = {1.0: le.tolist()}
     q, Xq, X_best = 1.0, X, X.copy()
     rows = fs.part_of_state
-    while q * 4.0 <= settings.adapt_max and active.any():
+    while q * 4.0 <= settings.graph.process_scale_max and active.any():
         q *= 4.0
         fs.set_process_scale(q)
         Xq, _, _, evq, *_ = levenberg_marquardt_fast(

@@ -35,13 +35,14 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings, check_missions
+from aqfg.fg.common import check_missions
 from aqfg.fg.covariance import honest_covariance, sigma_inflation
 from aqfg.fg.graph import ParamNode
 from aqfg.fg.graph_lm import active_bounds, diagonal_floor
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
+from aqfg.fg.settings import FGSettings
 from aqfg.result import Covariance, Result, SolveSummary
 
 Request = tuple[str, dict]
@@ -63,7 +64,7 @@ class Solution:
     recovered: int
     cov_model_f: np.ndarray | None = None     # before the sandwich inflation
     # per mission, its track under the noise its evidence chooses (track, residuals,
-    # factor), where its session made it (FGSettings.adapt_track on the numpy path)
+    # factor), where its session made it (FGSettings.batch.adapt_track on the numpy path)
     tracks: list | None = None
 
 
@@ -220,7 +221,7 @@ def run_joint(n: int, settings: FGSettings, ask: Callable[[list[Request]], list[
         history = [(0, system.cost(x), params.lambda_initial)]
     trials = system.trials
     # ---- the undamped system at the solution: covariances, then each mission's result
-    block = settings.sandwich_block
+    block = settings.batch.sandwich_block
     reps = system.sys(x, 0.0, [{"sandwich": (float(r["t0"]), block) if block else None}
                                for r in opened])
     systems = [r["system"] for r in reps]

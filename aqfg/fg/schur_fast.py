@@ -96,14 +96,14 @@ class FastSession:
         res = self.p.result(self.values(), others, sandwich)
         res.model = None
         out: dict = {"result": res}
-        if self.p.settings.adapt_track:
+        if self.p.settings.batch.adapt_track:
             out["track"] = self.adapted_track()
         return out
 
     def adapted_track(self) -> tuple:
         """The mission's track and residuals smoothed again with its parameters held at
         the current point under the process noise its evidence chooses, and that noise's
-        factor (:attr:`aqfg.fg.common.FGSettings.adapt_track`, as the batch's
+        factor (:attr:`aqfg.fg.settings.BatchSettings.adapt_track`, as the batch's
         :meth:`~aqfg.fg.batch.BatchSmoother.smooth_tracks`; the fleet's
         :func:`~aqfg.fleet.worker.track_op` without a second graph)."""
         from aqfg.fg import noise

@@ -15,13 +15,14 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.batch import BatchSmoother
-from aqfg.fg.common import FGSettings, check_missions
+from aqfg.fg.common import check_missions
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
 from aqfg.fg.lm import LMParams, levenberg_marquardt
 from aqfg.fg.schur_fast import FastSession
 from aqfg.fg.schur_system import FIXED, ReducedSystem
+from aqfg.fg.settings import FGSettings
 from aqfg.result import Result
 
 _PIN = 1e8          # whitened weight holding the fixed node during a mission's own solve
@@ -45,7 +46,7 @@ class MissionProblem:
         self.key_dims = self.bg.key_dims()
         self.locals = [n for n in self.bg.nodes if n.group != "fixed"]
         # the numpy form of the graph (None: outside its shape, the GTSAM path serves)
-        self.fs = FastSystem.build(self.bg, self.settings) if self.settings.fast_lm else None
+        self.fs = FastSystem.build(self.bg, self.settings) if self.settings.solver.fast_lm else None
         self._orders: tuple | None = None
         if self.dim:
             self._pin = gtsam.JacobianFactor(FIXED, _PIN * np.eye(self.dim), np.zeros(self.dim),

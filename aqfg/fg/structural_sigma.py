@@ -1,4 +1,4 @@
-"""The structural part of the batch fit's sigma (:attr:`FGSettings.structural_sigma`), as
+"""The structural part of the batch fit's sigma (:attr:`FGSettings.batch.structural_sigma`), as
 steps that take a result and return a new one: the shift a missing effect would cause,
 by the structural test (:mod:`aqfg.fg.structure`), and its check by the refit with that
 effect (:func:`cover_refit`)."""
@@ -11,9 +11,9 @@ import math
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.fg.common import FGSettings
 from aqfg.fg.effect_guard import per_mission_copy
 from aqfg.fg.fastlm import FastSystem
+from aqfg.fg.settings import FGSettings
 from aqfg.fg.structure import structural_shift
 from aqfg.model.params import difference
 from aqfg.result import RefitCheck, Result, SigmaStructure
@@ -29,7 +29,7 @@ STRUCTURAL_MISFIT = 1.0 + 1e-9
 def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: dict,
                      settings: FGSettings, log_warnings: bool = True,
                      test_always: bool = False) -> Result:
-    """:attr:`FGSettings.structural_sigma`: where the batch fit ``res`` (nominal noise) does
+    """:attr:`FGSettings.batch.structural_sigma`: where the batch fit ``res`` (nominal noise) does
     not explain the fixes (the block sandwich raised a sigma above the model's,
     ``STRUCTURAL_MISFIT``, or the data are too short for the sandwich) and the data call
     for a missing effect, ``res`` with the sigma of the heading offset and the current
@@ -38,7 +38,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     its nominal-noise solution, or the evidence's on short data, evaluation ``ev``);
     its ``sigma_structure`` and a warning say which effect and how much.
     ``test_always``: the test also where the fixes are explained (for
-    :attr:`FGSettings.auto_effect`), its result in ``structural_test`` (the sigma
+    :attr:`FGSettings.batch.auto_effect`), its result in ``structural_test`` (the sigma
     is widened only where they are not); the test's ranking is recorded there whether or
     not it suggests an effect (``suggested``)."""
     infl = res.sigma_inflation
@@ -47,7 +47,7 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
     # where the effects the test suggested would move it 0.3: docs/independent-vehicle.md)
     misfit = max(infl.values(), default=0.0) > STRUCTURAL_MISFIT or \
         res.too_short_for_sandwich
-    if (not settings.structural_sigma or settings.walk_sigma or res.model is None
+    if (not settings.batch.structural_sigma or settings.graph.walk_sigma or res.model is None
             or not (misfit or test_always)):
         return res
     sh = structural_shift(missions, fs, ev, res.model, tuple(res.estimated))

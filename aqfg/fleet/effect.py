@@ -1,4 +1,4 @@
-"""The fleet's effect step (:attr:`aqfg.fg.common.FGSettings.auto_effect`, as ``aqfg fit``'s
+"""The fleet's effect step (:attr:`FGSettings.batch.auto_effect`, as ``aqfg fit``'s
 :func:`aqfg.fg.fit.adopt_effect`): which effect the vehicles' structural tests call for,
 whether the fleet's refit with it is kept, and the record of the step. One model serves
 the whole fleet, so that its vehicles' constants compare (``fleet.json``'s test)."""
@@ -81,7 +81,7 @@ def record(before: dict[str, Result], pick: dict, after: dict[str, Result] | Non
         f"added the effect {name} to the fleet's model, which the fits of "
         f"{len(pick['vehicles'])} of {len(before)} vehicles call for (robust score test "
         f"p = {p:.2g}; fleet cost {cost_before:.1f} -> {cost_after:.1f}); "
-        "aqfg fleet --no-auto-effect (FGSettings(auto_effect=False)) fits the model as given")
+        "aqfg fleet --no-auto-effect (FGSettings.batch.auto_effect = False) fits the model as given")
     fleet = FleetEffect(list(pick["vehicles"]), cost_before, cost_after, message)
     for v, r in before.items():
         st = r.sigma_structure

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from aqfg.fg.common import FGSettings
 from aqfg.fg.fit import auto_effect_applies
 from aqfg.fg.schur import Solution, combine, joint_lm
+from aqfg.fg.settings import FGSettings
 from aqfg.fleet.cluster import FleetError, fleet_client
 from aqfg.fleet.manifest import Manifest
 from aqfg.fleet.worker import (
@@ -60,7 +60,7 @@ def fit_fleet(manifest: Manifest, client=None, *, workers: int = 2,
               progress=None, timeout: float | None = None) -> FleetResult:
     """Fit every vehicle of ``manifest`` (its fixed parameters shared by its missions)
     on Dask; equal to ``fit_fg(missions)`` per vehicle (``BatchSmoother(...).run`` and the
-    dead-reckoning refinement of the constants, ``settings.dr_horizon``).
+    dead-reckoning refinement of the constants, ``settings.batch.dr_horizon``).
 
     ``client``: a ``dask.distributed.Client``; without one, a client of the scheduler at
     ``scheduler`` or of a new ``LocalCluster`` of ``workers`` processes (one thread each)
@@ -113,10 +113,10 @@ def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, 
         specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
                                       show, timeout, stats, specs, results, fit=fit,
                                       where=where)
-    if settings.dr_horizon > 0 or settings.adapt_track:
+    if settings.batch.dr_horizon > 0 or settings.batch.adapt_track:
         # the constants to dead-reckon with, per vehicle over its missions, and the
         # missions' tracks under the noise their evidence chooses, as aqfg fit does
-        # (aqfg.fg.dead_reckoning, FGSettings.adapt_track): once, for the fits returned
+        # (aqfg.fg.dead_reckoning, FGSettings.batch.adapt_track): once, for the fits returned
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
         results = _finish(client, specs, results, timeout, where)
@@ -274,8 +274,8 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
     effect_names = tuple(getattr(e, "name", e) for e in effects)
     for r in results.values():
         r.effects = effect_names               # the model's effects, for the outputs
-    if settings.structural_sigma:
-        # the structural sigma, as aqfg fit's batch (FGSettings.structural_sigma), whose
+    if settings.batch.structural_sigma:
+        # the structural sigma, as aqfg fit's batch (FGSettings.batch.structural_sigma), whose
         # test the fleet's effect step reads: one task per vehicle
         t_st = time.perf_counter()
         results = _per_vehicle(client, structural_op, specs, results, timeout,
@@ -289,7 +289,7 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
 def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, timeout,
                  stats: dict, specs: dict, results: dict[str, Result], fit: str = "",
                  where: dict | None = None) -> tuple[dict, dict[str, Result]]:
-    """:attr:`FGSettings.auto_effect` for a fleet: where the vehicles' structural tests
+    """:attr:`FGSettings.batch.auto_effect` for a fleet: where the vehicles' structural tests
     call for an effect of the vehicle's dynamics, every vehicle is fitted again with the
     one most of them call for (:func:`aqfg.fleet.effect.choose`); one model serves the
     fleet, so that its vehicles' constants compare. Kept where it lowers the fleet's cost,
@@ -329,7 +329,7 @@ def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dic
         refined = client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
                                 key=f"aqfg-{spec0.run}-refine-{v}", workers=home,
                                 allow_other_workers=True)
-        if spec0.settings.adapt_track and tracks is None:
+        if spec0.settings.batch.adapt_track and tracks is None:
             tracks = [client.submit(track_op, s, mr.p, pure=False, retries=2,
                                     key=f"aqfg-{s.run}-track-{v}-{s.index}",
                                     workers=_home([s], where), allow_other_workers=True)

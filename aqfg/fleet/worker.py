@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aqfg.fg.common import FGSettings
 from aqfg.fg.schur import MissionProblem, MissionSession
+from aqfg.fg.settings import FGSettings
 
 _SESSIONS: dict[tuple, MissionSession] = {}
 _MISSIONS: dict[tuple, object] = {}         # (fit, path, gnss_every) -> Mission
@@ -132,7 +132,7 @@ def refine_op(specs: list[MissionSpec], result):
     states), as ``aqfg fit`` does once for the fit it returns."""
     from aqfg.fg import dead_reckoning
     return dead_reckoning.refine(result, _vehicle(specs, result),
-                                 specs[0].settings.dr_horizon)
+                                 specs[0].settings.batch.dr_horizon)
 
 
 def finish_op(specs: list[MissionSpec], result, tracks: list | None = None):
@@ -163,7 +163,7 @@ def structural(specs: list[MissionSpec], missions: list, result):
     from aqfg.fg.fit import auto_effect_applies, refit_structure
     from aqfg.fg.structural_sigma import structural_sigma
     st = specs[0].settings
-    if not st.structural_sigma or result.model is None:
+    if not st.batch.structural_sigma or result.model is None:
         return result
     bg = BatchSmoother(None, effects=specs[0].effects, estimate=result.estimated,
                        settings=st).build(missions)
@@ -191,7 +191,7 @@ def track_op(spec: MissionSpec, p: np.ndarray) -> tuple:
     (the joint fit's full vector for it: the smoother's constants and current, not those
     refined for dead reckoning) under the process noise its evidence chooses, and that
     noise's factor, as ``aqfg fit``'s batch does
-    (:attr:`aqfg.fg.common.FGSettings.adapt_track`)."""
+    (:attr:`FGSettings.batch.adapt_track`)."""
     from aqfg.fg.batch import smooth_track
     return smooth_track(load(spec), p, effects=spec.effects, settings=spec.settings)
 

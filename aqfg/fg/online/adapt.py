@@ -41,12 +41,12 @@ class NoiseAdapter:
         key = round(dt, 9)
         q = self._q_pos.get(key)
         if q is None:
-            q = self._q_pos[key] = float(self.settings.process.cov(dt, self.planar)[0, 0])
+            q = self._q_pos[key] = float(self.settings.graph.process.cov(dt, self.planar)[0, 0])
         return q
 
     def adapt(self, dt: float, inn: tuple[float, float] | None, left_out: bool) -> None:
         """Adapt the process-noise variance factor to how well the model predicts the fixes:
-        :func:`aqfg.fg.noise.variance_factor` of the last ``adapt_window`` fix
+        :func:`aqfg.fg.noise.variance_factor` of the last ``online.adapt_window`` fix
         innovations ``inn`` (squared horizontal innovation of the model's prediction from
         the previous fix, and the fix's per-axis variance), never below ``q_floor``. A
         model that explains the fixes keeps its nominal noise; one that does not lets the
@@ -63,9 +63,9 @@ class NoiseAdapter:
         if not (math.isfinite(e2) and math.isfinite(v) and q > 0):
             return
         self.innov.append((e2, v, q, noise.lr_gain(e2, v, q)))
-        if len(self.innov) > 4 * s.adapt_window:         # a long stream keeps what it uses
-            del self.innov[:-s.adapt_window]
-        last = self.innov[-s.adapt_window:]
+        if len(self.innov) > 4 * s.online.adapt_window:         # a long stream keeps what it uses
+            del self.innov[:-s.online.adapt_window]
+        last = self.innov[-s.online.adapt_window:]
         if noise.gains_suffice(g[3] for g in last):
             self.q_scale = max(1.0, self.q_floor)
             return

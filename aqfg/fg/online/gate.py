@@ -1,5 +1,5 @@
 """The online smoother's USBL gate: a USBL fix whose range and bearing innovation against the
-model's prediction is beyond ``FGSettings.online_gate_usbl`` (chi-square(2)) is left out,
+model's prediction is beyond ``FGSettings.online.gate_usbl`` (chi-square(2)) is left out,
 as the EKF's gate does (:mod:`aqfg.ekf.window`); the fixes' statistics also tell whether a
 held model fails (:mod:`aqfg.fg.online.policy`)."""
 from __future__ import annotations
@@ -44,18 +44,18 @@ class UsblGate:
         :meth:`check` (in Python floats: it runs at every USBL update). Empty without
         USBL or with the gate off."""
         u, s = mission.usbl, self.settings
-        if u is None or not len(u.t) or not math.isfinite(s.online_gate_usbl):
+        if u is None or not len(u.t) or not math.isfinite(s.online.gate_usbl):
             return {}
         t, _, var, _ = self.fixes
         st = tuple(float(c) for c in np.asarray(mission.usbl_station, float)[:3])
         out = {}
         for k in range(len(u.t)):
             i = int(t.searchsorted(u.t[k] - 1e-6))
-            sr, sb = s.sensors.usbl_sigmas(float(u.range[k]))
+            sr, sb = s.graph.sensors.usbl_sigmas(float(u.range[k]))
             out[round(float(u.t[k]), 6)] = (float(u.range[k]), float(u.bearing[k]),
                                             float(sr) ** 2, float(sb),
                                             float(var[i - 1]) if i > 0
-                                            else s.sensors.gnss_sigma ** 2, st)
+                                            else s.graph.sensors.gnss_sigma ** 2, st)
         return out
 
     def is_usbl(self, t_fix: float) -> bool:
@@ -85,8 +85,8 @@ class UsblGate:
               held: bool) -> bool:
         """True when the USBL fix at ``t_fix`` is to be left out: its range and bearing
         innovation against the model's prediction ``x_pred`` is beyond
-        ``settings.online_gate_usbl`` (chi-square(2)), and fewer than
-        ``online_max_rejects`` USBL fixes in a row were left out before it (the EKF's rule,
+        ``settings.online.gate_usbl`` (chi-square(2)), and fewer than
+        ``settings.online.max_rejects`` USBL fixes in a row were left out before it (the EKF's rule,
         :mod:`aqfg.ekf.window`). Recorded in ``rejected``.
 
         The prediction's per-axis variance is that of the process noise in use over the
@@ -118,11 +118,11 @@ class UsblGate:
         usbl = self.is_usbl(t_fix)
         # the model has shown it fails (the process noise adapted up) or that it does not
         # (the last fixes taken were all within the 99 % quantile)
-        recent = self.taken_m2[-s.adapt_window:]
+        recent = self.taken_m2[-s.online.adapt_window:]
         known = noise_q.q_scale > 1.0 or (len(recent) >= 3 and max(recent) <= noise.CHI2_2_99)
         gating = usbl and known and not held
-        forced = gating and self.rejects >= s.online_max_rejects
-        out = gating and not forced and m2 > s.online_gate_usbl
+        forced = gating and self.rejects >= s.online.max_rejects
+        out = gating and not forced and m2 > s.online.gate_usbl
         # a fix taken by the count enters at the robust loss's edge: its sigmas scaled so
         # that its whitened residual at the prediction is the Huber threshold, a pull
         # falling with the residual (k^2 / |r|). The Huber loss bounds a fix's pull
@@ -131,13 +131,13 @@ class UsblGate:
         # and its current 0.5 m/s, and the good fixes after it were left out
         # (docs/independent-vehicle.md). A track that is off gets to the fixes too: by the
         # adaptation (the forced fixes' innovations) and the review of those left out.
-        if forced and m2 > s.online_gate_usbl:
-            k = s.sensors.robust_k if s.sensors.robust != "none" else 1.0
+        if forced and m2 > s.online.gate_usbl:
+            k = s.graph.sensors.robust_k if s.graph.sensors.robust != "none" else 1.0
             self.forced_scale = max(1.0, math.sqrt(self.m2(t_fix, x_pred, None)) / k)
         if not out and not forced:          # (a fix taken by the count says nothing)
             self.taken_m2.append(m2)
-            if len(self.taken_m2) > 4 * s.adapt_window:
-                del self.taken_m2[:-s.adapt_window]
+            if len(self.taken_m2) > 4 * s.online.adapt_window:
+                del self.taken_m2[:-s.online.adapt_window]
         if usbl:
             self.rejects = self.rejects + 1 if out else 0
             self.rejected[float(t_fix)] = out
@@ -174,4 +174,4 @@ class UsblGate:
     def readmits(self, t: float, x: np.ndarray) -> bool:
         """A USBL fix left out at ``t`` agrees with its knot's smoothed estimate ``x`` now
         (the same gate, without the prediction's process noise)."""
-        return self.m2(t, x, 0.0) <= self.settings.online_gate_usbl
+        return self.m2(t, x, 0.0) <= self.settings.online.gate_usbl

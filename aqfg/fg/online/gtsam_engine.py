@@ -27,9 +27,9 @@ def isam_params(settings, layout: fc.ParamLayout) -> gtsam.ISAM2Params:
     prm.findUnusedFactorSlots = True
     prm.relinearizeSkip = 1
     thr = gtsam.ISAM2ThresholdMap()
-    thr.insert(("x", np.repeat([s.relin_pos, s.relin_vel], 3)))
+    thr.insert(("x", np.repeat([s.online.relin_pos, s.online.relin_vel], 3)))
     for g in layout.groups:
-        thr.insert((fc.GROUP_CHAR[g], np.full(layout.dim(g), s.relin_param)))
+        thr.insert((fc.GROUP_CHAR[g], np.full(layout.dim(g), s.online.relin_param)))
     prm.setRelinearizeThreshold(thr)
     return prm
 
@@ -63,7 +63,7 @@ class GtsamEngine(WindowEngine):
         self.stamps: dict[Any, float] = {k0: t0}
         self.graph.add(first_knot_prior(h.mission, k0, x0, s))
         if h.mission.planar:
-            self.graph.add(fc.surface_factor(k0, *s.surface_sigma))
+            self.graph.add(fc.surface_factor(k0, *s.graph.surface_sigma))
         self._hold_pos: list[int] | None = self._param_nodes(hold)
         h.knots.append(t0)
         self.keys.append(k0)
@@ -130,7 +130,7 @@ class GtsamEngine(WindowEngine):
             x = self.smoother.calculateEstimateVector(self.keys[-1])
         except GTSAM_ERRORS:
             x = np.asarray(h.filtered[-1], float)
-        if s.walk_sigma and "variable" in lay.names:
+        if s.graph.walk_sigma and "variable" in lay.names:
             self._walk_segment(t_fix)
         dyn_nodes = self.node_keys(lay.dyn_groups())
         i0 = len(h.knots)
@@ -147,7 +147,7 @@ class GtsamEngine(WindowEngine):
             self.vals.insert(k, x)
             self.stamps[k] = float(t)
             if h.mission.planar:
-                self.graph.add(fc.surface_factor(k, *s.surface_sigma))
+                self.graph.add(fc.surface_factor(k, *s.graph.surface_sigma))
             dt = float(all_t[j + 1] - all_t[j])
             self.graph.add(fc.dynamics_factor(h.model, lay, st, self.keys[-1] if j == 0 else
                                               fc.state_key(0, i0 + j - 1), k, dyn_nodes,
@@ -161,7 +161,7 @@ class GtsamEngine(WindowEngine):
         h = self.host
         nk = (round(dt, 9), h.mission.planar, h.noise.q_scale)
         if nk not in self._noise:
-            self._noise[nk] = h.settings.process.noise_model(dt, h.mission.planar,
+            self._noise[nk] = h.settings.graph.process.noise_model(dt, h.mission.planar,
                                                              h.noise.q_scale)
         return self._noise[nk]
 
@@ -170,18 +170,18 @@ class GtsamEngine(WindowEngine):
         passes (its value of the old segment recorded in the host's ``v_by_seg``)."""
         h = self.host
         s, lay = h.settings, h.layout
-        new_seg = int((t_fix - h.seg_starts[0]) // s.walk_segment)
+        new_seg = int((t_fix - h.seg_starts[0]) // s.graph.walk_segment)
         if new_seg <= self.seg:
             return
         kv_old = self.node("variable")
         v_old = self.smoother.calculateEstimateVector(kv_old)
         h.v_by_seg[self.seg] = v_old
-        sig = np.array([(s.walk_sigma or {}).get(n, 0.0) for n in lay.names["variable"]])
+        sig = np.array([(s.graph.walk_sigma or {}).get(n, 0.0) for n in lay.names["variable"]])
         self.seg = new_seg
-        h.seg_starts.append(h.seg_starts[0] + new_seg * s.walk_segment)
+        h.seg_starts.append(h.seg_starts[0] + new_seg * s.graph.walk_segment)
         kv = self.node("variable")
         self.vals.insert(kv, v_old)
-        self.graph.add(fc.walk_factor(lay, kv_old, kv, np.maximum(sig, 1e-9), s.walk_segment))
+        self.graph.add(fc.walk_factor(lay, kv_old, kv, np.maximum(sig, 1e-9), s.graph.walk_segment))
         self.graph.add(fc.bound_factor(lay, "variable", kv))
 
     def measure(self, t_fix, t_last, all_t, drop_usbl, usbl_scale) -> None:
@@ -351,7 +351,7 @@ class GtsamEngine(WindowEngine):
             try:
                 self.smoother.update(graph, vals, stamps)
                 self.last_new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
-                for _ in range(h.settings.iterations_per_update - 1):
+                for _ in range(h.settings.online.iterations_per_update - 1):
                     self.smoother.update()
                 for k in check:                   # failures can surface only here
                     if not np.all(np.isfinite(self.smoother.calculateEstimateVector(k))):
@@ -458,7 +458,7 @@ class GtsamEngine(WindowEngine):
             graph.add(gtsam.PriorFactorVector(k, np.asarray(x, float),
                                               _marginal_noise(cov[k], broad, len(x))))
         if h.mission.planar:
-            graph.add(fc.surface_factor(last, *s.surface_sigma))
+            graph.add(fc.surface_factor(last, *s.graph.surface_sigma))
         self.smoother.update(graph, vals, stamps)
         if held:
             new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
@@ -480,7 +480,7 @@ class GtsamEngine(WindowEngine):
         x = lay.project(g, e) if e is not None else \
             lay.initial(g) if hard else \
             lay.project(g, np.asarray(h.last_params.get(g, lay.initial(g))))
-        broad = np.array([h.settings.prior_scale * h.model.spec(n).scale for n in lay.names[g]])
+        broad = np.array([h.settings.graph.prior_scale * h.model.spec(n).scale for n in lay.names[g]])
         graph.add(fc.bound_factor(lay, g, k))
         return x, broad
 

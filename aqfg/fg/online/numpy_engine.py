@@ -72,12 +72,12 @@ class NumpyEngine(WindowEngine):
         marginal is replaced by broad priors around the current estimate and the step
         retried; if that fails too, the step is skipped (recorded in the host's events)."""
         eng, s = self.win, self.host.settings
-        for _ in range(max(s.iterations_per_update, 1)):
+        for _ in range(max(s.online.iterations_per_update, 1)):
             try:
                 eng.step()
             except np.linalg.LinAlgError as exc:
                 err = str(exc) or type(exc).__name__
-                eng.broaden(BROAD_STATE_SIGMA, s.prior_scale)
+                eng.broaden(BROAD_STATE_SIGMA, s.graph.prior_scale)
                 try:
                     eng.step()
                     self.host.events.append({"t": float(t_fix),

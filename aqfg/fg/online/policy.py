@@ -3,7 +3,7 @@
 Without a given heading offset the parameters start HELD at their start values (hold
 priors) until a batch solve of the fixes so far re-initialises them (re-estimates, replays,
 releases: :mod:`aqfg.fg.online.recovery`); batches follow on a doubling schedule
-(``FGSettings.online_init_after``, ``online_reinit_until``), earlier where the held model
+(``FGSettings.online.init_after``, ``reinit_until``), earlier where the held model
 fails its fixes (a rescue), and a forced one where the released smoother is in trouble."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from aqfg.fg import noise
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 
 RESEED_EARLY_FIXES = 3     # the fewest fixes the closed form takes (the current held at zero)
 FORCE_AFTER_FIXES = 6      # a forced re-initialisation from this many fixes on
@@ -53,7 +53,7 @@ class HoldPolicy:
     def scheduled(self, theta_estimated: bool, init: dict) -> bool:
         """Online without a given heading offset: batch re-initialisations are scheduled
         (the parameters are held until the first)."""
-        return (self.settings.online_init_after > 0 and theta_estimated
+        return (self.settings.online.init_after > 0 and theta_estimated
                 and "theta_e" not in init)
 
     def held_failing(self, q_scale: float, taken_m2: list[float]) -> bool:
@@ -63,15 +63,15 @@ class HoldPolicy:
         s = self.settings
         recent = taken_m2[-3:]
         return (self.held
-                and (q_scale >= s.adapt_max
-                     or (len(recent) >= 2 and min(recent[-2:]) > s.online_gate_usbl)
+                and (q_scale >= s.graph.process_scale_max
+                     or (len(recent) >= 2 and min(recent[-2:]) > s.online.gate_usbl)
                      or (len(recent) == 3 and sorted(recent)[1] > noise.CHI2_2_99)))
 
     def held_missed_early(self, n_fix: int, taken_m2: list[float]) -> bool:
         """The parameters are held and the third fix, the first that gives two legs, is
         beyond the USBL gate's quantile (later fixes: :meth:`held_failing`, two misses)."""
         return (self.held and n_fix == RESEED_EARLY_FIXES and len(taken_m2) > 0
-                and taken_m2[-1] > self.settings.online_gate_usbl)
+                and taken_m2[-1] > self.settings.online.gate_usbl)
 
     def due(self, elapsed: float, n_fix: int, scheduled: bool, failing: bool,
             constants_given: bool) -> str:
@@ -79,7 +79,7 @@ class HoldPolicy:
         or "rescue": one brought forward because the held model fails (``failing``), which
         keeps the schedule of checks.
 
-        The first batch: after online_init_after s, or online_init_fixes fixes if sooner,
+        The first batch: after online.init_after s, or online.init_fixes fixes if sooner,
         or at every fix from the 4th while the held model fails: its process noise adapted
         to the bound, its last two fixes beyond the USBL gate's quantile, or two of its
         last three beyond chi-square(2)'s 99 % one -- not their sum, which one USBL outlier
@@ -92,10 +92,10 @@ class HoldPolicy:
         (moved with it, the later batches of heldout-06 at 4 s fell where a free fit
         slides)."""
         s = self.settings
-        first = (((not self.batch_tried and n_fix >= s.online_init_fixes) or failing)
+        first = (((not self.batch_tried and n_fix >= s.online.init_fixes) or failing)
                  and not self.replaying)
         is_due = (scheduled and (elapsed >= self.next_reinit or first)
-                  and (elapsed <= s.online_reinit_until or self.held)
+                  and (elapsed <= s.online.reinit_until or self.held)
                   and n_fix >= (4 if failing and constants_given else 6))
         if not is_due:
             return ""

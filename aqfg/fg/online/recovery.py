@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -124,11 +123,11 @@ def reseed(fl: FixedLagSmoother, t_fix: float) -> UpdateInfo | None:
             or "theta_e" not in fl.layout.estimated or fl.n_fix < hold_policy.RESEED_EARLY_FIXES):
         return None
     view = mission_until(fl.mission, t_fix)
-    knots = knot_times(view, fl.settings.knot_spacing)
+    knots = knot_times(view, fl.settings.graph.knot_spacing)
     p = fl.params()
     try:
         starts = candidate_starts(fl.model, view, knots, p, search=False,
-                                  current_sigma=current_prior(fl.settings.prior_sigma))
+                                  current_sigma=current_prior(fl.settings.graph.prior_sigma))
     except (ValueError, FloatingPointError, np.linalg.LinAlgError):
         starts = []
     if not starts:
@@ -319,7 +318,7 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
                         for r in v.get("reasons", [])]})
         return None
     if fl.policy.held and not fl.constants_given \
-            and _noise_scale(bres) >= fl.settings.adapt_max:
+            and _noise_scale(bres) >= fl.settings.graph.process_scale_max:
         # the evidence put the process noise at its bound: the model explains none of
         # the fixes so far, and its free constants and heading are whatever the noise
         # leaves (12 s of heldout-42, all six free: a top speed 4x the hull's, theta_e
@@ -408,9 +407,9 @@ def _batch(fl: FixedLagSmoother, estimate: Sequence[str],
     from aqfg.fg.batch import BatchSmoother
     bs = BatchSmoother(fl.base_model, effects=fl.effects, estimate=tuple(estimate),
                        init=fl.init,
-                       settings=replace(fl.settings, online_init_after=0.0,
-                                        adapt_batch=None, measure_noise=True,
-                                        adapt_track=False),
+                       settings=fl.settings.with_(online={"init_after": 0.0},
+                                                  batch={"adapt_noise": None, "measure_noise": True,
+                                                         "adapt_track": False}),
                        also_start=also_start)
     bs.log_warnings = False
     return bs
@@ -464,7 +463,7 @@ def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: dict) -> None:
     parameters stay as they are, and held ones are released once the schedule of batches
     has passed half its length (none would come to release them)."""
     fl.events.append({"t": float(t_fix), **event})
-    if fl.policy.held and 2.0 * (t_fix - fl.knots[0]) > fl.settings.online_reinit_until:
+    if fl.policy.held and 2.0 * (t_fix - fl.knots[0]) > fl.settings.online.reinit_until:
         fl.release(t_fix)
 
 

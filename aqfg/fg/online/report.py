@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 
 from aqfg.fg import factors as fc
-from aqfg.fg.common import FGSettings
+from aqfg.fg.settings import FGSettings
 from aqfg.model.vehicle import Model
 
 # parameter groups whose start prior a replay keeps as the batch had it (the user's prior,
@@ -93,12 +93,12 @@ class ParamPriors:
                 if self.model.spec(n).group not in BATCH_PRIOR_GROUPS}
 
     def sigmas_with(self, override: dict[str, float]) -> np.ndarray:
-        """The settings' prior sigmas (``prior_sigma``, else ``prior_scale`` x the
+        """The settings' prior sigmas (``graph.prior_sigma``, else ``graph.prior_scale`` x the
         parameter's scale, as :func:`fc.param_prior`) with ``override``, in the layout's
         order."""
         s = self.settings
-        sig = {**s.prior_sigma, **override}
-        return np.array([sig.get(n, s.prior_scale * self.model.spec(n).scale)
+        sig = {**s.graph.prior_sigma, **override}
+        return np.array([sig.get(n, s.graph.prior_scale * self.model.spec(n).scale)
                          for n in self.layout.estimated])
 
     def sigmas(self) -> np.ndarray:
@@ -116,9 +116,9 @@ class ParamPriors:
 
     def start_factor(self, g: str, k: int) -> gtsam.PriorFactorVector:
         """The weak start prior of group ``g`` at node ``k`` (the GTSAM engine)."""
-        sig = dict(self.settings.prior_sigma)
+        sig = dict(self.settings.graph.prior_sigma)
         sig.update(self.replay_sigmas())
-        return fc.param_prior(self.layout, g, k, self.settings.prior_scale,
+        return fc.param_prior(self.layout, g, k, self.settings.graph.prior_scale,
                               mean=self.mean(g), sigma=sig)
 
     def hold_factor(self, g: str, k: int) -> gtsam.PriorFactorVector:

@@ -5,7 +5,7 @@ the parameter nodes are re-estimated jointly.
 One orchestration (:class:`FixedLagSmoother`: knots, causal and corrected tracks, history)
 over parts with one job each: the window engine (:mod:`aqfg.fg.online.engine`: numpy by
 default, GTSAM's ISAM2 where the configuration needs it, chosen by
-``FGSettings.online_engine`` and :meth:`aqfg.fg.fastlag.LagWindow.unsupported`), the USBL
+``FGSettings.online.engine`` and :meth:`aqfg.fg.fastlag.LagWindow.unsupported`), the USBL
 gate (:mod:`~aqfg.fg.online.gate`), the process-noise adaptation
 (:mod:`~aqfg.fg.online.adapt`), the sigma reported (:mod:`~aqfg.fg.online.report`), the
 hold / release / re-initialise policy (:mod:`~aqfg.fg.online.policy`) and its batch
@@ -36,7 +36,6 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg import factors as fc
 from aqfg.fg.common import (
-    FGSettings,
     check_missions,
     default_estimate,
     initial_states,
@@ -57,6 +56,7 @@ from aqfg.fg.online.policy import HoldPolicy, Phase
 from aqfg.fg.online.report import ParamPriors, SigmaReport
 from aqfg.fg.online.tracks import p_segments, retrace, with_tail
 from aqfg.fg.online.views import StepSource
+from aqfg.fg.settings import FGSettings
 from aqfg.model.params import FIXED_BASE
 from aqfg.model.vehicle import Model
 from aqfg.result import MissionResult, OnlineEngine, ParamHistory, Result, Track
@@ -97,7 +97,7 @@ class FixedLagSmoother:
         self.warnings: list[str] = []
         self.engine_note = ""
         self._estimate_vehicle = False
-        self.policy = HoldPolicy(self.settings, self.settings.online_init_after)
+        self.policy = HoldPolicy(self.settings, self.settings.online.init_after)
         self.report = SigmaReport()
         self._t_call = time.perf_counter()
 
@@ -181,7 +181,7 @@ class FixedLagSmoother:
         """The state that outlives a replay: the re-initialisation policy, the sigma
         report, the process noise's floor, the gate's tables, the kinematic floor."""
         s = self.settings
-        self.policy = HoldPolicy(s, s.online_init_after)
+        self.policy = HoldPolicy(s, s.online.init_after)
         self.report = SigmaReport()
         self.noise = NoiseAdapter(s, bool(mission.planar))
         self.gate = UsblGate(mission, s)
@@ -189,12 +189,12 @@ class FixedLagSmoother:
         # (aqfg.fg.kinematic); none where they are not, or the settings say so
         self._floor = CausalFloor(
             KinematicFilter.from_settings(s),
-            until=math.inf if hold and s.online_kinematic_q > 0 else float(self.fix_t[0]))
+            until=math.inf if hold and s.online.kinematic_q > 0 else float(self.fix_t[0]))
 
     def _reset_run(self, plan: bool) -> None:
         """The state of one run of the smoother from the first fix (a start or a replay)."""
         s = self.settings
-        self.steps = StepSource(self.model, self.mission, self.fix_t, s.knot_spacing, plan)
+        self.steps = StepSource(self.model, self.mission, self.fix_t, s.graph.knot_spacing, plan)
         self.knots: list[float] = []
         self.filtered: list[np.ndarray] = []      # causal estimate per knot
         self.anchor_idx: list[int] = []           # knot index of each fix
@@ -215,22 +215,22 @@ class FixedLagSmoother:
         self.policy.phase = Phase.RELEASED         # until the start's hold priors are in
         self.noise.restart()
         self.gate.restart()
-        self.warming = s.warmup_tol > 0
+        self.warming = s.online.warmup_tol > 0
         self.warmup_end = float("nan")
 
     def _make_engine(self, x0: np.ndarray, t0: float, hold: bool) -> WindowEngine:
         """The numpy engine where the configuration allows it, else GTSAM's (``engine_note``
         says why)."""
         s = self.settings
-        reason = ("online_engine = 'gtsam'" if s.online_engine == "gtsam" else
+        reason = ("online.engine = 'gtsam'" if s.online.engine == "gtsam" else
                   LagWindow.unsupported(self.model, self.layout, self.mission, s))
         self.engine_note = reason
-        if reason and s.online_current_walk > 0:
+        if reason and s.online.current_walk > 0:
             self.engine_note += ("; the current is held constant in the window's past "
-                                 "(online_current_walk needs the numpy engine)")
-        if reason and s.online_heading_walk > 0:
+                                 "(online.current_walk needs the numpy engine)")
+        if reason and s.online.heading_walk > 0:
             self.engine_note += ("; the heading offset is one constant "
-                                 "(online_heading_walk needs the numpy engine)")
+                                 "(online.heading_walk needs the numpy engine)")
         cls = GtsamEngine if reason else NumpyEngine
         return cls(self, x0, t0, hold)
 
@@ -282,7 +282,7 @@ class FixedLagSmoother:
         if t_fix <= t_last + 1e-9:
             raise ValueError(f"fix time {t_fix} s is not after the last processed time {t_last} s")
         # new knots on the grid up to the fix
-        sp = self.settings.knot_spacing
+        sp = self.settings.graph.knot_spacing
         grid = np.arange(t_last + sp, t_fix - sp / 4, sp)
         all_t = np.concatenate([[t_last], grid, [t_fix]])
         info = self._advance(t_fix, t_last, all_t[1:], all_t)
@@ -302,7 +302,7 @@ class FixedLagSmoother:
         self.mission = mission
         self.fix_t = np.unique(mission.fix_times())
         # inputs may have changed: no plan
-        self.steps = StepSource(self.model, mission, self.fix_t, self.settings.knot_spacing,
+        self.steps = StepSource(self.model, mission, self.fix_t, self.settings.graph.knot_spacing,
                                 plan=False)
         self.gate.set_mission(mission)
         self.backend.set_mission(mission)
@@ -318,7 +318,7 @@ class FixedLagSmoother:
         dt = float(t_fix - t_last)
         drop_usbl = self.gate.check(t_fix, dt, x_pred, self.noise,
                                     held=self.policy.held and not self.policy.replaying)
-        if self.settings.adapt_process:
+        if self.settings.online.adapt_noise:
             self.noise.adapt(dt, self.gate.innovation(t_fix, x_pred), self.gate.left_out(t_fix))
         eng.measure(t_fix, t_last, all_t, drop_usbl, self.gate.forced_scale)
         info = self._solve(t_fix, len(new_t))
@@ -358,9 +358,9 @@ class FixedLagSmoother:
         sigma = dict(zip(names, sh.tolist()))
         self.report.raw.update(zip(names, raw.tolist()))
         if self.warming:
-            done = bool(np.all(raw < self.settings.warmup_tol * self._scales)) \
+            done = bool(np.all(raw < self.settings.online.warmup_tol * self._scales)) \
                 and not self.policy.held
-            if done or t_fix - self.knots[0] >= self.settings.warmup_max:
+            if done or t_fix - self.knots[0] >= self.settings.online.warmup_max:
                 self.warming = False
                 self.warmup_end = float(t_fix)
                 eng.set_lag(self.window)
@@ -402,7 +402,7 @@ class FixedLagSmoother:
             p = self.params()
         knots = np.array(self.knots)
         if t_end is not None and t_end > knots[-1] + 1e-6:
-            sp = self.settings.knot_spacing
+            sp = self.settings.graph.knot_spacing
             knots = np.concatenate([knots, np.arange(knots[-1] + sp, t_end - sp / 4, sp), [t_end]])
         if len(knots) == 1:
             X = np.zeros((1, 6))
