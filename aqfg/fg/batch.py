@@ -401,16 +401,21 @@ class _Solve:
 
 
 def _first_solve(bg: BuiltGraph, s: FGSettings, progress, init: dict) -> _Solve:
-    """LM from the graph's initial values (or the first start where the model can be
-    evaluated: :func:`~aqfg.fg.starts.evaluable_values`), then the process noise its
-    evidence chooses (:attr:`FGSettings.batch.adapt_noise`) or measures
+    """LM from the graph's initial values (where the model cannot be evaluated there, from
+    the first start where it can: :func:`~aqfg.fg.starts.evaluable_values`), then the
+    process noise its evidence chooses (:attr:`FGSettings.batch.adapt_noise`) or measures
     (:attr:`FGSettings.batch.measure_noise`)."""
     fs = FastSystem.build(bg, s) if s.solver.fast_lm else None
-    values = evaluable_values(bg, (lambda v: fs.evaluate(*fs.from_values(v))["cost"])
-                              if fs is not None else bg.graph.error, init)
     ordering = None if fs is not None else \
-        gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(values))
-    out = levenberg_marquardt(bg, values, ordering, s, progress, fs)
+        gtsam.Ordering.MetisGaussianFactorGraph(bg.linearize(bg.values))
+    out = levenberg_marquardt(bg, bg.values, ordering, s, progress, fs)
+    if not np.isfinite(out.cost):
+        # (LM takes no step from a start whose cost is not finite; the other starts are
+        # evaluated only then)
+        values = evaluable_values(bg, (lambda v: fs.evaluate(*fs.from_values(v))["cost"])
+                                  if fs is not None else bg.graph.error, init)
+        if values is not bg.values:
+            out = levenberg_marquardt(bg, values, ordering, s, progress, fs)
     q_scale, q_tried = 1.0, dict[float, float]()
     # too short for the sandwich's time blocks (it needs n_p + 2): the evidence-chosen
     # noise is the honest sigma there (docs/independent-vehicle.md)

@@ -60,6 +60,12 @@ def given_start(bg: BuiltGraph, also_start: dict[str, float] | None):
     """The ``also_start`` parameters with knot states from the fixes."""
     if not also_start:
         return
+    yield "given start", fix_state_values(bg, also_start)
+
+
+def fix_state_values(bg: BuiltGraph, params: dict[str, float]) -> gtsam.Values:
+    """The graph's start values with knot states from the fixes and the (finite)
+    ``params`` set by name in every parameter node, projected into the bounds."""
     vals = gtsam.Values(bg.values)
     for part in bg.parts:
         for k, x in zip(part.keys, initial_states(part.mission, part.knots)):
@@ -68,10 +74,10 @@ def given_start(bg: BuiltGraph, also_start: dict[str, float] | None):
         names = bg.layout.names[g]
         v = vals.atVector(key).copy()
         for i, n in enumerate(names):
-            if n in also_start and np.isfinite(also_start[n]):
-                v[i] = float(also_start[n])
+            if n in params and np.isfinite(params[n]):
+                v[i] = float(params[n])
         vals.update(key, bg.layout.project(g, v))
-    yield "given start", vals
+    return vals
 
 
 def alternative_starts(bg: BuiltGraph, verdicts: list[Plausibility], init: dict,
@@ -146,18 +152,9 @@ def evaluable_values(bg: BuiltGraph, cost, init: dict) -> gtsam.Values:
             vals = start_values(bg, [st[min(j, len(st) - 1)] for st in bg.starts], True, init)
             if np.isfinite(cost(vals)):
                 return vals
-    vals = gtsam.Values(bg.values)
-    for part in bg.parts:
-        for k, x in zip(part.keys, initial_states(part.mission, part.knots)):
-            vals.update(k, x)
-    if "fixed" in bg.layout.names:
-        key = fc.node_key("fixed")
-        f = vals.atVector(key).copy()
-        nominal = bg.layout.initial("fixed")
-        for i, n in enumerate(bg.layout.names["fixed"]):
-            if n not in init:
-                f[i] = nominal[i]
-        vals.update(key, bg.layout.project("fixed", f))
+    nominal = dict(zip(bg.layout.names["fixed"], bg.layout.initial("fixed"))) \
+        if "fixed" in bg.layout.names else {}
+    vals = fix_state_values(bg, {n: v for n, v in nominal.items() if n not in init})
     return vals if np.isfinite(cost(vals)) else bg.values
 
 
