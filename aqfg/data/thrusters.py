@@ -212,18 +212,20 @@ def thruster_findings(m: Mission, alpha: float = ALPHA) -> list[ThrusterFinding]
     # a slow vehicle drifts astern in the wind between legs
     push = np.abs(dem @ dirs[:, 0]) * (b - a)
     mean = (v * (push if push.sum() > 0 else b - a)[:, None]).sum(axis=0)
-    found = _findings(m, a, b, _turn(v, mean), _turn(acc, mean), dem, dirs, alpha)
+    mid = 0.5 * (a + b)
+    dem_acc = _mean_demand(m, mid[:-1], mid[1:])          # between the velocities' middles
+    found = _findings(_turn(v, mean), _turn(acc, mean), dem, dem_acc, dirs, alpha)
     if mean[0] < 0:
-        logged = {f.thruster for f in _findings(m, a, b, v, acc, dem, dirs, alpha)}
+        logged = {f.thruster for f in _findings(v, acc, dem, dem_acc, dirs, alpha)}
         found = [f for f in found if f.thruster in logged]
     return found
 
 
-def _findings(m: Mission, a: np.ndarray, b: np.ndarray, v: np.ndarray, acc: np.ndarray,
-              dem: np.ndarray, dirs: np.ndarray, alpha: float) -> list[ThrusterFinding]:
-    """The findings with body velocities ``v`` and accelerations ``acc`` in one frame."""
-    mid = 0.5 * (a + b)
-    dem_acc = _mean_demand(m, mid[:-1], mid[1:])          # between the velocities' middles
+def _findings(v: np.ndarray, acc: np.ndarray, dem: np.ndarray, dem_acc: np.ndarray,
+              dirs: np.ndarray, alpha: float) -> list[ThrusterFinding]:
+    """The findings with body velocities ``v`` and accelerations ``acc`` in one frame
+    (``dem``, ``dem_acc``: the mean demands over the velocities' and the accelerations'
+    intervals)."""
     v_acc = 0.5 * (v[1:] + v[:-1])
     axes: list[tuple[int | None, np.ndarray, np.ndarray, np.ndarray]] = []
     for i, ax in enumerate(dirs):
