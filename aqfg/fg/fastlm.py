@@ -453,6 +453,19 @@ class FastSystem:
         return sandwich(self, ev, fac, key_time, block)
 
 
+def damping_scales(fs: FastSystem, D: np.ndarray, Hpp: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Marquardt's damping scales of the normal equations ``D`` (the states' 6x6 blocks)
+    and ``Hpp`` (the parameters'): each key's diagonal floored
+    (:func:`aqfg.fg.lm.diagonal_floor`; a state knot is a key)."""
+    hs = np.einsum("nii->ni", D)
+    hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
+    hp = np.diag(Hpp).copy()
+    for o, d in fs.node_off.values():
+        hp[o:o + d] = lm.diagonal_floor(hp[o:o + d])
+    return hs, hp
+
+
 class FastLM:
     """:class:`aqfg.fg.lm.LMSystem` of a :class:`FastSystem`: a point is ``(X, th,
     evaluation)``. Marquardt's damping from ``diag(J^T J)`` floored per key; the parameter
@@ -461,20 +474,13 @@ class FastLM:
 
     def __init__(self, fs: FastSystem, held: dict[int, float] | None = None):
         self.fs, self.held = fs, held
-        self.key_slices = list(fs.node_off.values())
 
     def cost(self, x) -> float:
         return x[2]["cost"]
 
     def linearize(self, x) -> None:
         D, E, Hsp, Hpp, gs, gp = self.fs.normal(x[2])
-        hs = np.einsum("nii->ni", D)
-        hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
-        hp = np.diag(Hpp).copy()
-        for o, d in self.key_slices:
-            v = hp[o:o + d]
-            hp[o:o + d] = np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
-        self.lin = (D, E, Hsp, Hpp, gs, gp, hs, hp)
+        self.lin = (D, E, Hsp, Hpp, gs, gp, *damping_scales(self.fs, D, Hpp))
 
     def trial(self, x, lam: float):
         fs, (X, th, ev) = self.fs, x

@@ -17,6 +17,7 @@ from aqfg.fg import factors as fc
 from aqfg.fg import lm
 from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
 from aqfg.fg.graph import BuiltGraph
+from aqfg.fg.lm import diagonal_floor
 from aqfg.fg.settings import FGSettings
 
 
@@ -200,6 +201,3 @@ def hessian_diagonal(gfg: gtsam.GaussianFactorGraph, key_dims, floor: bool = Tru
     return out
 
 
-def diagonal_floor(v: np.ndarray) -> np.ndarray:
-    """The damping scale of one key: its diag(J^T J), at least 1e-9 x its largest entry."""
-    return np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))

@@ -40,6 +40,11 @@ class LMSystem(Protocol[X]):
         ...
 
 
+def diagonal_floor(v: np.ndarray) -> np.ndarray:
+    """The damping scale of one key: its diag(J^T J), at least 1e-9 x its largest entry."""
+    return np.maximum(v, 1e-9 * max(float(v.max(initial=0.0)), 1.0))
+
+
 @dataclass(frozen=True)
 class LMParams:
     """The damping schedule and the stopping rule.

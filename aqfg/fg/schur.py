@@ -38,8 +38,8 @@ from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import check_missions
 from aqfg.fg.covariance import honest_covariance, sigma_inflation
 from aqfg.fg.graph import ParamNode
-from aqfg.fg.graph_lm import active_bounds, diagonal_floor
-from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.graph_lm import active_bounds
+from aqfg.fg.lm import LMParams, diagonal_floor, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
 from aqfg.fg.settings import FGSettings

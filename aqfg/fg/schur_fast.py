@@ -12,9 +12,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg as sla
 
-from aqfg.fg.fastlm import FastSystem, levenberg_marquardt_fast
+from aqfg.fg.fastlm import FastSystem, damping_scales, levenberg_marquardt_fast
 from aqfg.fg.fastlm_ops import tri
-from aqfg.fg.graph_lm import diagonal_floor
 from aqfg.fg.schur_system import FIXED, ReducedSystem
 
 if TYPE_CHECKING:
@@ -131,13 +130,8 @@ class FastSession:
     def _linearize(self) -> tuple:
         if self.lin is None:
             D, E, Hsp, Hpp, gs, gp = self.fs.normal(self.x[2])
-            hs = np.einsum("nii->ni", D).copy()
-            hs_raw_p = np.diag(Hpp).copy()
-            hs = np.maximum(hs, 1e-9 * np.maximum(hs.max(axis=1, keepdims=True), 1.0))
-            hp = hs_raw_p.copy()
-            for o, d in self.fs.node_off.values():
-                hp[o:o + d] = diagonal_floor(hs_raw_p[o:o + d])
-            self.lin = (D, E, Hsp, Hpp, gs, gp, hs, hp, hs_raw_p)
+            self.lin = (D, E, Hsp, Hpp, gs, gp, *damping_scales(self.fs, D, Hpp),
+                        np.diag(Hpp).copy())
         return self.lin
 
     def _reduce(self, lam: float, held: dict[int, float]) -> ReducedSystem:

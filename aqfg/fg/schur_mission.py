@@ -18,8 +18,8 @@ from aqfg.fg.batch import BatchSmoother
 from aqfg.fg.common import check_missions
 from aqfg.fg.covariance import honest_covariance
 from aqfg.fg.fastlm import FastSystem
-from aqfg.fg.graph_lm import GraphLM, active_bounds, diagonal_floor, hessian_diagonal
-from aqfg.fg.lm import LMParams, levenberg_marquardt
+from aqfg.fg.graph_lm import GraphLM, active_bounds, hessian_diagonal
+from aqfg.fg.lm import LMParams, diagonal_floor, levenberg_marquardt
 from aqfg.fg.schur_fast import FastSession
 from aqfg.fg.schur_system import FIXED, ReducedSystem
 from aqfg.fg.settings import FGSettings
