@@ -453,6 +453,14 @@ class FastSystem:
         return sandwich(self, ev, fac, key_time, block)
 
 
+def steps_to_bounds(fs: FastSystem, th: np.ndarray, new: np.ndarray, hit: np.ndarray
+                    ) -> dict[int, float]:
+    """The parameter components ``hit`` that a step from ``th`` to ``new`` pushes through
+    a bound, each with the step that takes it exactly to that bound (an active set)."""
+    return {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
+            for j in np.flatnonzero(hit)}
+
+
 def damping_scales(fs: FastSystem, D: np.ndarray, Hpp: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Marquardt's damping scales of the normal equations ``D`` (the states' 6x6 blocks)
@@ -495,10 +503,8 @@ class FastLM:
             new = th + dth
             hit = (new < fs.lo) | (new > fs.hi)
             if np.any(hit):
-                fix = {**(self.held or {}),
-                       **{int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
-                          for j in np.flatnonzero(hit)}}
-                dX, dth = fs.solve(fac, gs, gp, fix)
+                dX, dth = fs.solve(fac, gs, gp, {**(self.held or {}),
+                                                 **steps_to_bounds(fs, th, new, hit)})
         except ValueError as e:              # a non-finite or not positive definite system
             raise np.linalg.LinAlgError(str(e)) from e
         Xc, thc = X + dX, fs.project(th + dth)

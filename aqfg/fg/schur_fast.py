@@ -12,7 +12,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.linalg as sla
 
-from aqfg.fg.fastlm import FastSystem, damping_scales, levenberg_marquardt_fast
+from aqfg.fg.fastlm import (
+    FastSystem,
+    damping_scales,
+    levenberg_marquardt_fast,
+    steps_to_bounds,
+)
 from aqfg.fg.fastlm_ops import tri
 from aqfg.fg.schur_system import FIXED, ReducedSystem
 
@@ -74,9 +79,7 @@ class FastSession:
             hit = (new < fs.lo) | (new > fs.hi)
             hit[self.fcols] = False
             if np.any(hit):
-                held = {int(j): float((fs.lo[j] if new[j] < fs.lo[j] else fs.hi[j]) - th[j])
-                        for j in np.flatnonzero(hit)}
-                return {"clamped": self._reduce(self.fac[1], held)}
+                return {"clamped": self._reduce(self.fac[1], steps_to_bounds(fs, th, new, hit))}
             if mode == "probe":
                 return {"ok": True}
         thc = fs.project(th + dth)
