@@ -39,7 +39,6 @@ from aqfg.fleet.worker import (
 from aqfg.result import Result
 
 WORKER_WAIT = 60.0      # s a round waits for a worker to (re)join before the run fails
-_TRACKS = "_adapted_tracks"     # info key of the sessions' tracks until _finish takes them
 __all__ = ["FleetError", "FleetResult", "fit_fleet"]
 
 
@@ -105,21 +104,21 @@ def _fit_steps(client, manifest, settings, effects, estimate, init, gnss_every, 
     # (vehicle, mission index) -> the worker that holds it: where it was read, for every
     # solve and per-vehicle step of the fit
     where: dict[tuple, str] = {}
-    specs, results = _solve_fleet(client, manifest, settings, effects, estimate, init,
-                                  gnss_every, show, timeout, stats,
-                                  refit=not auto_effect_applies(settings, estimate),
-                                  fit=fit, where=where)
+    specs, results, tracks = _solve_fleet(client, manifest, settings, effects, estimate,
+                                          init, gnss_every, show, timeout, stats,
+                                          refit=not auto_effect_applies(settings, estimate),
+                                          fit=fit, where=where)
     if auto_effect_applies(settings, estimate):
-        specs, results = fleet_effect(client, manifest, settings, effects, init, gnss_every,
-                                      show, timeout, stats, specs, results, fit=fit,
-                                      where=where)
+        specs, results, tracks = fleet_effect(client, manifest, settings, effects, init,
+                                              gnss_every, show, timeout, stats, specs, results,
+                                              tracks, fit=fit, where=where)
     if settings.batch.dr_horizon > 0 or settings.batch.adapt_track:
         # the constants to dead-reckon with, per vehicle over its missions, and the
         # missions' tracks under the noise their evidence chooses, as aqfg fit does
         # (aqfg.fg.dead_reckoning, FGSettings.batch.adapt_track): once, for the fits returned
         show(0.99, f"dead-reckoning constants and tracks of {len(results)} vehicles")
         t_dr = time.perf_counter()
-        results = _finish(client, specs, results, timeout, where)
+        results = _finish(client, specs, results, tracks, timeout, where)
         stats["dead_reckoning_seconds"] = time.perf_counter() - t_dr
     stats["memory"] = _memory(client)
     stats["workers"] = len(_workers(client))
@@ -229,11 +228,13 @@ def _advance(pending: dict, specs: dict, replies: dict, where: dict, built_once:
 
 def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every, show,
                  timeout, stats: dict, refit: bool = False, fit: str = "",
-                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
+                 where: dict | None = None) -> tuple[dict, dict[str, Result], dict[str, list]]:
     """Every vehicle's joint fit with the model ``effects``: the rounds of
     :func:`aqfg.fg.schur.joint_lm` on the workers, then per vehicle its structural sigma
     (one task each; the dead-reckoning constants and tracks come once, after the effect
-    step, in :func:`_fit`). ``(specs, results)``, by vehicle; ``stats`` accumulates the
+    step, in :func:`_finish`). ``(specs, results, tracks)``, by vehicle (``tracks``: the
+    missions' tracks their sessions smoothed under their evidence's noise, for the
+    vehicles where every session made one); ``stats`` accumulates the
     run's figures, ``where`` (vehicle, mission index) -> worker. ``fit``: the fit_fleet call
     whose missions the workers keep."""
     run = uuid.uuid4().hex[:12]
@@ -266,11 +267,8 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
         stats["client_seconds"] = stats.get("client_seconds", 0.0) + time.perf_counter() - t_client
     client.run(release, run)
     results = {v: combine(sols[v]) for v in specs}
-    for v, r in results.items():
-        # the tracks the sessions smoothed under their evidence's noise, for _finish
-        tracks = sols[v].tracks or []
-        if tracks and all(t is not None for t in tracks):
-            r.info[_TRACKS] = tracks
+    made = {v: sols[v].tracks or [] for v in specs}
+    tracks = {v: t for v, t in made.items() if t and all(x is not None for x in t)}
     effect_names = tuple(getattr(e, "name", e) for e in effects)
     for r in results.values():
         r.effects = effect_names               # the model's effects, for the outputs
@@ -283,58 +281,58 @@ def _solve_fleet(client, manifest, settings, effects, estimate, init, gnss_every
                                lambda v, home: (results[v], _sent(client, specs[v], where, home)))
         stats["structural_seconds"] = (stats.get("structural_seconds", 0.0)
                                        + time.perf_counter() - t_st)
-    return specs, results
+    return specs, results, tracks
 
 
 def fleet_effect(client, manifest, settings, effects, init, gnss_every, show, timeout,
-                 stats: dict, specs: dict, results: dict[str, Result], fit: str = "",
-                 where: dict | None = None) -> tuple[dict, dict[str, Result]]:
+                 stats: dict, specs: dict, results: dict[str, Result], tracks: dict,
+                 fit: str = "", where: dict | None = None
+                 ) -> tuple[dict, dict[str, Result], dict[str, list]]:
     """:attr:`FGSettings.batch.auto_effect` for a fleet: where the vehicles' structural tests
     call for an effect of the vehicle's dynamics, every vehicle is fitted again with the
     one most of them call for (:func:`aqfg.fleet.effect.choose`); one model serves the
     fleet, so that its vehicles' constants compare. Kept where it lowers the fleet's cost,
     every vehicle's fit is plausible and every mission's heading offset and current stay
     within 3 sigma (:func:`aqfg.fleet.effect.judge`); otherwise the model as given, saying
-    why. Each vehicle's ``effect_step`` records the step."""
+    why. Each vehicle's ``effect_step`` records the step. Returns the chosen fits'
+    ``(specs, results, tracks)`` (:func:`_solve_fleet`)."""
     from aqfg.fleet import effect as fe
     pick = fe.choose(results, effects)
     if pick is None:
-        return specs, results
+        return specs, results, tracks
     show(0.99, f"the fits call for {pick['effect']}: every vehicle again with it")
     try:
-        specs2, new = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
+        specs2, new, tracks2 = _solve_fleet(client, manifest, settings, (*effects, pick["effect"]),
                                    None, init, gnss_every, show, timeout, stats, refit=True,
                                    fit=fit, where=where)
     except FleetError as e:
         fe.record(results, pick, None, f"its fit failed ({e})")
-        return specs, results
+        return specs, results, tracks
     why = fe.judge(results, new, pick["effect"])
-    for r in (new if why else results).values():
-        r.info.pop(_TRACKS, None)          # the fits not returned: no tracks to finish
     fe.record(results, pick, new, why)
-    return (specs, results) if why else (specs2, new)
+    return (specs, results, tracks) if why else (specs2, new, tracks2)
 
 
-def _finish(client, specs: dict, results: dict[str, Result], timeout, where: dict
-            ) -> dict[str, Result]:
+def _finish(client, specs: dict, results: dict[str, Result], tracks: dict[str, list],
+            timeout, where: dict) -> dict[str, Result]:
     """Every vehicle's final fit, as ``aqfg fit`` finishes its own: the dead-reckoning
     constants (:func:`refine_op`, on the worker that holds most of its missions), then
     :func:`finish_op` with each mission's track under the noise its evidence chooses: the
-    one its session smoothed with the result, or else one smoothed where the mission is
-    (:func:`track_op`, from the joint fit's parameters); Dask moves the replies between
-    the workers."""
+    one its session smoothed with the result (``tracks``), or else one smoothed where the
+    mission is (:func:`track_op`, from the joint fit's parameters); Dask moves the replies
+    between the workers."""
     def args(v: str, home: list[str] | None) -> tuple:
         spec0 = specs[v][0]
-        tracks = results[v].info.pop(_TRACKS, None)     # made by the missions' sessions
         refined = client.submit(refine_op, specs[v], results[v], pure=False, retries=2,
                                 key=f"aqfg-{spec0.run}-refine-{v}", workers=home,
                                 allow_other_workers=True)
-        if spec0.settings.batch.adapt_track and tracks is None:
-            tracks = [client.submit(track_op, s, mr.p, pure=False, retries=2,
-                                    key=f"aqfg-{s.run}-track-{v}-{s.index}",
-                                    workers=_home([s], where), allow_other_workers=True)
-                      for s, mr in zip(specs[v], results[v].missions)]
-        return refined, tracks
+        made = tracks.get(v)
+        if spec0.settings.batch.adapt_track and made is None:
+            made = [client.submit(track_op, s, mr.p, pure=False, retries=2,
+                                  key=f"aqfg-{s.run}-track-{v}-{s.index}",
+                                  workers=_home([s], where), allow_other_workers=True)
+                    for s, mr in zip(specs[v], results[v].missions)]
+        return refined, made
     return _per_vehicle(client, finish_op, specs, results, timeout,
                         "the dead-reckoning constants or tracks", where, args)
 
