@@ -10,6 +10,7 @@ goes on (see :class:`aqfg.fg.schur.MissionSession`).
 from __future__ import annotations
 
 import functools
+import os
 import time
 import uuid
 from collections.abc import Sequence
@@ -153,7 +154,6 @@ def _chunks(client, pending: dict, specs: dict, where: dict) -> dict[str, list]:
 def _mission_bytes(path: str) -> int:
     """A mission's size on disk (bytes; its directory's files, or the file), what its
     solve's cost grows with; 1 where it cannot be read here (the workers read it)."""
-    import os
     try:
         if os.path.isdir(path):
             return max(sum(e.stat().st_size for e in os.scandir(path) if e.is_file()), 1)
