@@ -122,3 +122,14 @@ def test_the_checks_see_what_they_check():
     assert "aqfg.model.terms" in graph["aqfg.model.effects"]
     assert "aqfg.result" in graph["aqfg.export"]
     assert len(graph) > 100
+
+
+# documents a reader opens first, and the most lines each may have
+DOC_LIMITS = {"README.md": 200, "docs/independent-vehicle.md": 400}
+
+
+def test_documents_within_their_limits():
+    root = PKG.parent
+    long = {f: n for f, limit in DOC_LIMITS.items()
+            if (n := len((root / f).read_text(encoding="utf-8").splitlines())) > limit}
+    assert not long, f"documents over their line limits {DOC_LIMITS}: {long}"
