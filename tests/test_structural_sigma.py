@@ -122,3 +122,47 @@ def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test
         assert abs(res.values[n] - P[n]) <= 3 * res.sigma[n], n
     th = P["theta_e"] + P["heading_drift.rate"] * 0.5 * (m.t0 + float(m.fix_times()[-1]))
     assert abs(np.angle(np.exp(1j * (res.values["theta_e"] - th)))) <= 3 * res.sigma["theta_e"]
+
+
+def test_a_drift_adds_its_mission_mean_and_only_at_a_plausible_size():
+    """A drift's term averaged over the knots (theta_e and s are the values at the mission
+    start under a drift, the mission means without one), other effects none; an estimate
+    beyond its plausible range is brought to the range's edge (a lever arm to the hull)."""
+    from aqfg.fg.structure import drift_mean, plausible_size
+    from aqfg.model.effects import resolve
+    m = simulate("asv", seed=1, duration=60.0)[0]
+    knots = m.t0 + np.array([0.0, 10.0, 20.0, 50.0])        # mean 20 s after the start
+    assert drift_mean(resolve("heading_drift"), np.array([1e-3]), m, knots) == \
+        pytest.approx({"theta_e": 0.02})
+    assert drift_mean(resolve("current_drift"), np.array([1e-4, -2e-4]), m, knots) == \
+        pytest.approx({"s_x": 2e-3, "s_y": -4e-3})
+    assert drift_mean(resolve("reverse_thrust"), np.array([1.3]), m, knots) == {}
+    lo, hi = resolve("heading_drift").plausible_range(resolve("heading_drift").specs()[0])
+    assert plausible_size(resolve("heading_drift"), np.array([5.4e-3]))[0] == hi
+    assert plausible_size(resolve("reverse_thrust"), np.array([1.2]))[0] == 1.2
+    m.hull = (1.2, 1.0)
+    arm = plausible_size(resolve("lever_arm"), np.array([1.0, -0.2, 0.1]), [m])
+    assert np.allclose(arm, [0.6, -0.2, 0.1])
+
+
+@pytest.mark.slow
+def test_a_drifting_heading_offset_widens_sigma_by_the_move_of_its_mission_mean():
+    """A heading offset drifting at 0.09 deg/s (aqfg's simulator, 400 s): the model without
+    the drift estimates about its mission mean, and the structural test's shift is the
+    move of that mean the drift causes (the refit with the drift: 6.8 deg), not the move
+    of the offset at the start (10.9 deg, which a drift changes by definition)."""
+    from aqfg.fg.graph import knot_times
+    m, truth = simulate("asv", seed=3, duration=400.0, effects={"heading_drift": {"rate": 0.0015}})
+    base = fit_fg([m], settings=AS_GIVEN)
+    st = base.sigma_structure
+    assert st is not None and st.effect == "heading_drift"
+    drift = fit_fg([m], settings=AS_GIVEN, effects=("heading_drift",))
+    rate, start = drift.values["heading_drift.rate"], drift.values["theta_e"]
+    mean = start + rate * float(np.mean(knot_times(m, FGSettings().graph.knot_spacing) - m.t0))
+    to_mean, to_start = abs(mean - base.values["theta_e"]), abs(start - base.values["theta_e"])
+    assert abs(st.shift["theta_e"] - to_mean) < abs(st.shift["theta_e"] - to_start)
+    t = m.fix_times()
+    P = truth.params
+    truth_mean = P["theta_e"] + P["heading_drift.rate"] * (0.5 * (t[0] + t[-1]) - m.t0)
+    err = float(np.angle(np.exp(1j * (base.values["theta_e"] - truth_mean))))
+    assert abs(err) <= 3 * base.sigma["theta_e"]

@@ -68,18 +68,9 @@ def practical_gain(rmse_before: float, rmse_after: float) -> float:
 
 def implausible(effect, values: dict, missions=()) -> list[str]:
     """The estimates of ``effect`` (``{name: {"value", ...}}``) outside their plausible
-    range (:meth:`~aqfg.model.effects.Effect.plausible_range`), in words, e.g.
+    range (:meth:`~aqfg.model.effects.Effect.implausible`), in words, e.g.
     ``"ratio = 1.63 outside [0.3, 1.5]"``; empty when all are plausible."""
-    out = []
-    for s in effect.specs():
-        if s.name not in values:
-            continue
-        v = float(values[s.name]["value"])
-        lo, hi = effect.plausible_range(s, missions)
-        if np.isfinite(v) and not lo <= v <= hi:
-            out.append(f"{s.name.split('.')[-1]} = {v:.3g} {s.unit if s.unit != '-' else ''}"
-                       .rstrip() + f" outside [{lo:.3g}, {hi:.3g}]")
-    return out
+    return effect.implausible({n: float(v["value"]) for n, v in values.items()}, missions)
 
 
 @dataclass

@@ -35,7 +35,7 @@ import numpy as np
 from aqfg.data.mission import Mission
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.score import Projected, holm_log, score_tests
-from aqfg.model.effects import BUILTIN, DemandLagTerm, Effect, resolve
+from aqfg.model.effects import BUILTIN, CurrentTerm, DemandLagTerm, Effect, HeadingTerm, resolve
 from aqfg.model.params import N_DYN
 from aqfg.model.vehicle import Model
 
@@ -160,19 +160,50 @@ def _holm_levels(tests: list) -> tuple[list[int], list[int]]:
     return ok, suggested
 
 
+def plausible_size(effect: Effect, delta: np.ndarray, missions=()) -> np.ndarray:
+    """``delta`` (the effect's parameters, in ``effect.params`` order) with each value
+    brought into its :meth:`~aqfg.model.effects.Effect.plausible_range`: the largest
+    effect of that kind a real vehicle has. A one-step estimate beyond it stands for
+    something else (``Effect.absorbs``), whose bias its shift would overstate (a heading
+    drift of 0.3 deg/s on a real boat's 146-s run)."""
+    lo, hi = np.array([effect.plausible_range(sp, missions) for sp in effect.specs()]).T
+    return np.clip(np.asarray(delta, float), lo, hi)
+
+
+def drift_mean(effect: Effect, q: np.ndarray, mission: Mission, knots: np.ndarray
+               ) -> dict[str, float]:
+    """The mean over ``knots`` (s) of what ``effect`` at parameters ``q`` adds to the
+    heading offset (a :class:`HeadingTerm`, rad) or the current (a :class:`CurrentTerm`,
+    m/s); empty for any other effect. With a drift the model's ``theta_e`` and ``s`` are
+    the values at the mission start; the model without it estimates their mission mean."""
+    tm = np.asarray(knots, float) - mission.t0
+    out: dict[str, float] = {}
+    if isinstance(effect, HeadingTerm):
+        out["theta_e"] = float(np.mean([effect.heading(x, q) for x in tm]))
+    if isinstance(effect, CurrentTerm):
+        c = np.mean([effect.current(x, q) for x in tm], axis=0)
+        out["s_x"], out["s_y"] = float(c[0]), float(c[1])
+    return out
+
+
 def _shift_of(fs: FastSystem, Zp: np.ndarray, cols: list[str], names: list[str],
-              t) -> dict[str, float]:
+              t, effect: Effect, missions=()) -> dict[str, float]:
     """The one-step move of each variable parameter in ``names`` by the test ``t``'s
-    effect, largest over the missions (model units)."""
-    move = -(Zp[:, [cols.index(n) for n in t.params]] @ t.delta)
+    ``effect`` at its :func:`plausible_size`, largest over the missions (model units); for
+    a drift, the move of the parameter's mission mean (:func:`drift_mean`)."""
+    delta = plausible_size(effect, t.delta, missions)
+    move = -(Zp[:, [cols.index(n) for n in t.params]] @ delta)
     out: dict[str, float] = {}
     for node in fs.bg.nodes:
         if node.group != "variable":
             continue
         o, _ = fs.node_off[node.key]
+        part = fs.bg.parts[node.mission] if node.mission is not None else None
+        mean = {} if part is None else drift_mean(effect, delta, part.mission, part.knots)
         for j, n in enumerate(fs.layout.names["variable"]):
-            if n in names and math.isfinite(float(move[o + j])):
-                out[n] = max(out.get(n, 0.0), abs(float(move[o + j])))
+            d = float(move[o + j]) + mean.get(n, 0.0)
+            if n in names and math.isfinite(d):
+                out[n] = max(out.get(n, 0.0), abs(d))
     return out
 
 
@@ -208,7 +239,8 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
     # saturate near each other); none suggested, the largest statistic of all
     t = max((tests[i] for i in (ok or suggested or range(len(tests)))),
             key=lambda t: t.statistic)
-    shift = _shift_of(fs, Zp, cols, names, t)
+    by_name = {e.name: e for e in cands}
+    shift = _shift_of(fs, Zp, cols, names, t, by_name[t.effect], missions)
     if not shift:
         return None
     called = {tests[i].effect for i in ok}
@@ -216,6 +248,8 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                            [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
                              "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)},
                              "statistic": float(x.statistic), "called_for": x.effect in called,
-                             "shift": _shift_of(fs, Zp, cols, names, x)}
+                             "plausible": not by_name[x.effect].implausible(
+                                 dict(zip(x.params, x.estimate)), missions),
+                             "shift": _shift_of(fs, Zp, cols, names, x, by_name[x.effect], missions)}
                             for x in sorted(tests, key=lambda x: -x.statistic)],
                            proven=bool(ok), suggested=bool(suggested))

@@ -47,6 +47,21 @@ class Effect(ABC):
         its bounds); ``missions`` may narrow it (e.g. a lever arm within the hull)."""
         return spec.plausible if spec.plausible is not None else (spec.lower, spec.upper)
 
+    def implausible(self, values: dict[str, float], missions=()) -> list[str]:
+        """The estimates in ``values`` (``{full name: value}``) outside their
+        :meth:`plausible_range`, in words, e.g. ``"ratio = 1.63 outside [0.3, 1.5]"``;
+        empty when all are plausible (names not in ``values`` are not judged)."""
+        out = []
+        for s in self.specs():
+            if s.name not in values:
+                continue
+            v = float(values[s.name])
+            lo, hi = self.plausible_range(s, missions)
+            if np.isfinite(v) and not lo <= v <= hi:
+                out.append(f"{s.name.split('.')[-1]} = {v:.3g} {s.unit if s.unit != '-' else ''}"
+                           .rstrip() + f" outside [{lo:.3g}, {hi:.3g}]")
+        return out
+
     @property
     def params(self) -> tuple[str, ...]:
         """Full parameter names, e.g. ``("thrust_lag.tau",)``."""
