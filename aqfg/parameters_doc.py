@@ -8,7 +8,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from aqfg.fg.dr_records import DeadReckoning
-    from aqfg.result import BaseFit, EffectStep, Result, SigmaStructure
+    from aqfg.result import BaseFit, EffectStep, Estimate, Result, SigmaStructure
 
 PARAMETERS_FORMAT = "aqfg-parameters/1"
 NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the estimator "
@@ -46,10 +46,16 @@ def without_effect_document(base: BaseFit) -> dict:
                  for n in ("theta_e", "s_x", "s_y") if n in base.values}
     if base.per_mission:
         out["per_mission"] = {
-            m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
+            m: {n: {"value": float(e.value), "sigma": float(e.sigma)}
                 for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
             for m, d in base.per_mission.items()}
     return out
+
+
+def per_mission_document(per: dict[str, dict[str, Estimate]]) -> dict:
+    """Each mission's estimates as ``parameters.json`` writes them (``per_mission``:
+    :meth:`aqfg.result.Estimate.document`)."""
+    return {m: {n: e.document() for n, e in d.items()} for m, d in per.items()}
 
 
 def parameters_document(result: Result, provenance: dict | None = None) -> dict:
@@ -79,9 +85,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
              for n in names if n not in result.estimated and n in result.values}
     doc: dict = {"format": PARAMETERS_FORMAT, "method": result.method, "mode": result.mode,
                  "parameters": est, "fixed": fixed}
-    per = result.info.get("per_mission")
-    if per and len(result.missions) > 1:
-        doc["per_mission"] = per
+    if result.per_mission and len(result.missions) > 1:
+        doc["per_mission"] = per_mission_document(result.per_mission)
     dr = result.dead_reckoning
     if dr is not None and (dr.segments or dr.current):
         doc["dead_reckoning"] = dead_reckoning_document(dr)

@@ -148,7 +148,7 @@ def test_fit_fg_online_several_missions_and_bad_input():
         ms.append(with_gnss_every(m, 8.0)); trs.append(tr)
     res = fit_fg(ms, mode="online", window=16.0, init=fixed_truth(trs[0]))
     assert res.mode == "online" and len(res.missions) == 2
-    assert set(res.info["per_mission"]) == {m.name for m in ms}
+    assert set(res.per_mission) == {m.name for m in ms} and "per_mission" not in res.info
     assert len(res.info["histories"]) == 2
     with pytest.raises(ValueError, match="window"):
         FixedLagSmoother(window=0.0)

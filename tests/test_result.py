@@ -1,11 +1,23 @@
-"""Typed Result attributes read and write the same facts as the ``info`` keys older code uses."""
+"""Typed Result attributes read and write the same facts as the ``info`` keys older code uses,
+and each mission's estimates are written as their estimator gives them."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 
-from aqfg.result import Estimate, ParamHistory, Result, SolveSummary
+from aqfg.outputs import dumps
+from aqfg.parameters_doc import per_mission_document
+from aqfg.result import (
+    SIGMA_ABSENT,
+    SIGMA_NULL,
+    Estimate,
+    EstimateNote,
+    ParamHistory,
+    Result,
+    SolveSummary,
+)
 
 
 def _result(info=None, history=None) -> Result:
@@ -14,11 +26,7 @@ def _result(info=None, history=None) -> Result:
 
 
 def test_typed_attributes_read_info():
-    r = _result({"per_mission": {"a": {"theta_e": {"value": 0.5, "sigma": 0.01}},
-                                 "b": {"theta_e": {"value": 0.6}}},
-                 "kernel": "cpp"})
-    assert r.per_mission["a"]["theta_e"] == Estimate(0.5, 0.01)
-    assert r.per_mission["b"]["theta_e"].value == 0.6 and math.isnan(r.per_mission["b"]["theta_e"].sigma)
+    r = _result({"kernel": "cpp"})
     assert (r.kernel, r.settings) == ("cpp", None)
 
 
@@ -36,19 +44,33 @@ def test_typed_attributes_write_info():
     r = _result()
     assert r.per_mission == {} and r.histories == [] and r.converged is None
     r.per_mission = {"m": {"s_x": Estimate(0.1, 0.02)}}
-    assert r.info["per_mission"] == {"m": {"s_x": {"value": 0.1, "sigma": 0.02}}}
+    assert "per_mission" not in r.info
     h = ParamHistory(np.zeros(1), ("k",), np.ones((1, 1)), np.ones((1, 1)))
     assert _result(history=h).histories == [h]
     r.histories = [h, h]
     assert r.info["histories"] == [h, h] and len(r.histories) == 2
 
 
-def test_per_mission_reads_a_sigma_the_estimator_could_not_give():
-    """The update-error method writes ``"sigma": None`` (JSON null) for a parameter its
-    window does not determine; the typed view reads it as NaN (it raised TypeError, which
-    ended `aqfg fit --method update-error` on a 40-s mission)."""
-    r = _result(info={"per_mission": {"a": {"s_y": {"value": -0.26, "sigma": None},
-                                             "k": {"value": 8.0, "sigma": 0.1}}}})
-    e = r.per_mission["a"]
-    assert math.isnan(e["s_y"].sigma) and e["s_y"].value == -0.26
-    assert e["k"].sigma == 0.1
+def test_a_mission_estimate_is_written_as_its_estimator_gives_it():
+    """parameters.json's ``per_mission`` entry: value and sigma (a NaN the writer makes null
+    with its reason); the update-error method's verdict and note; a sigma it did not
+    compute written null without a reason (batch) or left out (online). Marked not
+    determined, the sigma is NaN and the first ``sigma_note`` stands."""
+    assert Estimate(0.5, 0.01).document() == {"value": 0.5, "sigma": 0.01}
+    ue = Estimate(-0.26, float("nan"), EstimateNote("not determined", "no information",
+                                                    sigma_missing=SIGMA_NULL))
+    d = ue.document()
+    assert d == {"value": -0.26, "sigma": None, "verdict": "not determined",
+                 "note": "no information"}
+    assert list(d) == ["value", "sigma", "verdict", "note"] and not ue.sigma_computed
+    on = Estimate(0.3, note=EstimateNote(sigma_missing=SIGMA_ABSENT))
+    assert on.document() == {"value": 0.3} and not on.sigma_computed
+    nd = on.not_determined("not determined: first").not_determined("second")
+    d = nd.document()
+    assert list(d) == ["value", "sigma", "sigma_note"] and math.isnan(d["sigma"])
+    assert d["sigma_note"] == "not determined: first" and nd.sigma_computed
+    doc = json.loads(dumps({"per_mission": per_mission_document({"a": {"s_y": ue, "k": nd}})}))
+    assert doc["per_mission"]["a"]["s_y"]["sigma"] is None
+    assert doc["per_mission"]["a"]["k"]["sigma"] is None
+    # only the NaN the estimator computed has a null reason
+    assert list(doc["null_reasons"]) == ["/per_mission/a/k/sigma"]
