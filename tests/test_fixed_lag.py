@@ -345,10 +345,10 @@ def test_a_held_model_that_fails_its_fixes_brings_the_first_batch_forward():
     assert m.usbl is None
     st = FGSettings().with_(online={"kinematic_q": 0.0})    # the model's own causal track (no floor)
     res = FixedLagSmoother(init=fixed_truth(tr), settings=st).run(m)
-    first = [e["t"] for e in res.info["events"]
-             if e["event"].startswith(("held heading re-seeded", "re-initialised",
+    first = [e.t for e in res.events
+             if e.event.startswith(("held heading re-seeded", "re-initialised",
                                        "parameters released"))]
-    assert first and first[0] < st.online.init_after - 4.0, res.info["events"]
+    assert first and first[0] < st.online.init_after - 4.0, res.events
     f = res.missions[0].filtered
     sel = (f.t > first[0] + 4.0) & (f.t <= st.online.init_after)
     assert sel.sum() >= 3
@@ -390,10 +390,10 @@ def test_a_corrected_track_interval_the_model_cannot_retrace_joins_the_smoothed_
     seg = tr.pos[(tr.t >= a) & (tr.t <= b)]
     vmax = max(np.linalg.norm(tr.vel[tr.t == a][0]), np.linalg.norm(tr.vel[tr.t == b][0]))
     assert np.max(np.linalg.norm(np.diff(seg, axis=0), axis=1)) < 2.0 * vmax * (b - a)
-    ev = [e for e in fl.events if "re-trace diverged" in e["event"]]
-    assert len(ev) == 1 and ev[0]["t"] == a
+    ev = [e for e in fl.events if "re-trace diverged" in e.event]
+    assert len(ev) == 1 and ev[0].t == a
     fl.corrected_track()                           # asked again: no second event
-    assert len([e for e in fl.events if "re-trace diverged" in e["event"]]) == 1
+    assert len([e for e in fl.events if "re-trace diverged" in e.event]) == 1
     # the join itself: Hermite through both states
     xa, xb = np.r_[0.0, 0, 0, 1, 0, 0], np.r_[10.0, 2, 0, 1, 1, 0]
     J = fixed_lag._joined(np.array([0.0, 5.0, 10.0]), xa, xb)
@@ -416,7 +416,7 @@ def test_a_long_stream_stays_with_the_vehicle():
     init = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     res = FixedLagSmoother(None, estimate=("theta_e", "s_x", "s_y"), init=init,
                            window=24.0).run(m)
-    events = [e["event"] for e in res.info["events"]]
+    events = [e.event for e in res.events]
     assert "fix skipped" not in events and "released parameters implausible" not in events
     err = np.angle(np.exp(1j * (res.values["theta_e"] - truth.params["theta_e"])))
     assert abs(err) < np.radians(2.0), np.degrees(err)

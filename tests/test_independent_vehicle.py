@@ -283,8 +283,8 @@ def test_released_constants_at_their_bounds_are_caught_before_the_track_runs_awa
                 self.z[j] = self.lo[j]
     monkeypatch.setattr(LagWindow, "step", step)
     r = fit_fg([m], mode="online", settings=BY_COST)
-    assert any(e["event"] == "released parameters implausible" and 170.0 < e["t"] < 260.0
-               for e in r.info["events"]), r.info["events"]
+    assert any(e.event == "released parameters implausible" and 170.0 < e.t < 260.0
+               for e in r.events), r.events
     t, e = causal(r)
     assert np.max(e[t > 40.0]) < 10.0, np.max(e[t > 40.0])
     monkeypatch.setattr(LagWindow, "step", real)
@@ -344,7 +344,7 @@ def test_online_all_six_parameters_completes():
     assert np.all(np.isfinite(res.history.values))
     assert np.all(np.isfinite(res.missions[0].filtered.pos))
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
-    assert any(e["event"].startswith("re-initialised") for e in res.info["events"])
+    assert any(e.event.startswith("re-initialised") for e in res.events)
 
 
 @pytest.mark.slow
@@ -426,6 +426,7 @@ def test_online_random_walk_survives_failed_releases():
     a batch of the fixes so far. (Without the USBL gate.) The run no longer gets into
     trouble by itself (the heading search of the re-initialisation batches), so a skipped
     fix is also injected after the 80-s release: the next update must re-initialise."""
+    from aqfg.fg.online.records import OnlineEvent
     from aqfg.fg.settings import FGSettings
 
     class Troubled(FixedLagSmoother):
@@ -435,8 +436,8 @@ def test_online_random_walk_survives_failed_releases():
             info = super()._solve(t_fix, n_new)
             if 100.0 <= t_fix and not Troubled.injected:
                 Troubled.injected = True
-                self.events.append({"t": float(t_fix), "event": "fix skipped",
-                                    "error": "injected by the test"})
+                self.events.append(OnlineEvent(float(t_fix), "fix skipped",
+                                               {"error": "injected by the test"}))
             return info
 
     m, truth = mission("otter-dev-calm-b", 8.0)
@@ -451,10 +452,10 @@ def test_online_random_walk_survives_failed_releases():
               "knots > 100 m", int(np.sum(err > 100.0)))
         assert np.mean(err > 100.0) < 0.01        # was 76 of 928 knots
         assert causal_rmse(res, truth) < 3.0
-    skipped = [e["t"] for e in res.info["events"] if e["event"] == "fix skipped"]
+    skipped = [e.t for e in res.events if e.event == "fix skipped"]
     assert skipped
-    assert any(e["event"].startswith("re-initialised") and abs(e["t"] - skipped[0]) < 1e-6
-               for e in res.info["events"]), res.info["events"]   # a forced one
+    assert any(e.event.startswith("re-initialised") and abs(e.t - skipped[0]) < 1e-6
+               for e in res.events), res.events   # a forced one
 
 
 def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
@@ -523,7 +524,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     while fl.pending():
         fl.update()
     res = fl.result()
-    assert any(e["event"].startswith("restarted") for e in res.info["events"])
+    assert any(e.event.startswith("restarted") for e in res.events)
     assert np.all(np.isfinite(res.missions[0].track.pos))
 
 
@@ -549,10 +550,10 @@ def test_restart_while_held_keeps_the_hold_and_the_release_removes_only_it():
     for i in eng.hold_idx:                     # the new smoother's own hold priors
         assert isinstance(fg.at(i), gtsam.PriorFactorVector) and set(fg.at(i).keys()) <= nodes
     fl.release(fl.knots[-1])
-    assert fl.events[-1]["event"] == "parameters released"
+    assert fl.events[-1].event == "parameters released"
     while fl.pending():
         fl.update()
-    skipped = [e for e in fl.events if e["event"] == "fix skipped"]
+    skipped = [e for e in fl.events if e.event == "fix skipped"]
     assert not skipped, skipped
     assert np.all(np.isfinite(fl.result().missions[0].filtered.pos))
 
@@ -574,13 +575,13 @@ def test_a_failing_held_model_is_rescued_from_the_fourth_fix(gnss_period, t_firs
         e = wrap(res.values["theta_e"] - tr.params["theta_e"])
         assert abs(e) < 10 * DEG and abs(e) <= 3 * res.sigma["theta_e"], (
             e / DEG, res.sigma["theta_e"] / DEG)
-        return res.info["events"]
+        return res.events
     ev = run()
-    assert ev and ev[0]["event"].startswith("held heading re-seeded"), ev
-    assert abs(ev[0]["t"] - (t_first - gnss_period)) < 1e-6, ev
+    assert ev and ev[0].event.startswith("held heading re-seeded"), ev
+    assert abs(ev[0].t - (t_first - gnss_period)) < 1e-6, ev
     monkeypatch.setattr(recovery, "reseed", lambda fl, t: None)
     ev = run()
-    first = [e["t"] for e in ev if e["event"].startswith(("re-initialised", "parameters released"))]
+    first = [e.t for e in ev if e.event.startswith(("re-initialised", "parameters released"))]
     assert first and abs(first[0] - t_first) < 1e-6, ev
 
 
@@ -634,9 +635,9 @@ def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
     m, truth = mission("otter-dev-calm-a", 8.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
-    ev = [e["event"] for e in res.info["events"]]
+    ev = [e.event for e in res.events]
     assert "parameters released" in ev
-    t_rel = min(e["t"] for e in res.info["events"] if e["event"] == "parameters released")
+    t_rel = min(e.t for e in res.events if e.event == "parameters released")
     h = res.history
     i = list(h.names).index("theta_e")
     before = h.values[h.t < t_rel, i]
@@ -657,7 +658,7 @@ def test_dense_fixes_start_the_batch_by_their_count():
     m, truth = mission("otter-dev-calm-a", 1.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects,
                            settings=MODEL_TRACK).run(m)
-    first = min(e["t"] for e in res.info["events"] if "batch" in e["event"])
+    first = min(e.t for e in res.events if "batch" in e.event)
     assert first - m.fix_times().min() < 15.0
     f = res.missions[0].filtered
     t = f.t - f.t[0]
@@ -756,7 +757,7 @@ def test_online_does_not_restart_from_an_implausible_batch():
     truth = load_truth(data_path("otter-dev-calm-b"))
     res = fit_fg([with_gnss_every(crop(full, 300.0, 838.0), 4.0)], mode="online")
     assert causal_rmse(res, truth) < 4.0
-    assert not any(e["event"] == "prediction diverged" for e in res.info["events"])
+    assert not any(e.event == "prediction diverged" for e in res.events)
 
 
 @pytest.mark.slow
@@ -828,7 +829,7 @@ def test_the_fix_of_a_re_initialisation_reports_the_re_initialised_estimate():
     res = FixedLagSmoother(init={"k": 1.4, "k_x": 0.4, "k_yz": 4.0}).run(m)
     h = res.history
     i = list(h.names).index("theta_e")
-    ev = [e["t"] for e in res.info["events"] if e["event"].startswith("re-initialised")]
+    ev = [e.t for e in res.events if e.event.startswith("re-initialised")]
     assert ev and ev[0] in h.t.tolist()
     k = h.t.tolist().index(ev[0])
     assert abs(h.values[k - 1, i]) < 1e-3 and h.sigma[k - 1, i] > 1.0   # held, said so
@@ -935,9 +936,9 @@ def test_a_failing_held_heading_is_reseeded_from_the_fixes():
     full, truth = mission("otter-heldout-46", 4.0)
     m = between(full, 0.0, 90.0)
     r = FixedLagSmoother(settings=MODEL_TRACK).run(m)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading re-seeded")]
-    assert seeds, r.info["events"]
-    assert abs(wrap(seeds[0]["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
+    seeds = [e for e in r.events if e.event.startswith("held heading re-seeded")]
+    assert seeds, r.events
+    assert abs(wrap(seeds[0].details["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -957,7 +958,7 @@ def test_a_held_heading_that_misses_the_third_fix_is_reseeded_there(monkeypatch)
 
     def early_rmse():
         r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-        seeds = [e["t"] for e in r.info["events"] if e["event"].startswith("held heading")]
+        seeds = [e.t for e in r.events if e.event.startswith("held heading")]
         c = r.missions[0].filtered
         pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
         e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -991,14 +992,14 @@ def test_gnss_only_a_reseed_takes_the_speed_scale_and_beats_the_baseline(monkeyp
 
     def run():
         r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-        seeds = [e for e in r.info["events"] if e["event"].startswith("held heading")]
+        seeds = [e for e in r.events if e.event.startswith("held heading")]
         t, e = causal(r)
         return seeds, float(np.sqrt(np.mean(e ** 2))), float(np.max(e[(t > third) & (t < 40.0)]))
     seeds, rmse, after = run()
-    assert seeds and seeds[0]["t"] == pytest.approx(third), seeds
+    assert seeds and seeds[0].t == pytest.approx(third), seeds
     s0 = seeds[0]
-    assert abs(wrap(s0["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
-    assert s0["k_after"] == pytest.approx(s0["k_before"] * s0["speed_scale"] ** 2)
+    assert abs(wrap(s0.details["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
+    assert s0.details["k_after"] == pytest.approx(s0.details["k_before"] * s0.details["speed_scale"] ** 2)
     t_u, e_u = causal(fit_update_error([m], mode="online"))
     assert rmse < float(np.sqrt(np.mean(e_u ** 2))), (rmse, float(np.sqrt(np.mean(e_u ** 2))))
     assert after < 2.5, after
@@ -1026,11 +1027,11 @@ def test_a_reseed_keeps_the_thrust_gain_where_the_speed_scale_is_not_determined(
             return [dataclasses.replace(s, rho=rho, rho_var=sd ** 2 / v_fix) for s in out]
         monkeypatch.setattr(fg_init, "candidate_starts", starts)
         r = fit_fg([m], mode="online")
-        return [e for e in r.info["events"] if e["event"].startswith("held heading")][0]
+        return [e for e in r.events if e.event.startswith("held heading")][0]
     e = run(13.0, 6.5)
-    assert e["k_after"] == e["k_before"], e
+    assert e.details["k_after"] == e.details["k_before"], e
     e = run(13.0, 0.5)
-    assert e["k_after"] > 10.0 * e["k_before"], e
+    assert e.details["k_after"] > 10.0 * e.details["k_before"], e
 
 
 @pytest.mark.slow
@@ -1049,9 +1050,9 @@ def test_three_fixes_with_a_usbl_fix_reseed_neither_heading_nor_gain():
     rng[j] += 17.0
     m = dataclasses.replace(m, usbl=dataclasses.replace(m.usbl, range=rng))
     r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading")]
-    assert not [e for e in seeds if e["t"] <= third + 1e-9], seeds
-    assert all(e["k_after"] == e["k_before"] for e in seeds), seeds
+    seeds = [e for e in r.events if e.event.startswith("held heading")]
+    assert not [e for e in seeds if e.t <= third + 1e-9], seeds
+    assert all(e.details["k_after"] == e.details["k_before"] for e in seeds), seeds
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 50.0
@@ -1088,9 +1089,9 @@ def test_a_first_batch_that_explains_no_fix_is_not_used():
     a batch explains them."""
     m, truth = mission("otter-heldout-42-90s", 4.0)
     r = FixedLagSmoother(settings=MODEL_TRACK).run(m)
-    refused = [e for e in r.info["events"] if e["event"].startswith(
+    refused = [e for e in r.events if e.event.startswith(
         "batch re-initialisation explains no fix")]
-    assert refused and refused[0]["t"] - m.t0 < 15.0, r.info["events"]
+    assert refused and refused[0].t - m.t0 < 15.0, r.events
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -1230,8 +1231,8 @@ def test_a_held_heading_is_not_reseeded_from_three_fixes_with_a_usbl_fix():
     m, truth = mission("otter-heldout-281-60s", 8.0)
     third = float(np.unique(m.fix_times())[2])
     r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading re-seeded")]
-    assert seeds and seeds[0]["t"] > third + 1e-9, seeds
+    seeds = [e for e in r.events if e.event.startswith("held heading re-seeded")]
+    assert seeds and seeds[0].t > third + 1e-9, seeds
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 17.0
@@ -1264,8 +1265,8 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     np.testing.assert_array_equal(on.history.values, off.history.values)
     np.testing.assert_array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
     t_model = fl._floor.until
-    assert t_model < m.t1 and any(e["event"].startswith("causal track follows the model")
-                                  for e in on.info["events"])
+    assert t_model < m.t1 and any(e.event.startswith("causal track follows the model")
+                                  for e in on.events)
     after = on.missions[0].filtered.t >= t_model
     np.testing.assert_array_equal(on.missions[0].filtered.pos[after],
                                   off.missions[0].filtered.pos[after])
