@@ -17,7 +17,7 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
 
 # the online fit's record kept in parameters.json (format doc, "Outputs"), after its events
 # (and, last, the process-noise factor in use, Result.process_noise_scale)
-ONLINE_RECORD = ("reinit_batches", "rejected_usbl")
+ONLINE_RECORD = ("rejected_usbl",)
 
 
 def effect_step_document(step: EffectStep) -> dict:
@@ -113,12 +113,15 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # auto_effect), and the heading offset and current of the model as given
         doc["auto_effect"] = {**effect_step_document(ae),
                               "without_effect": without_effect_document(ae.base)}
-    if result.mode == "online" and (result.events is not None or "reinit_batches" in result.info):
+    if result.mode == "online" and (result.events is not None
+                                    or result.reinit_batches is not None):
         # what the online run did besides its updates: re-initialisations, re-seeds,
         # recoveries, fixes left out (docs/independent-vehicle.md)
         doc["online"] = {
             **({"events": [e.document() for e in result.events]}
                if result.events is not None else {}),
+            **({"reinit_batches": [b.document() for b in result.reinit_batches]}
+               if result.reinit_batches is not None else {}),
             **{k: result.info[k] for k in ONLINE_RECORD if k in result.info}}
         if result.process_noise_scale is not None:
             doc["online"]["process_noise_scale"] = result.process_noise_scale

@@ -224,8 +224,8 @@ def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
     i = list(h.names).index("theta_e")
     k10 = 9                                       # the tenth fix (24.5 s)
     e = abs(wrap(h.values[k10, i] - truth.params["theta_e"]))
-    first = res.info["reinit_batches"][0]
-    assert first["t"] == 20.0 and e > 3 * first["reference_sigma_theta_e"]
+    first = res.reinit_batches[0]
+    assert first.t == 20.0 and e > 3 * first.reference_sigma_theta_e
     assert e <= 3 * h.sigma[k10, i]
 
 
@@ -241,14 +241,14 @@ def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
     res = fit_fg([m], mode="online", settings=BY_COST.with_(graph={"prior_sigma": SLIDING}))
     h = res.history
     i = list(h.names).index("theta_e")
-    amb = [b for b in res.info["reinit_batches"]
-           if b["restarted"] and b["reference"] != "non-sliding alternative"
-           and b["sigma_theta_e"] > 3 * b["reference_sigma_theta_e"]]
-    assert amb, res.info["reinit_batches"]
+    amb = [b for b in res.reinit_batches
+           if b.restarted and b.reference != "non-sliding alternative"
+           and b.sigma_theta_e > 3 * b.reference_sigma_theta_e]
+    assert amb, res.reinit_batches
     for b in amb:
-        k = int(np.argmin(np.abs(h.t - b["t"])))
-        assert h.t[k] == pytest.approx(b["t"])
-        assert h.sigma[k, i] >= b["sigma_theta_e"], (b, h.sigma[k, i])
+        k = int(np.argmin(np.abs(h.t - b.t)))
+        assert h.t[k] == pytest.approx(b.t)
+        assert h.sigma[k, i] >= b.sigma_theta_e, (b, h.sigma[k, i])
 
 
 @pytest.mark.slow
@@ -380,7 +380,7 @@ def test_the_released_window_solves_the_batchs_own_problem():
     fl.start(m, plan=True)
     while fl.hist_t[-1] < 24.0 - 1e-9:   # to the fix after the 20-s batch
         fl.update()
-    assert [b["t"] for b in fl.reinit_batches] == [20.0] and fl.reinit_batches[0]["restarted"]
+    assert [b.t for b in fl.reinit_batches] == [20.0] and fl.reinit_batches[0].restarted
     eng = fl.backend.win
     assert eng is not None and eng.hold_w is None            # released
     j = [eng.names.index(n) for n in ("s_x", "s_y")]
@@ -885,15 +885,15 @@ def test_long_reinit_batch_keeps_the_nominal_noise_and_the_right_basin():
     noise."""
     m, truth = mission("otter-heldout-46", 8.0)
     r = fit_fg([m], mode="online", estimate=("theta_e", "s_x", "s_y", "k", "k_x", "k_yz"))
-    batches = r.info["reinit_batches"]
+    batches = r.reinit_batches
     n_p = 6
-    long_ = [b for b in batches if b["t"] - m.t0 >= 60.0 * (n_p + 2)]
-    short = [b for b in batches if b["t"] - m.t0 < 60.0 * (n_p + 1)]
+    long_ = [b for b in batches if b.t - m.t0 >= 60.0 * (n_p + 2)]
+    short = [b for b in batches if b.t - m.t0 < 60.0 * (n_p + 1)]
     assert long_ and short
-    assert all(not b["noise_by_evidence"] and b["process_noise_scale"] == 1.0 for b in long_)
-    assert all(b["noise_by_evidence"] for b in short)
-    assert all(b["process_noise_measured"] is not None for b in batches)
-    assert r.process_noise_scale >= batches[-1]["process_noise_measured"]
+    assert all(not b.noise_by_evidence and b.process_noise_scale == 1.0 for b in long_)
+    assert all(b.noise_by_evidence for b in short)
+    assert all(b.process_noise_measured is not None for b in batches)
+    assert r.process_noise_scale >= batches[-1].process_noise_measured
     i = list(r.history.names).index("theta_e")
     err = abs(wrap(r.history.values[-1, i] - truth.params["theta_e"]))
     assert err < 5 * DEG, np.degrees(err)
@@ -912,13 +912,13 @@ def test_a_sliding_batch_does_not_replace_the_online_heading_within_its_own_sigm
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-44", 8.0)
     r = fit_fg([m], mode="online")
-    sliding = [b for b in r.info["reinit_batches"]
-               if b.get("slip_deg", 0.0) > plausibility.SUSPECT_SLIP and b["t"] > 600.0]
-    assert sliding, r.info["reinit_batches"]
+    sliding = [b for b in r.reinit_batches
+               if b.slip_deg > plausibility.SUSPECT_SLIP and b.t > 600.0]
+    assert sliding, r.reinit_batches
     for b in sliding:
         # judged by its non-sliding alternative where it names one, else by its own 3 sigma
-        assert not b["restarted"] and (b["reference"] == "non-sliding alternative"
-                                       or b["tolerance"] >= 3 * b["sigma_theta_e"])
+        assert not b.restarted and (b.reference == "non-sliding alternative"
+                                    or b.tolerance >= 3 * b.sigma_theta_e)
     i = list(r.history.names).index("theta_e")
     t_end = r.history.t[-1]
     th_true = truth.params["theta_e"] + truth.params["heading_drift.rate"] * t_end
@@ -1070,14 +1070,14 @@ def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternat
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-52-300s", 0.0)
     r = FixedLagSmoother(settings=BY_COST.with_(graph={"prior_sigma": SLIDING})).run(m)
-    sliding = [b for b in r.info["reinit_batches"] if b["slip_deg"] > plausibility.SUSPECT_SLIP]
-    assert sliding and all(b["reference"] == "non-sliding alternative" for b in sliding), \
-        r.info["reinit_batches"]
+    sliding = [b for b in r.reinit_batches if b.slip_deg > plausibility.SUSPECT_SLIP]
+    assert sliding and all(b.reference == "non-sliding alternative" for b in sliding), \
+        r.reinit_batches
     h = r.history
     i = list(h.names).index("theta_e")
     th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
     err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
-    assert np.max(err[h.t >= sliding[0]["t"]]) < 15 * DEG, np.degrees(err[h.t >= sliding[0]["t"]])
+    assert np.max(err[h.t >= sliding[0].t]) < 15 * DEG, np.degrees(err[h.t >= sliding[0].t])
 
 
 def test_a_first_batch_that_explains_no_fix_is_not_used():
@@ -1124,13 +1124,13 @@ def test_an_ambiguous_batch_keeps_the_basin_of_the_online_estimate():
     basins ranked by cost: ranked by evidence, that batch chooses a basin 9 deg off.)"""
     m, truth = mission("otter-heldout-73-170s", 4.0)
     r = FixedLagSmoother(settings=BY_COST).run(m)
-    own = [b for b in r.info["reinit_batches"] if b["reference"].startswith("solution from")]
-    assert own, r.info["reinit_batches"]
+    own = [b for b in r.reinit_batches if b.reference.startswith("solution from")]
+    assert own, r.reinit_batches
     h = r.history
     i = list(h.names).index("theta_e")
     th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
     err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
-    after = h.t >= own[0]["t"]
+    after = h.t >= own[0].t
     assert np.max(err[after]) < 15 * DEG, np.degrees(err[after])
 
 
@@ -1165,9 +1165,9 @@ def test_the_alternative_of_a_batch_that_does_not_determine_the_heading_is_not_u
     d = data_path("otter-heldout-111")
     m = with_gnss_every(load_mission(d), 8.0)
     res = fit_fg([m], mode="online")
-    b160 = [b for b in res.info["reinit_batches"] if abs(b["t"] - 160.0) < 1e-6]
-    assert b160 and not b160[0]["theta_e_determined"] and not b160[0]["restarted"]
-    assert b160[0]["reference"] == "batch"
+    b160 = [b for b in res.reinit_batches if abs(b.t - 160.0) < 1e-6]
+    assert b160 and not b160[0].theta_e_determined and not b160[0].restarted
+    assert b160[0].reference == "batch"
     assert track_rmse(res.missions[0].filtered, load_truth(d)) < 2.0
 
 
@@ -1184,16 +1184,16 @@ def test_online_sigma_carries_how_much_the_given_constants_decide():
     res = fit_fg([m], mode="online", init={n: float(OLD_PARAMS[n]) for n in ("k", "k_x", "k_yz")})
     h = res.history
     i = list(h.names).index("theta_e")
-    free = [b for b in res.info["reinit_batches"] if b.get("constants_free")]
-    assert free and max(b["constants_free"]["difference"]["theta_e"] for b in free) > 10 * DEG
+    free = [b for b in res.reinit_batches if b.constants_free is not None]
+    assert free and max(b.constants_free.difference["theta_e"] for b in free) > 10 * DEG
     for b in free:
-        k = min(int(np.searchsorted(h.t, b["t"] + 1e-6)), len(h.t) - 1)
-        c = b["constants_free"]
-        d = c["difference"]["theta_e"]
-        if not c["theta_e_determined"]:
+        k = min(int(np.searchsorted(h.t, b.t + 1e-6)), len(h.t) - 1)
+        c = b.constants_free
+        d = c.difference["theta_e"]
+        if not c.theta_e_determined:
             # a free solve that does not determine the heading moves by about its sigma
-            d = min(d, c["sigma_theta_e"])
-        assert h.sigma[k, i] >= 0.99 * d, (b["t"], h.sigma[k, i], d)
+            d = min(d, c.sigma_theta_e)
+        assert h.sigma[k, i] >= 0.99 * d, (b.t, h.sigma[k, i], d)
 
 
 CONSTANTS_201 = {"k": 1.947, "k_x": 0.0383, "k_yz": 0.7195,     # a batch fit of wide seed 201

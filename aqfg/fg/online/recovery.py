@@ -17,7 +17,7 @@ from aqfg.fg import observability, plausibility
 from aqfg.fg.common import knot_times
 from aqfg.fg.online import policy as hold_policy
 from aqfg.fg.online.gtsam_engine import GTSAM_ERRORS
-from aqfg.fg.online.records import OnlineEvent
+from aqfg.fg.online.records import ConstantsCheck, OnlineEvent, ReinitBatch
 from aqfg.fg.online.views import mission_until
 from aqfg.model.params import difference
 
@@ -224,32 +224,31 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
     ref_v, ref_s, alt, own_ref, slip, undetermined = _reference(fl, bres, uni, own)
     free = _constants_discrepancy(fl, view, ref_v) if fl.constants_given else None
     if free:
-        for n, d in free["difference"].items():
-            if not free["theta_e_determined"]:
+        for n, d in free.difference.items():
+            if not free.theta_e_determined:
                 # a free solve that does not determine the heading offset (one heading
                 # kept) moves by about its own sigma; beyond that its value is noise (on
                 # heldout-136 44-165 deg from a held answer within 8 deg, sigma 7-51 deg)
-                d = min(d, free["sigma"].get(n, d))
+                d = min(d, free.sigma.get(n, d))
             fl.report.ambiguity[n] = fl.report.ambiguity.get(n, 0.0) + d * d
     th_b = ref_v["theta_e"]
     gap = abs(float(np.angle(np.exp(1j * (th_b - p[fl.model.index("theta_e")])))))
     sb = float(ref_s.get("theta_e", np.nan))
     tol = _restart_tolerance(pol.held, sb, bool(alt), slip)
     q_meas = bres.process_noise_measured
-    pol.reinit_batches.append({
-        "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
-        "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
-        "process_noise_scale": _noise_scale(bres),
-        "process_noise_measured": None if q_meas is None else float(q_meas),
-        "noise_by_evidence": bool(bres.process_noise_evidence),
-        "cost": bres.cost, "slip_deg": float(slip),
-        "gap": float(gap), "tolerance": float(tol),
-        "restarted": bool(force or gap >= tol),
-        "theta_e_determined": not undetermined,
-        "reference": ("solution from the online estimate (as good a basin)" if own_ref
-                      else "non-sliding alternative" if alt else "batch"),
-        "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb,
-        **({"constants_free": free} if free is not None else {})})
+    pol.reinit_batches.append(ReinitBatch(
+        t=float(t_fix), theta_e=float(bres.values["theta_e"]),
+        sigma_theta_e=float(bres.sigma.get("theta_e", np.nan)),
+        process_noise_scale=_noise_scale(bres),
+        process_noise_measured=None if q_meas is None else float(q_meas),
+        noise_by_evidence=bool(bres.process_noise_evidence),
+        cost=bres.cost, slip_deg=float(slip),
+        gap=float(gap), tolerance=float(tol),
+        restarted=bool(force or gap >= tol),
+        theta_e_determined=not undetermined,
+        reference=("solution from the online estimate (as good a basin)" if own_ref
+                   else "non-sliding alternative" if alt else "batch"),
+        reference_theta_e=float(th_b), reference_sigma_theta_e=sb, constants_free=free))
     if force:
         pol.forced_at = float(t_fix)
     elif gap < tol:
@@ -415,16 +414,15 @@ def _batch(fl: FixedLagSmoother, estimate: Sequence[str],
 
 
 def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, float]
-                           ) -> dict | None:
+                           ) -> ConstantsCheck | None:
     """The thrust/drag constants given (another mission's fit, or by hand) may not be this
     mission's: the fixes so far solved again with them free (from the given values), and
-    each variable parameter's difference from the batch ``ref`` with them held:
-    ``{"difference": {name: value}, "theta_e", "sigma_theta_e", "sigma",
-    "theta_e_determined", "free", "cost"}``, None where that solve fails or is
-    implausible. Its square is added to the reported variance until the next batch
-    (``SigmaReport.ambiguity``): the held constants' sigma assumes them right, and with a
-    weak-propeller mission's constants a 16-s batch put theta_e 42 deg off with sigma
-    12 deg where the free solve was 17 deg off (docs/independent-vehicle.md)."""
+    each variable parameter's difference from the batch ``ref`` with them held
+    (:class:`ConstantsCheck`), None where that solve fails or is implausible. Its square
+    is added to the reported variance until the next batch (``SigmaReport.ambiguity``):
+    the held constants' sigma assumes them right, and with a weak-propeller mission's
+    constants a 16-s batch put theta_e 42 deg off with sigma 12 deg where the free solve
+    was 17 deg off (docs/independent-vehicle.md)."""
     consts = tuple(n for n in fl.model.active_names
                    if fl.model.spec(n).group == "fixed" and n not in fl.layout.estimated)
     if not consts:
@@ -449,12 +447,13 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
     for n in fl.layout.estimated:
         if n in ref and n in res.values and fl.model.spec(n).group == "variable":
             diff[n] = abs(difference(n, float(res.values[n]), float(ref[n])))
-    return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
-            "sigma_theta_e": float(res.sigma.get("theta_e", np.nan)),
-            "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},
-            "theta_e_determined": (res.observability or {}).get(
-                "theta_e", {}).get("verdict") != observability.NOT,
-            "free": list(free), "cost": res.cost}
+    return ConstantsCheck(
+        difference=diff, theta_e=float(res.values.get("theta_e", np.nan)),
+        sigma_theta_e=float(res.sigma.get("theta_e", np.nan)),
+        sigma={n: float(res.sigma[n]) for n in diff if n in res.sigma},
+        theta_e_determined=(res.observability or {}).get(
+            "theta_e", {}).get("verdict") != observability.NOT,
+        free=list(free), cost=res.cost)
 
 
 def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: str,

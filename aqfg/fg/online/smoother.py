@@ -53,7 +53,7 @@ from aqfg.fg.online.gate import UsblGate
 from aqfg.fg.online.gtsam_engine import GtsamEngine
 from aqfg.fg.online.numpy_engine import NumpyEngine
 from aqfg.fg.online.policy import HoldPolicy, Phase
-from aqfg.fg.online.records import OnlineEvent
+from aqfg.fg.online.records import OnlineEvent, ReinitBatch
 from aqfg.fg.online.report import ParamPriors, SigmaReport
 from aqfg.fg.online.tracks import p_segments, retrace, with_tail
 from aqfg.fg.online.views import StepSource
@@ -242,8 +242,8 @@ class FixedLagSmoother:
         return self.backend.name
 
     @property
-    def reinit_batches(self) -> list[dict]:
-        """A record per batch re-initialisation solved (``info["reinit_batches"]``)."""
+    def reinit_batches(self) -> list[ReinitBatch]:
+        """A record per batch re-initialisation solved (``Result.reinit_batches``)."""
         return self.policy.reinit_batches
 
     @property
@@ -481,7 +481,7 @@ class FixedLagSmoother:
                       values=dict(zip(self.model.all_names, map(float, p))), sigma=sigma,
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
                       history=hist, info=self._info(), warnings=list(self.warnings),
-                      events=list(self.events),
+                      events=list(self.events), reinit_batches=list(self.policy.reinit_batches),
                       process_noise_scale=float(self.noise.q_scale),
                       effects=tuple(e.name for e in self.model.effects), model=self.model,
                       engine=OnlineEngine(self.engine, self.engine_note),
@@ -495,6 +495,5 @@ class FixedLagSmoother:
                 "predicted_at_fix": (np.array(self.pred_t), np.array(self.pred_x).reshape(-1, 6)),
                 "update_median_s": float(np.median(ups)) if ups else float("nan"),
                 "rejected_usbl": sorted(t for t, out in self.gate.rejected.items() if out),
-                "reinit_batches": list(self.policy.reinit_batches),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
                 "settings": self.settings}
