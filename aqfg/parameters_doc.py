@@ -15,11 +15,6 @@ NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the
             "computed none")
 
 
-# the online fit's record kept in parameters.json (format doc, "Outputs"), after its events
-# (and, last, the process-noise factor in use, Result.process_noise_scale)
-ONLINE_RECORD = ("rejected_usbl",)
-
-
 def effect_step_document(step: EffectStep) -> dict:
     """The fields of ``parameters.json``'s ``auto_effect`` that ``aqfg fit``'s and the
     fleet's share, from a result's ``effect_step``: the effect, whether it was added (and
@@ -116,15 +111,9 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if result.mode == "online" and (result.events is not None
                                     or result.reinit_batches is not None):
         # what the online run did besides its updates: re-initialisations, re-seeds,
-        # recoveries, fixes left out (docs/independent-vehicle.md)
-        doc["online"] = {
-            **({"events": [e.document() for e in result.events]}
-               if result.events is not None else {}),
-            **({"reinit_batches": [b.document() for b in result.reinit_batches]}
-               if result.reinit_batches is not None else {}),
-            **{k: result.info[k] for k in ONLINE_RECORD if k in result.info}}
-        if result.process_noise_scale is not None:
-            doc["online"]["process_noise_scale"] = result.process_noise_scale
+        # recoveries, fixes left out (docs/independent-vehicle.md; format doc, "Outputs"),
+        # and last the process-noise factor in use
+        doc["online"] = online_document(result)
     if result.heading_check:
         # the fitted heading against the accelerometer's (aqfg.identifiability)
         doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,
@@ -133,6 +122,22 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
+
+
+def online_document(result: Result) -> dict:
+    """``parameters.json``'s ``online``: the online run's events, its batch
+    re-initialisations and the USBL fixes it left out (those it keeps), then the
+    process-noise factor in use (:attr:`Result.process_noise_scale`)."""
+    out: dict = {}
+    if result.events is not None:
+        out["events"] = [e.document() for e in result.events]
+    if result.reinit_batches is not None:
+        out["reinit_batches"] = [b.document() for b in result.reinit_batches]
+    if result.rejected_usbl is not None:
+        out["rejected_usbl"] = list(result.rejected_usbl)
+    if result.process_noise_scale is not None:
+        out["process_noise_scale"] = result.process_noise_scale
+    return out
 
 
 def sigma_structure_document(st: SigmaStructure) -> dict:

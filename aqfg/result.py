@@ -367,15 +367,15 @@ class Result:
     {parameter: Estimate}}``, with what the estimator notes of each, :class:`EstimateNote`):
     the per-mission parameters of a joint fit, or each mission's when fitted one by one.
     The online smoother's ``events`` are what its run did besides its updates
-    (:class:`aqfg.fg.online.records.OnlineEvent`) and ``reinit_batches`` the batch
-    re-initialisations it solved (:class:`aqfg.fg.online.records.ReinitBatch`), both in
+    (:class:`aqfg.fg.online.records.OnlineEvent`), ``reinit_batches`` the batch
+    re-initialisations it solved (:class:`aqfg.fg.online.records.ReinitBatch`) and
+    ``rejected_usbl`` the times (s) of the USBL fixes its innovation gate left out, all in
     parameters.json's ``online`` (None: the estimator keeps no such record).
 
     ``info`` holds the rest, free-form: ``histories``, ``kernel`` and ``settings`` (typed
-    views below, kept there under the same keys), the graph's size (``n_states``,
-    ``n_factors``), a joint fit's ``rounds``, ``recovered`` and ``solver``, the held-sway
-    fit (``held_sway``, ``alternative_held_sway``), the online smoother's record
-    (``rejected_usbl``: parameters.json's ``online``; ``window``,
+    views below, kept there under the same keys), the graph's size (``n_states``, ``n_factors``), a
+    joint fit's ``rounds``, ``recovered`` and ``solver``, the held-sway fit
+    (``held_sway``, ``alternative_held_sway``), the online smoother's record (``window``,
     ``n_updates``, ``warmup_end``, ``predicted_at_fix``, ``update_median_s``), the
     diagnosis's refit start (``start``, ``cost_other_start``) and the update-error
     method's optimiser record (``evaluations``, ``E``, ``status``, ``message``,
@@ -429,6 +429,7 @@ class Result:
     per_mission: dict[str, dict[str, Estimate]] = field(default_factory=dict)
     events: list[OnlineEvent] | None = None
     reinit_batches: list[ReinitBatch] | None = None
+    rejected_usbl: list[float] | None = None
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):

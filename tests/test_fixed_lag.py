@@ -239,14 +239,14 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     st = FGSettings().with_(online={"engine": engine})
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
     assert clean.engine.name == engine
-    assert clean.info["rejected_usbl"] == []
+    assert clean.rejected_usbl == []
     u = m.usbl
     rng = u.range.copy()
     bad = [20, 40, 41, 42, 43, 44]              # one outlier, then a run of five
     rng[bad] += 12.0                            # 80 sigma of range
     mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
     res = fit_fg([mo], mode="online", init=fixed, settings=st)
-    out = res.info["rejected_usbl"]
+    out = res.rejected_usbl
     # the fourth of the run is taken whatever it says -- at the robust loss's edge, so
     # the fifth is left out again and the good fixes after it are taken
     assert out == [float(u.t[i]) for i in (20, 40, 41, 42, 44)], out
@@ -254,7 +254,7 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     # the gate is what keeps the track: without it the outliers pull it off
     raw = fit_fg([mo], mode="online", init=fixed,
                  settings=st.with_(online={"gate_usbl": float("inf")}))
-    assert raw.info["rejected_usbl"] == []
+    assert raw.rejected_usbl == []
     g, r = (track_rmse(x.missions[0].track, tr) for x in (res, raw))
     assert g < 0.5 * r, f"corrected track {g:.2f} m with the gate, {r:.2f} m without"
 
@@ -275,7 +275,7 @@ def test_fixes_that_all_disagree_with_the_track_are_followed_after_a_few(engine)
     mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
     res = fit_fg([mo], mode="online", init=fixed_truth(tr),
                  settings=FGSettings().with_(online={"engine": engine}))
-    out = [t for t in res.info["rejected_usbl"] if t >= u.t[40] - 1e-6]
+    out = [t for t in res.rejected_usbl if t >= u.t[40] - 1e-6]
     assert 1 <= len(out) <= 8 and max(out) <= u.t[50], out
 
 
@@ -305,7 +305,7 @@ def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch, e
     res = fit_fg([m], mode="online", init=fixed, settings=st)
     assert res.engine.name == engine
     assert seen and seen[0], "the shifted prediction should have been gated"
-    assert res.info["rejected_usbl"] == []
+    assert res.rejected_usbl == []
     a, b = res.missions[0].track, clean.missions[0].track
     assert np.max(np.abs(a.pos - b.pos)) < 0.2      # it joined one update late
 

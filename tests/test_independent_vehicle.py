@@ -811,7 +811,7 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
     e_r = u.range - np.linalg.norm(d, axis=1)
     e_b = np.angle(np.exp(1j * (u.bearing - np.arctan2(d[:, 1], d[:, 0]))))
     gross = set(u.t[(np.abs(e_r) > 1.5) | (np.abs(e_b) > 15 * DEG)].tolist())
-    out = set(fg.info["rejected_usbl"])
+    out = set(fg.rejected_usbl)
     assert len(gross) >= 5
     assert len(gross - out) <= 1, f"outliers kept: {sorted(gross - out)}"
     e_gross = np.maximum(np.abs(e_r) / 0.15, np.abs(e_b) / (1.5 * DEG))

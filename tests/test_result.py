@@ -2,6 +2,7 @@
 and each mission's estimates are written as their estimator gives them."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -42,7 +43,7 @@ def test_the_solve_summary_is_read_as_converged_iterations_and_cost():
 
 def test_typed_attributes_write_info():
     r = _result()
-    assert r.per_mission == {} and r.histories == [] and r.converged is None
+    assert (r.per_mission, r.events, r.reinit_batches, r.rejected_usbl) == ({}, None, None, None)
     r.per_mission = {"m": {"s_x": Estimate(0.1, 0.02)}}
     assert "per_mission" not in r.info
     h = ParamHistory(np.zeros(1), ("k",), np.ones((1, 1)), np.ones((1, 1)))
@@ -74,3 +75,27 @@ def test_a_mission_estimate_is_written_as_its_estimator_gives_it():
     assert doc["per_mission"]["a"]["k"]["sigma"] is None
     # only the NaN the estimator computed has a null reason
     assert list(doc["null_reasons"]) == ["/per_mission/a/k/sigma"]
+
+
+def test_the_online_records_are_written_in_their_documents_order():
+    """parameters.json's ``online``: an event is ``t``, ``event``, then its own figures; a
+    batch re-initialisation writes ``constants_free`` only where the constants were
+    checked."""
+    from aqfg.fg.online.records import ConstantsCheck, OnlineEvent, ReinitBatch
+    from aqfg.parameters_doc import online_document
+    ev = OnlineEvent(8.0, "fix skipped", {"error": "indeterminate"})
+    assert list(ev.document().items()) == [("t", 8.0), ("event", "fix skipped"),
+                                           ("error", "indeterminate")]
+    b = ReinitBatch(16.0, 0.5, 0.1, 1.0, None, True, 12.0, 0.0, 0.2, 0.3, False, True,
+                    "batch", 0.5, 0.1)
+    d = b.document()
+    assert "constants_free" not in d and list(d)[:3] == ["t", "theta_e", "sigma_theta_e"]
+    assert d["process_noise_measured"] is None and d["reference"] == "batch"
+    check = ConstantsCheck({"theta_e": 0.2}, 0.7, 0.05, {"theta_e": 0.05}, True, ["k"], 11.0)
+    d = dataclasses.replace(b, constants_free=check).document()
+    assert list(d)[-1] == "constants_free" and d["constants_free"]["free"] == ["k"]
+    r = Result("fg", "online", ("k",), {"k": 8.0}, {"k": 0.1}, [], events=[ev],
+               reinit_batches=[b], rejected_usbl=[96.5], process_noise_scale=2.0)
+    assert list(online_document(r)) == ["events", "reinit_batches", "rejected_usbl",
+                                        "process_noise_scale"]
+    assert online_document(r)["rejected_usbl"] == [96.5]

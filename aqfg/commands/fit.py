@@ -342,7 +342,7 @@ def _print_summary(result) -> None:
     for name, ts in seen.items():
         print(f"online: {name}: {len(ts)}x (at {', '.join(f'{x:.1f}' for x in ts[:6])}"
               f"{', ...' if len(ts) > 6 else ''} s)")
-    gated = result.info.get("rejected_usbl") or []
+    gated = result.rejected_usbl or []
     if gated:
         print(f"online: {len(gated)} USBL fixes left out by the innovation gate (at "
               f"{', '.join(f'{x:.1f}' for x in gated[:8])}{', ...' if len(gated) > 8 else ''} s)")

@@ -482,6 +482,7 @@ class FixedLagSmoother:
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
                       history=hist, info=self._info(), warnings=list(self.warnings),
                       events=list(self.events), reinit_batches=list(self.policy.reinit_batches),
+                      rejected_usbl=sorted(t for t, out in self.gate.rejected.items() if out),
                       process_noise_scale=float(self.noise.q_scale),
                       effects=tuple(e.name for e in self.model.effects), model=self.model,
                       engine=OnlineEngine(self.engine, self.engine_note),
@@ -494,6 +495,5 @@ class FixedLagSmoother:
                 "warmup_end": self.warmup_end,
                 "predicted_at_fix": (np.array(self.pred_t), np.array(self.pred_x).reshape(-1, 6)),
                 "update_median_s": float(np.median(ups)) if ups else float("nan"),
-                "rejected_usbl": sorted(t for t, out in self.gate.rejected.items() if out),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
                 "settings": self.settings}
