@@ -372,8 +372,11 @@ class Result:
     ``rejected_usbl`` the times (s) of the USBL fixes its innovation gate left out, all in
     parameters.json's ``online`` (None: the estimator keeps no such record).
 
-    ``info`` holds the rest, free-form: ``histories``, ``kernel`` and ``settings`` (typed
-    views below, kept there under the same keys), the graph's size (``n_states``, ``n_factors``), a
+    An online fit's ``histories`` are every mission's parameter history (the first is
+    ``history``; empty where the estimator keeps none per mission: a batch fit).
+
+    ``info`` holds the rest, free-form: ``kernel`` and ``settings`` (typed views below,
+    kept there under the same keys), the graph's size (``n_states``, ``n_factors``), a
     joint fit's ``rounds``, ``recovered`` and ``solver``, the held-sway fit
     (``held_sway``, ``alternative_held_sway``), the online smoother's record (``window``,
     ``n_updates``, ``warmup_end``, ``predicted_at_fix``, ``update_median_s``), the
@@ -430,6 +433,7 @@ class Result:
     events: list[OnlineEvent] | None = None
     reinit_batches: list[ReinitBatch] | None = None
     rejected_usbl: list[float] | None = None
+    histories: list[ParamHistory] = field(default_factory=list)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -440,19 +444,7 @@ class Result:
         return {n: float(self.values[n]) for n in self.model.active_names
                 if self.model.spec(n).group == "fixed"}
 
-    # ---- typed views of the estimator-specific facts (stored in ``info``)
-    @property
-    def histories(self) -> list[ParamHistory]:
-        """Parameter histories of every mission (online modes; the first is ``history``)."""
-        h = self.info.get("histories")
-        if h is None:
-            return [] if self.history is None else [self.history]
-        return list(h)
-
-    @histories.setter
-    def histories(self, v: list[ParamHistory]) -> None:
-        self.info["histories"] = list(v)
-
+    # ---- typed views of the estimator-specific facts
     @property
     def converged(self) -> bool | None:
         """Whether the optimiser met its convergence test (None: not reported)."""

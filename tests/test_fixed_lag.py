@@ -149,7 +149,9 @@ def test_fit_fg_online_several_missions_and_bad_input():
     res = fit_fg(ms, mode="online", window=16.0, init=fixed_truth(trs[0]))
     assert res.mode == "online" and len(res.missions) == 2
     assert set(res.per_mission) == {m.name for m in ms} and "per_mission" not in res.info
-    assert len(res.info["histories"]) == 2
+    # every mission's history, the first mission's also as ``history``
+    assert len(res.histories) == 2 and res.histories[0] is res.history
+    assert res.histories[1] is not res.history and "histories" not in res.info
     with pytest.raises(ValueError, match="window"):
         FixedLagSmoother(window=0.0)
 

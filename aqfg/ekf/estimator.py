@@ -307,7 +307,7 @@ class UpdateErrorEstimator:
 
         Returns a :class:`Result` with mode "online": ``track`` filtered-then-corrected,
         ``filtered`` the causal track, ``history`` the estimates after each optimisation
-        (first mission; all in ``info["histories"]``; ``history.sigma`` NaN where a window
+        (first mission; all in ``histories``; ``history.sigma`` NaN where a window
         does not determine a parameter), ``timings["optimisation"]`` and
         ``timings["evaluation"]``, ``info["nonconvergence"]`` (§III-F: the standard
         deviation of the last three estimates) and ``info["converged"]`` (per parameter:
@@ -338,7 +338,7 @@ class UpdateErrorEstimator:
                  if np.isfinite(unc0.sigma[i])} if unc0 is not None else {})
         info = {"evaluations": int(sum(n_eval)), "evaluations_per_optimisation": n_eval,
                 "optimisations": len(t_opt), "nonconvergence": nonconv[0].tolist(),
-                "histories": hists, "nonconvergence_all": [n.tolist() for n in nonconv],
+                "nonconvergence_all": [n.tolist() for n in nonconv],
                 "preset": self.preset, "metric": self.metric, "optimiser": optimiser,
                 "window_fixes": window_fixes, "window": window, "per_stream": per_stream,
                 "correct": correct}
@@ -355,7 +355,7 @@ class UpdateErrorEstimator:
             method="update-error", mode="online", estimated=tuple(dict.fromkeys(estimate)),
             values=dict(zip(self.models[0].all_names, map(float, last))), sigma=sig0,
             missions=mres, timings={"evaluation": t_eval, "optimisation": t_opt},
-            history=hist0, info=info, warnings=warnings, observability=obs,
+            history=hist0, histories=hists, info=info, warnings=warnings, observability=obs,
             sigma_notes=notes, per_mission=per_mission,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
