@@ -144,15 +144,12 @@ def heading_finding(check: HeadingCheck, theta_e: float, mission_name: str) -> s
 
 def _mark(result, i: int, name: str, reason: str) -> None:
     """Mark ``name`` not determined for the ``i``-th mission of ``result``: in a joint fit
-    where it is per mission, that mission's entry in ``info["per_mission"]`` (sigma NaN,
+    where it is per mission, that mission's entry in ``result.per_mission`` (sigma NaN,
     ``sigma_note``; the first reason found stands) and, for the first mission, whose values
     the top level reports, the top-level verdict; otherwise the top-level verdict."""
-    info = result.info
-    mission = result.missions[i].name
-    e = ((info.get("per_mission") or {}).get(mission) or {}).get(name)
-    if len(result.missions) > 1 and isinstance(e, dict):
-        e["sigma"] = float("nan")
-        e.setdefault("sigma_note", f"{NOT}: {reason}")
+    per = result.per_mission.get(result.missions[i].name) or {}
+    if len(result.missions) > 1 and name in per:
+        per[name] = per[name].not_determined(f"{NOT}: {reason}")
         if i > 0:
             return
     _mark_not_determined(result, name, reason)
@@ -214,7 +211,6 @@ def settle(result, missions=()) -> list[str]:
     then a sigma of NaN (written ``null``) with the reason in ``result.sigma_notes`` for
     every parameter whose verdict is "not determined". Returns the new warnings (also appended
     to ``result.warnings``)."""
-    info = result.info
     new: list[str] = []
     if "theta_e" in result.estimated:
         _heading_checks(result, missions, new)
@@ -222,7 +218,7 @@ def settle(result, missions=()) -> list[str]:
     if result.sigma_notes is None:
         result.sigma_notes = {}
     notes = result.sigma_notes
-    per = info.get("per_mission") or {}
+    per = result.per_mission
     # the top level reports the first mission's per-mission values: its verdict is theirs
     first = [result.missions[0].name] if len(result.missions) > 1 else list(per)
     for n in result.estimated:
@@ -232,14 +228,12 @@ def settle(result, missions=()) -> list[str]:
         result.sigma[n] = float("nan")
         notes[n] = f"not determined: {reason}" if reason else NOT
         for m in first:
-            if isinstance((per.get(m) or {}).get(n), dict):
-                per[m][n]["sigma"] = float("nan")
-                per[m][n].setdefault("sigma_note", notes[n])
+            if n in (per.get(m) or {}):
+                per[m][n] = per[m][n].not_determined(notes[n])
     for d in per.values():              # a mission's own verdict (update-error's entries)
-        for e in d.values():
-            if isinstance(e, dict) and e.get("verdict") == NOT:
-                e["sigma"] = float("nan")
-                e.setdefault("sigma_note", f"{NOT}: {e['note']}" if e.get("note") else NOT)
+        for n, e in d.items():
+            if e.note is not None and e.note.verdict == NOT:
+                d[n] = e.not_determined(f"{NOT}: {e.note.reason}" if e.note.reason else NOT)
     if new:
         result.warnings = [*result.warnings, *new]
     return new

@@ -8,16 +8,11 @@ import numpy as np
 
 if TYPE_CHECKING:
     from aqfg.fg.dr_records import DeadReckoning
-    from aqfg.result import BaseFit, EffectStep, Result, SigmaStructure
+    from aqfg.result import BaseFit, EffectStep, Estimate, Result, SigmaStructure
 
 PARAMETERS_FORMAT = "aqfg-parameters/1"
 NO_SIGMA = ("no finite 1-sigma: the data do not determine this parameter, or the estimator "
             "computed none")
-
-
-# the online fit's record kept in parameters.json (format doc, "Outputs")
-# (and, last, the process-noise factor in use, Result.process_noise_scale)
-ONLINE_RECORD = ("events", "reinit_batches", "rejected_usbl")
 
 
 def effect_step_document(step: EffectStep) -> dict:
@@ -46,10 +41,16 @@ def without_effect_document(base: BaseFit) -> dict:
                  for n in ("theta_e", "s_x", "s_y") if n in base.values}
     if base.per_mission:
         out["per_mission"] = {
-            m: {n: {"value": float(e["value"]), "sigma": float(e["sigma"])}
+            m: {n: {"value": float(e.value), "sigma": float(e.sigma)}
                 for n, e in d.items() if n in ("theta_e", "s_x", "s_y")}
             for m, d in base.per_mission.items()}
     return out
+
+
+def per_mission_document(per: dict[str, dict[str, Estimate]]) -> dict:
+    """Each mission's estimates as ``parameters.json`` writes them (``per_mission``:
+    :meth:`aqfg.result.Estimate.document`)."""
+    return {m: {n: e.document() for n, e in d.items()} for m, d in per.items()}
 
 
 def parameters_document(result: Result, provenance: dict | None = None) -> dict:
@@ -79,9 +80,8 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
              for n in names if n not in result.estimated and n in result.values}
     doc: dict = {"format": PARAMETERS_FORMAT, "method": result.method, "mode": result.mode,
                  "parameters": est, "fixed": fixed}
-    per = result.info.get("per_mission")
-    if per and len(result.missions) > 1:
-        doc["per_mission"] = per
+    if result.per_mission and len(result.missions) > 1:
+        doc["per_mission"] = per_mission_document(result.per_mission)
     dr = result.dead_reckoning
     if dr is not None and (dr.segments or dr.current):
         doc["dead_reckoning"] = dead_reckoning_document(dr)
@@ -108,12 +108,12 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
         # auto_effect), and the heading offset and current of the model as given
         doc["auto_effect"] = {**effect_step_document(ae),
                               "without_effect": without_effect_document(ae.base)}
-    if result.mode == "online" and ("events" in result.info or "reinit_batches" in result.info):
+    if result.mode == "online" and (result.events is not None
+                                    or result.reinit_batches is not None):
         # what the online run did besides its updates: re-initialisations, re-seeds,
-        # recoveries, fixes left out (docs/independent-vehicle.md)
-        doc["online"] = {k: result.info[k] for k in ONLINE_RECORD if k in result.info}
-        if result.process_noise_scale is not None:
-            doc["online"]["process_noise_scale"] = result.process_noise_scale
+        # recoveries, fixes left out (docs/independent-vehicle.md; format doc, "Outputs"),
+        # and last the process-noise factor in use
+        doc["online"] = online_document(result)
     if result.heading_check:
         # the fitted heading against the accelerometer's (aqfg.identifiability)
         doc["heading_check"] = {m: {"offset_deg": c.offset_deg, "agreement": c.agreement,
@@ -122,6 +122,22 @@ def parameters_document(result: Result, provenance: dict | None = None) -> dict:
     if provenance is not None:
         doc["provenance"] = provenance
     return doc
+
+
+def online_document(result: Result) -> dict:
+    """``parameters.json``'s ``online``: the online run's events, its batch
+    re-initialisations and the USBL fixes it left out (those it keeps), then the
+    process-noise factor in use (:attr:`Result.process_noise_scale`)."""
+    out: dict = {}
+    if result.events is not None:
+        out["events"] = [e.document() for e in result.events]
+    if result.reinit_batches is not None:
+        out["reinit_batches"] = [b.document() for b in result.reinit_batches]
+    if result.rejected_usbl is not None:
+        out["rejected_usbl"] = list(result.rejected_usbl)
+    if result.process_noise_scale is not None:
+        out["process_noise_scale"] = result.process_noise_scale
+    return out
 
 
 def sigma_structure_document(st: SigmaStructure) -> dict:

@@ -6,6 +6,7 @@ which estimator produced it.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
@@ -15,6 +16,7 @@ import numpy as np
 if TYPE_CHECKING:                      # the model imports nothing from here, but keep it lazy
     from aqfg.fg.dr_records import DeadReckoning
     from aqfg.fg.gnss_noise import GnssNoise
+    from aqfg.fg.online.records import OnlineEvent, ReinitBatch
     from aqfg.fg.structure import StructuralShift
     from aqfg.identifiability import HeadingCheck
     from aqfg.model.vehicle import Model
@@ -61,11 +63,55 @@ class MissionResult:
     filtered: Track | None = None      # online modes: the causal (uncorrected) track
 
 
+# how an estimate's sigma that the estimator did not compute is written (EstimateNote)
+SIGMA_NULL = "null"        # as null, without a null reason (the update-error batch's)
+SIGMA_ABSENT = "absent"    # left out (the update-error online method reports none per mission)
+
+
+@dataclass(frozen=True)
+class EstimateNote:
+    """What an estimator says of one mission's estimate besides its value and sigma: the
+    update-error method's verdict on that mission (``verdict``) and its reason
+    (``reason``, written ``note``), why the sigma is missing (``sigma_note``; the first
+    reason found stands), and how a sigma the estimator did not compute is written
+    (``sigma_missing``: :data:`SIGMA_NULL` or :data:`SIGMA_ABSENT`; "": it computed one,
+    a NaN written null with its null reason)."""
+    verdict: str = ""
+    reason: str = ""
+    sigma_note: str = ""
+    sigma_missing: str = ""
+
+
 @dataclass(frozen=True)
 class Estimate:
-    """One parameter's estimate and its 1-sigma (NaN when not computed)."""
+    """One parameter's estimate and its 1-sigma (NaN when not computed); ``note``: what the
+    estimator says of a mission's estimate (None: nothing)."""
     value: float
     sigma: float = float("nan")
+    note: EstimateNote | None = None
+
+    @property
+    def sigma_computed(self) -> bool:
+        """Whether the estimator computed the sigma (NaN included)."""
+        return self.note is None or not self.note.sigma_missing
+
+    def not_determined(self, sigma_note: str) -> Estimate:
+        """This estimate with sigma NaN (computed: written null with its reason) and
+        ``sigma_note`` where it has none yet."""
+        n = self.note or EstimateNote()
+        return dataclasses.replace(self, sigma=float("nan"), note=dataclasses.replace(
+            n, sigma_missing="", sigma_note=n.sigma_note or sigma_note))
+
+    def document(self) -> dict:
+        """The entry of ``parameters.json``'s ``per_mission``: value, sigma (as the
+        estimator wrote it: ``EstimateNote.sigma_missing``), verdict, note, sigma_note."""
+        n = self.note or EstimateNote()
+        out: dict = {"value": self.value}
+        if n.sigma_missing != SIGMA_ABSENT:
+            out["sigma"] = None if n.sigma_missing == SIGMA_NULL else self.sigma
+        out.update({k: v for k, v in (("verdict", n.verdict), ("note", n.reason),
+                                      ("sigma_note", n.sigma_note)) if v})
+        return out
 
 
 @dataclass(frozen=True)
@@ -188,11 +234,11 @@ class SolveSummary:
 class BaseFit:
     """The model-as-given fit kept beside a fit whose effect step added an effect: its
     effects, values and sigmas, and each mission's estimates for a joint fit (None: one
-    mission), as ``info["per_mission"]``."""
+    mission), as ``Result.per_mission``."""
     effects: list[str]
     values: dict[str, float]
     sigma: dict[str, float]
-    per_mission: dict | None = None
+    per_mission: dict[str, dict[str, Estimate]] | None = None
 
 
 @dataclass(frozen=True)
@@ -317,15 +363,22 @@ class Result:
     dead reckoning, :mod:`aqfg.fg.dead_reckoning`); ``heading_check`` is each mission's
     fitted heading against its accelerometer's and ``identifiability_warnings`` what the
     data were found not to determine (:func:`aqfg.identifiability.settle`, where a fleet's
-    worker applied it).
+    worker applied it). ``per_mission`` holds each mission's estimates (``{mission:
+    {parameter: Estimate}}``, with what the estimator notes of each, :class:`EstimateNote`):
+    the per-mission parameters of a joint fit, or each mission's when fitted one by one.
+    The online smoother's ``events`` are what its run did besides its updates
+    (:class:`aqfg.fg.online.records.OnlineEvent`), ``reinit_batches`` the batch
+    re-initialisations it solved (:class:`aqfg.fg.online.records.ReinitBatch`) and
+    ``rejected_usbl`` the times (s) of the USBL fixes its innovation gate left out, all in
+    parameters.json's ``online`` (None: the estimator keeps no such record).
 
-    ``info`` holds the rest, free-form: each mission's estimates as the estimator wrote
-    them (``per_mission``, with its notes per entry; read typed as :attr:`per_mission`),
-    ``histories``, ``kernel`` and ``settings`` (typed views below, kept there under the
-    same keys), the graph's size (``n_states``, ``n_factors``), a joint fit's ``rounds``,
-    ``recovered`` and ``solver``, the held-sway fit (``held_sway``,
-    ``alternative_held_sway``), the online smoother's record (``events``,
-    ``reinit_batches``, ``rejected_usbl``: parameters.json's ``online``; ``window``,
+    An online fit's ``histories`` are every mission's parameter history (the first is
+    ``history``; empty where the estimator keeps none per mission: a batch fit).
+
+    ``info`` holds the rest, free-form: ``kernel`` and ``settings`` (typed views below,
+    kept there under the same keys), the graph's size (``n_states``, ``n_factors``), a
+    joint fit's ``rounds``, ``recovered`` and ``solver``, the held-sway fit
+    (``held_sway``, ``alternative_held_sway``), the online smoother's record (``window``,
     ``n_updates``, ``warmup_end``, ``predicted_at_fix``, ``update_median_s``), the
     diagnosis's refit start (``start``, ``cost_other_start``) and the update-error
     method's optimiser record (``evaluations``, ``E``, ``status``, ``message``,
@@ -376,6 +429,11 @@ class Result:
     process_noise_evidence: dict[float, float] | None = None
     track_noise_scale: dict[str, float] | None = None
     track_noise_evidence: dict[float, list[float]] | None = None
+    per_mission: dict[str, dict[str, Estimate]] = field(default_factory=dict)
+    events: list[OnlineEvent] | None = None
+    reinit_batches: list[ReinitBatch] | None = None
+    rejected_usbl: list[float] | None = None
+    histories: list[ParamHistory] = field(default_factory=list)
 
     def vehicle_constants(self) -> dict[str, float]:
         """The fitted vehicle's constants (the model's "fixed" group, effects' included):
@@ -386,36 +444,7 @@ class Result:
         return {n: float(self.values[n]) for n in self.model.active_names
                 if self.model.spec(n).group == "fixed"}
 
-    # ---- typed views of the estimator-specific facts (stored in ``info``)
-    @property
-    def per_mission(self) -> dict[str, dict[str, Estimate]]:
-        """Estimates per mission, ``{mission name: {parameter: Estimate}}``: the
-        per-mission parameters of a joint fit, or each mission's when fitted one by one."""
-        raw = self.info.get("per_mission") or {}
-
-        def num(v) -> float:           # a sigma the estimator could not give is None (null)
-            return float("nan") if v is None else float(v)
-        return {m: {n: e if isinstance(e, Estimate) else
-                    Estimate(num(e["value"]), num(e.get("sigma")))
-                    for n, e in d.items()} for m, d in raw.items()}
-
-    @per_mission.setter
-    def per_mission(self, v: dict[str, dict[str, Estimate]]) -> None:
-        self.info["per_mission"] = {m: {n: {"value": float(e.value), "sigma": float(e.sigma)}
-                                        for n, e in d.items()} for m, d in v.items()}
-
-    @property
-    def histories(self) -> list[ParamHistory]:
-        """Parameter histories of every mission (online modes; the first is ``history``)."""
-        h = self.info.get("histories")
-        if h is None:
-            return [] if self.history is None else [self.history]
-        return list(h)
-
-    @histories.setter
-    def histories(self, v: list[ParamHistory]) -> None:
-        self.info["histories"] = list(v)
-
+    # ---- typed views of the estimator-specific facts
     @property
     def converged(self) -> bool | None:
         """Whether the optimiser met its convergence test (None: not reported)."""

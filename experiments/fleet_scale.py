@@ -180,7 +180,7 @@ def sequential(paths_by_vehicle: dict) -> dict:
         r = BatchSmoother().run([load_mission(p) for p in paths])
         per[v] = time.perf_counter() - t
         t_batch += per[v]
-        out[v] = {"values": r.values, "sigma": r.sigma, "per_mission": r.info["per_mission"],
+        out[v] = {"values": r.values, "sigma": r.sigma, "per_mission": r.per_mission,
                   "iterations": r.iterations}
         t = time.perf_counter()
         fit_fg([load_mission(p) for p in paths], settings=FGSettings().with_(batch={"dr_horizon": 0.0}))
@@ -253,8 +253,8 @@ def agreement(fr, seq) -> tuple[float, float]:
                 worst_f = max(worst_f, abs(r.values[n] - x) / s["sigma"][n])
         for m, pm in s["per_mission"].items():
             for n, e in pm.items():
-                got = r.info["per_mission"][m][n]["value"]
-                worst_m = max(worst_m, abs(got - e["value"]) / e["sigma"])
+                got = r.per_mission[m][n].value
+                worst_m = max(worst_m, abs(got - e.value) / e.sigma)
     return worst_f, worst_m
 
 

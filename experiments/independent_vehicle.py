@@ -120,7 +120,7 @@ def online_row(method: str, m, truth, init: dict, effects: tuple = ()) -> dict:
     return {**out_g, "theta_10": wrap_deg(th[k10] - theta_true(truth, h.t[k10])), "sigma_10": s10,
             "theta_end": wrap_deg(th[-1] - theta_true(truth, h.t[-1])),
             "causal": track_rmse(causal, truth), "smoothed": track_rmse(mr.track, truth),
-            "seconds": dt, "events": len(r.info.get("events", []) or [])}
+            "seconds": dt, "events": len(r.events or [])}
 
 
 def all6_row(m, truth) -> dict:
@@ -133,7 +133,7 @@ def all6_row(m, truth) -> dict:
     causal = mr.filtered if mr.filtered is not None else mr.track
     return {"theta_end": wrap_deg(r.values["theta_e"] - theta_true(truth, float(mr.track.t[-1]))),
             "causal": track_rmse(causal, truth), "seconds": dt,
-            "events": len(r.info.get("events", []) or [])}
+            "events": len(r.events or [])}
 
 
 def load(path: Path, without_usbl: bool = False):

@@ -271,24 +271,23 @@ def test_a_second_minimum_as_good_widens_the_sigma():
     quadratic): where the other explains the fixes as well (cost within the ambiguity
     margin), each sigma is widened by the difference between them, top-level and per
     mission; a minimum clearly worse changes nothing."""
-    from aqfg.result import Result, SolveSummary
+    from aqfg.result import Estimate, Result, SolveSummary
     est = ("theta_e", "s_x", "k")
 
     def res(cost, th, sx, k):
         r = Result("fg", "batch", est, {"theta_e": th, "s_x": sx, "k": k},
                    {"theta_e": 0.003, "s_x": 0.005, "k": 0.06}, [])
         r.solve = SolveSummary(True, cost)
-        r.info = {"per_mission": {"a": {"theta_e": {"value": th, "sigma": 0.003},
-                                                      "s_x": {"value": sx, "sigma": 0.005}}}}
+        r.per_mission = {"a": {"theta_e": Estimate(th, 0.003), "s_x": Estimate(sx, 0.005)}}
         return r
     given = res(1080.2, -1.1748, 0.0196, 1.388)
     chosen = widen_by_other_minimum(given, [res(1084.6, -1.1723, 0.0084, 1.30)])
     assert chosen.sigma["s_x"] == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.sigma["k"] == pytest.approx(np.hypot(0.06, 0.088))
-    assert chosen.info["per_mission"]["a"]["s_x"]["sigma"] == pytest.approx(np.hypot(0.005, 0.0112))
+    assert chosen.per_mission["a"]["s_x"].sigma == pytest.approx(np.hypot(0.005, 0.0112))
     assert chosen.other_minimum is not None and chosen.other_minimum.cost == [1084.6]
     # (the widened result is a new one: the fit it widens stays as it was)
-    assert given.sigma["s_x"] == 0.005 and given.info["per_mission"]["a"]["s_x"]["sigma"] == 0.005
+    assert given.sigma["s_x"] == 0.005 and given.per_mission["a"]["s_x"].sigma == 0.005
     far = res(1080.2, -1.1748, 0.0196, 1.388)
     out = widen_by_other_minimum(far, [res(1200.0, -1.1723, 0.0084, 1.30)])
     assert out.sigma["s_x"] == 0.005 and out.other_minimum is None

@@ -15,6 +15,7 @@ from aqfg.data.mission import without_gnss
 from aqfg.data.importers.frames import euler_to_quat
 from aqfg.model.vehicle import Model
 from aqfg.export import save_result
+from aqfg.parameters_doc import per_mission_document
 from aqfg.model.retrace import rollout
 from ekf_synth import synth_mission
 
@@ -338,7 +339,8 @@ def test_a_still_vehicle_gives_not_determined_not_nan():
         assert any("without converging" in w for w in r.warnings)
     json.dumps({"warnings": r.warnings, "converged": r.converged,
                 "observability": r.observability, "sigma_notes": r.sigma_notes,
-                **{k: r.info[k] for k in ("per_mission", "consistency")}},
+                "per_mission": per_mission_document(r.per_mission),
+                "consistency": r.info["consistency"]},
                allow_nan=False)
     on = fit_update_error([m], mode="online")
     assert all(np.isfinite(v) for v in on.sigma.values())

@@ -314,7 +314,7 @@ def test_a_failed_step_is_recovered_and_recorded(monkeypatch):
     while fl.pending():
         fl.update()
     res = fl.result()
-    assert any(e["event"].startswith("restarted") for e in res.info["events"])
+    assert any(e.event.startswith("restarted") for e in res.events)
     assert np.all(np.isfinite(res.missions[0].track.pos))
     assert np.all(np.isfinite(res.history.values[-1]))
 

@@ -148,8 +148,10 @@ def test_fit_fg_online_several_missions_and_bad_input():
         ms.append(with_gnss_every(m, 8.0)); trs.append(tr)
     res = fit_fg(ms, mode="online", window=16.0, init=fixed_truth(trs[0]))
     assert res.mode == "online" and len(res.missions) == 2
-    assert set(res.info["per_mission"]) == {m.name for m in ms}
-    assert len(res.info["histories"]) == 2
+    assert set(res.per_mission) == {m.name for m in ms} and "per_mission" not in res.info
+    # every mission's history, the first mission's also as ``history``
+    assert len(res.histories) == 2 and res.histories[0] is res.history
+    assert res.histories[1] is not res.history and "histories" not in res.info
     with pytest.raises(ValueError, match="window"):
         FixedLagSmoother(window=0.0)
 
@@ -239,14 +241,14 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     st = FGSettings().with_(online={"engine": engine})
     clean = fit_fg([m], mode="online", init=fixed, settings=st)
     assert clean.engine.name == engine
-    assert clean.info["rejected_usbl"] == []
+    assert clean.rejected_usbl == []
     u = m.usbl
     rng = u.range.copy()
     bad = [20, 40, 41, 42, 43, 44]              # one outlier, then a run of five
     rng[bad] += 12.0                            # 80 sigma of range
     mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
     res = fit_fg([mo], mode="online", init=fixed, settings=st)
-    out = res.info["rejected_usbl"]
+    out = res.rejected_usbl
     # the fourth of the run is taken whatever it says -- at the robust loss's edge, so
     # the fifth is left out again and the good fixes after it are taken
     assert out == [float(u.t[i]) for i in (20, 40, 41, 42, 44)], out
@@ -254,7 +256,7 @@ def test_usbl_gate_leaves_out_outliers_and_keeps_a_run_of_them_from_locking_out(
     # the gate is what keeps the track: without it the outliers pull it off
     raw = fit_fg([mo], mode="online", init=fixed,
                  settings=st.with_(online={"gate_usbl": float("inf")}))
-    assert raw.info["rejected_usbl"] == []
+    assert raw.rejected_usbl == []
     g, r = (track_rmse(x.missions[0].track, tr) for x in (res, raw))
     assert g < 0.5 * r, f"corrected track {g:.2f} m with the gate, {r:.2f} m without"
 
@@ -275,7 +277,7 @@ def test_fixes_that_all_disagree_with_the_track_are_followed_after_a_few(engine)
     mo = dataclasses.replace(m, usbl=dataclasses.replace(u, range=rng))
     res = fit_fg([mo], mode="online", init=fixed_truth(tr),
                  settings=FGSettings().with_(online={"engine": engine}))
-    out = [t for t in res.info["rejected_usbl"] if t >= u.t[40] - 1e-6]
+    out = [t for t in res.rejected_usbl if t >= u.t[40] - 1e-6]
     assert 1 <= len(out) <= 8 and max(out) <= u.t[50], out
 
 
@@ -305,7 +307,7 @@ def test_a_good_usbl_fix_left_out_while_the_track_was_off_rejoins(monkeypatch, e
     res = fit_fg([m], mode="online", init=fixed, settings=st)
     assert res.engine.name == engine
     assert seen and seen[0], "the shifted prediction should have been gated"
-    assert res.info["rejected_usbl"] == []
+    assert res.rejected_usbl == []
     a, b = res.missions[0].track, clean.missions[0].track
     assert np.max(np.abs(a.pos - b.pos)) < 0.2      # it joined one update late
 
@@ -345,10 +347,10 @@ def test_a_held_model_that_fails_its_fixes_brings_the_first_batch_forward():
     assert m.usbl is None
     st = FGSettings().with_(online={"kinematic_q": 0.0})    # the model's own causal track (no floor)
     res = FixedLagSmoother(init=fixed_truth(tr), settings=st).run(m)
-    first = [e["t"] for e in res.info["events"]
-             if e["event"].startswith(("held heading re-seeded", "re-initialised",
+    first = [e.t for e in res.events
+             if e.event.startswith(("held heading re-seeded", "re-initialised",
                                        "parameters released"))]
-    assert first and first[0] < st.online.init_after - 4.0, res.info["events"]
+    assert first and first[0] < st.online.init_after - 4.0, res.events
     f = res.missions[0].filtered
     sel = (f.t > first[0] + 4.0) & (f.t <= st.online.init_after)
     assert sel.sum() >= 3
@@ -390,10 +392,10 @@ def test_a_corrected_track_interval_the_model_cannot_retrace_joins_the_smoothed_
     seg = tr.pos[(tr.t >= a) & (tr.t <= b)]
     vmax = max(np.linalg.norm(tr.vel[tr.t == a][0]), np.linalg.norm(tr.vel[tr.t == b][0]))
     assert np.max(np.linalg.norm(np.diff(seg, axis=0), axis=1)) < 2.0 * vmax * (b - a)
-    ev = [e for e in fl.events if "re-trace diverged" in e["event"]]
-    assert len(ev) == 1 and ev[0]["t"] == a
+    ev = [e for e in fl.events if "re-trace diverged" in e.event]
+    assert len(ev) == 1 and ev[0].t == a
     fl.corrected_track()                           # asked again: no second event
-    assert len([e for e in fl.events if "re-trace diverged" in e["event"]]) == 1
+    assert len([e for e in fl.events if "re-trace diverged" in e.event]) == 1
     # the join itself: Hermite through both states
     xa, xb = np.r_[0.0, 0, 0, 1, 0, 0], np.r_[10.0, 2, 0, 1, 1, 0]
     J = fixed_lag._joined(np.array([0.0, 5.0, 10.0]), xa, xb)
@@ -416,7 +418,7 @@ def test_a_long_stream_stays_with_the_vehicle():
     init = {n: truth.params[n] for n in ("k", "k_x", "k_yz")}
     res = FixedLagSmoother(None, estimate=("theta_e", "s_x", "s_y"), init=init,
                            window=24.0).run(m)
-    events = [e["event"] for e in res.info["events"]]
+    events = [e.event for e in res.events]
     assert "fix skipped" not in events and "released parameters implausible" not in events
     err = np.angle(np.exp(1j * (res.values["theta_e"] - truth.params["theta_e"])))
     assert abs(err) < np.radians(2.0), np.degrees(err)

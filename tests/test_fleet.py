@@ -161,11 +161,11 @@ def _assert_joint(fr_res, batch, tol=0.05, sig_rel=1e-6):
             continue
         assert fr_res.sigma[n] == pytest.approx(batch.sigma[n], rel=sig_rel), n
         assert fr_res.sigma_model[n] == pytest.approx(sm[n], rel=sig_rel), n
-    for m, pm in batch.info["per_mission"].items():
+    for m, pm in batch.per_mission.items():
         for n, e in pm.items():
-            got = fr_res.info["per_mission"][m][n]
-            assert abs(got["value"] - e["value"]) < tol * sm[n]
-            assert got["sigma"] == pytest.approx(e["sigma"], rel=sig_rel), (m, n)
+            got = fr_res.per_mission[m][n]
+            assert abs(got.value - e.value) < tol * sm[n]
+            assert got.sigma == pytest.approx(e.sigma, rel=sig_rel), (m, n)
 
 
 def test_a_worker_reads_a_mission_once_per_fit_and_uses_one_sent_to_it(tmp_path):
@@ -239,9 +239,9 @@ def test_fleet_equals_joint_fit_per_vehicle(tmp_path, cluster):
         assert ae.fleet.cost_after < ae.fleet.cost_before
     for name in ("otter-example", "otter-dev-calm-a"):
         truth = load_truth(data_path(name)).params
-        cur = fr.results["otter"].info["per_mission"][name]
-        assert np.hypot(cur["s_x"]["value"] - truth.get("s_x", 0.0),
-                        cur["s_y"]["value"] - truth.get("s_y", 0.0)) < 0.03, name
+        cur = fr.results["otter"].per_mission[name]
+        assert np.hypot(cur["s_x"].value - truth.get("s_x", 0.0),
+                        cur["s_y"].value - truth.get("s_y", 0.0)) < 0.03, name
     for v in man.vehicles:
         ms = [with_gnss_every(load_mission(m.path), 8.0) for m in v.missions]
         # each vehicle equals fit_fg of its missions with the fleet's model

@@ -224,8 +224,8 @@ def test_online_sigma_covers_an_ambiguous_batch_until_the_next():
     i = list(h.names).index("theta_e")
     k10 = 9                                       # the tenth fix (24.5 s)
     e = abs(wrap(h.values[k10, i] - truth.params["theta_e"]))
-    first = res.info["reinit_batches"][0]
-    assert first["t"] == 20.0 and e > 3 * first["reference_sigma_theta_e"]
+    first = res.reinit_batches[0]
+    assert first.t == 20.0 and e > 3 * first.reference_sigma_theta_e
     assert e <= 3 * h.sigma[k10, i]
 
 
@@ -241,14 +241,14 @@ def test_the_restart_fix_reports_the_spread_of_the_batch_basins():
     res = fit_fg([m], mode="online", settings=BY_COST.with_(graph={"prior_sigma": SLIDING}))
     h = res.history
     i = list(h.names).index("theta_e")
-    amb = [b for b in res.info["reinit_batches"]
-           if b["restarted"] and b["reference"] != "non-sliding alternative"
-           and b["sigma_theta_e"] > 3 * b["reference_sigma_theta_e"]]
-    assert amb, res.info["reinit_batches"]
+    amb = [b for b in res.reinit_batches
+           if b.restarted and b.reference != "non-sliding alternative"
+           and b.sigma_theta_e > 3 * b.reference_sigma_theta_e]
+    assert amb, res.reinit_batches
     for b in amb:
-        k = int(np.argmin(np.abs(h.t - b["t"])))
-        assert h.t[k] == pytest.approx(b["t"])
-        assert h.sigma[k, i] >= b["sigma_theta_e"], (b, h.sigma[k, i])
+        k = int(np.argmin(np.abs(h.t - b.t)))
+        assert h.t[k] == pytest.approx(b.t)
+        assert h.sigma[k, i] >= b.sigma_theta_e, (b, h.sigma[k, i])
 
 
 @pytest.mark.slow
@@ -283,8 +283,8 @@ def test_released_constants_at_their_bounds_are_caught_before_the_track_runs_awa
                 self.z[j] = self.lo[j]
     monkeypatch.setattr(LagWindow, "step", step)
     r = fit_fg([m], mode="online", settings=BY_COST)
-    assert any(e["event"] == "released parameters implausible" and 170.0 < e["t"] < 260.0
-               for e in r.info["events"]), r.info["events"]
+    assert any(e.event == "released parameters implausible" and 170.0 < e.t < 260.0
+               for e in r.events), r.events
     t, e = causal(r)
     assert np.max(e[t > 40.0]) < 10.0, np.max(e[t > 40.0])
     monkeypatch.setattr(LagWindow, "step", real)
@@ -344,7 +344,7 @@ def test_online_all_six_parameters_completes():
     assert np.all(np.isfinite(res.history.values))
     assert np.all(np.isfinite(res.missions[0].filtered.pos))
     assert abs(wrap(res.values["theta_e"] - truth.params["theta_e"])) < 5 * DEG
-    assert any(e["event"].startswith("re-initialised") for e in res.info["events"])
+    assert any(e.event.startswith("re-initialised") for e in res.events)
 
 
 @pytest.mark.slow
@@ -380,7 +380,7 @@ def test_the_released_window_solves_the_batchs_own_problem():
     fl.start(m, plan=True)
     while fl.hist_t[-1] < 24.0 - 1e-9:   # to the fix after the 20-s batch
         fl.update()
-    assert [b["t"] for b in fl.reinit_batches] == [20.0] and fl.reinit_batches[0]["restarted"]
+    assert [b.t for b in fl.reinit_batches] == [20.0] and fl.reinit_batches[0].restarted
     eng = fl.backend.win
     assert eng is not None and eng.hold_w is None            # released
     j = [eng.names.index(n) for n in ("s_x", "s_y")]
@@ -426,6 +426,7 @@ def test_online_random_walk_survives_failed_releases():
     a batch of the fixes so far. (Without the USBL gate.) The run no longer gets into
     trouble by itself (the heading search of the re-initialisation batches), so a skipped
     fix is also injected after the 80-s release: the next update must re-initialise."""
+    from aqfg.fg.online.records import OnlineEvent
     from aqfg.fg.settings import FGSettings
 
     class Troubled(FixedLagSmoother):
@@ -435,8 +436,8 @@ def test_online_random_walk_survives_failed_releases():
             info = super()._solve(t_fix, n_new)
             if 100.0 <= t_fix and not Troubled.injected:
                 Troubled.injected = True
-                self.events.append({"t": float(t_fix), "event": "fix skipped",
-                                    "error": "injected by the test"})
+                self.events.append(OnlineEvent(float(t_fix), "fix skipped",
+                                               {"error": "injected by the test"}))
             return info
 
     m, truth = mission("otter-dev-calm-b", 8.0)
@@ -451,10 +452,10 @@ def test_online_random_walk_survives_failed_releases():
               "knots > 100 m", int(np.sum(err > 100.0)))
         assert np.mean(err > 100.0) < 0.01        # was 76 of 928 knots
         assert causal_rmse(res, truth) < 3.0
-    skipped = [e["t"] for e in res.info["events"] if e["event"] == "fix skipped"]
+    skipped = [e.t for e in res.events if e.event == "fix skipped"]
     assert skipped
-    assert any(e["event"].startswith("re-initialised") and abs(e["t"] - skipped[0]) < 1e-6
-               for e in res.info["events"]), res.info["events"]   # a forced one
+    assert any(e.event.startswith("re-initialised") and abs(e.t - skipped[0]) < 1e-6
+               for e in res.events), res.events   # a forced one
 
 
 def test_reinit_batch_of_a_straight_start_is_not_confidently_wrong():
@@ -523,7 +524,7 @@ def test_online_survives_a_gtsam_failure(monkeypatch):
     while fl.pending():
         fl.update()
     res = fl.result()
-    assert any(e["event"].startswith("restarted") for e in res.info["events"])
+    assert any(e.event.startswith("restarted") for e in res.events)
     assert np.all(np.isfinite(res.missions[0].track.pos))
 
 
@@ -549,10 +550,10 @@ def test_restart_while_held_keeps_the_hold_and_the_release_removes_only_it():
     for i in eng.hold_idx:                     # the new smoother's own hold priors
         assert isinstance(fg.at(i), gtsam.PriorFactorVector) and set(fg.at(i).keys()) <= nodes
     fl.release(fl.knots[-1])
-    assert fl.events[-1]["event"] == "parameters released"
+    assert fl.events[-1].event == "parameters released"
     while fl.pending():
         fl.update()
-    skipped = [e for e in fl.events if e["event"] == "fix skipped"]
+    skipped = [e for e in fl.events if e.event == "fix skipped"]
     assert not skipped, skipped
     assert np.all(np.isfinite(fl.result().missions[0].filtered.pos))
 
@@ -574,13 +575,13 @@ def test_a_failing_held_model_is_rescued_from_the_fourth_fix(gnss_period, t_firs
         e = wrap(res.values["theta_e"] - tr.params["theta_e"])
         assert abs(e) < 10 * DEG and abs(e) <= 3 * res.sigma["theta_e"], (
             e / DEG, res.sigma["theta_e"] / DEG)
-        return res.info["events"]
+        return res.events
     ev = run()
-    assert ev and ev[0]["event"].startswith("held heading re-seeded"), ev
-    assert abs(ev[0]["t"] - (t_first - gnss_period)) < 1e-6, ev
+    assert ev and ev[0].event.startswith("held heading re-seeded"), ev
+    assert abs(ev[0].t - (t_first - gnss_period)) < 1e-6, ev
     monkeypatch.setattr(recovery, "reseed", lambda fl, t: None)
     ev = run()
-    first = [e["t"] for e in ev if e["event"].startswith(("re-initialised", "parameters released"))]
+    first = [e.t for e in ev if e.event.startswith(("re-initialised", "parameters released"))]
     assert first and abs(first[0] - t_first) < 1e-6, ev
 
 
@@ -634,9 +635,9 @@ def test_online_holds_the_parameters_until_the_batch_start_then_follows_the_data
     other = fit_fg([load_mission(data_path("otter-dev-calm-b"))])
     m, truth = mission("otter-dev-calm-a", 8.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects).run(m)
-    ev = [e["event"] for e in res.info["events"]]
+    ev = [e.event for e in res.events]
     assert "parameters released" in ev
-    t_rel = min(e["t"] for e in res.info["events"] if e["event"] == "parameters released")
+    t_rel = min(e.t for e in res.events if e.event == "parameters released")
     h = res.history
     i = list(h.names).index("theta_e")
     before = h.values[h.t < t_rel, i]
@@ -657,7 +658,7 @@ def test_dense_fixes_start_the_batch_by_their_count():
     m, truth = mission("otter-dev-calm-a", 1.0)
     res = FixedLagSmoother(init=other.vehicle_constants(), effects=other.effects,
                            settings=MODEL_TRACK).run(m)
-    first = min(e["t"] for e in res.info["events"] if "batch" in e["event"])
+    first = min(e.t for e in res.events if "batch" in e.event)
     assert first - m.fix_times().min() < 15.0
     f = res.missions[0].filtered
     t = f.t - f.t[0]
@@ -756,7 +757,7 @@ def test_online_does_not_restart_from_an_implausible_batch():
     truth = load_truth(data_path("otter-dev-calm-b"))
     res = fit_fg([with_gnss_every(crop(full, 300.0, 838.0), 4.0)], mode="online")
     assert causal_rmse(res, truth) < 4.0
-    assert not any(e["event"] == "prediction diverged" for e in res.info["events"])
+    assert not any(e.event == "prediction diverged" for e in res.events)
 
 
 @pytest.mark.slow
@@ -810,7 +811,7 @@ def test_default_constants_online_no_worse_than_the_update_error_method():
     e_r = u.range - np.linalg.norm(d, axis=1)
     e_b = np.angle(np.exp(1j * (u.bearing - np.arctan2(d[:, 1], d[:, 0]))))
     gross = set(u.t[(np.abs(e_r) > 1.5) | (np.abs(e_b) > 15 * DEG)].tolist())
-    out = set(fg.info["rejected_usbl"])
+    out = set(fg.rejected_usbl)
     assert len(gross) >= 5
     assert len(gross - out) <= 1, f"outliers kept: {sorted(gross - out)}"
     e_gross = np.maximum(np.abs(e_r) / 0.15, np.abs(e_b) / (1.5 * DEG))
@@ -828,7 +829,7 @@ def test_the_fix_of_a_re_initialisation_reports_the_re_initialised_estimate():
     res = FixedLagSmoother(init={"k": 1.4, "k_x": 0.4, "k_yz": 4.0}).run(m)
     h = res.history
     i = list(h.names).index("theta_e")
-    ev = [e["t"] for e in res.info["events"] if e["event"].startswith("re-initialised")]
+    ev = [e.t for e in res.events if e.event.startswith("re-initialised")]
     assert ev and ev[0] in h.t.tolist()
     k = h.t.tolist().index(ev[0])
     assert abs(h.values[k - 1, i]) < 1e-3 and h.sigma[k - 1, i] > 1.0   # held, said so
@@ -884,15 +885,15 @@ def test_long_reinit_batch_keeps_the_nominal_noise_and_the_right_basin():
     noise."""
     m, truth = mission("otter-heldout-46", 8.0)
     r = fit_fg([m], mode="online", estimate=("theta_e", "s_x", "s_y", "k", "k_x", "k_yz"))
-    batches = r.info["reinit_batches"]
+    batches = r.reinit_batches
     n_p = 6
-    long_ = [b for b in batches if b["t"] - m.t0 >= 60.0 * (n_p + 2)]
-    short = [b for b in batches if b["t"] - m.t0 < 60.0 * (n_p + 1)]
+    long_ = [b for b in batches if b.t - m.t0 >= 60.0 * (n_p + 2)]
+    short = [b for b in batches if b.t - m.t0 < 60.0 * (n_p + 1)]
     assert long_ and short
-    assert all(not b["noise_by_evidence"] and b["process_noise_scale"] == 1.0 for b in long_)
-    assert all(b["noise_by_evidence"] for b in short)
-    assert all(b["process_noise_measured"] is not None for b in batches)
-    assert r.process_noise_scale >= batches[-1]["process_noise_measured"]
+    assert all(not b.noise_by_evidence and b.process_noise_scale == 1.0 for b in long_)
+    assert all(b.noise_by_evidence for b in short)
+    assert all(b.process_noise_measured is not None for b in batches)
+    assert r.process_noise_scale >= batches[-1].process_noise_measured
     i = list(r.history.names).index("theta_e")
     err = abs(wrap(r.history.values[-1, i] - truth.params["theta_e"]))
     assert err < 5 * DEG, np.degrees(err)
@@ -911,13 +912,13 @@ def test_a_sliding_batch_does_not_replace_the_online_heading_within_its_own_sigm
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-44", 8.0)
     r = fit_fg([m], mode="online")
-    sliding = [b for b in r.info["reinit_batches"]
-               if b.get("slip_deg", 0.0) > plausibility.SUSPECT_SLIP and b["t"] > 600.0]
-    assert sliding, r.info["reinit_batches"]
+    sliding = [b for b in r.reinit_batches
+               if b.slip_deg > plausibility.SUSPECT_SLIP and b.t > 600.0]
+    assert sliding, r.reinit_batches
     for b in sliding:
         # judged by its non-sliding alternative where it names one, else by its own 3 sigma
-        assert not b["restarted"] and (b["reference"] == "non-sliding alternative"
-                                       or b["tolerance"] >= 3 * b["sigma_theta_e"])
+        assert not b.restarted and (b.reference == "non-sliding alternative"
+                                    or b.tolerance >= 3 * b.sigma_theta_e)
     i = list(r.history.names).index("theta_e")
     t_end = r.history.t[-1]
     th_true = truth.params["theta_e"] + truth.params["heading_drift.rate"] * t_end
@@ -935,9 +936,9 @@ def test_a_failing_held_heading_is_reseeded_from_the_fixes():
     full, truth = mission("otter-heldout-46", 4.0)
     m = between(full, 0.0, 90.0)
     r = FixedLagSmoother(settings=MODEL_TRACK).run(m)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading re-seeded")]
-    assert seeds, r.info["events"]
-    assert abs(wrap(seeds[0]["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
+    seeds = [e for e in r.events if e.event.startswith("held heading re-seeded")]
+    assert seeds, r.events
+    assert abs(wrap(seeds[0].details["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -957,7 +958,7 @@ def test_a_held_heading_that_misses_the_third_fix_is_reseeded_there(monkeypatch)
 
     def early_rmse():
         r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-        seeds = [e["t"] for e in r.info["events"] if e["event"].startswith("held heading")]
+        seeds = [e.t for e in r.events if e.event.startswith("held heading")]
         c = r.missions[0].filtered
         pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
         e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -991,14 +992,14 @@ def test_gnss_only_a_reseed_takes_the_speed_scale_and_beats_the_baseline(monkeyp
 
     def run():
         r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-        seeds = [e for e in r.info["events"] if e["event"].startswith("held heading")]
+        seeds = [e for e in r.events if e.event.startswith("held heading")]
         t, e = causal(r)
         return seeds, float(np.sqrt(np.mean(e ** 2))), float(np.max(e[(t > third) & (t < 40.0)]))
     seeds, rmse, after = run()
-    assert seeds and seeds[0]["t"] == pytest.approx(third), seeds
+    assert seeds and seeds[0].t == pytest.approx(third), seeds
     s0 = seeds[0]
-    assert abs(wrap(s0["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
-    assert s0["k_after"] == pytest.approx(s0["k_before"] * s0["speed_scale"] ** 2)
+    assert abs(wrap(s0.details["theta_e_after"] - truth.params["theta_e"])) < 20 * DEG
+    assert s0.details["k_after"] == pytest.approx(s0.details["k_before"] * s0.details["speed_scale"] ** 2)
     t_u, e_u = causal(fit_update_error([m], mode="online"))
     assert rmse < float(np.sqrt(np.mean(e_u ** 2))), (rmse, float(np.sqrt(np.mean(e_u ** 2))))
     assert after < 2.5, after
@@ -1026,11 +1027,11 @@ def test_a_reseed_keeps_the_thrust_gain_where_the_speed_scale_is_not_determined(
             return [dataclasses.replace(s, rho=rho, rho_var=sd ** 2 / v_fix) for s in out]
         monkeypatch.setattr(fg_init, "candidate_starts", starts)
         r = fit_fg([m], mode="online")
-        return [e for e in r.info["events"] if e["event"].startswith("held heading")][0]
+        return [e for e in r.events if e.event.startswith("held heading")][0]
     e = run(13.0, 6.5)
-    assert e["k_after"] == e["k_before"], e
+    assert e.details["k_after"] == e.details["k_before"], e
     e = run(13.0, 0.5)
-    assert e["k_after"] > 10.0 * e["k_before"], e
+    assert e.details["k_after"] > 10.0 * e.details["k_before"], e
 
 
 @pytest.mark.slow
@@ -1049,9 +1050,9 @@ def test_three_fixes_with_a_usbl_fix_reseed_neither_heading_nor_gain():
     rng[j] += 17.0
     m = dataclasses.replace(m, usbl=dataclasses.replace(m.usbl, range=rng))
     r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading")]
-    assert not [e for e in seeds if e["t"] <= third + 1e-9], seeds
-    assert all(e["k_after"] == e["k_before"] for e in seeds), seeds
+    seeds = [e for e in r.events if e.event.startswith("held heading")]
+    assert not [e for e in seeds if e.t <= third + 1e-9], seeds
+    assert all(e.details["k_after"] == e.details["k_before"] for e in seeds), seeds
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 50.0
@@ -1069,14 +1070,14 @@ def test_a_sliding_batch_with_a_non_sliding_alternative_restarts_to_the_alternat
     from aqfg.fg import plausibility
     m, truth = mission("otter-heldout-52-300s", 0.0)
     r = FixedLagSmoother(settings=BY_COST.with_(graph={"prior_sigma": SLIDING})).run(m)
-    sliding = [b for b in r.info["reinit_batches"] if b["slip_deg"] > plausibility.SUSPECT_SLIP]
-    assert sliding and all(b["reference"] == "non-sliding alternative" for b in sliding), \
-        r.info["reinit_batches"]
+    sliding = [b for b in r.reinit_batches if b.slip_deg > plausibility.SUSPECT_SLIP]
+    assert sliding and all(b.reference == "non-sliding alternative" for b in sliding), \
+        r.reinit_batches
     h = r.history
     i = list(h.names).index("theta_e")
     th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
     err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
-    assert np.max(err[h.t >= sliding[0]["t"]]) < 15 * DEG, np.degrees(err[h.t >= sliding[0]["t"]])
+    assert np.max(err[h.t >= sliding[0].t]) < 15 * DEG, np.degrees(err[h.t >= sliding[0].t])
 
 
 def test_a_first_batch_that_explains_no_fix_is_not_used():
@@ -1088,9 +1089,9 @@ def test_a_first_batch_that_explains_no_fix_is_not_used():
     a batch explains them."""
     m, truth = mission("otter-heldout-42-90s", 4.0)
     r = FixedLagSmoother(settings=MODEL_TRACK).run(m)
-    refused = [e for e in r.info["events"] if e["event"].startswith(
+    refused = [e for e in r.events if e.event.startswith(
         "batch re-initialisation explains no fix")]
-    assert refused and refused[0]["t"] - m.t0 < 15.0, r.info["events"]
+    assert refused and refused[0].t - m.t0 < 15.0, r.events
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     e = np.hypot(*(c.pos[:, :2] - pt).T)[c.t < m.t0 + 40.0]
@@ -1123,13 +1124,13 @@ def test_an_ambiguous_batch_keeps_the_basin_of_the_online_estimate():
     basins ranked by cost: ranked by evidence, that batch chooses a basin 9 deg off.)"""
     m, truth = mission("otter-heldout-73-170s", 4.0)
     r = FixedLagSmoother(settings=BY_COST).run(m)
-    own = [b for b in r.info["reinit_batches"] if b["reference"].startswith("solution from")]
-    assert own, r.info["reinit_batches"]
+    own = [b for b in r.reinit_batches if b.reference.startswith("solution from")]
+    assert own, r.reinit_batches
     h = r.history
     i = list(h.names).index("theta_e")
     th = truth.params["theta_e"] + truth.params["heading_drift.rate"] * h.t
     err = np.abs(np.angle(np.exp(1j * (h.values[:, i] - th))))
-    after = h.t >= own[0]["t"]
+    after = h.t >= own[0].t
     assert np.max(err[after]) < 15 * DEG, np.degrees(err[after])
 
 
@@ -1164,9 +1165,9 @@ def test_the_alternative_of_a_batch_that_does_not_determine_the_heading_is_not_u
     d = data_path("otter-heldout-111")
     m = with_gnss_every(load_mission(d), 8.0)
     res = fit_fg([m], mode="online")
-    b160 = [b for b in res.info["reinit_batches"] if abs(b["t"] - 160.0) < 1e-6]
-    assert b160 and not b160[0]["theta_e_determined"] and not b160[0]["restarted"]
-    assert b160[0]["reference"] == "batch"
+    b160 = [b for b in res.reinit_batches if abs(b.t - 160.0) < 1e-6]
+    assert b160 and not b160[0].theta_e_determined and not b160[0].restarted
+    assert b160[0].reference == "batch"
     assert track_rmse(res.missions[0].filtered, load_truth(d)) < 2.0
 
 
@@ -1183,16 +1184,16 @@ def test_online_sigma_carries_how_much_the_given_constants_decide():
     res = fit_fg([m], mode="online", init={n: float(OLD_PARAMS[n]) for n in ("k", "k_x", "k_yz")})
     h = res.history
     i = list(h.names).index("theta_e")
-    free = [b for b in res.info["reinit_batches"] if b.get("constants_free")]
-    assert free and max(b["constants_free"]["difference"]["theta_e"] for b in free) > 10 * DEG
+    free = [b for b in res.reinit_batches if b.constants_free is not None]
+    assert free and max(b.constants_free.difference["theta_e"] for b in free) > 10 * DEG
     for b in free:
-        k = min(int(np.searchsorted(h.t, b["t"] + 1e-6)), len(h.t) - 1)
-        c = b["constants_free"]
-        d = c["difference"]["theta_e"]
-        if not c["theta_e_determined"]:
+        k = min(int(np.searchsorted(h.t, b.t + 1e-6)), len(h.t) - 1)
+        c = b.constants_free
+        d = c.difference["theta_e"]
+        if not c.theta_e_determined:
             # a free solve that does not determine the heading moves by about its sigma
-            d = min(d, c["sigma_theta_e"])
-        assert h.sigma[k, i] >= 0.99 * d, (b["t"], h.sigma[k, i], d)
+            d = min(d, c.sigma_theta_e)
+        assert h.sigma[k, i] >= 0.99 * d, (b.t, h.sigma[k, i], d)
 
 
 CONSTANTS_201 = {"k": 1.947, "k_x": 0.0383, "k_yz": 0.7195,     # a batch fit of wide seed 201
@@ -1230,8 +1231,8 @@ def test_a_held_heading_is_not_reseeded_from_three_fixes_with_a_usbl_fix():
     m, truth = mission("otter-heldout-281-60s", 8.0)
     third = float(np.unique(m.fix_times())[2])
     r = fit_fg([m], mode="online", settings=MODEL_TRACK)
-    seeds = [e for e in r.info["events"] if e["event"].startswith("held heading re-seeded")]
-    assert seeds and seeds[0]["t"] > third + 1e-9, seeds
+    seeds = [e for e in r.events if e.event.startswith("held heading re-seeded")]
+    assert seeds and seeds[0].t > third + 1e-9, seeds
     c = r.missions[0].filtered
     pt = np.column_stack([np.interp(c.t, truth.t, truth.pos[:, a]) for a in range(2)])
     assert np.max(np.hypot(*(c.pos[:, :2] - pt).T)) < 17.0
@@ -1264,8 +1265,8 @@ def test_the_causal_track_has_a_kinematic_floor_while_the_parameters_are_held():
     np.testing.assert_array_equal(on.history.values, off.history.values)
     np.testing.assert_array_equal(on.missions[0].track.pos, off.missions[0].track.pos)
     t_model = fl._floor.until
-    assert t_model < m.t1 and any(e["event"].startswith("causal track follows the model")
-                                  for e in on.info["events"])
+    assert t_model < m.t1 and any(e.event.startswith("causal track follows the model")
+                                  for e in on.events)
     after = on.missions[0].filtered.t >= t_model
     np.testing.assert_array_equal(on.missions[0].filtered.pos[after],
                                   off.missions[0].filtered.pos[after])

@@ -346,12 +346,12 @@ def test_a_fix_is_reported_before_its_reinitialisation_and_revised_after_it(tmp_
     reps: list = []
     _, segs, _ = run_records(lw.tlog_records(m), mp, tmp_path, "a", on_fix=reps.append)
     res = segs[0].result
-    hist, batches = res.history, res.info["reinit_batches"]
+    hist, batches = res.history, res.reinit_batches
     assert [r.t for r in reps if not r.revised] == list(hist.t)
     revised = [(i, r) for i, r in enumerate(reps) if r.revised]
-    restarts = [b["t"] for b in batches if b["restarted"]]
+    restarts = [b.t for b in batches if b.restarted]
     assert restarts and set(restarts) <= {r.t for _, r in revised} <= \
-        {b["t"] for b in batches} | {e["t"] for e in res.info["events"]}
+        {b.t for b in batches} | {e.t for e in res.events}
     for i, r in revised:
         assert reps[i - 1].t == r.t and not reps[i - 1].revised and r.seconds > 0
     last = {r.t: r for r in reps}

@@ -36,11 +36,11 @@ def _assert_equal(a, b, tol=0.05):
         assert abs(a.values[n] - b.values[n]) < tol * sm[n], (n, a.values[n], b.values[n])
         assert a.sigma[n] == pytest.approx(b.sigma[n], rel=0.02), n      # sandwich-inflated
         assert a.sigma_model[n] == pytest.approx(sm[n], rel=0.02), n
-    for m, pm in b.info["per_mission"].items():
+    for m, pm in b.per_mission.items():
         for n, e in pm.items():
-            got = a.info["per_mission"][m][n]
-            assert abs(got["value"] - e["value"]) < tol * sm[n], (m, n)
-            assert got["sigma"] == pytest.approx(e["sigma"], rel=0.02), (m, n)
+            got = a.per_mission[m][n]
+            assert abs(got.value - e.value) < tol * sm[n], (m, n)
+            assert got.sigma == pytest.approx(e.sigma, rel=0.02), (m, n)
 
 
 def test_apart_equals_joint_batch(missions, batch):

@@ -41,10 +41,10 @@ def inertial_rmse(model, mission, tr, p) -> float:
 def check_fit(res, missions, truths, spread: bool):
     """3-sigma recovery of every parameter of every mission; pooled inertial RMSE."""
     for m, tr in zip(missions, truths):
-        per = res.info["per_mission"][m.name]
+        per = res.per_mission[m.name]
         for n in SIX:
             v, s = ((res.values[n], res.sigma[n]) if n not in per
-                    else (per[n]["value"], per[n]["sigma"]))
+                    else (per[n].value, per[n].sigma))
             assert np.isfinite(s) and s > 0, n
             assert abs(v - tr.params[n]) < 3 * s, (m.name, n, v, s, tr.params[n])
     ref = fit_fg(missions, estimate=("theta_e", "s_x", "s_y"),
@@ -152,7 +152,7 @@ def test_multi_mission_batch_shares_the_fixed_node():
     res = fit_fg(ms)
     assert len(res.missions) == 3
     check_fit(res, ms, trs, spread=True)
-    per = res.info["per_mission"]
+    per = res.per_mission
     assert set(per) == {m.name for m in ms}
     assert all(set(v) == {"theta_e", "s_x", "s_y"} for v in per.values())
     # fixed parameters identical in every mission's vector, variable ones per mission

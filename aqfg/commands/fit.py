@@ -336,13 +336,13 @@ def _print_summary(result) -> None:
             # what the GTSAM engine leaves out (the walks of the current and heading offset)
             print(f"online: GTSAM engine (the numpy engine does not take: {eng.note})")
     seen: dict[str, list[float]] = {}
-    for e in result.info.get("events") or []:
-        if e.get("event") != "parameters released":
-            seen.setdefault(str(e.get("event")), []).append(float(e.get("t", float("nan"))))
+    for e in result.events or []:
+        if e.event != "parameters released":
+            seen.setdefault(e.event, []).append(float(e.t))
     for name, ts in seen.items():
         print(f"online: {name}: {len(ts)}x (at {', '.join(f'{x:.1f}' for x in ts[:6])}"
               f"{', ...' if len(ts) > 6 else ''} s)")
-    gated = result.info.get("rejected_usbl") or []
+    gated = result.rejected_usbl or []
     if gated:
         print(f"online: {len(gated)} USBL fixes left out by the innovation gate (at "
               f"{', '.join(f'{x:.1f}' for x in gated[:8])}{', ...' if len(gated) > 8 else ''} s)")

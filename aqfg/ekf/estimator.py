@@ -86,13 +86,22 @@ from aqfg.ekf.optim import (
     default_optimiser,
     minimise,
 )
-from aqfg.ekf.report import NONCONV_N, NodeLog, finite_or_none, online_verdicts, verdict_info
+from aqfg.ekf.report import NONCONV_N, NodeLog, mission_estimate, online_verdicts, verdict_info
 from aqfg.ekf.uncertainty import Uncertainty, assess, no_motion_through_water
 from aqfg.ekf.window import REJECTED, WindowOut, run_window
 from aqfg.model.reference import wrap_angle
 from aqfg.model.retrace import inertial_track
 from aqfg.model.vehicle import Model
-from aqfg.result import MissionResult, ParamHistory, Result, SolveSummary, Track
+from aqfg.result import (
+    SIGMA_ABSENT,
+    Estimate,
+    EstimateNote,
+    MissionResult,
+    ParamHistory,
+    Result,
+    SolveSummary,
+    Track,
+)
 
 log = logging.getLogger(__name__)
 
@@ -251,21 +260,16 @@ class UpdateErrorEstimator:
         ps = obj.params(sol.theta)
         outs = obj.run(sol.theta, record=True)
         mres = [self._mission_result(h, p, o.recorded()[0], None, o) for h, p, o in zip(hs, ps, outs)]
-        per_mission = {}
-        for wi, m in enumerate(self.missions):
-            per_mission[m.name] = {
-                e.name: {"value": float(sol.theta[i]),
-                         "sigma": finite_or_none(unc.sigma[i]) if unc else None,
-                         **({"verdict": unc.verdict[i]} if unc else {}),
-                         **({"note": unc.note[i]} if unc and unc.note[i] else {})}
-                for i, e in enumerate(entries) if wi in e.windows}
+        per_mission = {m.name: {e.name: mission_estimate(float(sol.theta[i]), unc, i)
+                                for i, e in enumerate(entries) if wi in e.windows}
+                       for wi, m in enumerate(self.missions)}
         first = [i for i, e in enumerate(entries) if 0 in e.windows]
         names = [entries[i].name for i in first]
         sigma_d = ({n: float(unc.sigma[i]) for n, i in zip(names, first)
                     if np.isfinite(unc.sigma[i])} if unc else {})
         info: dict[str, Any] = {"evaluations": sol.evaluations, "E": sol.E, "status": sol.status,
                 "message": sol.message, "preset": self.preset, "metric": self.metric,
-                "optimiser": sol.optimiser, "per_mission": per_mission,
+                "optimiser": sol.optimiser,
                 "bounds": {e.name: (float(lo[i]), float(hi[i])) for i, e in enumerate(entries)}}
         info.update(verdict_info(unc, names, first, sol, sigma))
         warnings = info.pop("warnings")
@@ -280,7 +284,8 @@ class UpdateErrorEstimator:
             missions=mres,
             timings={"evaluation": t_eval, "optimisation": [sol.seconds]},
             info=info, warnings=warnings, solve=solve, observability=obs, sigma_notes=notes,
-            effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
+            effects=tuple(e.name for e in self.models[0].effects), model=self.models[0],
+            per_mission=per_mission)
 
     # ------------------------------------------------------------------ online
     def run_online(self, estimate: Sequence[str] = ONLINE_DEFAULT, window_fixes: int = 3,
@@ -302,7 +307,7 @@ class UpdateErrorEstimator:
 
         Returns a :class:`Result` with mode "online": ``track`` filtered-then-corrected,
         ``filtered`` the causal track, ``history`` the estimates after each optimisation
-        (first mission; all in ``info["histories"]``; ``history.sigma`` NaN where a window
+        (first mission; all in ``histories``; ``history.sigma`` NaN where a window
         does not determine a parameter), ``timings["optimisation"]`` and
         ``timings["evaluation"]``, ``info["nonconvergence"]`` (§III-F: the standard
         deviation of the last three estimates) and ``info["converged"]`` (per parameter:
@@ -333,13 +338,14 @@ class UpdateErrorEstimator:
                  if np.isfinite(unc0.sigma[i])} if unc0 is not None else {})
         info = {"evaluations": int(sum(n_eval)), "evaluations_per_optimisation": n_eval,
                 "optimisations": len(t_opt), "nonconvergence": nonconv[0].tolist(),
-                "histories": hists, "nonconvergence_all": [n.tolist() for n in nonconv],
+                "nonconvergence_all": [n.tolist() for n in nonconv],
                 "preset": self.preset, "metric": self.metric, "optimiser": optimiser,
                 "window_fixes": window_fixes, "window": window, "per_stream": per_stream,
-                "correct": correct,
-                "per_mission": {m.name: {n: {"value": float(r.p[self.models[i].index(n)])}
-                                         for n in estimate}
-                                for i, (m, r) in enumerate(zip(self.missions, mres))}}
+                "correct": correct}
+        absent = EstimateNote(sigma_missing=SIGMA_ABSENT)    # no sigma per mission
+        per_mission = {m.name: {n: Estimate(float(r.p[self.models[i].index(n)]), note=absent)
+                                for n in estimate}
+                       for i, (m, r) in enumerate(zip(self.missions, mres))}
         info.update(online_verdicts(unc0, names, nonconv[0], sigma))
         warnings = info.pop("warnings")
         obs, notes = info.pop("observability", None), info.pop("sigma_notes", None)
@@ -349,8 +355,8 @@ class UpdateErrorEstimator:
             method="update-error", mode="online", estimated=tuple(dict.fromkeys(estimate)),
             values=dict(zip(self.models[0].all_names, map(float, last))), sigma=sig0,
             missions=mres, timings={"evaluation": t_eval, "optimisation": t_opt},
-            history=hist0, info=info, warnings=warnings, observability=obs,
-            sigma_notes=notes,
+            history=hist0, histories=hists, info=info, warnings=warnings, observability=obs,
+            sigma_notes=notes, per_mission=per_mission,
             effects=tuple(e.name for e in self.models[0].effects), model=self.models[0])
 
     def _online_one(self, mi: int, estimate, window_fixes, window, min_fixes, correct, every,

@@ -12,13 +12,20 @@ from aqfg.ekf.history import DEPTH, GNSS, IMU_ACC, KIND_NAMES, USBL, History
 from aqfg.ekf.optim import Solution
 from aqfg.ekf.uncertainty import Uncertainty
 from aqfg.ekf.window import WindowOut
-from aqfg.result import Residuals
+from aqfg.result import SIGMA_NULL, Estimate, EstimateNote, Residuals
 
 NONCONV_N = 3   # §III-F: std of the last n = 3 estimates
 
 
-def finite_or_none(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
+def mission_estimate(value: float, unc: Uncertainty | None, i: int) -> Estimate:
+    """A batch fit's estimate of its ``i``-th estimated number for a mission: its value,
+    the sigma of ``unc`` (one not computed, or not finite, written null), its verdict and
+    the verdict's reason."""
+    s = float(unc.sigma[i]) if unc is not None else float("nan")
+    return Estimate(value, s, EstimateNote(
+        verdict=unc.verdict[i] if unc is not None else "",
+        reason=(unc.note[i] or "") if unc is not None else "",
+        sigma_missing="" if np.isfinite(s) else SIGMA_NULL))
 
 
 def verdict_info(unc: Uncertainty | None, names: list[str], cols: list[int], sol: Solution,

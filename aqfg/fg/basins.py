@@ -9,6 +9,8 @@ widens them (:func:`widen_by_profile`). :func:`batch_warnings` words it all for 
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from aqfg.fg import observability
@@ -122,10 +124,10 @@ def widen_by_profile(res: Result, fs: FastSystem, bg: BuiltGraph, node_list, val
     # one basin's sigma stays the unimodal one (the online smoother's priors and its
     # restart tolerance; the spread is added to what it reports until its next batch)
     res.sigma_unimodal = {**before, **res.sigma_unimodal}
-    for e in res.info.get("per_mission", {}).values():
+    for e in res.per_mission.values():
         for n in before:
-            if isinstance(e.get(n), dict) and "sigma" in e[n]:
-                e[n]["sigma"] = max(float(e[n]["sigma"]), res.sigma[n])
+            if n in e and e[n].sigma_computed:
+                e[n] = dataclasses.replace(e[n], sigma=max(e[n].sigma, res.sigma[n]))
 
 
 def basin_rank(b: dict) -> float:

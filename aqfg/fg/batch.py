@@ -509,14 +509,14 @@ def _ambiguity_info(res: Result, basins: list[dict], err: float, n_missions: int
     res.sigma_unimodal = {n: res.sigma[n] for n in extra if n in res.sigma}
     res.sigma.update({n: float(np.hypot(v, np.sqrt(extra[n])))
                       for n, v in res.sigma_unimodal.items()})
-    for name, pm in res.info["per_mission"].items():
+    for name, pm in res.per_mission.items():
         th = pm.get("theta_e")
         if th is not None and n_missions > 1:
-            d2 = basin_spread({"theta_e": th["value"]},
+            d2 = basin_spread({"theta_e": th.value},
                               [({"theta_e": b["theta_e"][name]}, basin_rank(b))
                                for b in res.ambiguous if name in b["theta_e"]],
                               float(err))["theta_e"]
-            th["sigma"] = float(np.hypot(th["sigma"], np.sqrt(d2)))
+            pm["theta_e"] = replace(th, sigma=float(np.hypot(th.sigma, np.sqrt(d2))))
 
 
 def _verdict_info(res: Result, bg: BuiltGraph, verdicts: list[Plausibility]) -> None:

@@ -10,7 +10,15 @@ from aqfg.fg import factors as fc
 from aqfg.fg.common import piecewise_inertial, residuals
 from aqfg.fg.graph import MissionPart, ParamNode
 from aqfg.fg.settings import FGSettings
-from aqfg.result import Covariance, MissionResult, ParamHistory, Residuals, Result, Track
+from aqfg.result import (
+    Covariance,
+    Estimate,
+    MissionResult,
+    ParamHistory,
+    Residuals,
+    Result,
+    Track,
+)
 
 
 def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[MissionPart],
@@ -23,7 +31,8 @@ def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[Missi
     model0 = parts[0].model
     val_of = {k: values.atVector(k) for _, k, _ in node_list}
     sig_of = {k: np.sqrt(np.maximum(np.diag(c), 0.0)) for k, c in cov.items()}
-    mres, per_mission = [], {}
+    mres: list[MissionResult] = []
+    per_mission: dict[str, dict[str, Estimate]] = {}
     hist = None
     for part in parts:
         mi = part.index
@@ -47,12 +56,12 @@ def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[Missi
         res = residuals(part.model, part.mission, track, p_at, s)
         res["dynamics"] = _dynamics_residuals(part, X, p_segments, s)
         mres.append(MissionResult(part.mission.name, track, inertial, p_segments[-1], res))
-        pm = {}
+        pm: dict[str, Estimate] = {}
         for g in ("variable", "sensor"):
             if g in layout.names:
                 k = fc.node_key(g, mi, nseg - 1 if g == "variable" else 0)
                 for n, v, sg in zip(layout.names[g], val_of[k], sig_of[k]):
-                    pm[n] = {"value": float(v), "sigma": float(sg)}
+                    pm[n] = Estimate(float(v), float(sg))
         per_mission[part.mission.name] = pm
         if nseg > 1 and "variable" in layout.names and mi == 0:
             names = layout.names["variable"]
@@ -61,7 +70,7 @@ def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[Missi
                                 np.array([val_of[k] for k in ks]),
                                 np.array([sig_of[k] for k in ks]))
     # reported values: fixed node + first mission's variable/sensor nodes (all missions
-    # are in info["per_mission"] and in each MissionResult.p)
+    # are in per_mission and in each MissionResult.p)
     values_d = dict(zip(model0.all_names, map(float, mres[0].p)))
     sigma_d = {}
     for g, k, node_mission in node_list:
@@ -73,7 +82,7 @@ def batch_result(layout: fc.ParamLayout, values: gtsam.Values, parts: list[Missi
             sigma_d[n] = float(sg)
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values_d,
                   sigma=sigma_d, missions=mres, history=hist,
-                  info={"per_mission": per_mission},
+                  per_mission=per_mission,
                   covariance=Covariance({g: np.array(cov[k], dtype=float)
                                          for g, k, mi in node_list if mi in (None, 0)}),
                   effects=tuple(e.name for e in model0.effects), model=model0)

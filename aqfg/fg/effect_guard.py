@@ -18,15 +18,6 @@ from aqfg.model.params import difference
 from aqfg.result import BaseFit, OtherMinimum, Result
 
 
-def per_mission_copy(info: dict) -> dict | None:
-    """A copy of ``info["per_mission"]`` whose entries may be changed (None: none)."""
-    per = info.get("per_mission")
-    if per is None:
-        return None
-    return {m: {n: dict(e) if isinstance(e, dict) else e for n, e in d.items()}
-            for m, d in per.items()}
-
-
 def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
     """Where another local minimum of the same model (another start) explains the fixes as
     well as ``res`` (cost within :func:`aqfg.fg.batch.ambiguity_margin`), the data do not
@@ -47,26 +38,23 @@ def widen_by_other_minimum(res: Result, others: list[Result]) -> Result:
         for n in res.estimated:
             if n in res.sigma and n in o.values:
                 d_top[n] = max(d_top.get(n, 0.0), abs(difference(n, o.values[n], res.values[n])))
-        for m, est in (res.info.get("per_mission") or {}).items():
-            oe = (o.info.get("per_mission") or {}).get(m, {})
+        for m, est in res.per_mission.items():
+            oe = o.per_mission.get(m, {})
             for n, e in est.items():
-                if n in oe and isinstance(e, dict) and e.get("sigma") is not None:
-                    d = abs(difference(n, float(oe[n]["value"]), float(e["value"])))
+                if n in oe and e.sigma_computed:
+                    d = abs(difference(n, oe[n].value, e.value))
                     d_per[m, n] = max(d_per.get((m, n), 0.0), d)
-    info = dict(res.info)
-    per = per_mission_copy(info)
+    per = {m: dict(est) for m, est in res.per_mission.items()}
     for (m, n), d in d_per.items():
-        assert per is not None
         e = per[m][n]
-        e["sigma"] = float(np.hypot(float(e["sigma"]), d))
-    if per is not None:
-        info["per_mission"] = per
+        per[m][n] = dataclasses.replace(e, sigma=float(np.hypot(e.sigma, d)))
     before = {n: float(res.sigma[n]) for n in d_top}
     sigma = dict(res.sigma)
     for n, d in d_top.items():
         sigma[n] = float(np.hypot(sigma[n], d))
     other = OtherMinimum([o.cost for o in near], d_top, before)
-    return dataclasses.replace(res, sigma=sigma, info=info, other_minimum=other)
+    return dataclasses.replace(res, sigma=sigma, info=dict(res.info), per_mission=per,
+                               other_minimum=other)
 
 
 def base_record(res: Result) -> BaseFit:
@@ -76,8 +64,7 @@ def base_record(res: Result) -> BaseFit:
                    {n: float(res.values[n]) for n in
                     (res.model.active_names if res.model is not None else res.values)},
                    {n: float(v) for n, v in res.sigma.items()},
-                   res.info["per_mission"]
-                   if len(res.missions) > 1 and res.info.get("per_mission") else None)
+                   res.per_mission if len(res.missions) > 1 and res.per_mission else None)
 
 
 def variable_estimates(res: Result) -> dict[tuple[str, str], tuple[float, float]]:

@@ -40,7 +40,7 @@ from aqfg.fg.structural_sigma import cover_refit, structural_sigma
 from aqfg.fg.structure import structural_shift
 from aqfg.model.effects import resolve
 from aqfg.model.retrace import inertial_track
-from aqfg.result import EffectStep, Result
+from aqfg.result import EffectStep, Estimate, Result
 
 __all__ = ["BatchSmoother", "FixedLagSmoother", "FGSettings", "UpdateInfo", "fit_fg"]
 
@@ -122,18 +122,17 @@ def fit_online(missions: list[Mission], model, effects: Sequence, estimate, init
 def merge_online(results: list[Result]) -> Result:
     """Several missions' online results as one: the first mission's history and values
     (as :mod:`aqfg.ekf.estimator` does), every mission's track and timings, and every
-    mission's history and estimates in ``info`` (``histories``, ``per_mission``)."""
+    mission's history (``histories``) and its estimates (``per_mission``)."""
     r0 = results[0]
     timings: dict = {}
     for r in results:
         for k, v in r.timings.items():
             timings.setdefault(k, []).extend(v)
-    info = {**r0.info, "histories": [r.history for r in results],
-            "per_mission": {r.missions[0].name: {n: {"value": r.values[n],
-                                                     "sigma": r.sigma.get(n, np.nan)}
-                                                 for n in r.estimated} for r in results}}
+    per = {r.missions[0].name: {n: Estimate(r.values[n], r.sigma.get(n, np.nan))
+                                for n in r.estimated} for r in results}
     return dataclasses.replace(r0, missions=[r.missions[0] for r in results], timings=timings,
-                               info=info)
+                               info=dict(r0.info), per_mission=per,
+                               histories=[h for r in results for h in r.histories])
 
 
 def _block_jackknife(res: Result, mission: Mission, model, effects: Sequence, init,

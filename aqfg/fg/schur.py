@@ -43,7 +43,7 @@ from aqfg.fg.lm import LMParams, diagonal_floor, levenberg_marquardt
 from aqfg.fg.rounds import as_rounds
 from aqfg.fg.schur_mission import FIXED, MissionProblem, MissionSession, ReducedSystem
 from aqfg.fg.settings import FGSettings
-from aqfg.result import Covariance, Result, SolveSummary
+from aqfg.result import Covariance, Estimate, Result, SolveSummary
 
 Request = tuple[str, dict]
 
@@ -254,7 +254,7 @@ def joint_lm(n: int, settings: FGSettings, progress: Callable[[str], None] | Non
 def combine(sol: Solution, timings: dict | None = None) -> Result:
     """One :class:`Result` for the vehicle, shaped as :meth:`BatchSmoother.run`'s: the
     fixed node's values and sigma, the first mission's variable/sensor values, every
-    mission's in ``info["per_mission"]`` and its MissionResult in ``missions``."""
+    mission's in ``per_mission`` and its MissionResult in ``missions``."""
     layout, results = sol.layout, sol.results
     r0 = results[0]
     values, sigma = dict(r0.values), dict(r0.sigma)
@@ -265,21 +265,20 @@ def combine(sol: Solution, timings: dict | None = None) -> Result:
         values[n] = float(sol.f[i])
         sigma[n] = float(np.sqrt(max(sol.cov_f[i, i], 0.0)))
         sigma_model[n] = float(np.sqrt(max(cm[i, i], 0.0)))
-    per_mission: dict = {}
+    per_mission: dict[str, dict[str, Estimate]] = {}
     plaus: dict = {}
     for r in results:
-        per_mission.update(r.info.get("per_mission", {}))
+        per_mission.update(r.per_mission)
         plaus.update(r.plausibility)
     cov = dict(r0.covariance.blocks) if r0.covariance is not None else {}
     if names_f:
         cov["fixed"] = np.array(sol.cov_f, dtype=float)
     info: dict[str, Any] = {
-        "per_mission": per_mission,
         "rounds": sol.rounds, "recovered": sol.recovered, "solver": "schur"}
     return Result(method="fg", mode="batch", estimated=layout.estimated, values=values,
                   sigma=sigma, missions=[r.missions[0] for r in results], history=r0.history,
                   info=info, timings=dict(timings or {}), effects=r0.effects, model=None,
-                  covariance=Covariance(cov), sigma_model=sigma_model,
+                  covariance=Covariance(cov), sigma_model=sigma_model, per_mission=per_mission,
                   plausible=all(r.plausible is not False for r in results), plausibility=plaus,
                   solve=SolveSummary(sol.converged, sol.cost, sol.iterations, sol.trials),
                   sigma_inflation=sigma_inflation(sigma, sigma_model))

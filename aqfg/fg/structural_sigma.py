@@ -11,7 +11,6 @@ import math
 import numpy as np
 
 from aqfg.data.mission import Mission
-from aqfg.fg.effect_guard import per_mission_copy
 from aqfg.fg.fastlm import FastSystem
 from aqfg.fg.settings import FGSettings
 from aqfg.fg.structure import structural_shift
@@ -55,26 +54,24 @@ def structural_sigma(res: Result, missions: list[Mission], fs: FastSystem, ev: d
         return res
     if not misfit or not sh.suggested:
         return dataclasses.replace(res, structural_test=sh)
-    info = dict(res.info)
     sigma = dict(res.sigma)
-    per = per_mission_copy(info)
+    per = {m: dict(e) for m, e in res.per_mission.items()}
     before = {n: float(sigma[n]) for n in sh.shift if n in sigma}
     for n, d in sh.shift.items():
         if n in sigma:
             sigma[n] = float(np.hypot(sigma[n], d))
-        for e in (per or {}).values():
+        for e in per.values():
             # a joint fit's per-mission values: the same shift (the largest over them)
-            if isinstance(e.get(n), dict) and "sigma" in e[n]:
-                e[n]["sigma"] = float(np.hypot(e[n]["sigma"], d))
+            if n in e and e[n].sigma_computed:
+                e[n] = dataclasses.replace(e[n], sigma=float(np.hypot(e[n].sigma, d)))
     w = structure_warning(sh.effect, sh.proven, sh.p_robust, sh.shift)
-    if per is not None:
-        info["per_mission"] = per
     ss = SigmaStructure(sh.effect, sh.p_robust, dict(sh.shift), sh.proven,
                         [dict(c) for c in sh.ranked], before, w)
     if log_warnings:
         log.warning("fg: %s", w)
-    return dataclasses.replace(res, sigma=sigma, info=info, structural_test=sh,
-                               sigma_structure=ss, warnings=[*res.warnings, w])
+    return dataclasses.replace(res, sigma=sigma, info=dict(res.info), per_mission=per,
+                               structural_test=sh, sigma_structure=ss,
+                               warnings=[*res.warnings, w])
 
 
 def structure_warning(effect: str, proven: bool, p_robust: float, shift: dict[str, float],
@@ -116,7 +113,6 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
         return checked(RefitCheck(ss.effect, cost, not_used="implausible"))
     if not cost < res.cost:
         return checked(RefitCheck(ss.effect, cost, not_used="it does not lower the cost"))
-    info = dict(res.info)
     first = ss.shift
     names: list[str] = [n for n in ("theta_e", "s_x", "s_y")
                         if n in res.sigma and n in new.values]
@@ -125,21 +121,20 @@ def cover_refit(res: Result, new: Result | None, why: str = "") -> Result:
     sigma = dict(res.sigma)
     for n in names:
         sigma[n] = _cover(sigma[n], move[n], first.get(n, 0.0))
-    per, per_new = per_mission_copy(info), new.info.get("per_mission") or {}
-    for m, est_m in (per or {}).items():
+    per = {m: dict(e) for m, e in res.per_mission.items()}
+    for m, est_m in per.items():
         for n in names:
-            em, en = est_m.get(n), per_new.get(m, {}).get(n)
-            if isinstance(em, dict) and isinstance(en, dict) and em.get("sigma") is not None:
-                d = abs(difference(n, float(en["value"]), float(em["value"])))
-                em["sigma"] = _cover(float(em["sigma"]), d, first.get(n, 0.0))
+            em, en = est_m.get(n), new.per_mission.get(m, {}).get(n)
+            if em is not None and en is not None and em.sigma_computed:
+                d = abs(difference(n, en.value, em.value))
+                est_m[n] = dataclasses.replace(em, sigma=_cover(em.sigma, d, first.get(n, 0.0)))
                 move[f"{m}:{n}"] = d
-    if per is not None:
-        info["per_mission"] = per
     w = structure_warning(ss.effect, True, float(ss.p_value_robust), first,
                           moved={n: move[n] for n in names})
     checked_ss = dataclasses.replace(ss, refit=RefitCheck(ss.effect, cost, move, before),
                                      warning=w)
-    return dataclasses.replace(res, sigma=sigma, info=info, sigma_structure=checked_ss,
+    return dataclasses.replace(res, sigma=sigma, info=dict(res.info), per_mission=per,
+                               sigma_structure=checked_ss,
                                warnings=[w if x == ss.warning else x for x in res.warnings])
 
 

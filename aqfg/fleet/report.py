@@ -19,14 +19,14 @@ from aqfg.parameters_doc import (
     PARAMETERS_FORMAT,
     dead_reckoning_document,
     effect_step_document,
+    per_mission_document,
     without_effect_document,
 )
 from aqfg.result import EffectStep, Result
 
 
 def fixed_names(res: Result) -> tuple[str, ...]:
-    per = res.info.get("per_mission") or {}
-    local = {n for v in per.values() for n in v}
+    local = {n for v in res.per_mission.values() for n in v}
     return tuple(n for n in res.estimated if n not in local)
 
 
@@ -81,7 +81,7 @@ def fleet_table(fr: FleetResult) -> dict:
                                **({"z_vs_others": t["z"][j]} if t["z"] else {})}
                            for j, n in enumerate(names)},
             "test": {k: t[k] for k in ("chi2", "dof", "p_value", "p_holm", "differs")},
-            "missions": dict(zip(dirs[v], r.info["per_mission"].values())),
+            "missions": dict(zip(dirs[v], per_mission_document(r.per_mission).values())),
             "iterations": r.iterations, "converged": r.converged,
             "plausible": r.plausible,
             "cost": r.solve.cost if r.solve is not None else None}
@@ -134,15 +134,16 @@ def save_fleet(fr: FleetResult, out_dir: str | os.PathLike, overwrite: bool = Fa
             written.append(out / v.name / "parameters.json")
             names_f = fixed_names(res)
             for m, mres in zip(v.missions, res.missions):
-                local = res.info["per_mission"].get(mres.name, {})
+                local = res.per_mission.get(mres.name, {})
                 est = tuple(names_f) + tuple(local)
                 vals = dict(res.values)
-                vals.update({n: e["value"] for n, e in local.items()})
+                vals.update({n: e.value for n, e in local.items()})
                 sig = {n: res.sigma[n] for n in names_f}
-                sig.update({n: e["sigma"] for n, e in local.items()})
+                sig.update({n: e.sigma for n, e in local.items()})
                 mdir = inside(vdir, vdir / m.name)
                 mdir.mkdir(parents=True, exist_ok=True)
-                notes = {n: e["sigma_note"] for n, e in local.items() if e.get("sigma_note")}
+                notes = {n: e.note.sigma_note for n, e in local.items()
+                         if e.note is not None and e.note.sigma_note}
                 write_result(Result("fg", "batch", est, vals, sig, [mres],
                                     sigma_notes=notes or None), mdir,
                              provenance=provenance(method="fg", mode="fleet",

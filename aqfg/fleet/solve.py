@@ -449,7 +449,7 @@ def vehicle_arrays(fr: FleetResult) -> tuple[list[str], tuple[str, ...], np.ndar
     """Vehicles, fixed-parameter names, values (V, d) and covariances (V, d, d)."""
     vs = list(fr.results)
     names = tuple(n for n in fr.results[vs[0]].estimated
-                  if n not in next(iter(fr.results[vs[0]].info["per_mission"].values()), {}))
+                  if n not in next(iter(fr.results[vs[0]].per_mission.values()), {}))
     X = np.array([[fr.results[v].values[n] for n in names] for v in vs])
     C = np.array([fixed_covariance(fr.results[v]) for v in vs])
     return vs, names, X, C

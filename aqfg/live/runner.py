@@ -181,7 +181,7 @@ class LiveRunner:
         rep = FixReport(self.segment, t, t0 * 1e-9 + t, x, position_sigma(fl), dict(info.values),
                         dict(info.sigma), bool(fl.held),
                         float(info.seconds if revised is None else revised), innov,
-                        [dict(e) for e in new], revised is not None)
+                        [e.document() for e in new], revised is not None)
         self.on_fix(rep)
 
     # ----------------------------------------------------------------- segments

@@ -70,10 +70,9 @@ class ModelFile:
             params[n] = {"value": float(result.values[n]),
                          "sigma": float(result.sigma.get(n, math.nan)) if n in est else math.nan}
         per = {}
-        pm = result.info.get("per_mission") or {}
-        for mname, vals in pm.items():
-            per[mname] = {n: {"value": float(v["value"]), "sigma": float(v.get("sigma", math.nan))}
-                          for n, v in vals.items()}
+        for mname, vals in result.per_mission.items():
+            per[mname] = {n: {"value": float(e.value), "sigma": float(e.sigma)}
+                          for n, e in vals.items()}
         return cls(vehicle, tuple(result.effects), params, per, dict(source or {}))
 
     # ---- JSON

@@ -14,6 +14,7 @@ import numpy as np
 from aqfg.fg import factors as fc
 from aqfg.fg.common import Measurements, first_knot_prior, measurement_factors
 from aqfg.fg.online.engine import BROAD_STATE_SIGMA, WindowEngine
+from aqfg.fg.online.records import OnlineEvent
 
 # what GTSAM's wrapper raises when elimination or a marginal fails (indeterminate
 # system, a key missing from the Bayes tree after marginalisation, ...)
@@ -281,9 +282,9 @@ class GtsamEngine(WindowEngine):
             C = self.smoother.marginalCovariance(key)
             return np.sqrt(np.maximum(np.diag(C), 0.0))
         except GTSAM_ERRORS as exc:
-            self.host.events.append({"t": float(self.host.knots[-1]),
-                                     "event": "marginal unavailable",
-                                     "error": str(exc).splitlines()[0] if str(exc) else ""})
+            self.host.events.append(OnlineEvent(
+                float(self.host.knots[-1]), "marginal unavailable",
+                {"error": str(exc).splitlines()[0] if str(exc) else ""}))
             return np.full(dim, np.nan)
 
     def read_states(self, t_fix: float, i_fix: int) -> None:
@@ -331,10 +332,10 @@ class GtsamEngine(WindowEngine):
             self.smoother.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, idx)
             for _ in range(2):
                 self.smoother.update()
-            h.events.append({"t": float(t_fix), "event": "parameters released"})
+            h.events.append(OnlineEvent(float(t_fix), "parameters released"))
         except GTSAM_ERRORS as exc:
-            h.events.append({"t": float(t_fix), "event": "release failed; restarted",
-                             "error": _first_line(exc)})
+            h.events.append(OnlineEvent(float(t_fix), "release failed; restarted",
+                                        {"error": _first_line(exc)}))
             self.restart(t_fix)
 
     # ---------------------------------------------------------------- recovery
@@ -366,8 +367,8 @@ class GtsamEngine(WindowEngine):
         for hard in (False, True):
             self.restart(t_fix, hard=hard)
             if not attempt(*self._after_restart(graph, vals)):
-                h.events.append({"t": float(t_fix), "event": "restarted" + (
-                    " (broad priors)" if hard else ""), "error": err})
+                h.events.append(OnlineEvent(float(t_fix), "restarted" + (
+                    " (broad priors)" if hard else ""), {"error": err}))
                 return
         self.restart(t_fix, hard=True)
         keep = gtsam.Values()
@@ -379,7 +380,7 @@ class GtsamEngine(WindowEngine):
             keep.insert(k, v)
             prior.add(gtsam.PriorFactorVector(k, v, gtsam.noiseModel.Isotropic.Sigma(len(v), 10.0)))
         self.smoother.update(prior, keep, stamps)
-        h.events.append({"t": float(t_fix), "event": "fix skipped", "error": err})
+        h.events.append(OnlineEvent(float(t_fix), "fix skipped", {"error": err}))
 
     def _after_restart(self, graph, vals):
         """The new factors and values of an update, fitted to a restarted smoother: the

@@ -8,6 +8,7 @@ from aqfg.fg import factors as fc
 from aqfg.fg.common import first_knot_prior
 from aqfg.fg.fastlag import LagWindow
 from aqfg.fg.online.engine import BROAD_STATE_SIGMA, WindowEngine
+from aqfg.fg.online.records import OnlineEvent
 
 
 class NumpyEngine(WindowEngine):
@@ -80,11 +81,11 @@ class NumpyEngine(WindowEngine):
                 eng.broaden(BROAD_STATE_SIGMA, s.graph.prior_scale)
                 try:
                     eng.step()
-                    self.host.events.append({"t": float(t_fix),
-                                             "event": "restarted (broad priors)", "error": err})
+                    self.host.events.append(OnlineEvent(float(t_fix), "restarted (broad priors)",
+                                                        {"error": err}))
                 except np.linalg.LinAlgError:
-                    self.host.events.append({"t": float(t_fix), "event": "fix skipped",
-                                             "error": err})
+                    self.host.events.append(OnlineEvent(float(t_fix), "fix skipped",
+                                                        {"error": err}))
                 return
 
     def read_states(self, t_fix: float, i_fix: int) -> None:
@@ -126,7 +127,7 @@ class NumpyEngine(WindowEngine):
         self.win.release()
         for _ in range(2):
             self._step(t_fix)
-        self.host.events.append({"t": float(t_fix), "event": "parameters released"})
+        self.host.events.append(OnlineEvent(float(t_fix), "parameters released"))
 
     def set_lag(self, lag: float) -> None:
         self.win.lag = lag

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from aqfg.fg import noise
+from aqfg.fg.online.records import ReinitBatch
 from aqfg.fg.settings import FGSettings
 
 RESEED_EARLY_FIXES = 3     # the fewest fixes the closed form takes (the current held at zero)
@@ -41,7 +42,7 @@ class HoldPolicy:
     phase: Phase = Phase.RELEASED
     batch_tried: bool = False
     forced_at: float = -math.inf
-    reinit_batches: list[dict] = field(default_factory=list)
+    reinit_batches: list[ReinitBatch] = field(default_factory=list)
     replaying: bool = False
     replay_prior: dict[str, float] = field(default_factory=dict)
     replay_centre: dict[str, float] | None = None

@@ -17,6 +17,7 @@ from aqfg.fg import observability, plausibility
 from aqfg.fg.common import knot_times
 from aqfg.fg.online import policy as hold_policy
 from aqfg.fg.online.gtsam_engine import GTSAM_ERRORS
+from aqfg.fg.online.records import ConstantsCheck, OnlineEvent, ReinitBatch
 from aqfg.fg.online.views import mission_until
 from aqfg.model.params import difference
 
@@ -69,7 +70,7 @@ def troubled(fl: FixedLagSmoother, t_fix: float) -> bool:
     with broad priors, and no forced re-initialisation ran in the last 30 s: the smoother's
     own recoveries are not enough (a track that ran to 1e7 m after a failed release), so
     the fixes so far are solved as a batch and replayed."""
-    bad = any(e["event"] in ("fix skipped", "prediction diverged", "restarted (broad priors)")
+    bad = any(e.event in ("fix skipped", "prediction diverged", "restarted (broad priors)")
               for e in fl.events[fl.events_mark:])
     return bad and fl.policy.may_force(t_fix, fl.n_fix, fl.init)
 
@@ -102,8 +103,8 @@ def implausible_released(fl: FixedLagSmoother, t_fix: float) -> bool:
     pinned, why = plausibility.bounds(fl.model, fl.params(), est)
     if not pinned:
         return False
-    fl.events.append({"t": float(t_fix), "event": "released parameters implausible",
-                      "reasons": why})
+    fl.events.append(OnlineEvent(float(t_fix), "released parameters implausible",
+                                 {"reasons": why}))
     fl.policy.forced_at = float(t_fix)        # one attempt per 30 s, used or not
     return True
 
@@ -155,12 +156,12 @@ def reseed(fl: FixedLagSmoother, t_fix: float) -> UpdateInfo | None:
         sp = fl.model.spec("k")
         new_init["k"] = float(np.clip(k0 * st.rho ** 2, sp.lower, sp.upper))
     # held with their start priors (the settings'), as at the start
-    return replay(fl, t_fix, new_init, {}, {
-        "t": float(t_fix), "event": "held heading re-seeded from the fixes so far",
-        "theta_e_before": th0, "theta_e_after": float(st.theta_e),
-        "speed_scale": float(st.rho), "speed_scale_sigma": sd_rho, "k_before": k0,
-        "k_after": new_init.get("k", k0),
-        "misfit_m": float(st.misfit)}, t_re)
+    return replay(fl, t_fix, new_init, {}, OnlineEvent(
+        float(t_fix), "held heading re-seeded from the fixes so far",
+        {"theta_e_before": th0, "theta_e_after": float(st.theta_e),
+         "speed_scale": float(st.rho), "speed_scale_sigma": sd_rho, "k_before": k0,
+         "k_after": new_init.get("k", k0),
+         "misfit_m": float(st.misfit)}), t_re)
 
 
 def _reseed_scale(fl: FixedLagSmoother, t_fix: float, view: Mission, st
@@ -223,32 +224,31 @@ def reinitialise(fl: FixedLagSmoother, t_fix: float, force: bool = False,
     ref_v, ref_s, alt, own_ref, slip, undetermined = _reference(fl, bres, uni, own)
     free = _constants_discrepancy(fl, view, ref_v) if fl.constants_given else None
     if free:
-        for n, d in free["difference"].items():
-            if not free["theta_e_determined"]:
+        for n, d in free.difference.items():
+            if not free.theta_e_determined:
                 # a free solve that does not determine the heading offset (one heading
                 # kept) moves by about its own sigma; beyond that its value is noise (on
                 # heldout-136 44-165 deg from a held answer within 8 deg, sigma 7-51 deg)
-                d = min(d, free["sigma"].get(n, d))
+                d = min(d, free.sigma.get(n, d))
             fl.report.ambiguity[n] = fl.report.ambiguity.get(n, 0.0) + d * d
     th_b = ref_v["theta_e"]
     gap = abs(float(np.angle(np.exp(1j * (th_b - p[fl.model.index("theta_e")])))))
     sb = float(ref_s.get("theta_e", np.nan))
     tol = _restart_tolerance(pol.held, sb, bool(alt), slip)
     q_meas = bres.process_noise_measured
-    pol.reinit_batches.append({
-        "t": float(t_fix), "theta_e": float(bres.values["theta_e"]),
-        "sigma_theta_e": float(bres.sigma.get("theta_e", np.nan)),
-        "process_noise_scale": _noise_scale(bres),
-        "process_noise_measured": None if q_meas is None else float(q_meas),
-        "noise_by_evidence": bool(bres.process_noise_evidence),
-        "cost": bres.cost, "slip_deg": float(slip),
-        "gap": float(gap), "tolerance": float(tol),
-        "restarted": bool(force or gap >= tol),
-        "theta_e_determined": not undetermined,
-        "reference": ("solution from the online estimate (as good a basin)" if own_ref
-                      else "non-sliding alternative" if alt else "batch"),
-        "reference_theta_e": float(th_b), "reference_sigma_theta_e": sb,
-        **({"constants_free": free} if free is not None else {})})
+    pol.reinit_batches.append(ReinitBatch(
+        t=float(t_fix), theta_e=float(bres.values["theta_e"]),
+        sigma_theta_e=float(bres.sigma.get("theta_e", np.nan)),
+        process_noise_scale=_noise_scale(bres),
+        process_noise_measured=None if q_meas is None else float(q_meas),
+        noise_by_evidence=bool(bres.process_noise_evidence),
+        cost=bres.cost, slip_deg=float(slip),
+        gap=float(gap), tolerance=float(tol),
+        restarted=bool(force or gap >= tol),
+        theta_e_determined=not undetermined,
+        reference=("solution from the online estimate (as good a basin)" if own_ref
+                   else "non-sliding alternative" if alt else "batch"),
+        reference_theta_e=float(th_b), reference_sigma_theta_e=sb, constants_free=free))
     if force:
         pol.forced_at = float(t_fix)
     elif gap < tol:
@@ -286,9 +286,9 @@ def _restart_from(fl: FixedLagSmoother, t_fix: float, ref_v: dict, ref_s: dict,
         sg = ref_s.get(n)
         if sg is not None and np.isfinite(sg) and sg > 0:
             prior[n] = 2.0 * float(sg)
-    info = replay(fl, t_fix, new_init, prior, {
-        "t": float(t_fix), "event": "re-initialised from a batch solve of the fixes so far",
-        "theta_e_before": th_before, "theta_e_after": float(ref_v["theta_e"])}, t_re)
+    info = replay(fl, t_fix, new_init, prior, OnlineEvent(
+        float(t_fix), "re-initialised from a batch solve of the fixes so far",
+        {"theta_e_before": th_before, "theta_e_after": float(ref_v["theta_e"])}), t_re)
     fl.release(t_fix)
     return info
 
@@ -305,15 +305,14 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
             raise ValueError("too few fixes")
         bres = _batch(fl, fl.layout.estimated, also_start=own).run([view])
     except (ValueError, *GTSAM_ERRORS) as exc:
-        _batch_not_used(fl, t_fix, {"event": "batch re-initialisation failed",
-                                    "error": _first_line(exc)})
+        _batch_not_used(fl, t_fix, "batch re-initialisation failed",
+                        {"error": _first_line(exc)})
         return None
     if bres.plausible is False:
         # a batch of a short stretch with the constants free can land on a vehicle no
         # hull is (thrust 500x, currents at their bounds on a 40-s crop of an Otter
         # mission); replayed with such values held, every prediction diverged
-        _batch_not_used(fl, t_fix, {
-            "event": "batch re-initialisation implausible: not used",
+        _batch_not_used(fl, t_fix, "batch re-initialisation implausible: not used", {
             "reasons": [r for v in bres.plausibility.values()
                         for r in v.get("reasons", [])]})
         return None
@@ -325,9 +324,8 @@ def _usable_batch(fl: FixedLagSmoother, t_fix: float, view: Mission, own: dict |
         # 70 deg off, sigma 19 deg; released, the causal track ran 33 m off); still
         # held. (Not with the constants given: there it made more runs worse than it
         # mended, docs/independent-vehicle.md)
-        _batch_not_used(fl, t_fix, {
-            "event": "batch re-initialisation explains no fix (process noise at its "
-                     "bound): not used"})
+        _batch_not_used(fl, t_fix, "batch re-initialisation explains no fix (process noise "
+                        "at its bound): not used")
         return None
     return bres
 
@@ -416,16 +414,15 @@ def _batch(fl: FixedLagSmoother, estimate: Sequence[str],
 
 
 def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, float]
-                           ) -> dict | None:
+                           ) -> ConstantsCheck | None:
     """The thrust/drag constants given (another mission's fit, or by hand) may not be this
     mission's: the fixes so far solved again with them free (from the given values), and
-    each variable parameter's difference from the batch ``ref`` with them held:
-    ``{"difference": {name: value}, "theta_e", "sigma_theta_e", "sigma",
-    "theta_e_determined", "free", "cost"}``, None where that solve fails or is
-    implausible. Its square is added to the reported variance until the next batch
-    (``SigmaReport.ambiguity``): the held constants' sigma assumes them right, and with a
-    weak-propeller mission's constants a 16-s batch put theta_e 42 deg off with sigma
-    12 deg where the free solve was 17 deg off (docs/independent-vehicle.md)."""
+    each variable parameter's difference from the batch ``ref`` with them held
+    (:class:`ConstantsCheck`), None where that solve fails or is implausible. Its square
+    is added to the reported variance until the next batch (``SigmaReport.ambiguity``):
+    the held constants' sigma assumes them right, and with a weak-propeller mission's
+    constants a 16-s batch put theta_e 42 deg off with sigma 12 deg where the free solve
+    was 17 deg off (docs/independent-vehicle.md)."""
     consts = tuple(n for n in fl.model.active_names
                    if fl.model.spec(n).group == "fixed" and n not in fl.layout.estimated)
     if not consts:
@@ -450,26 +447,28 @@ def _constants_discrepancy(fl: FixedLagSmoother, view: Mission, ref: dict[str, f
     for n in fl.layout.estimated:
         if n in ref and n in res.values and fl.model.spec(n).group == "variable":
             diff[n] = abs(difference(n, float(res.values[n]), float(ref[n])))
-    return {"difference": diff, "theta_e": float(res.values.get("theta_e", np.nan)),
-            "sigma_theta_e": float(res.sigma.get("theta_e", np.nan)),
-            "sigma": {n: float(res.sigma[n]) for n in diff if n in res.sigma},
-            "theta_e_determined": (res.observability or {}).get(
-                "theta_e", {}).get("verdict") != observability.NOT,
-            "free": list(free), "cost": res.cost}
+    return ConstantsCheck(
+        difference=diff, theta_e=float(res.values.get("theta_e", np.nan)),
+        sigma_theta_e=float(res.sigma.get("theta_e", np.nan)),
+        sigma={n: float(res.sigma[n]) for n in diff if n in res.sigma},
+        theta_e_determined=(res.observability or {}).get(
+            "theta_e", {}).get("verdict") != observability.NOT,
+        free=list(free), cost=res.cost)
 
 
-def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: dict) -> None:
-    """A re-initialisation batch that failed or is not used: recorded (``event``); the
-    parameters stay as they are, and held ones are released once the schedule of batches
-    has passed half its length (none would come to release them)."""
-    fl.events.append({"t": float(t_fix), **event})
+def _batch_not_used(fl: FixedLagSmoother, t_fix: float, event: str,
+                    details: dict | None = None) -> None:
+    """A re-initialisation batch that failed or is not used: recorded (``event``, its
+    ``details``); the parameters stay as they are, and held ones are released once the
+    schedule of batches has passed half its length (none would come to release them)."""
+    fl.events.append(OnlineEvent(float(t_fix), event, dict(details or {})))
     if fl.policy.held and 2.0 * (t_fix - fl.knots[0]) > fl.settings.online.reinit_until:
         fl.release(t_fix)
 
 
 # ---------------------------------------------------------------- replay
 def replay(fl: FixedLagSmoother, t_fix: float, new_init: dict[str, float],
-           prior: dict[str, float], event: dict, t_re: float) -> UpdateInfo | None:
+           prior: dict[str, float], event: OnlineEvent, t_re: float) -> UpdateInfo | None:
     """Restart the smoother and replay the fixes up to ``t_fix`` with the parameters held at
     ``new_init`` (``prior``: their start priors' sigmas); what was reported causally before
     stays as it was reported. The parameters stay held (the caller releases them or not).

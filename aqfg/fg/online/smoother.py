@@ -53,6 +53,7 @@ from aqfg.fg.online.gate import UsblGate
 from aqfg.fg.online.gtsam_engine import GtsamEngine
 from aqfg.fg.online.numpy_engine import NumpyEngine
 from aqfg.fg.online.policy import HoldPolicy, Phase
+from aqfg.fg.online.records import OnlineEvent, ReinitBatch
 from aqfg.fg.online.report import ParamPriors, SigmaReport
 from aqfg.fg.online.tracks import p_segments, retrace, with_tail
 from aqfg.fg.online.views import StepSource
@@ -208,7 +209,7 @@ class FixedLagSmoother:
         self.n_fix = 0
         self.pred_t: list[float] = []              # fix times after the first, and the
         self.pred_x: list[np.ndarray] = []        # state predicted there before the update
-        self.events: list[dict] = []               # recoveries and other notable events
+        self.events: list[OnlineEvent] = []        # recoveries and other notable events
         self.events_mark = 0
         self._diverged_at: set[tuple[float, float]] = set()   # corrected_track's, noted
         self.last_params: dict[str, np.ndarray] = {}   # last finite estimate per group
@@ -241,8 +242,8 @@ class FixedLagSmoother:
         return self.backend.name
 
     @property
-    def reinit_batches(self) -> list[dict]:
-        """A record per batch re-initialisation solved (``info["reinit_batches"]``)."""
+    def reinit_batches(self) -> list[ReinitBatch]:
+        """A record per batch re-initialisation solved (``Result.reinit_batches``)."""
         return self.policy.reinit_batches
 
     @property
@@ -327,8 +328,8 @@ class FixedLagSmoother:
 
     def note_diverged_prediction(self, t: float) -> None:
         """An event where the model's prediction diverged (once per run of them)."""
-        if not self.events or self.events[-1].get("event") != "prediction diverged":
-            self.events.append({"t": float(t), "event": "prediction diverged"})
+        if not self.events or self.events[-1].event != "prediction diverged":
+            self.events.append(OnlineEvent(float(t), "prediction diverged"))
 
     def _kinematic_step(self, t_fix: float) -> None:
         """The causal track's kinematic floor (:class:`aqfg.fg.kinematic.CausalFloor`) at
@@ -338,9 +339,9 @@ class FixedLagSmoother:
         if self.policy.replaying:
             return
         if self._floor.step(t_fix, self.gate.fixes, self.policy.held):
-            self.events.append({"t": float(t_fix), "event": "causal track follows the model "
-                                "from here (before: a constant-velocity filter on the fixes, "
-                                "while the parameters were held)"})
+            self.events.append(OnlineEvent(float(t_fix), "causal track follows the model "
+                                           "from here (before: a constant-velocity filter on "
+                                           "the fixes, while the parameters were held)"))
 
     def _solve(self, t_fix: float, n_new: int) -> UpdateInfo:
         """The engine's solve at a fix, and what is reported of it (values, sigma, the
@@ -420,9 +421,9 @@ class FixedLagSmoother:
         re-trace (:meth:`corrected_track`)."""
         if (t_a, t_b) not in self._diverged_at:
             self._diverged_at.add((t_a, t_b))
-            self.events.append({"t": t_a, "event": "corrected track: the model's re-trace "
-                                f"diverged between {t_a:.1f} and {t_b:.1f} s; the smoothed "
-                                "states joined there instead"})
+            self.events.append(OnlineEvent(t_a, "corrected track: the model's re-trace "
+                                           f"diverged between {t_a:.1f} and {t_b:.1f} s; the "
+                                           "smoothed states joined there instead"))
 
     def _p_segments(self, p_now: np.ndarray) -> list[np.ndarray]:
         """Parameter vectors per random-walk segment (the current one for the last)."""
@@ -479,7 +480,10 @@ class FixedLagSmoother:
         return Result(method="fg", mode="online", estimated=lay.estimated,
                       values=dict(zip(self.model.all_names, map(float, p))), sigma=sigma,
                       missions=[mr], timings={k: list(v) for k, v in self.timings.items()},
-                      history=hist, info=self._info(), warnings=list(self.warnings),
+                      history=hist, histories=[hist], info=self._info(),
+                      warnings=list(self.warnings),
+                      events=list(self.events), reinit_batches=list(self.policy.reinit_batches),
+                      rejected_usbl=sorted(t for t, out in self.gate.rejected.items() if out),
                       process_noise_scale=float(self.noise.q_scale),
                       effects=tuple(e.name for e in self.model.effects), model=self.model,
                       engine=OnlineEngine(self.engine, self.engine_note),
@@ -492,8 +496,5 @@ class FixedLagSmoother:
                 "warmup_end": self.warmup_end,
                 "predicted_at_fix": (np.array(self.pred_t), np.array(self.pred_x).reshape(-1, 6)),
                 "update_median_s": float(np.median(ups)) if ups else float("nan"),
-                "events": list(self.events),
-                "rejected_usbl": sorted(t for t, out in self.gate.rejected.items() if out),
-                "reinit_batches": list(self.policy.reinit_batches),
                 "kernel": "cpp" if self.model.uses_cpp else "numpy",
                 "settings": self.settings}
