@@ -127,7 +127,8 @@ def test_data_too_short_for_the_sandwich_take_the_structural_sigma_from_the_test
 def test_a_drift_adds_its_mission_mean_and_only_at_a_plausible_size():
     """A drift's term averaged over the knots (theta_e and s are the values at the mission
     start under a drift, the mission means without one), other effects none; an estimate
-    beyond its plausible range is brought to the range's edge (a lever arm to the hull)."""
+    (null + offset) beyond its plausible range is brought to the range's edge (a lever arm
+    to the hull)."""
     from aqfg.fg.structure import drift_mean, plausible_size
     from aqfg.model.effects import resolve
     m = simulate("asv", seed=1, duration=60.0)[0]
@@ -139,7 +140,11 @@ def test_a_drift_adds_its_mission_mean_and_only_at_a_plausible_size():
     assert drift_mean(resolve("reverse_thrust"), np.array([1.3]), m, knots) == {}
     lo, hi = resolve("heading_drift").plausible_range(resolve("heading_drift").specs()[0])
     assert plausible_size(resolve("heading_drift"), np.array([5.4e-3]))[0] == hi
-    assert plausible_size(resolve("reverse_thrust"), np.array([1.2]))[0] == 1.2
+    # offsets from the null: a reverse-thrust ratio of 1.63 to the edge 1.5, 0.8 kept
+    rt = resolve("reverse_thrust")
+    edge = rt.plausible_range(rt.specs()[0])[1]
+    assert plausible_size(rt, np.array([0.63]))[0] == pytest.approx(edge - 1.0)
+    assert plausible_size(rt, np.array([-0.2]))[0] == pytest.approx(-0.2)
     m.hull = (1.2, 1.0)
     arm = plausible_size(resolve("lever_arm"), np.array([1.0, -0.2, 0.1]), [m])
     assert np.allclose(arm, [0.6, -0.2, 0.1])

@@ -161,13 +161,16 @@ def _holm_levels(tests: list) -> tuple[list[int], list[int]]:
 
 
 def plausible_size(effect: Effect, delta: np.ndarray, missions=()) -> np.ndarray:
-    """``delta`` (the effect's parameters, in ``effect.params`` order) with each value
-    brought into its :meth:`~aqfg.model.effects.Effect.plausible_range`: the largest
-    effect of that kind a real vehicle has. A one-step estimate beyond it stands for
-    something else (``Effect.absorbs``), whose bias its shift would overstate (a heading
-    drift of 0.3 deg/s on a real boat's 146-s run)."""
-    lo, hi = np.array([effect.plausible_range(sp, missions) for sp in effect.specs()]).T
-    return np.clip(np.asarray(delta, float), lo, hi)
+    """``delta`` (the effect's parameters as offsets from their null, in ``effect.params``
+    order) with each value ``null + delta`` brought into its
+    :meth:`~aqfg.model.effects.Effect.plausible_range`: the largest effect of that kind a
+    real vehicle has. A one-step estimate beyond it stands for something else
+    (``Effect.absorbs``), whose bias its shift would overstate (a heading drift of
+    0.3 deg/s on a real boat's 146-s run)."""
+    specs = effect.specs()
+    null = np.array([sp.null for sp in specs], float)
+    lo, hi = np.array([effect.plausible_range(sp, missions) for sp in specs], float).T
+    return np.clip(null + np.asarray(delta, float), lo, hi) - null
 
 
 def drift_mean(effect: Effect, q: np.ndarray, mission: Mission, knots: np.ndarray
