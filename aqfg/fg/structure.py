@@ -251,8 +251,6 @@ def structural_shift(missions: list[Mission], fs: FastSystem, ev: dict, model: M
                            [{"effect": x.effect, "p_value_robust": float(x.p_value_robust),
                              "estimate": {n: float(v) for n, v in zip(x.params, x.estimate)},
                              "statistic": float(x.statistic), "called_for": x.effect in called,
-                             "plausible": not by_name[x.effect].implausible(
-                                 dict(zip(x.params, x.estimate)), missions),
                              "shift": _shift_of(fs, Zp, cols, names, x, by_name[x.effect], missions)}
                             for x in sorted(tests, key=lambda x: -x.statistic)],
                            proven=bool(ok), suggested=bool(suggested))
